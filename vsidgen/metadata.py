@@ -1,0 +1,110 @@
+"""Metadata of a model kept apart from values (dynamax habit).
+
+These records describe names, units, bounds, fixed flags, noise structure and
+the data mapping. They are produced by :mod:`vsidgen.symbolic` from a spec and
+consumed by the runtime :class:`vsidgen.model.Model`, the data loader and the
+estimator. Numeric values being estimated live in the estimator, not here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any, Literal
+
+
+@dataclasses.dataclass(frozen=True)
+class Variable:
+    """A state, input or output: name, unit and description."""
+
+    name: str
+    unit: str | None = None
+    description: str = ""
+    symbol: Any = None  # sympy.Symbol when built from a spec
+
+
+@dataclasses.dataclass(frozen=True)
+class Constant:
+    """A named constant with its value, unit and source."""
+
+    name: str
+    value: float
+    unit: str | None = None
+    source: str = ""
+    symbol: Any = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """An unknown model parameter θ_i.
+
+    ``initial`` is the starting value (0 by default: vsidgen starts from null
+    guesses). ``lower``/``upper`` are optional bounds honoured through a smooth
+    unconstrained map; ``fixed`` parameters keep ``initial`` and are not estimated.
+    """
+
+    name: str
+    unit: str | None = None
+    description: str = ""
+    initial: float = 0.0
+    lower: float | None = None
+    upper: float | None = None
+    fixed: bool = False
+    symbol: Any = None
+
+
+@dataclasses.dataclass(frozen=True)
+class ProcessNoiseSpec:
+    """Process noise G dW on the listed states.
+
+    ``structure`` "diagonal": G = diag(std) on ``states``; "full": G lower
+    triangular. ``std`` values are in state-unit/sqrt(s); when ``estimate`` is
+    false they are the fixed values (missing = 0). ``floor`` is a lower bound
+    on each diagonal std (default 0).
+    """
+
+    states: tuple[str, ...] = ()
+    structure: Literal["diagonal", "full"] = "diagonal"
+    estimate: bool = True
+    std: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    floor: Mapping[str, float] = dataclasses.field(default_factory=dict)
+
+
+@dataclasses.dataclass(frozen=True)
+class MeasurementNoiseSpec:
+    """Measurement noise of one output: v ~ N(0, std²).
+
+    ``floor`` "auto" derives the lower bound from the data resolution
+    (smallest non-zero step / sqrt(12)); a number sets it; 0 disables it.
+    """
+
+    output: str
+    estimate: bool = True
+    std: float | None = None
+    floor: float | Literal["auto"] = "auto"
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelMap:
+    """How one input or output is read from a CSV record.
+
+    Either ``column`` (value = scale * column + offset) or ``expr``, a sympy
+    expression in the column symbols listed in ``columns`` (then scale/offset
+    are applied to the expression's value too).
+    """
+
+    name: str
+    column: str | None = None
+    scale: float = 1.0
+    offset: float = 0.0
+    expr: Any = None
+    columns: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class DataSpec:
+    """The data mapping of a spec: time column and channel maps."""
+
+    time: str = "t_s"
+    inputs: tuple[ChannelMap, ...] = ()
+    outputs: tuple[ChannelMap, ...] = ()
