@@ -1,0 +1,29 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+import pytest
+
+_DEFAULT_FLIGHT_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data" / "flight"
+
+
+@pytest.fixture(scope="session")
+def flight_data_dir() -> pathlib.Path:
+    """Directory of the real flight records (third-party data, never copied into the repo).
+
+    ``$VSIDGEN_FLIGHT_DATA`` overrides the default ``<repo>/../shared/data/flight``.
+    When the directory is absent the test is skipped, unless
+    ``VSIDGEN_REQUIRE_FLIGHT_DATA=1``, in which case it fails.
+    """
+    env = os.environ.get("VSIDGEN_FLIGHT_DATA")
+    path = pathlib.Path(env) if env else _DEFAULT_FLIGHT_DATA
+    if not path.is_dir():
+        reason = (f"flight data directory {path} not found "
+                  "(set VSIDGEN_FLIGHT_DATA to the folder holding hfb320_1_10.csv etc.)")
+        if os.environ.get("VSIDGEN_REQUIRE_FLIGHT_DATA") == "1":
+            pytest.fail(reason + "; VSIDGEN_REQUIRE_FLIGHT_DATA=1 makes this an error")
+        pytest.skip(reason)
+    return path

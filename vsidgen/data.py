@@ -1,0 +1,430 @@
+"""Flight records: CSV files -> :class:`Record` (t, u, y) through the spec's data map.
+
+A record is one contiguous, uniformly sampled time history. Each model input
+and output is read through a :class:`vsidgen.metadata.ChannelMap`:
+
+* ``column`` map:  ``value = scale * column + offset``
+* ``expr`` map:    ``value = scale * expr(columns) + offset`` where ``expr`` is
+  a sympy expression (built by the project's whitelist parser) over the
+  column symbols; it is evaluated with ``sympy.lambdify(..., "numpy")``.
+
+Checks (each failure is a :class:`vsidgen.errors.DataError` naming the file,
+the column and/or the sample = 0-based data row, with a hint):
+
+* file missing / unreadable / empty / header only; a mapped column missing
+  (close names suggested); a non-numeric cell; ``±inf`` anywhere in a used
+  column; fewer than :data:`MIN_SAMPLES` samples;
+* time: NaN, non-increasing (duplicated or going back), gaps and
+  non-uniform sampling. The sample period is ``T = (t[N-1] - t[0])/(N-1)``;
+  every step must satisfy ``|t[k+1] - t[k] - T| <= JITTER * T`` and the
+  stamps must stay close to the uniform grid, ``|t[k] - t[0] - kT| <= T/2``.
+  ``JITTER = 5 %`` accepts time stamps quantised by the recorder (HFB-320
+  steps 0.09999–0.10001 s; ``totter_lon_data.csv`` alternates
+  0.009766/0.010010 s, ±2.4 %) but rejects gaps (a missing sample is a 100 %
+  step error) and drifting rates;
+* inputs cannot be missing: NaN (an empty cell or ``nan``) in an input is an
+  error naming the column and sample; outputs may have NaN (= missing
+  sample, excluded from the likelihood) but not in every sample.
+
+Reading is fast: the header is read with :mod:`csv`, the numeric block of the
+used columns with :func:`numpy.loadtxt`; only when that fails (empty cells,
+quotes, a bad cell) is the file parsed cell by cell, which also locates the
+offending cell.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import math
+import os
+import pathlib
+import tempfile
+from collections.abc import Mapping
+
+import numpy as np
+
+from .errors import DataError, VsidgenError
+
+MIN_SAMPLES = 10
+JITTER = 0.05
+_MISSING = {"", "nan", "na", "n/a", "null", "none"}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Record:
+    """One flight record on a uniform time grid.
+
+    Attributes:
+        name: record name (default: the file stem).
+        path: the CSV file (None for in-memory records).
+        t: (N,) seconds from the record start, ``t_raw - t_raw[0]``.
+        dt: the sample period ``T = (t[N-1] - t[0])/(N-1)``.
+        u: (N, nu) inputs, float64, never NaN.
+        y: (N, ny) outputs, float64; NaN = missing sample.
+        input_names, output_names: channel (model input/output) names.
+        t_raw: (N,) the original time stamps.
+    """
+
+    name: str
+    path: pathlib.Path | None
+    t: np.ndarray
+    dt: float
+    u: np.ndarray
+    y: np.ndarray
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    t_raw: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of samples N."""
+        return int(self.t.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Record length ``t[N-1] - t[0]`` in seconds."""
+        return float(self.t[-1] - self.t[0]) if self.n else 0.0
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _names(model, kind: str) -> tuple[str, ...]:
+    attr = getattr(model, f"{kind}_names", None)
+    if attr is not None:
+        return tuple(attr)
+    return tuple(v.name for v in getattr(model, kind + "s"))
+
+
+def _columns_of(cmap) -> tuple[str, ...]:
+    if cmap.expr is not None:
+        cols = tuple(cmap.columns) or tuple(sorted(str(s) for s in cmap.expr.free_symbols))
+        return cols
+    if cmap.column is not None:
+        return (cmap.column,)
+    return (cmap.name,)
+
+
+def _read_header(path: pathlib.Path) -> list[str]:
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            for row in reader:
+                if any(c.strip() for c in row):
+                    return [c.strip() for c in row]
+            return []
+    except FileNotFoundError:
+        raise DataError("file not found", path=path,
+                        hint="check the path (relative paths are taken from the current directory)") from None
+    except IsADirectoryError:
+        raise DataError("is a directory, not a CSV file", path=path) from None
+    except UnicodeDecodeError:
+        raise DataError("not a text (UTF-8) CSV file", path=path,
+                        hint="export the record as comma-separated text with one header row") from None
+    except OSError as exc:
+        raise DataError(f"cannot read file: {exc.strerror or exc}", path=path) from None
+
+
+def _parse_cell(text: str, path, column: str, sample: int) -> float:
+    s = text.strip()
+    if s.lower() in _MISSING:
+        return math.nan
+    try:
+        return float(s)
+    except ValueError:
+        raise DataError(f"non-numeric value {s!r}", path=path, column=column, sample=sample,
+                        hint=f"file line {sample + 2}; use plain decimal numbers, "
+                             "an empty cell or 'nan' for a missing output sample") from None
+
+
+def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.ndarray:
+    """Cell-by-cell parse (handles empty cells and quotes; locates bad cells)."""
+    need = max(idx) + 1
+    rows: list[list[float]] = []
+    with open(path, newline="", encoding="utf-8-sig") as fh:
+        reader = csv.reader(fh)
+        started = False
+        sample = 0
+        for row in reader:
+            if not started:
+                if any(c.strip() for c in row):
+                    started = True  # the header
+                continue
+            if not any(c.strip() for c in row):
+                continue  # blank line (numpy.loadtxt skips them too)
+            if len(row) < need:
+                missing = header[len(row)] if len(row) < len(header) else "?"
+                raise DataError(
+                    f"row has {len(row)} fields but the header has {len(header)}",
+                    path=path, column=missing, sample=sample,
+                    hint=f"file line {sample + 2} is truncated or uses another delimiter "
+                         "(vsidgen reads comma-separated files)")
+            rows.append([_parse_cell(row[j], path, header[j], sample) for j in idx])
+            sample += 1
+    return np.asarray(rows, dtype=np.float64).reshape(len(rows), len(idx))
+
+
+def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.ndarray:
+    try:
+        with open(path, encoding="utf-8-sig") as fh:
+            # skip leading blank lines and the header
+            for line in fh:
+                if line.strip():
+                    break
+            data = np.loadtxt(fh, delimiter=",", usecols=idx, dtype=np.float64,
+                              comments=None, ndmin=2)
+        return data.reshape(-1, len(idx))
+    except (ValueError, IndexError):
+        return _slow_parse(path, header, idx)
+
+
+def _suggest(name: str, header: list[str]) -> str:
+    close = difflib.get_close_matches(name, header, n=3, cutoff=0.5)
+    if close:
+        return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    shown = ", ".join(header[:12]) + (", ..." if len(header) > 12 else "")
+    if len(header) == 1 and any(d in header[0] for d in ";\t|"):
+        return "the header has a single field: vsidgen reads comma-separated files"
+    return f"columns in the file: {shown}"
+
+
+def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
+    if cmap.expr is not None:
+        import sympy
+
+        expr = cmap.expr
+        by_name = {str(s): s for s in expr.free_symbols}
+        names = [c for c in _columns_of(cmap) if c in by_name]
+        syms = [by_name[c] for c in names]
+        fn = sympy.lambdify(syms, expr, "numpy")
+        with np.errstate(all="ignore"):
+            val = np.asarray(fn(*[cols[c] for c in names]), dtype=np.float64)
+        val = np.broadcast_to(val, (n,)).copy()
+    else:
+        val = cols[_columns_of(cmap)[0]].copy()
+    if cmap.scale != 1.0:
+        val = val * float(cmap.scale)
+    if cmap.offset != 0.0:
+        val = val + float(cmap.offset)
+    return val
+
+
+def _first(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
+    """Validate a time column and return the sample period ``T``.
+
+    See the module docstring for the rules (strictly increasing, jitter up to
+    ``JITTER*T`` per step, stamps within ``T/2`` of the uniform grid).
+    """
+    n = t_raw.shape[0]
+    bad = ~np.isfinite(t_raw)
+    if bad.any():
+        k = _first(bad)
+        raise DataError(f"time stamp is {t_raw[k]}", path=path, column=column, sample=k,
+                        hint="every sample needs a finite time stamp")
+    steps = np.diff(t_raw)
+    nonpos = steps <= 0
+    if nonpos.any():
+        k = _first(nonpos) + 1
+        what = "duplicated" if steps[k - 1] == 0 else "goes back"
+        raise DataError(f"time is not increasing: {what} ({t_raw[k - 1]!r} -> {t_raw[k]!r})",
+                        path=path, column=column, sample=k,
+                        hint="sort the record by time and remove repeated samples; "
+                             "split it where the recording restarts")
+    dt = float((t_raw[-1] - t_raw[0]) / (n - 1))
+    dev = np.abs(steps - dt)
+    tol = JITTER * dt
+    if (dev > tol).any():
+        k = int(np.argmax(dev > tol)) + 1
+        kind = "gap" if steps[k - 1] > dt else "short step"
+        raise DataError(
+            f"non-uniform sampling: {kind} of {steps[k - 1]:.6g} s before this sample "
+            f"(mean period {dt:.6g} s, tolerance ±{100 * JITTER:.0f} %)",
+            path=path, column=column, sample=k,
+            hint="vsidgen needs uniformly sampled records: split the file at gaps "
+                 "or resample it to a uniform grid")
+    drift = np.abs(t_raw - t_raw[0] - dt * np.arange(n))
+    if (drift > 0.5 * dt).any():
+        k = int(np.argmax(drift))
+        raise DataError(
+            f"non-uniform sampling: time stamp is {drift[k]:.6g} s off the uniform grid "
+            f"of period {dt:.6g} s (the sample rate changes within the record)",
+            path=path, column=column, sample=k,
+            hint="split the record where the sample rate changes or resample it")
+    return dt
+
+
+# --------------------------------------------------------------------------- public API
+
+def load_record(model, path, *, name: str | None = None) -> Record:
+    """Read one CSV flight record through ``model.data`` (a DataSpec).
+
+    Args:
+        model: a :class:`vsidgen.model.Model` or a SymbolicModel (uses
+            ``data``, input and output names).
+        path: CSV file with one header row, comma separated.
+        name: record name; default the file stem.
+
+    Returns:
+        :class:`Record` with ``u`` in model-input order and ``y`` in
+        model-output order.
+
+    Raises:
+        DataError: see the module docstring.
+    """
+    path = pathlib.Path(path)
+    spec = model.data
+    in_names, out_names = _names(model, "input"), _names(model, "output")
+    in_maps = {c.name: c for c in spec.inputs}
+    out_maps = {c.name: c for c in spec.outputs}
+    for kind, names, maps in (("input", in_names, in_maps), ("output", out_names, out_maps)):
+        for nm in names:
+            if nm not in maps:
+                raise DataError(f"model {kind} '{nm}' has no data mapping", path=path,
+                                hint=f"add `{nm}: <column>` under data.{kind}s in the spec")
+
+    header = _read_header(path)
+    if not header:
+        raise DataError("empty file", path=path,
+                        hint="expected one header row of column names followed by data rows")
+    seen: dict[str, int] = {}
+    for j, h in enumerate(header):
+        seen.setdefault(h, j)
+
+    # columns needed, in a stable order: time first
+    needed: list[str] = [spec.time]
+    for nm in in_names:
+        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
+    for nm in out_names:
+        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
+    for c in needed:
+        if c not in seen:
+            what = "time column" if c == spec.time else "column"
+            raise DataError(f"{what} '{c}' not found", path=path, column=c,
+                            hint=_suggest(c, header))
+        if header.count(c) > 1:
+            raise DataError(f"column '{c}' appears {header.count(c)} times in the header",
+                            path=path, column=c, hint="rename the duplicated columns")
+    idx = [seen[c] for c in needed]
+
+    block = _read_block(path, header, idx)
+    n = block.shape[0]
+    if n == 0:
+        raise DataError("no data rows (header only)", path=path,
+                        hint="the file must hold at least "
+                             f"{MIN_SAMPLES} samples below the header")
+    cols = {c: block[:, j] for j, c in enumerate(needed)}
+    for c in needed:
+        inf = np.isinf(cols[c])
+        if inf.any():
+            k = _first(inf)
+            raise DataError(f"infinite value {cols[c][k]}", path=path, column=c, sample=k,
+                            hint="replace overflowed or invalid samples (an empty cell marks a "
+                                 "missing output sample)")
+    if n < MIN_SAMPLES:
+        raise DataError(f"too few samples: {n} (at least {MIN_SAMPLES} needed)", path=path,
+                        hint="is this the right file? records must be contiguous time histories")
+
+    t_raw = cols[spec.time].copy()
+    dt = check_time(t_raw, path=path, column=spec.time)
+
+    def channel(nm, cmap, kind):
+        val = _eval_map(cmap, cols, n)
+        srcs = _columns_of(cmap)
+        label = srcs[0] if len(srcs) == 1 and cmap.expr is None else f"{nm} = {cmap.expr}"
+        col_for = srcs[0] if len(srcs) == 1 else None
+        if np.isinf(val).any():
+            k = _first(np.isinf(val))
+            raise DataError(f"{kind} '{nm}' is infinite (from {label})", path=path,
+                            column=col_for, sample=k, hint="check the expression and the data")
+        nan = np.isnan(val)
+        if nan.all():
+            raise DataError(f"{kind} channel '{nm}' has no valid sample (all NaN)",
+                            path=path, column=col_for or nm,
+                            hint="the column is empty; map the channel to another column "
+                                 "or remove it from the model")
+        if kind == "input" and nan.any():
+            k = _first(nan)
+            bad = [c for c in srcs if np.isnan(cols[c][k])]
+            col = bad[0] if bad else (col_for or nm)
+            raise DataError(f"missing value in input '{nm}'", path=path, column=col, sample=k,
+                            hint="inputs cannot be missing (only outputs may have empty cells); "
+                                 "fill the gap or split the record")
+        return val
+
+    u = np.empty((n, len(in_names)))
+    for i, nm in enumerate(in_names):
+        u[:, i] = channel(nm, in_maps[nm], "input")
+    y = np.empty((n, len(out_names)))
+    for i, nm in enumerate(out_names):
+        y[:, i] = channel(nm, out_maps[nm], "output")
+
+    t = t_raw - t_raw[0]
+    for a in (t, u, y, t_raw):
+        a.setflags(write=False)
+    return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
+                  u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw)
+
+
+def resolution(values) -> float:
+    """Default measurement-noise floor of a channel: quantisation step / √12.
+
+    ``q = min |y_{k+1} - y_k|`` over consecutive *finite* samples (NaN dropped)
+    with non-zero difference; differences below ``1e-12 max|y|`` are taken as
+    zero (round-off). A uniform quantiser of step ``q`` has error variance
+    ``q²/12``. Returns 0.0 for a constant (or empty) channel.
+    """
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return 0.0
+    d = np.abs(np.diff(v))
+    d = d[d > 1e-12 * np.max(np.abs(v))]
+    if d.size == 0:
+        return 0.0
+    return float(d.min() / math.sqrt(12.0))
+
+
+def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
+    """Write equal-length columns to a CSV file atomically, at full precision.
+
+    Values are written with ``%.17g`` (exact float64 round trip; NaN as
+    ``nan``). The file is written to a temporary file in the same directory
+    and moved into place with :func:`os.replace`, so readers never see a
+    partial file.
+    """
+    path = pathlib.Path(path)
+    names = list(columns)
+    if not names:
+        raise VsidgenError("write_csv: no columns given")
+    for nm in names:
+        if not nm or any(ch in nm for ch in ',"\n\r'):
+            raise VsidgenError(f"write_csv: invalid column name {nm!r}")
+    arrs = [np.asarray(columns[nm], dtype=np.float64).ravel() for nm in names]
+    n = arrs[0].shape[0]
+    for nm, a in zip(names, arrs):
+        if a.shape[0] != n:
+            raise VsidgenError(f"write_csv: column '{nm}' has {a.shape[0]} values, expected {n}")
+    block = np.column_stack(arrs) if n else np.empty((0, len(names)))
+    directory = path.parent if str(path.parent) else pathlib.Path(".")
+    directory.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", newline="") as fh:
+            fh.write(",".join(names) + "\n")
+            np.savetxt(fh, block, fmt="%.17g", delimiter=",")
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return path
+
+
+__all__ = ["JITTER", "MIN_SAMPLES", "Record", "check_time", "load_record", "resolution", "write_csv"]
