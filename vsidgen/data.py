@@ -41,6 +41,7 @@ import math
 import os
 import pathlib
 import tempfile
+import warnings
 from collections.abc import Mapping
 
 import numpy as np
@@ -172,8 +173,10 @@ def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
             for line in fh:
                 if line.strip():
                     break
-            data = np.loadtxt(fh, delimiter=",", usecols=idx, dtype=np.float64,
-                              comments=None, ndmin=2)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # "input contained no data": checked by the caller
+                data = np.loadtxt(fh, delimiter=",", usecols=idx, dtype=np.float64,
+                                  comments=None, ndmin=2)
         return data.reshape(-1, len(idx))
     except (ValueError, IndexError):
         return _slow_parse(path, header, idx)

@@ -1,0 +1,300 @@
+"""Data loading: real flight records, every DataError, resolution and write_csv."""
+
+from __future__ import annotations
+
+import csv
+import math
+
+import numpy as np
+import pytest
+import sympy
+
+from vsidgen.data import Record, load_record, resolution, write_csv
+from vsidgen.errors import DataError
+from vsidgen.metadata import ChannelMap, DataSpec, ProcessNoiseSpec, Variable
+from vsidgen.model import Model
+
+
+def _model(inputs, outputs, *, time="t_s"):
+    """inputs/outputs: lists of ChannelMap (channel name = model variable name)."""
+    return Model(name="m", drift=None, output=None, states=(),
+                 inputs=tuple(Variable(c.name) for c in inputs),
+                 outputs=tuple(Variable(c.name) for c in outputs), parameters=(),
+                 process_noise=ProcessNoiseSpec(), measurement_noise=(),
+                 data=DataSpec(time=time, inputs=tuple(inputs), outputs=tuple(outputs)))
+
+
+def _read_columns(path):
+    """Independent reference reader (csv module)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    head = rows[0]
+    return {h: np.array([float(r[j]) for r in rows[1:]]) for j, h in enumerate(head)}
+
+
+# ---------------------------------------------------------------- real records
+
+@pytest.mark.flight
+def test_hfb320(flight_data_dir):
+    path = flight_data_dir / "hfb320_1_10.csv"
+    m = _model([ChannelMap("de", "de_rad"), ChannelMap("thrust", "thrust_n", scale=1e-3)],
+               [ChannelMap("V", "v_mps"), ChannelMap("alpha", "alpha_rad"),
+                ChannelMap("az", "az_mps2", scale=1 / 9.80665, offset=1.0)])
+    r = load_record(m, path)
+    ref = _read_columns(path)
+    assert r.name == "hfb320_1_10" and r.path == path
+    assert r.u.shape == (601, 2) and r.y.shape == (601, 3) and r.t.shape == (601,)
+    assert r.input_names == ("de", "thrust") and r.output_names == ("V", "alpha", "az")
+    assert r.dt == pytest.approx(0.1, rel=1e-6)
+    assert r.t[0] == 0.0 and r.t[-1] == pytest.approx(60.0)
+    np.testing.assert_array_equal(r.t_raw, ref["t_s"])
+    np.testing.assert_array_equal(r.u[:, 0], ref["de_rad"])
+    np.testing.assert_allclose(r.u[:, 1], ref["thrust_n"] / 1000, rtol=1e-15)
+    np.testing.assert_array_equal(r.y[:, 0], ref["v_mps"])
+    np.testing.assert_allclose(r.y[:, 2], ref["az_mps2"] / 9.80665 + 1, rtol=1e-14, atol=1e-15)
+    assert not np.isnan(r.y).any()
+
+
+@pytest.mark.flight
+def test_attas_expr_map(flight_data_dir):
+    path = flight_data_dir / "attas_elv1.csv"
+    right, left = sympy.symbols("da_right_rad da_left_rad")
+    m = _model([ChannelMap("da", expr=(right - left) / 2, columns=("da_right_rad", "da_left_rad")),
+                ChannelMap("de", "de_rad")],
+               [ChannelMap("alpha", "alpha_rad"), ChannelMap("q", "q_radps")])
+    r = load_record(m, path, name="elv1")
+    ref = _read_columns(path)
+    assert r.name == "elv1" and r.u.shape == (626, 2) and r.y.shape == (626, 2)
+    assert r.dt == pytest.approx(0.04, rel=1e-9)
+    np.testing.assert_allclose(r.u[:, 0], (ref["da_right_rad"] - ref["da_left_rad"]) / 2,
+                               rtol=1e-15, atol=1e-18)
+    np.testing.assert_array_equal(r.y[:, 1], ref["q_radps"])
+
+
+@pytest.mark.flight
+def test_totter_jittery_time(flight_data_dir):
+    path = flight_data_dir / "totter_lon_data.csv"
+    m = _model([ChannelMap("de", "de_rad")], [ChannelMap("alpha", "alpha_rad"), ChannelMap("q", "q_radps")])
+    r = load_record(m, path)
+    steps = np.diff(r.t_raw)
+    assert steps.min() < 0.00977 and steps.max() > 0.01000   # the file really jitters
+    assert r.n == 1200
+    assert r.dt == pytest.approx((r.t_raw[-1] - r.t_raw[0]) / 1199, rel=1e-15)
+    assert r.dt == pytest.approx(0.01, rel=1e-5)
+
+
+# ---------------------------------------------------------------- synthetic files
+
+N = 20
+
+
+def _write(path, header, rows):
+    path.write_text(",".join(header) + "\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
+    return path
+
+
+def _good_rows(n=N, dt=0.1):
+    return [[f"{k * dt:.10g}", f"{0.01 * k:.6g}", f"{math.sin(k):.9g}", f"{k % 3}"] for k in range(n)]
+
+
+HEADER = ["time", "de_rad", "alpha_rad", "q_radps"]
+
+
+def _m():
+    return _model([ChannelMap("de", "de_rad")],
+                  [ChannelMap("alpha", "alpha_rad"), ChannelMap("q", "q_radps")], time="time")
+
+
+def _err(tmp_path, rows, header=HEADER, model=None) -> DataError:
+    path = _write(tmp_path / "rec.csv", header, rows)
+    with pytest.raises(DataError) as info:
+        load_record(model or _m(), path)
+    err = info.value
+    assert str(path) in str(err)
+    return err
+
+
+def test_good_synthetic(tmp_path):
+    r = load_record(_m(), _write(tmp_path / "r.csv", HEADER, _good_rows()))
+    assert isinstance(r, Record) and r.n == N and r.dt == pytest.approx(0.1)
+    np.testing.assert_allclose(r.y[:, 0], np.sin(np.arange(N)), atol=1e-8)
+    with pytest.raises(ValueError):
+        r.u[0, 0] = 1.0  # read-only arrays
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(DataError, match="file not found"):
+        load_record(_m(), tmp_path / "nope.csv")
+
+
+def test_empty_and_header_only(tmp_path):
+    (tmp_path / "e.csv").write_text("")
+    with pytest.raises(DataError, match="empty file"):
+        load_record(_m(), tmp_path / "e.csv")
+    (tmp_path / "h.csv").write_text(",".join(HEADER) + "\n")
+    with pytest.raises(DataError, match="header only"):
+        load_record(_m(), tmp_path / "h.csv")
+
+
+def test_missing_column_hint(tmp_path):
+    header = ["time", "de_rad", "alpha_rad", "q_rads"]
+    err = _err(tmp_path, _good_rows(), header)
+    assert err.column == "q_radps"
+    assert "'q_radps'" in str(err) and "did you mean 'q_rads'" in str(err)
+
+
+def test_missing_time_column(tmp_path):
+    err = _err(tmp_path, _good_rows(), ["t_s"] + HEADER[1:])
+    assert err.column == "time" and "time column" in str(err)
+
+
+def test_non_numeric_cell(tmp_path):
+    rows = _good_rows()
+    rows[7][2] = "abc"
+    err = _err(tmp_path, rows)
+    assert (err.column, err.sample) == ("alpha_rad", 7)
+    assert "'abc'" in str(err) and "sample 7" in str(err)
+
+
+def test_truncated_row(tmp_path):
+    rows = _good_rows()
+    rows[5] = rows[5][:2]
+    err = _err(tmp_path, rows)
+    assert err.sample == 5 and err.column == "alpha_rad"
+
+
+@pytest.mark.parametrize("case", ["duplicate", "backwards", "gap", "short", "rate_change"])
+def test_bad_time(tmp_path, case):
+    t = [0.1 * k for k in range(200)]
+    if case == "duplicate":
+        t[12] = t[11]
+        expect = 12
+    elif case == "backwards":
+        t[12] = t[11] - 0.05
+        expect = 12
+    elif case == "gap":
+        t = t[:15] + [x + 0.1 for x in t[15:]]
+        expect = 15
+    elif case == "short":
+        t[20] = t[20] - 0.02
+        expect = 20
+    else:  # period 0.1 then 0.104: every step within 5 %, but the grid drifts
+        t = [0.1 * k if k < 100 else 9.9 + 0.104 * (k - 99) for k in range(200)]
+        expect = None
+    rows = [[repr(tk), "0", "1", "2"] for tk in t]
+    err = _err(tmp_path, rows)
+    assert err.column == "time"
+    if expect is not None:
+        assert err.sample == expect
+        assert f"sample {expect}" in str(err)
+    else:
+        assert err.sample is not None and "non-uniform" in str(err)
+
+
+def test_jitter_accepted(tmp_path):
+    # like totter_lon_data.csv: steps alternate 0.009766 / 0.010010 (±2.4 %)
+    t = np.round(np.arange(50) * 0.01 * 4096) / 4096
+    assert np.ptp(np.diff(t)) > 2e-4
+    rows = [[repr(float(tk)), "0", "1", "2"] for tk in t]
+    r = load_record(_m(), _write(tmp_path / "j.csv", HEADER, rows))
+    assert r.dt == pytest.approx((t[-1] - t[0]) / 49, rel=1e-15)
+
+
+def test_too_few_samples(tmp_path):
+    err = _err(tmp_path, _good_rows(n=9))
+    assert "too few samples: 9" in str(err)
+
+
+def test_all_nan_output(tmp_path):
+    rows = _good_rows()
+    for r in rows:
+        r[3] = ""
+    err = _err(tmp_path, rows)
+    assert err.column == "q_radps" and "all NaN" in str(err) and "'q'" in str(err)
+
+
+def test_all_nan_input(tmp_path):
+    rows = _good_rows()
+    for r in rows:
+        r[1] = "nan"
+    err = _err(tmp_path, rows)
+    assert err.column == "de_rad" and "all NaN" in str(err)
+
+
+def test_nan_in_input(tmp_path):
+    rows = _good_rows()
+    rows[4][1] = ""
+    err = _err(tmp_path, rows)
+    assert (err.column, err.sample) == ("de_rad", 4)
+    assert "input 'de'" in str(err)
+
+
+def test_nan_in_output_is_missing(tmp_path):
+    rows = _good_rows()
+    rows[4][2] = ""
+    rows[9][3] = "NaN"
+    r = load_record(_m(), _write(tmp_path / "r.csv", HEADER, rows))
+    assert np.isnan(r.y[4, 0]) and np.isnan(r.y[9, 1])
+    assert np.isnan(r.y).sum() == 2
+
+
+@pytest.mark.parametrize("col", [1, 2, 0])
+def test_inf(tmp_path, col):
+    rows = _good_rows()
+    rows[6][col] = "-inf" if col else "inf"
+    err = _err(tmp_path, rows)
+    assert (err.column, err.sample) == (HEADER[col], 6)
+    assert "infinite" in str(err)
+
+
+def test_expr_map_synthetic(tmp_path):
+    a, b = sympy.symbols("de_rad q_radps", real=True)
+    m = _model([ChannelMap("x", expr=a * b + 1, columns=("de_rad", "q_radps"), scale=2.0, offset=-1.0)],
+               [ChannelMap("alpha", "alpha_rad")], time="time")
+    rows = _good_rows()
+    r = load_record(m, _write(tmp_path / "r.csv", HEADER, rows))
+    de = np.array([float(x[1]) for x in rows])
+    q = np.array([float(x[3]) for x in rows])
+    np.testing.assert_allclose(r.u[:, 0], 2 * (de * q + 1) - 1, rtol=1e-15)
+
+
+def test_no_mapping_for_output(tmp_path):
+    m = _model([ChannelMap("de", "de_rad")], [ChannelMap("alpha", "alpha_rad")], time="time")
+    m = Model(**{**m.__dict__, "outputs": m.outputs + (Variable("nz"),)})
+    with pytest.raises(DataError, match="output 'nz' has no data mapping"):
+        load_record(m, _write(tmp_path / "r.csv", HEADER, _good_rows()))
+
+
+# ---------------------------------------------------------------- resolution, write_csv
+
+def test_resolution():
+    assert resolution([1.0, 1.0, 1.0]) == 0.0
+    assert resolution([]) == 0.0
+    y = [0.0, 0.5, np.nan, 0.75, 0.75, 2.0]   # finite diffs: 0.5, 0.25, 0, 1.25
+    assert resolution(y) == pytest.approx(0.25 / math.sqrt(12), rel=1e-15)
+
+
+def test_write_csv_roundtrip(tmp_path):
+    rng = np.random.default_rng(1)
+    cols = {"t_s": np.arange(100) * 0.01, "a": rng.normal(size=100) * 1e-7,
+            "b": rng.normal(size=100) * 1e5}
+    cols["b"][3] = np.nan
+    path = write_csv(tmp_path / "sub" / "x.csv", cols)
+    got = np.loadtxt(path, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(got[:, 0], cols["t_s"])
+    np.testing.assert_array_equal(got[:, 1], cols["a"])
+    np.testing.assert_array_equal(got[:, 2], cols["b"])   # NaN == NaN for assert_array_equal
+    assert [p.name for p in path.parent.iterdir()] == ["x.csv"]   # no temp file left
+    assert path.read_text().splitlines()[0] == "t_s,a,b"
+
+
+def test_large_record_is_fast(tmp_path):
+    import time
+    n = 200_000
+    t = np.arange(n) * 0.01
+    write_csv(tmp_path / "big.csv", {"time": t, "de_rad": np.sin(t), "alpha_rad": np.cos(t),
+                                     "q_radps": t * 0.0})
+    t0 = time.perf_counter()
+    r = load_record(_m(), tmp_path / "big.csv")
+    assert time.perf_counter() - t0 < 5.0
+    assert r.n == n
