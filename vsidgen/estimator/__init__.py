@@ -1,0 +1,13 @@
+"""Variational maximum-likelihood estimator (Dutra, "Variational System Identification of Aircraft").
+
+Public API::
+
+    fit(model, records, *, options=FitOptions()) -> FitResult
+    smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
+    FitOptions, FitResult, SmootherPath
+"""
+
+from .fit import fit, measured_states, smooth
+from .results import FitOptions, FitResult, SmootherPath
+
+__all__ = ["FitOptions", "FitResult", "SmootherPath", "fit", "measured_states", "smooth"]

@@ -1,0 +1,440 @@
+"""The variational objective (negative ELBO) and its structured derivatives.
+
+Model (per record, samples k = 0..N-1, sample period T):
+
+    x_{k+1} ~ N(F(x_k, u_k, θ), Q),   Q = T G Gᵀ          (Euler–Maruyama by default)
+    y_k     ~ N(h(x_k, u_k, θ), R),   R = diag(σ_j²)      (NaN samples masked out)
+
+flat (improper) prior on x_0. Assumed density q: a Gaussian Markov chain with
+means μ_k and time-invariant ("steady-state") covariances
+
+    Σ_cond = S_c S_cᵀ,  S_c = L diag(exp(d/2)),  L unit lower triangular,
+    Σ_marg = S_c S_cᵀ + C Cᵀ = S_m S_mᵀ,
+
+sampled in pairs as x_k = μ_k + S_m z₁, x_{k+1} = μ_{k+1} + C z₁ + S_c z₂.
+The ELBO is
+
+    L = Σ_{k<N-1} E_q log N(x_{k+1}; F(x_k), Q) + Σ_k E_q log N_mask(y_k; h(x_k), R) + H[q],
+    H[q] = ½ log det Σ_marg + ((N-1)/2) log det Σ_cond + (N n/2)(1 + log 2π).
+
+Expectations use sigma points: pairs (z₁, z₂) = ±√(2n) e_i in R^{2n} (4n points,
+weights 1/(4n)); marginals μ_k ± √n S_m e_i (2n points, weights 1/(2n)). They
+are exact for quadratic integrands, hence for linear-Gaussian models.
+
+The negative ELBO is a sum of per-pair terms ℓ_k(μ_k, μ_{k+1}, b), per-node
+terms m_k(μ_k, b) and −H(b), where b (the "border") holds the record's
+assumed-density parameters r = (d, vec L, vec C) and the shared vector s of
+free θ (unconstrained coordinates) and noise parameters. Its Hessian over
+(μ, b) is therefore block tridiagonal in μ with a dense border; see
+:mod:`vsidgen.estimator.linalg`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.linalg import solve_triangular
+
+from ..errors import FitError
+from .linalg import btd_solve
+
+jax.config.update("jax_enable_x64", True)
+
+LOG2PI = math.log(2.0 * math.pi)
+
+
+# --------------------------------------------------------------------------- transition
+def _transition(drift, integrator: str, substeps: int):
+    """Discrete transition mean F(x, u, p, dt): Euler (x + h f) or RK4, ``substeps`` steps of dt/substeps.
+
+    The input is held constant over the sample interval (zero-order hold).
+    """
+    if integrator not in ("euler", "rk4"):
+        raise FitError(f"unknown integrator '{integrator}' (use 'euler' or 'rk4')")
+    m = int(substeps)
+    if m < 1:
+        raise FitError(f"substeps must be >= 1, got {substeps}")
+
+    def F(x, u, p, dt):
+        h = dt / m
+        for _ in range(m):
+            if integrator == "euler":
+                x = x + h * drift(x, u, p)
+            else:
+                k1 = drift(x, u, p)
+                k2 = drift(x + 0.5 * h * k1, u, p)
+                k3 = drift(x + 0.5 * h * k2, u, p)
+                k4 = drift(x + h * k3, u, p)
+                x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        return x
+
+    return F
+
+
+def get_transition(model, integrator: str, substeps: int):
+    """Mean transition F(x, u, p, dt) from :func:`vsidgen.dynamics.transition` (private fallback if absent)."""
+    try:
+        from .. import dynamics
+    except ImportError:  # pragma: no cover - dynamics.py is part of the package
+        return _transition(model.drift, integrator, substeps)
+    return dynamics.transition(model, integrator=integrator, substeps=substeps)
+
+
+# --------------------------------------------------------------------------- θ map
+class ThetaMap:
+    """Smooth bijection between unconstrained z (free parameters only) and θ (all parameters).
+
+    * unbounded: θ = z (z₀ = initial)
+    * lower only: θ = lo + s·exp(z), s = initial − lo (z₀ = 0) or 1 when initial ≤ lo
+    * upper only: θ = hi − s·exp(z)
+    * two-sided: θ = lo + (hi − lo)·sigmoid(z)
+    * fixed: θ = initial.
+    """
+
+    def __init__(self, parameters, *, fixed_all: bool = False, values=None):
+        npar = len(parameters)
+        init = np.array([float(p.initial) for p in parameters]) if values is None else np.asarray(values, float)
+        self.full0 = init.copy()
+        free = np.array([(not p.fixed) and not fixed_all for p in parameters], bool)
+        self.free_mask = free
+        self.free_idx = np.nonzero(free)[0]
+        kind = np.zeros(npar, int)
+        lo = np.zeros(npar)
+        hi = np.ones(npar)
+        sc = np.ones(npar)
+        z0 = np.zeros(npar)
+        for i, p in enumerate(parameters):
+            a, b = p.lower, p.upper
+            a = None if a is None or not np.isfinite(a) else float(a)
+            b = None if b is None or not np.isfinite(b) else float(b)
+            x0 = init[i]
+            if a is None and b is None:
+                kind[i] = 0
+                z0[i] = x0
+            elif a is not None and b is None:
+                kind[i] = 1
+                lo[i] = a
+                sc[i] = x0 - a if x0 > a else 1.0
+                z0[i] = 0.0
+            elif a is None and b is not None:
+                kind[i] = 2
+                hi[i] = b
+                sc[i] = b - x0 if x0 < b else 1.0
+                z0[i] = 0.0
+            else:
+                if not b > a:
+                    raise FitError(f"parameter '{p.name}': lower bound {a} is not below upper bound {b}")
+                kind[i] = 3
+                lo[i], hi[i] = a, b
+                frac = np.clip((x0 - a) / (b - a), 1e-3, 1 - 1e-3)
+                z0[i] = math.log(frac / (1 - frac))
+        fi = self.free_idx
+        self.kind, self.lo, self.hi, self.sc = kind[fi], lo[fi], hi[fi], sc[fi]
+        self.z0 = z0[fi]
+        self.n_free = len(fi)
+
+    def theta(self, z):
+        """All parameters θ from the free unconstrained z."""
+        k = self.kind
+        ez = jnp.exp(jnp.where((k == 1) | (k == 2), z, 0.0))
+        sig = jax.nn.sigmoid(z)
+        val = jnp.where(k == 0, z,
+              jnp.where(k == 1, self.lo + self.sc * ez,
+              jnp.where(k == 2, self.hi - self.sc * ez,
+                        self.lo + (self.hi - self.lo) * sig)))
+        return jnp.asarray(self.full0).at[self.free_idx].set(val)
+
+    def dtheta_dz(self, z):
+        z = np.asarray(z, float)
+        k = self.kind
+        ez = np.exp(np.where((k == 1) | (k == 2), z, 0.0))
+        sig = 1.0 / (1.0 + np.exp(-z))
+        return np.where(k == 0, 1.0, np.where(k == 1, self.sc * ez, np.where(k == 2, -self.sc * ez,
+                                                                              (self.hi - self.lo) * sig * (1 - sig))))
+
+
+# --------------------------------------------------------------------------- noise map
+def measurement_resolution(records, j: int) -> float:
+    """Data resolution of output column j pooled over records: min non-zero |Δy| / √12 (0 if none)."""
+    best = np.inf
+    for r in records:
+        col = np.asarray(r.y, float)[:, j]
+        col = col[np.isfinite(col)]
+        if col.size < 2:
+            continue
+        dif = np.abs(np.diff(col))
+        dif = dif[dif > 0]
+        if dif.size:
+            best = min(best, float(dif.min()))
+    return 0.0 if not np.isfinite(best) else best / math.sqrt(12.0)
+
+
+class NoiseMap:
+    """Unconstrained noise parameters → (lower-triangular G, measurement std σ).
+
+    Process: G is lower triangular on the state order; on the noisy states its
+    diagonal is ``floor_i + exp(g_i)`` (estimated) or the fixed std; for
+    ``structure: full`` the strictly-lower entries among noisy states are free
+    (start at 0). States without process noise get the fixed tiny diagonal
+    ``deterministic_std`` (a quasi-deterministic transition; see FitOptions).
+    Measurement: σ_j = floor_j + exp(s_j) (estimated, s_j starts at 0 or at the
+    spec's std) or the fixed std. Floors are honoured by the map, never by clipping.
+    """
+
+    def __init__(self, model, records, *, deterministic_std: float, fixed_G=None, fixed_R=None):
+        nx, ny = model.nx, model.ny
+        self.nx, self.ny = nx, ny
+        states = model.state_names
+        pn = model.process_noise
+        noisy_names = tuple(pn.states) if pn.states else states
+        for s in noisy_names:
+            if s not in states:
+                raise FitError(f"process noise names unknown state '{s}'")
+        self.noisy = np.array([s in noisy_names for s in states], bool)
+        self.det_std = float(deterministic_std)
+        self.proc_floor = np.array([float(pn.floor.get(s, 0.0)) if self.noisy[i] else 0.0
+                                    for i, s in enumerate(states)])
+        self.fixed_G = None
+        self.proc_est_idx = np.zeros(0, int)
+        self.offdiag = []
+        init = []
+        if fixed_G is not None:
+            Gm = np.array(fixed_G, float).reshape(nx, nx)
+            for i in range(nx):
+                if not np.any(Gm[i] != 0):
+                    Gm[i, i] = self.det_std
+            self.fixed_G = np.linalg.cholesky(Gm @ Gm.T)
+            self.noisy = np.array([np.any(np.asarray(fixed_G)[i] != 0) for i in range(nx)])
+        elif pn.estimate:
+            self.proc_est_idx = np.nonzero(self.noisy)[0]
+            for i in self.proc_est_idx:
+                s0 = float(pn.std.get(states[i], 0.0) or 0.0)
+                init.append(math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else 0.0)
+            if pn.structure == "full":
+                idx = self.proc_est_idx
+                self.offdiag = [(int(a), int(b)) for ai, a in enumerate(idx) for b in idx[:ai]]
+                init += [0.0] * len(self.offdiag)
+        else:
+            fixed = np.full(nx, self.det_std)
+            for i, s in enumerate(states):
+                v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
+                if v > 0:
+                    fixed[i] = v
+                else:
+                    self.noisy[i] = False
+            self.fixed_G = np.diag(fixed)
+        self.n_proc = len(init)
+        # measurement
+        specs = {m.output: m for m in model.measurement_noise}
+        self.meas_floor = np.zeros(ny)
+        self.meas_est = np.zeros(ny, bool)
+        self.meas_fixed = np.ones(ny)
+        minit = []
+        for j, o in enumerate(model.output_names):
+            sp = specs.get(o)
+            est = True if sp is None else bool(sp.estimate)
+            fl = "auto" if sp is None else sp.floor
+            if fl == "auto":
+                fl = measurement_resolution(records, j)
+            self.meas_floor[j] = float(fl or 0.0)
+            if fixed_R is not None:
+                self.meas_fixed[j] = math.sqrt(float(np.asarray(fixed_R)[j, j]))
+                continue
+            if est:
+                self.meas_est[j] = True
+                s0 = None if sp is None else sp.std
+                minit.append(math.log(s0 - self.meas_floor[j]) if s0 and s0 > self.meas_floor[j] else 0.0)
+            else:
+                if sp.std is None or not sp.std > 0:
+                    raise FitError(f"measurement noise of output '{o}' is fixed but has no positive std")
+                self.meas_fixed[j] = float(sp.std)
+        self.meas_est_idx = np.nonzero(self.meas_est)[0]
+        self.n_meas = len(minit)
+        self.init = np.array(init + minit, float)
+        self.n = self.n_proc + self.n_meas
+
+    def G(self, w):
+        """Lower-triangular factor used in the likelihood (Q = T G Gᵀ)."""
+        if self.fixed_G is not None:
+            return jnp.asarray(self.fixed_G)
+        diag = jnp.full(self.nx, self.det_std)
+        ne = len(self.proc_est_idx)
+        diag = diag.at[self.proc_est_idx].set(jnp.asarray(self.proc_floor[self.proc_est_idx]) + jnp.exp(w[:ne]))
+        G = jnp.diag(diag)
+        if self.offdiag:
+            rows = np.array([a for a, _ in self.offdiag])
+            cols = np.array([b for _, b in self.offdiag])
+            G = G.at[rows, cols].set(w[ne:self.n_proc])
+        return G
+
+    def sigma(self, w):
+        s = jnp.asarray(self.meas_fixed)
+        if self.n_meas:
+            wm = w[self.n_proc:]
+            s = s.at[self.meas_est_idx].set(jnp.asarray(self.meas_floor[self.meas_est_idx]) + jnp.exp(wm))
+        return s
+
+    def G_report(self, w):
+        """G as reported: rows of states without process noise are zero."""
+        G = np.array(self.G(jnp.asarray(w)))
+        G[~self.noisy, :] = 0.0
+        return G
+
+
+# --------------------------------------------------------------------------- objective
+class Objective:
+    """Negative ELBO pieces for one problem (model + options); jitted per record shape."""
+
+    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F):
+        self.model = model
+        self.tm = theta_map
+        self.nm = noise_map
+        self.F = F
+        n = model.nx
+        self.n = n
+        self.nl = n * (n - 1) // 2
+        self.nq = n + self.nl + n * n
+        self.ng = theta_map.n_free + noise_map.n
+        self.nb = self.nq + self.ng
+        self._tril = np.tril_indices(n, -1)
+        self._blocks = jax.jit(self._blocks_impl)
+        self._value = jax.jit(self._value_impl)
+        self._factor = jax.jit(self._factor_impl)
+        self._back = jax.jit(self._back_impl)
+
+    # -- unpacking
+    def unpack_s(self, s):
+        nt = self.tm.n_free
+        theta = self.tm.theta(s[:nt])
+        w = s[nt:]
+        return theta, self.nm.G(w), self.nm.sigma(w)
+
+    def cov_factors(self, r):
+        n = self.n
+        d = r[:n]
+        L = jnp.eye(n).at[self._tril].set(r[n:n + self.nl])
+        C = r[n + self.nl:].reshape(n, n)
+        Sc = L * jnp.exp(0.5 * d)[None, :]
+        Sm = jnp.linalg.cholesky(Sc @ Sc.T + C @ C.T)
+        return Sc, C, Sm, d
+
+    # -- local terms (negative expected log densities)
+    def pair_nll(self, mu0, mu1, r, s, u0, dt):
+        n = self.n
+        theta, G, _ = self.unpack_s(s)
+        Sc, C, Sm, _ = self.cov_factors(r)
+        a = math.sqrt(2 * n)
+        Z = jnp.zeros((n, n))
+        dx0 = jnp.concatenate([a * Sm.T, -a * Sm.T, Z, Z])
+        dx1 = jnp.concatenate([a * C.T, -a * C.T, a * Sc.T, -a * Sc.T])
+        X0 = mu0 + dx0
+        X1 = mu1 + dx1
+        Fx = jax.vmap(lambda x: self.F(x, u0, theta, dt))(X0)
+        Lq = jnp.sqrt(dt) * G
+        res = solve_triangular(Lq, (X1 - Fx).T, lower=True)  # (n, 4n)
+        quad = jnp.mean(jnp.sum(res ** 2, axis=0))
+        logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lq))))
+        return 0.5 * quad + 0.5 * logdet + 0.5 * n * LOG2PI
+
+    def node_nll(self, mu, r, s, u, y, m):
+        n = self.n
+        theta, _, sig = self.unpack_s(s)
+        _, _, Sm, _ = self.cov_factors(r)
+        a = math.sqrt(n)
+        X = mu + jnp.concatenate([a * Sm.T, -a * Sm.T])
+        H = jax.vmap(lambda x: self.model.output(x, u, theta))(X)  # (2n, ny)
+        e = (y - H) / sig
+        per = 0.5 * jnp.mean(e ** 2, axis=0) + jnp.log(sig) + 0.5 * LOG2PI
+        return jnp.sum(m * per)
+
+    def neg_entropy(self, r, N):
+        _, _, Sm, d = self.cov_factors(r)
+        n = self.n
+        H = (jnp.sum(jnp.log(jnp.diagonal(Sm))) + 0.5 * (N - 1) * jnp.sum(d)
+             + 0.5 * N * n * (1.0 + LOG2PI))
+        return -H
+
+    # -- record objective
+    def _value_impl(self, mu, r, s, data):
+        u, y, m, dt = data
+        N = mu.shape[0]
+        vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None))(mu[:-1], mu[1:], r, s, u[:-1], dt)
+        vn = jax.vmap(self.node_nll, in_axes=(0, None, None, 0, 0, 0))(mu, r, s, u, y, m)
+        return jnp.sum(vp) + jnp.sum(vn) + self.neg_entropy(r, N)
+
+    def value(self, mu, r, s, data):
+        return self._value(mu, r, s, data)
+
+    def _blocks_impl(self, mu, r, s, data):
+        """Value, gradient and structured Hessian blocks of one record's negative ELBO."""
+        u, y, m, dt = data
+        N, n = mu.shape
+        nb = self.nb
+        b = jnp.concatenate([r, s])
+
+        def pf(w, u0):
+            return self.pair_nll(w[:n], w[n:2 * n], w[2 * n:2 * n + self.nq], w[2 * n + self.nq:], u0, dt)
+
+        def nf(w, uk, yk, mk):
+            return self.node_nll(w[:n], w[n:n + self.nq], w[n + self.nq:], uk, yk, mk)
+
+        def ef(bb):
+            return self.neg_entropy(bb[:self.nq], N)
+
+        Wp = jnp.concatenate([mu[:-1], mu[1:], jnp.broadcast_to(b, (N - 1, nb))], axis=1)
+        Wn = jnp.concatenate([mu, jnp.broadcast_to(b, (N, nb))], axis=1)
+        vp, gp = jax.vmap(jax.value_and_grad(pf))(Wp, u[:-1])
+        hp = jax.vmap(jax.hessian(pf))(Wp, u[:-1])
+        vn, gn = jax.vmap(jax.value_and_grad(nf))(Wn, u, y, m)
+        hn = jax.vmap(jax.hessian(nf))(Wn, u, y, m)
+        ve, ge = jax.value_and_grad(ef)(b)
+        he = jax.hessian(ef)(b)
+
+        f = jnp.sum(vp) + jnp.sum(vn) + ve
+        D = hn[:, :n, :n]
+        D = D.at[:-1].add(hp[:, :n, :n]).at[1:].add(hp[:, n:2 * n, n:2 * n])
+        B = hp[:, :n, n:2 * n]
+        W = hn[:, :n, n:]
+        W = W.at[:-1].add(hp[:, :n, 2 * n:]).at[1:].add(hp[:, n:2 * n, 2 * n:])
+        Hbb = jnp.sum(hn[:, n:, n:], 0) + jnp.sum(hp[:, 2 * n:, 2 * n:], 0) + he
+        gmu = gn[:, :n]
+        gmu = gmu.at[:-1].add(gp[:, :n]).at[1:].add(gp[:, n:2 * n])
+        gb = jnp.sum(gn[:, n:], 0) + jnp.sum(gp[:, 2 * n:], 0) + ge
+        return dict(f=f, D=D, B=B, W=W, Hbb=Hbb, gmu=gmu, gb=gb)
+
+    def blocks(self, mu, r, s, data):
+        return self._blocks(mu, r, s, data)
+
+    def _factor_impl(self, blk, dmu, lam):
+        """Eliminate μ: Schur complement S = Hbb − Wᵀ A⁻¹ W and reduced rhs −g_b + Wᵀ A⁻¹ g_μ.
+
+        ``A`` is damped by λ·diag(dmu); the border damping is added globally by the caller.
+        """
+        D = blk["D"] + lam * jax.vmap(jnp.diag)(dmu)
+        N, n, _ = D.shape
+        R = jnp.concatenate([blk["gmu"][:, :, None], blk["W"]], axis=2)
+        X, ok, _ = btd_solve(D, blk["B"], R)
+        Xg, Y = X[:, :, 0], X[:, :, 1:]
+        S = blk["Hbb"] - jnp.einsum("kia,kib->ab", blk["W"], Y)
+        rhs = -blk["gb"] + jnp.einsum("kia,ki->a", blk["W"], Xg)
+        return dict(S=S, rhs=rhs, Xg=Xg, Y=Y, ok=ok)
+
+    def factor(self, blk, dmu, lam):
+        return self._factor(blk, dmu, lam)
+
+    def _back_impl(self, fac, db):
+        return -fac["Xg"] - jnp.einsum("kib,b->ki", fac["Y"], db)
+
+    def back(self, fac, db):
+        return self._back(fac, db)
+
+
+def record_data(rec, output_index=None):
+    """(u, y with NaN→0, mask, dt) arrays of a record for the jitted functions."""
+    y = np.asarray(rec.y, float)
+    m = np.isfinite(y).astype(float)
+    return (jnp.asarray(np.asarray(rec.u, float)), jnp.asarray(np.where(m > 0, y, 0.0)),
+            jnp.asarray(m), jnp.asarray(float(rec.dt)))

@@ -1,0 +1,472 @@
+"""fit() and smooth(): the structured Newton (Levenberg–Marquardt) maximisation of the ELBO.
+
+Decision vector: shared s = [z (free θ, unconstrained), noise parameters] and,
+per record, the state means μ (N×n) and assumed-density parameters
+r = (d, strict-lower L, C). Each iteration
+
+1. computes value, gradient and Hessian blocks of −ELBO per record
+   (``jax.vmap(jax.hessian(...))`` over pairs and nodes, one jit per record shape),
+2. solves (H + λ D) Δ = −∇ with D = Marquardt diagonal scaling: μ is eliminated
+   record by record with an O(N) block-tridiagonal Cholesky, the border
+   (all r and s) through its Schur complement,
+3. accepts the step when the actual / predicted reduction ratio ρ > 1e-4 and
+   updates λ (Nielsen's rule); a failed Cholesky (indefinite H + λD) or a
+   rejected step increases λ.
+
+It stops on the relative gradient (see :class:`FitOptions` ``gtol``): converged;
+or on no progress (step below ``xtol``, λ overflow, predicted reduction below
+rounding): not converged, with a status saying so.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import FitError
+from .core import NoiseMap, Objective, ThetaMap, get_transition, record_data
+from .results import FitOptions, FitResult, SmootherPath
+
+jax.config.update("jax_enable_x64", True)
+
+
+# --------------------------------------------------------------------------- helpers
+def measured_states(model) -> dict[int, int]:
+    """{state index: output index} for outputs that are exactly a state.
+
+    Uses ``model.symbolic.observations`` (expression is a state symbol) when a
+    symbolic model is attached, else checks h_j(x, u, θ₀) == x_i numerically
+    at three random points.
+    """
+    pairs: dict[int, int] = {}
+    sym = model.symbolic
+    if sym is not None:
+        try:
+            obs = sym.observations_expanded() if hasattr(sym, "observations_expanded") else sym.observations
+            for j, e in enumerate(obs):
+                for i, st in enumerate(sym.states):
+                    if e == st.symbol:
+                        pairs.setdefault(i, j)
+            return pairs
+        except Exception:  # fall back to the numerical test
+            pairs = {}
+    rng = np.random.default_rng(12345)
+    p = jnp.asarray([float(q.initial) for q in model.parameters], float)
+    ok = np.ones((model.ny, model.nx), bool)
+    for _ in range(3):
+        x = rng.normal(size=model.nx) * 0.7 + 0.3
+        u = rng.normal(size=model.nu)
+        with np.errstate(all="ignore"):
+            h = np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), p), float)
+        ok &= np.abs(h[:, None] - x[None, :]) <= 1e-12 * (1 + np.abs(x[None, :]))
+    for j in range(model.ny):
+        for i in range(model.nx):
+            if ok[j, i]:
+                pairs.setdefault(i, j)
+    return pairs
+
+
+def _initial_mu(model, rec, pairs, how: str) -> np.ndarray:
+    N = np.asarray(rec.y).shape[0]
+    mu = np.zeros((N, model.nx))
+    if how == "zero":
+        return mu
+    if how != "measured":
+        raise FitError(f"init_states must be 'measured' or 'zero', got '{how}'")
+    y = np.asarray(rec.y, float)
+    k = np.arange(N)
+    for i, j in pairs.items():
+        col = y[:, j]
+        fin = np.isfinite(col)
+        if fin.any():
+            mu[:, i] = np.interp(k, k[fin], col[fin])
+    return mu
+
+
+def _check_records(model, records):
+    if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
+        records = [records]
+    if len(records) == 0:
+        raise FitError("no records to fit")
+    for rec in records:
+        y = np.asarray(rec.y, float)
+        u = np.asarray(rec.u, float)
+        name = getattr(rec, "name", "?")
+        if y.ndim != 2 or y.shape[1] != model.ny:
+            raise FitError(f"record '{name}': y has shape {y.shape}, expected (N, {model.ny})")
+        if u.ndim != 2 or u.shape != (y.shape[0], model.nu):
+            raise FitError(f"record '{name}': u has shape {u.shape}, expected ({y.shape[0]}, {model.nu})")
+        if y.shape[0] < 3:
+            raise FitError(f"record '{name}' has {y.shape[0]} samples; at least 3 are needed")
+        if not np.all(np.isfinite(u)):
+            raise FitError(f"record '{name}': inputs contain NaN or inf")
+        for attr, want in (("output_names", model.output_names), ("input_names", model.input_names)):
+            got = getattr(rec, attr, None)
+            if got is not None and tuple(got) != tuple(want):
+                raise FitError(f"record '{name}': {attr} {tuple(got)} differ from the model's {tuple(want)}")
+        if not float(rec.dt) > 0:
+            raise FitError(f"record '{name}': sample period dt must be positive")
+    return list(records)
+
+
+class _Problem:
+    """Everything fixed during one optimisation: maps, objective, records, layout."""
+
+    def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None):
+        self.model = model
+        self.records = _check_records(model, records)
+        self.integrator = options.integrator or getattr(model, "integrator", "euler") or "euler"
+        self.substeps = int(options.substeps or getattr(model, "substeps", 1) or 1)
+        F = get_transition(model, self.integrator, self.substeps)
+        self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
+        self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
+                           fixed_G=fixed_G, fixed_R=fixed_R)
+        self.obj = Objective(model, self.tm, self.nm, F)
+        self.data = [record_data(r) for r in self.records]
+        self.nrec = len(self.records)
+        nq, ng = self.obj.nq, self.obj.ng
+        self.nglob = self.nrec * nq + ng
+        self.idx = [np.concatenate([np.arange(i * nq, (i + 1) * nq), self.nrec * nq + np.arange(ng)])
+                    for i in range(self.nrec)]
+        self.theta_idx = self.nrec * nq + np.arange(self.tm.n_free)
+
+    def initial(self, options: FitOptions):
+        ws = options.warm_start
+        if ws is not None and getattr(ws, "decision", None) is not None:
+            dec = ws.decision
+            s = np.asarray(dec["s"], float)
+            recs = [(np.asarray(d["mu"], float), np.asarray(d["r"], float)) for d in dec["records"]]
+            if s.shape == (self.obj.ng,) and len(recs) == self.nrec and all(
+                    m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
+                return s, recs
+            raise FitError("warm_start result does not match this problem's shape")
+        s = np.concatenate([self.tm.z0, self.nm.init])
+        pairs = measured_states(self.model)
+        recs = [(_initial_mu(self.model, r, pairs, options.init_states), np.zeros(self.obj.nq)) for r in self.records]
+        return s, recs
+
+    def value(self, s, recs):
+        sj = jnp.asarray(s)
+        return float(sum(self.obj.value(jnp.asarray(m), jnp.asarray(r), sj, d) for (m, r), d in zip(recs, self.data)))
+
+    def blocks(self, s, recs):
+        sj = jnp.asarray(s)
+        return [self.obj.blocks(jnp.asarray(m), jnp.asarray(r), sj, d) for (m, r), d in zip(recs, self.data)]
+
+    def gather(self, blks):
+        """Global border gradient and Hessian (sum over records)."""
+        gg = np.zeros(self.nglob)
+        Hg = np.zeros((self.nglob, self.nglob))
+        for ix, b in zip(self.idx, blks):
+            gg[ix] += np.asarray(b["gb"])
+            Hg[np.ix_(ix, ix)] += np.asarray(b["Hbb"])
+        return gg, Hg
+
+    def newton_step(self, blks, lam, dmus, dglob):
+        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok)."""
+        facs = [self.obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
+        if not all(bool(f["ok"]) for f in facs):
+            return None
+        S = np.zeros((self.nglob, self.nglob))
+        rhs = np.zeros(self.nglob)
+        for ix, f in zip(self.idx, facs):
+            S[np.ix_(ix, ix)] += np.asarray(f["S"])
+            rhs[ix] += np.asarray(f["rhs"])
+        S += lam * np.diag(dglob)
+        S = 0.5 * (S + S.T)
+        if self.nglob:
+            try:
+                Lc = np.linalg.cholesky(S)
+            except np.linalg.LinAlgError:
+                return None
+            db = np.linalg.solve(Lc.T, np.linalg.solve(Lc, rhs))
+        else:
+            db = np.zeros(0)
+        dmu = [np.asarray(self.obj.back(f, jnp.asarray(db[ix]))) for ix, f in zip(self.idx, facs)]
+        nq = self.obj.nq
+        dr = [db[i * nq:(i + 1) * nq] for i in range(self.nrec)]
+        ds = db[self.nrec * nq:]
+        return ds, dmu, dr, S
+
+
+def _relgrad(f, s, recs, gs, gmus, grs):
+    scale = max(abs(f), 1.0)
+    vals = [np.abs(gs) * np.maximum(np.abs(s), 1.0)]
+    for (m, r), gm, gr in zip(recs, gmus, grs):
+        vals.append((np.abs(gm) * np.maximum(np.abs(m), 1.0)).ravel())
+        vals.append(np.abs(gr) * np.maximum(np.abs(r), 1.0))
+    return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
+
+
+def _optimize(P: _Problem, options: FitOptions):
+    t0 = time.perf_counter()
+    s, recs = P.initial(options)
+    nq = P.obj.nq
+    lam = float(options.lambda0)
+    nu = 2.0
+    history = []
+    converged = False
+    status = ""
+    it = 0
+    stop_code = None
+    blks = None
+    f0 = P.value(s, recs)
+    if not math.isfinite(f0):
+        raise FitError("the negative ELBO is not finite at the initial point "
+                       "(check initial parameter values and the measured-state initialisation)")
+    for it in range(options.max_iter + 1):
+        blks = P.blocks(s, recs)
+        f = float(sum(float(b["f"]) for b in blks))
+        gg, Hg = P.gather(blks)
+        gmus = [np.asarray(b["gmu"]) for b in blks]
+        grs = [gg[i * nq:(i + 1) * nq] for i in range(P.nrec)]
+        gs = gg[P.nrec * nq:]
+        rg = _relgrad(f, s, recs, gs, gmus, grs)
+        elapsed = time.perf_counter() - t0
+        history.append({"iteration": it, "elbo": -f, "grad_norm": rg, "lambda": lam, "elapsed_s": elapsed})
+        if options.progress is not None:
+            options.progress(it, -f, rg, elapsed)
+        if options.verbose:
+            print(f"iter {it:4d}  elbo {-f: .10e}  relgrad {rg:.3e}  lambda {lam:.2e}  {elapsed:7.2f} s")
+        if not np.isfinite(rg):
+            status = "stopped: gradient is not finite"
+            stop_code = "nonfinite"
+            break
+        if rg < options.gtol:
+            converged = True
+            status = f"converged: relative gradient {rg:.3g} < gtol {options.gtol:g}"
+            break
+        if it == options.max_iter:
+            status = f"stopped: iteration limit {options.max_iter} reached (relative gradient {rg:.3g})"
+            stop_code = "iteration_limit"
+            break
+        # Marquardt scaling
+        dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in blks]
+        dglob = np.abs(np.diag(Hg))
+        big = max([1.0] + [float(d.max()) for d in dmus] + ([float(dglob.max())] if dglob.size else []))
+        floor = 1e-10 * big
+        dmus = [np.maximum(d, floor) for d in dmus]
+        dglob = np.maximum(dglob, floor)
+        accepted = False
+        while True:
+            sol = P.newton_step(blks, lam, dmus, dglob)
+            if sol is None:
+                lam *= nu
+                nu *= 2.0
+            else:
+                ds, dmu, dr, _ = sol
+                gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
+                             + sum(float(g @ d) for g, d in zip(grs, dr)))
+                dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm * d ** 2)) for dm, d in zip(dmus, dmu))
+                            + sum(float(dglob[i * nq:(i + 1) * nq] @ d ** 2) for i, d in enumerate(dr)))
+                pred = -0.5 * gdot + 0.5 * lam * dDd
+                s_new = s + ds
+                recs_new = [(m + d1, r + d2) for (m, r), d1, d2 in zip(recs, dmu, dr)]
+                step = max([float(np.max(np.abs(ds) / np.maximum(np.abs(s), 1.0))) if ds.size else 0.0]
+                           + [float(np.max(np.abs(d1) / np.maximum(np.abs(m), 1.0))) for (m, _), d1 in zip(recs, dmu)]
+                           + [float(np.max(np.abs(d2) / np.maximum(np.abs(r), 1.0))) for (_, r), d2 in zip(recs, dr)])
+                if pred <= 1e-15 * max(abs(f), 1.0) or step < options.xtol:
+                    stop_code = "step_size"
+                    status = (f"stopped: no further progress possible (relative step {step:.2g}, predicted "
+                              f"reduction {pred:.2g}) with relative gradient {rg:.3g} >= gtol {options.gtol:g}")
+                    break
+                f_new = P.value(s_new, recs_new)
+                rho = (f - f_new) / pred
+                if math.isfinite(f_new) and rho > 1e-4:
+                    s, recs = s_new, recs_new
+                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                    lam = max(lam, 1e-12)
+                    nu = 2.0
+                    accepted = True
+                    break
+                lam *= nu
+                nu *= 2.0
+            if lam > 1e16:
+                stop_code = "step_size"
+                status = f"stopped: damping overflow, no acceptable step (relative gradient {rg:.3g})"
+                break
+        if not accepted:
+            break
+    return dict(s=s, recs=recs, blks=blks, converged=converged, status=status, iterations=it,
+                history=tuple(history), stop_code=stop_code, t0=t0)
+
+
+def _uncertainty(P: _Problem, blks, s):
+    """cov(θ_free) = J [H⁻¹]_zz J (J = dθ/dz), via the undamped Schur complement."""
+    nt = P.tm.n_free
+    info = {"pd": True, "cond": float("nan")}
+    if nt == 0:
+        return np.zeros((0, 0)), info
+    sol = P.newton_step(blks, 0.0, [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks],
+                        np.zeros(P.nglob))
+    if sol is None:
+        info["pd"] = False
+        return np.full((nt, nt), np.nan), info
+    S = sol[3]
+    d = np.diag(S)
+    if np.any(d <= 0):
+        info["pd"] = False
+        return np.full((nt, nt), np.nan), info
+    Ss = S / np.sqrt(np.outer(d, d))
+    ev = np.linalg.eigvalsh(Ss)
+    if ev[0] <= 0:
+        info["pd"] = False
+        return np.full((nt, nt), np.nan), info
+    info["cond"] = float(ev[-1] / ev[0])
+    Sinv = np.linalg.inv(Ss) / np.sqrt(np.outer(d, d))
+    cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
+    J = P.tm.dtheta_dz(s[:nt])
+    cov = cz * np.outer(J, J)
+    return 0.5 * (cov + cov.T), info
+
+
+def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
+    model = P.model
+    s, recs, blks = out["s"], out["recs"], out["blks"]
+    nt = P.tm.n_free
+    sj = jnp.asarray(s)
+    theta = np.asarray(P.tm.theta(sj[:nt]), float)
+    w = s[nt:]
+    G = P.nm.G_report(w)
+    sig = np.asarray(P.nm.sigma(jnp.asarray(w)), float)
+    Q1 = G @ G.T
+    process_std = {n: float(math.sqrt(Q1[i, i])) for i, n in enumerate(model.state_names) if P.nm.noisy[i]}
+    measurement_std = dict(zip(model.output_names, map(float, sig)))
+    measurement_floor = dict(zip(model.output_names, map(float, P.nm.meas_floor)))
+    f = float(sum(float(b["f"]) for b in blks))
+    warnings = []
+    npar = model.np
+    std_errors = np.full(npar, np.nan)
+    corr = np.zeros((nt, nt))
+    cov = np.zeros((nt, nt))
+    if mode == "fit" and nt:
+        cov, info = _uncertainty(P, blks, s)
+        if not info["pd"]:
+            warnings.append({"code": "hessian_not_positive_definite", "reliable": False,
+                             "message": "the Hessian of the negative ELBO is not positive definite at the "
+                                        "solution: standard errors are not available"})
+        elif info["cond"] > 1e12:
+            warnings.append({"code": "ill_conditioned", "reliable": False, "condition_number": info["cond"],
+                             "message": f"the curvature is badly conditioned (scaled condition number "
+                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"})
+        se = np.sqrt(np.abs(np.diag(cov)))
+        std_errors[P.tm.free_idx] = se
+        with np.errstate(all="ignore"):
+            corr = cov / np.outer(se, se)
+    # floors
+    for j, o in enumerate(model.output_names):
+        fl = P.nm.meas_floor[j]
+        if P.nm.meas_est[j] and fl > 0 and sig[j] <= 1.01 * fl:
+            warnings.append({"code": "noise_at_floor", "reliable": False, "channel": o, "kind": "measurement",
+                             "std": float(sig[j]), "floor": float(fl),
+                             "message": f"measurement noise std of '{o}' ({sig[j]:.3g}) is at its floor "
+                                        f"({fl:.3g}): the data resolution limits the noise estimate"})
+    Gd = np.diag(np.asarray(P.nm.G(jnp.asarray(w))))
+    for i in P.nm.proc_est_idx:
+        fl = P.nm.proc_floor[i]
+        if fl > 0 and Gd[i] <= 1.01 * fl:
+            nm = model.state_names[i]
+            warnings.append({"code": "noise_at_floor", "reliable": False, "channel": nm, "kind": "process",
+                             "std": float(Gd[i]), "floor": float(fl),
+                             "message": f"process noise std of '{nm}' ({Gd[i]:.3g}) is at its floor ({fl:.3g})"})
+    if out["stop_code"] == "step_size":
+        warnings.append({"code": "stopped_on_step_size", "reliable": False, "message": out["status"]})
+    elif out["stop_code"] == "iteration_limit":
+        warnings.append({"code": "iteration_limit", "reliable": False, "message": out["status"]})
+    elif out["stop_code"] == "nonfinite":
+        warnings.append({"code": "nonfinite", "reliable": False, "message": out["status"]})
+    # smoothers and state-vs-measurement check
+    pairs = measured_states(model)
+    smoothers = []
+    for rec, (m, r) in zip(P.records, recs):
+        Sc, C, Sm, _ = P.obj.cov_factors(jnp.asarray(r))
+        Sc, C, Sm = (np.asarray(a) for a in (Sc, C, Sm))
+        smoothers.append(SmootherPath(name=str(getattr(rec, "name", "")), mu=np.asarray(m).copy(),
+                                      cov_marg=Sm @ Sm.T, cov_cond=Sc @ Sc.T, cross=C))
+        y = np.asarray(rec.y, float)
+        for i, j in pairs.items():
+            res = m[:, i] - y[:, j]
+            res = res[np.isfinite(res)]
+            if res.size and sig[j] > 0:
+                ratio = float(np.sqrt(np.mean(res ** 2)) / sig[j])
+                if ratio > 5:
+                    warnings.append({"code": "state_far_from_measurement", "reliable": False,
+                                     "record": str(getattr(rec, "name", "")), "state": model.state_names[i],
+                                     "output": model.output_names[j], "ratio": ratio,
+                                     "message": f"record '{getattr(rec, 'name', '')}': smoothed state "
+                                                f"'{model.state_names[i]}' is {ratio:.1f} measurement std (RMS) "
+                                                f"from its direct measurement '{model.output_names[j]}'"})
+    reliable = not any(not w_.get("reliable", True) for w_ in warnings)
+    if mode != "fit":
+        reliable = False
+    return FitResult(
+        parameter_names=model.parameter_names, theta=theta, std_errors=std_errors, correlation=corr,
+        free_mask=P.tm.free_mask.copy(), process_std=process_std, measurement_std=measurement_std,
+        measurement_floor=measurement_floor, G=G, R=np.diag(sig ** 2), elbo=-f, converged=out["converged"],
+        status=out["status"], iterations=out["iterations"], wall_time_s=time.perf_counter() - out["t0"],
+        smoothers=tuple(smoothers), warnings=tuple(warnings), std_errors_reliable=bool(reliable),
+        history=out["history"],
+        decision={"s": np.asarray(s).copy(), "records": [{"mu": np.asarray(m).copy(), "r": np.asarray(r).copy()}
+                                                          for m, r in recs]},
+        covariance=cov, optimizer=options.optimizer)
+
+
+# --------------------------------------------------------------------------- public API
+def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
+    """Maximise the ELBO over θ (free parameters), noise parameters and one assumed density per record.
+
+    Args:
+        model: a :class:`vsidgen.model.Model`.
+        records: one record or a sequence (fields t, dt, u (N, nu), y (N, ny; NaN = missing)).
+        options: :class:`FitOptions`.
+
+    Returns:
+        :class:`FitResult`; ``converged`` False (with ``status``) when the optimiser stopped
+        without meeting the gradient criterion. Raises FitError on unusable input.
+    """
+    P = _Problem(model, records, options)
+    if options.optimizer == "structured-newton":
+        out = _optimize(P, options)
+    elif options.optimizer == "trust-constr":
+        from .reference import optimize_trust_constr
+
+        out = optimize_trust_constr(P, options)
+    else:
+        raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
+    return _finish(P, out, mode="fit", options=options)
+
+
+def _noise_from(noise, model):
+    if hasattr(noise, "G") and hasattr(noise, "R"):
+        return np.asarray(noise.G, float), np.asarray(noise.R, float)
+    if isinstance(noise, Mapping):
+        if "G" in noise and "R" in noise:
+            return np.asarray(noise["G"], float), np.asarray(noise["R"], float)
+        if "process_std" in noise and "measurement_std" in noise:
+            ps, ms = noise["process_std"], noise["measurement_std"]
+            G = np.diag([float(ps.get(n, 0.0)) for n in model.state_names])
+            R = np.diag([float(ms[n]) ** 2 for n in model.output_names])
+            return G, R
+    raise FitError("noise must be a FitResult or a mapping with 'G' and 'R' or 'process_std' and 'measurement_std'")
+
+
+def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) -> FitResult:
+    """Validation mode: θ and noise fixed, only the assumed densities q (one per record) are fitted.
+
+    ``theta``: all parameters in model order; ``noise``: a FitResult, or a mapping with
+    ``G`` (nx×nx) and ``R`` (ny×ny), or ``process_std``/``measurement_std`` dicts.
+    The returned FitResult has the maximised ELBO (a lower bound on log p(y | θ)) and the
+    smoother paths; std_errors are NaN.
+    """
+    theta = np.asarray(theta, float)
+    if theta.shape != (model.np,):
+        raise FitError(f"theta has shape {theta.shape}, expected ({model.np},)")
+    G, R = _noise_from(noise, model)
+    P = _Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
+    out = _optimize(P, options)
+    return _finish(P, out, mode="smooth", options=options)

@@ -1,0 +1,113 @@
+"""Options and result records of the variational estimator."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Options of :func:`vsidgen.estimator.fit` and :func:`~vsidgen.estimator.smooth`.
+
+    Attributes:
+        integrator: "euler" | "rk4"; None → ``model.integrator``.
+        substeps: integration substeps per sample; None → ``model.substeps``.
+        max_iter: iteration limit of the optimizer.
+        gtol: convergence tolerance on the *relative gradient*
+            ``max_i |∂(−L)/∂v_i| · max(|v_i|, 1) / max(|L|, 1)`` over the whole
+            decision vector v (θ in unconstrained coordinates, noise log-stds,
+            assumed-density parameters, state means); it is invariant to the
+            scale of the ELBO and of each variable that is ≳ 1.
+        init_states: "measured" (μ from outputs that equal a state, NaN
+            interpolated, zero for unmeasured states) or "zero".
+        optimizer: "structured-newton" (default: Levenberg–Marquardt damped
+            Newton exploiting the block-tridiagonal Hessian) or "trust-constr"
+            (scipy.optimize.minimize reference path, dense Hessian–vector products).
+        progress: callback(iteration, elbo, grad_norm, elapsed_s) called each iteration.
+        verbose: print one line per iteration.
+        deterministic_std: std (state unit/√s) used for states that have no
+            process noise; makes their transition quasi-deterministic (the exact
+            degenerate case is not represented by the assumed density).
+        xtol: stop (not converged) when the relative step falls below this.
+        warm_start: a previous FitResult of the same problem shape to start from.
+        lambda0: initial Levenberg–Marquardt damping (Marquardt diagonal scaling).
+    """
+
+    integrator: str | None = None
+    substeps: int | None = None
+    max_iter: int = 200
+    gtol: float = 1e-6
+    init_states: str = "measured"
+    optimizer: str = "structured-newton"
+    progress: Callable | None = None
+    verbose: bool = False
+    deterministic_std: float = 1e-6
+    xtol: float = 1e-13
+    warm_start: Any = None
+    lambda0: float = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class SmootherPath:
+    """Assumed density of one record: means and (time-invariant) covariances."""
+
+    name: str
+    mu: np.ndarray          # (N, nx)
+    cov_marg: np.ndarray    # (nx, nx) Σ_marg
+    cov_cond: np.ndarray    # (nx, nx) Σ_cond = cov(x_{k+1} | x_k)
+    cross: np.ndarray       # (nx, nx) C, cov(x_{k+1}, x_k) = C S_mᵀ
+
+    @property
+    def std(self) -> np.ndarray:
+        """Marginal standard deviation per state (nx,)."""
+        return np.sqrt(np.diag(self.cov_marg))
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Outcome of a fit (or of a validation smoothing run).
+
+    ``theta`` holds all parameters in model order; ``std_errors`` the square
+    roots of diag cov(θ_free) with cov = [H⁻¹]_θθ (H the Hessian of −ELBO in
+    natural θ coordinates, all other variables marginalised), NaN for fixed
+    parameters; ``correlation`` is free × free.
+    """
+
+    parameter_names: tuple[str, ...]
+    theta: np.ndarray
+    std_errors: np.ndarray
+    correlation: np.ndarray
+    free_mask: np.ndarray
+    process_std: dict
+    measurement_std: dict
+    measurement_floor: dict
+    G: np.ndarray
+    R: np.ndarray
+    elbo: float
+    converged: bool
+    status: str
+    iterations: int
+    wall_time_s: float
+    smoothers: tuple[SmootherPath, ...]
+    warnings: tuple[dict, ...] = ()
+    std_errors_reliable: bool = True
+    history: tuple[dict, ...] = ()
+    decision: dict | None = None     # {"s": shared vector, "records": [{"mu", "r"}]} for warm start
+    covariance: np.ndarray | None = None   # free × free cov(θ_free)
+    optimizer: str = "structured-newton"
+
+    @property
+    def estimates(self) -> dict:
+        return dict(zip(self.parameter_names, map(float, self.theta)))
+
+    def __str__(self) -> str:
+        lines = [f"ELBO {self.elbo:.6g}; {self.status}; {self.iterations} iterations, {self.wall_time_s:.2f} s"]
+        for name, v, se in zip(self.parameter_names, self.theta, self.std_errors):
+            lines.append(f"  {name:>12s} = {v: .6g}  ± {se:.3g}")
+        for w in self.warnings:
+            lines.append(f"  warning [{w['code']}]: {w['message']}")
+        return "\n".join(lines)
