@@ -1,0 +1,145 @@
+"""Evaluation signals against independent numpy references on a linear model."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from vsidgen.data import Record
+from vsidgen.evaluation import evaluate, fit_metrics
+from vsidgen.metadata import Parameter, ProcessNoiseSpec, Variable
+from vsidgen.model import Model
+from vsidgen.simulate import simulate, three_two_one_one
+
+A = np.array([[-0.8, 1.0], [-5.0, -2.0]])
+B = np.array([[0.0], [-8.0]])
+C = np.array([[1.0, 0.0], [0.0, 1.0], [5.0, 0.0]])
+D = np.array([[0.0], [0.0], [0.2]])
+THETA = np.array([-0.8, -5.0, -2.0, -8.0])
+
+
+def _model(output=None):
+    def drift(x, u, p):
+        return jnp.array([[p[0], 1.0], [p[1], p[2]]]) @ x + jnp.array([0.0, p[3]]) * u[0]
+
+    def out(x, u, p):
+        return jnp.asarray(C) @ x + jnp.asarray(D) @ u
+
+    return Model(name="lin", drift=drift, output=output or out,
+                 states=(Variable("alpha"), Variable("q")), inputs=(Variable("de"),),
+                 outputs=(Variable("alpha"), Variable("q"), Variable("nz")),
+                 parameters=tuple(Parameter(n) for n in ("Za", "Ma", "Mq", "Mde")),
+                 process_noise=ProcessNoiseSpec(states=("alpha", "q")), measurement_noise=())
+
+
+def _record(res, y=None):
+    n = res.t.size
+    return Record(name="syn", path=None, t=res.t, dt=float(res.t[1] - res.t[0]), u=res.u,
+                  y=res.y if y is None else y, input_names=("de",),
+                  output_names=("alpha", "q", "nz"), t_raw=res.t)
+
+
+T = 0.02
+TT = np.arange(0, 8, T)
+G = np.diag([0.05, 0.3])
+RM = np.diag([1e-3, 4e-3, 0.05]) ** 2
+
+
+def _sim(**kw):
+    u = {"de": three_two_one_one(TT, amplitude=0.03, start=1, unit=0.4)}
+    return simulate(_model(), theta=THETA, t=TT, u=u, x0=[0.02, 0.0], **kw)
+
+
+def _numpy_kf(y, u, x0, Q, R):
+    """Independent steady-state KF: Riccati recursion iterated to convergence."""
+    Ad, Bd = np.eye(2) + T * A, T * B
+    P = np.eye(2)
+    for _ in range(100_000):
+        S = C @ P @ C.T + R
+        Pn = Ad @ P @ Ad.T - Ad @ P @ C.T @ np.linalg.inv(S) @ C @ P @ Ad.T + Q
+        if np.max(np.abs(Pn - P)) < 1e-18:
+            P = Pn
+            break
+        P = Pn
+    K = P @ C.T @ np.linalg.inv(C @ P @ C.T + R)
+    x = x0.copy()
+    out = np.empty_like(y)
+    for k in range(y.shape[0]):
+        yp = C @ x + D @ u[k]
+        out[k] = yp
+        e = np.where(np.isnan(y[k]), 0.0, y[k] - yp)
+        x = Ad @ (x + K @ e) + Bd @ u[k]
+    return out, K
+
+
+def test_prediction_matches_numpy_kalman_filter():
+    res = _sim(process_std={"alpha": 0.05, "q": 0.3}, measurement_std={"alpha": 1e-3, "q": 4e-3, "nz": 0.05},
+               seed=11)
+    y = res.y.copy()
+    y[[5, 50, 51], 0] = np.nan          # missing samples: zero innovation
+    y[200, :] = np.nan
+    mu = res.x + 1e-3 * np.sin(np.arange(TT.size))[:, None]   # a smoother path, not exactly the truth
+    sig = evaluate(_model(), _record(res, y), THETA, mu=mu, G=G, R=RM)
+    ref, K = _numpy_kf(y, res.u, mu[0], T * G @ G.T, RM)
+    np.testing.assert_allclose(sig.gain, K, rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(sig.y_pred, ref, rtol=1e-9, atol=1e-12)
+    assert sig.warnings == ()
+    # the filter tracks the noisy data far better than the free simulation
+    assert sig.metrics["prediction"]["q"]["rms"] < 0.5 * sig.metrics["simulation"]["q"]["rms"]
+    assert sig.metrics["prediction"]["alpha"]["n"] == TT.size - 4
+
+
+def test_smoother_simulation_and_derivative_signals():
+    res = _sim()            # deterministic Euler path: mu obeys the model exactly
+    y = res.y + 0.01
+    sig = evaluate(_model(), _record(res, y), dict(zip(("Za", "Ma", "Mq", "Mde"), THETA)),
+                   mu=res.x, G=np.zeros((2, 2)), R=RM)
+    np.testing.assert_allclose(sig.y_smooth, res.x @ C.T + res.u @ D.T, atol=1e-15)
+    np.testing.assert_allclose(sig.y_sim, res.y, atol=1e-14)
+    # finite differences of an Euler path equal the drift
+    assert sig.xdot_fd.shape == (TT.size - 1, 2) and sig.f_smooth.shape == (TT.size - 1, 2)
+    np.testing.assert_allclose(sig.xdot_fd, sig.f_smooth, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(sig.f_smooth, res.x[:-1] @ A.T + res.u[:-1] @ B.T, atol=1e-14)
+    assert sig.metrics["derivative"]["q"]["r2"] == pytest.approx(1.0, abs=1e-12)
+    # Q = 0, stable A: K = 0, prediction = simulation, no warning
+    assert np.abs(sig.gain).max() < 1e-15
+    np.testing.assert_allclose(sig.y_pred, sig.y_sim, atol=1e-14)
+    assert sig.warnings == ()
+    m = sig.metrics["smoother"]["alpha"]
+    assert m["rms"] == pytest.approx(0.01, rel=1e-9) and m["n"] == TT.size
+    assert set(sig.metrics) == {"smoother", "simulation", "prediction", "derivative"}
+    assert set(sig.metrics["derivative"]) == {"alpha", "q"}
+
+
+def test_riccati_failure_falls_back_to_simulation():
+    # outputs blind to an unstable state: undetectable -> no stabilising solution
+    def blind(x, u, p):
+        return jnp.array([u[0], 2 * u[0], 0.0 * x[0]])
+
+    model = _model(output=blind)
+    th = np.array([0.5, -5.0, 0.3, -8.0])     # unstable
+    t = np.arange(0, 1, T)
+    res = simulate(model, theta=th, t=t, u={"de": 0.01}, x0=[0.0, 0.0])
+    rec = Record(name="r", path=None, t=t, dt=T, u=res.u, y=res.y, input_names=("de",),
+                 output_names=("alpha", "q", "nz"), t_raw=t)
+    sig = evaluate(model, rec, th, mu=res.x, G=G, R=RM)
+    assert len(sig.warnings) == 1 and "Riccati" in sig.warnings[0]
+    assert sig.gain is None
+    np.testing.assert_array_equal(sig.y_pred, sig.y_sim)
+
+
+def test_fit_metrics_hand_computed():
+    m = fit_metrics([1.0, 2.0, 3.0, np.nan, 7.0], [1.0, 2.0, 4.0, 5.0, np.inf])
+    assert m["n"] == 3
+    assert m["rms"] == pytest.approx(math.sqrt(1 / 3), rel=1e-15)
+    assert m["theil"] == pytest.approx(math.sqrt(1 / 3) / (math.sqrt(14 / 3) + math.sqrt(7)), rel=1e-14)
+    assert m["r2"] == pytest.approx(0.5, rel=1e-15)     # SSE 1, SST 2
+    perfect = fit_metrics([1.0, -2.0], [1.0, -2.0])
+    assert perfect["rms"] == 0.0 and perfect["theil"] == 0.0 and perfect["r2"] == 1.0
+    empty = fit_metrics([np.nan], [1.0])
+    assert empty["n"] == 0 and math.isnan(empty["rms"])
+    const = fit_metrics([2.0, 2.0], [2.0, 3.0])
+    assert math.isnan(const["r2"])

@@ -1,0 +1,250 @@
+"""The paper's four evaluation signals of an identified model, and fit metrics.
+
+For one record (time stamps ``t_k``, sample period ``T``, inputs ``u_k``,
+measurements ``y_k``), the estimate ``θ*``, the smoother mean ``μ_k`` and the
+noise matrices ``G`` (process, ``dx = f dt + G dW``) and ``R`` (measurement
+covariance), with the mean transition ``F`` of :mod:`vsidgen.dynamics`:
+
+1. **smoother outputs** ``ŷ_k = h(μ_k, u_k, θ*)``;
+2. **free simulation** from ``x_0 = μ_0`` with ``θ*`` and no noise:
+   ``x_{k+1} = F(x_k, u_k, θ*)``, ``ŷ_k = h(x_k, u_k, θ*)``;
+3. **one-step predictions of the steady-state Kalman filter** for ``θ*``. As
+   in the filter-error method, the system is linearised once, at the first
+   sample: ``A = ∂F/∂x (μ_0, u_0, θ*)``, ``H = ∂h/∂x (μ_0, u_0, θ*)``
+   (``jax.jacfwd``), ``Q = T G Gᵀ``. The predicted covariance ``P`` solves the
+   discrete algebraic Riccati equation
+
+   .. math:: P = A P Aᵀ − A P Hᵀ (H P Hᵀ + R)^{-1} H P Aᵀ + Q
+
+   (``scipy.linalg.solve_discrete_are`` on the dual problem ``(Aᵀ, Hᵀ)``),
+   ``K = P Hᵀ (H P Hᵀ + R)^{-1}``. The predictor itself is nonlinear:
+
+   .. math::
+
+       ŷ_k = h(x̂_{k|k-1}, u_k),\\quad
+       x̂_{k|k} = x̂_{k|k-1} + K (y_k − ŷ_k),\\quad
+       x̂_{k+1|k} = F(x̂_{k|k}, u_k, θ*),\\quad x̂_{0|-1} = μ_0.
+
+   A missing measurement (NaN) contributes a zero innovation (its column of
+   ``K`` is simply not used; the gain is not re-optimised for the subset). If
+   the Riccati equation has no stabilising solution (undetectable or singular
+   problem), the prediction falls back to the free simulation and a message
+   is added to :attr:`Signals.warnings`. With ``Q = 0`` and a stable ``A`` the
+   gain is ``K = 0`` (prediction = simulation, no warning).
+4. **state derivatives**: finite differences ``(μ_{k+1} − μ_k)/T`` versus the
+   drift ``f(μ_k, u_k, θ*)``, ``k = 0..N-2`` (for the Euler transition and a
+   smoother path that obeys the model exactly these coincide).
+
+Fit metrics (:func:`fit_metrics`, NaN-aware: samples where either value is
+not finite are dropped), with ``e = y − ŷ``::
+
+    rms   = sqrt(mean(e²))
+    theil = rms(e) / (rms(y) + rms(ŷ))        Theil's inequality coefficient U
+    r2    = 1 − Σe² / Σ(y − mean(y))²          coefficient of determination
+    n     = number of samples used
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.linalg
+
+from .dynamics import transition
+from .errors import VsidgenError
+from .simulate import theta_vector
+
+jax.config.update("jax_enable_x64", True)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Signals:
+    """Evaluation signals of one record (see the module docstring).
+
+    Attributes:
+        record: record name; ``t`` (N,) seconds.
+        y_meas, y_smooth, y_sim, y_pred: (N, ny) measured, smoother, simulated,
+            one-step predicted outputs.
+        x_smooth: (N, nx) smoother mean μ.
+        xdot_fd, f_smooth: (N-1, nx) finite-difference and drift state derivatives.
+        metrics: ``{"smoother"|"simulation"|"prediction": {output: m},
+            "derivative": {state: m}}`` with ``m = {"rms", "theil", "r2", "n"}``.
+        output_names, state_names: channel names in column order.
+        warnings: human-readable messages (e.g. Riccati fallback).
+        gain: (nx, ny) steady-state Kalman gain K (None after a fallback).
+    """
+
+    record: str
+    t: np.ndarray
+    y_meas: np.ndarray
+    y_smooth: np.ndarray
+    y_sim: np.ndarray
+    y_pred: np.ndarray
+    x_smooth: np.ndarray
+    xdot_fd: np.ndarray
+    f_smooth: np.ndarray
+    metrics: dict
+    output_names: tuple[str, ...] = ()
+    state_names: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+    gain: np.ndarray | None = None
+
+
+def fit_metrics(measured, predicted) -> dict:
+    """NaN-aware fit metrics ``{"rms", "theil", "r2", "n"}`` (formulas in the module docstring).
+
+    Undefined values (no samples, ``Σ(y − ȳ)² = 0``, ``rms(y) + rms(ŷ) = 0``)
+    are NaN.
+    """
+    y = np.asarray(measured, dtype=np.float64).ravel()
+    p = np.asarray(predicted, dtype=np.float64).ravel()
+    if y.shape != p.shape:
+        raise VsidgenError(f"fit_metrics: shapes differ ({y.shape} vs {p.shape})")
+    ok = np.isfinite(y) & np.isfinite(p)
+    y, p = y[ok], p[ok]
+    n = int(y.size)
+    if n == 0:
+        return {"rms": math.nan, "theil": math.nan, "r2": math.nan, "n": 0}
+    e = y - p
+    rms = float(np.sqrt(np.mean(e ** 2)))
+    den = float(np.sqrt(np.mean(y ** 2)) + np.sqrt(np.mean(p ** 2)))
+    theil = rms / den if den > 0 else math.nan
+    sst = float(np.sum((y - y.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(e ** 2)) / sst if sst > 0 else math.nan
+    return {"rms": rms, "theil": theil, "r2": r2, "n": n}
+
+
+def steady_state_gain(A, H, Q, R) -> np.ndarray:
+    """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹``.
+
+    ``P`` is the stabilising solution of the filter DARE (module docstring);
+    the predictor ``A (I − K H)`` must have spectral radius <= 1 (else the
+    solution is not stabilising: an unstable mode is undetectable).
+
+    Raises:
+        numpy.linalg.LinAlgError / ValueError: no stabilising solution.
+    """
+    A, H, Q, R = (np.asarray(a, dtype=np.float64) for a in (A, H, Q, R))
+    P = scipy.linalg.solve_discrete_are(A.T, H.T, Q, R)
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S.T, (P @ H.T).T).T
+    if not (np.isfinite(P).all() and np.isfinite(K).all()):
+        raise np.linalg.LinAlgError("non-finite Riccati solution")
+    rho = np.max(np.abs(np.linalg.eigvals(A @ (np.eye(A.shape[0]) - K @ H))))
+    if rho > 1.0 + 1e-9:
+        raise np.linalg.LinAlgError(
+            f"the filter is unstable (spectral radius {rho:.6g} of A(I - KH)): "
+            "an unstable mode is not seen by the outputs (undetectable)")
+    return K
+
+
+def _matrix(a, shape0, name, square=False) -> np.ndarray:
+    m = np.asarray(a, dtype=np.float64)
+    if m.ndim != 2 or m.shape[0] != shape0 or (square and m.shape[1] != shape0):
+        want = f"({shape0}, {shape0})" if square else f"({shape0}, k)"
+        raise VsidgenError(f"evaluate: {name} must be a {want} matrix, got shape {m.shape}")
+    return m
+
+
+def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
+             substeps: int | None = None) -> Signals:
+    """Compute the four evaluation signals and their fit metrics for one record.
+
+    Args:
+        model: :class:`vsidgen.model.Model`.
+        record: :class:`vsidgen.data.Record` (``t``, ``dt``, ``u``, ``y``).
+        theta: estimate θ*, (np,) array or dict name -> value.
+        mu: (N, nx) smoother mean.
+        G: (nx, k) process-noise matrix (state-unit/√s); ``Q = T G Gᵀ``.
+        R: (ny, ny) measurement-noise covariance.
+        integrator, substeps: transition F (``None``: the model's choice, as
+            used by the estimator).
+    """
+    p = jnp.asarray(theta_vector(model, theta))
+    mu = np.asarray(mu, dtype=np.float64)
+    u = np.asarray(record.u, dtype=np.float64)
+    y = np.asarray(record.y, dtype=np.float64)
+    n = u.shape[0]
+    if mu.shape != (n, model.nx):
+        raise VsidgenError(f"evaluate: mu has shape {mu.shape}, expected ({n}, {model.nx})")
+    if u.shape != (n, model.nu) or y.shape != (n, model.ny):
+        raise VsidgenError(f"evaluate: record '{record.name}' has u {u.shape} / y {y.shape}, "
+                           f"model {model.name} expects ({n}, {model.nu}) / ({n}, {model.ny})")
+    for kind, have, want in (("input", getattr(record, "input_names", None), model.input_names),
+                             ("output", getattr(record, "output_names", None), model.output_names)):
+        if have is not None and tuple(have) != tuple(want):
+            raise VsidgenError(f"evaluate: record '{record.name}' {kind}s {tuple(have)} differ from "
+                               f"the model's {tuple(want)}")
+    G = _matrix(G, model.nx, "G")
+    R = _matrix(R, model.ny, "R", square=True)
+    T = float(record.dt)
+    F = transition(model, integrator=integrator, substeps=substeps)
+    h, f = model.output, model.drift
+    warnings: list[str] = []
+
+    mu_j, u_j = jnp.asarray(mu), jnp.asarray(u)
+    y_smooth = np.asarray(jax.vmap(lambda x, uk: h(x, uk, p))(mu_j, u_j))
+    f_smooth = np.asarray(jax.vmap(lambda x, uk: f(x, uk, p))(mu_j[:-1], u_j[:-1]))
+    xdot_fd = np.diff(mu, axis=0) / T
+
+    @jax.jit
+    def free_sim(x0, U):
+        def body(x, uk):
+            return F(x, uk, p, T), h(x, uk, p)
+        _, ys = jax.lax.scan(body, x0, U)
+        return ys
+
+    y_sim = np.asarray(free_sim(mu_j[0], u_j))
+    if not np.isfinite(y_sim).all():
+        k = int(np.flatnonzero(~np.isfinite(y_sim).all(axis=1))[0])
+        warnings.append(f"free simulation diverged at sample {k} (t = {record.t[k]:.6g} s)")
+
+    # steady-state Kalman filter, linearised at the first sample
+    x0, u0 = mu_j[0], u_j[0]
+    A = np.asarray(jax.jacfwd(lambda x: F(x, u0, p, T))(x0))
+    H = np.asarray(jax.jacfwd(lambda x: h(x, u0, p))(x0))
+    Q = T * G @ G.T
+    K = None
+    try:
+        K = steady_state_gain(A, H, Q, R)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        if not Q.any() and np.max(np.abs(np.linalg.eigvals(A))) < 1.0:
+            K = np.zeros((model.nx, model.ny))
+        else:
+            warnings.append("steady-state Kalman filter unavailable (Riccati equation has no "
+                            f"stabilising solution: {exc}); prediction signal = free simulation")
+    if K is not None:
+        Kj = jnp.asarray(K)
+
+        @jax.jit
+        def predictor(x0, U, Y):
+            def body(xp, inp):
+                uk, yk = inp
+                yp = h(xp, uk, p)
+                innov = jnp.where(jnp.isnan(yk), 0.0, yk - yp)
+                xf = xp + Kj @ innov
+                return F(xf, uk, p, T), yp
+            _, yps = jax.lax.scan(body, x0, (U, Y))
+            return yps
+
+        y_pred = np.asarray(predictor(mu_j[0], u_j, jnp.asarray(y)))
+    else:
+        y_pred = y_sim.copy()
+
+    metrics = {
+        "smoother": {o: fit_metrics(y[:, j], y_smooth[:, j]) for j, o in enumerate(model.output_names)},
+        "simulation": {o: fit_metrics(y[:, j], y_sim[:, j]) for j, o in enumerate(model.output_names)},
+        "prediction": {o: fit_metrics(y[:, j], y_pred[:, j]) for j, o in enumerate(model.output_names)},
+        "derivative": {s: fit_metrics(xdot_fd[:, i], f_smooth[:, i]) for i, s in enumerate(model.state_names)},
+    }
+    return Signals(record=record.name, t=np.asarray(record.t), y_meas=y, y_smooth=y_smooth,
+                   y_sim=y_sim, y_pred=y_pred, x_smooth=mu, xdot_fd=xdot_fd, f_smooth=f_smooth,
+                   metrics=metrics, output_names=model.output_names, state_names=model.state_names,
+                   warnings=tuple(warnings), gain=K)
+
+
+__all__ = ["Signals", "evaluate", "fit_metrics", "steady_state_gain"]
