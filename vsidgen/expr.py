@@ -1,0 +1,479 @@
+"""Safe expression parser: spec text -> sympy expression.
+
+The text is parsed with ``ast.parse(text, mode="eval")`` and the syntax tree is
+walked against a strict whitelist; sympy objects are built directly from the
+nodes. Nothing from the text is ever evaluated, imported or looked up as a
+Python attribute (no ``eval``/``exec``/``sympify``).
+
+Accepted syntax:
+
+* numbers (int and float literals; no complex), declared names, ``pi``,
+* ``+ - * / **`` and unary ``+``/``-``, parentheses,
+* calls of the whitelisted functions with positional arguments::
+
+      sin cos tan asin acos atan atan2 exp log sqrt abs tanh sign min max
+      sat(x, lo, hi)        = Min(Max(x, lo), hi)                (hard saturation)
+      smoothsat(x, lo, hi)  = lo + (hi - lo) * (tanh(2 (x - m)/(hi - lo)) + 1)/2,
+                              m = (lo + hi)/2                   (smooth saturation:
+                              value m and unit slope at x = m, tends to lo / hi)
+      interp(x, [x0, x1, ...], [y0, y1, ...])  linear lookup table (clamped at the ends,
+                              like ``numpy.interp``); list literals only here.
+
+Anything else (attributes, subscripts, lambdas, comprehensions, keyword
+arguments, strings, dunder names, unknown names or functions) raises
+:class:`~vsidgen.errors.SpecError` with the column of the offending token.
+"""
+
+from __future__ import annotations
+
+import ast
+import difflib
+import keyword
+import re
+import math
+from collections.abc import Mapping
+
+import sympy
+
+from .errors import SpecError
+
+MAX_LENGTH = 2000
+MAX_DEPTH = 64
+MAX_EXPONENT = 100
+MAX_CONSTANT = 1e300
+_KW_MARK = "\u0436"  # a non-ASCII identifier letter (never in a valid spec name)
+_IDENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+#: whitelisted function names -> number of positional arguments (None: >= 2)
+FUNCTIONS: dict[str, int | None] = {
+    "sin": 1, "cos": 1, "tan": 1, "asin": 1, "acos": 1, "atan": 1, "atan2": 2,
+    "exp": 1, "log": 1, "sqrt": 1, "abs": 1, "tanh": 1, "sign": 1,
+    "min": None, "max": None, "sat": 3, "smoothsat": 3, "interp": 3,
+}
+
+#: names available in every expression unless the spec declares them
+BUILTIN_NAMES: dict[str, sympy.Basic] = {"pi": sympy.pi}
+
+_UNARY = {
+    "sin": sympy.sin, "cos": sympy.cos, "tan": sympy.tan, "asin": sympy.asin,
+    "acos": sympy.acos, "atan": sympy.atan, "exp": sympy.exp, "log": sympy.log,
+    "sqrt": sympy.sqrt, "abs": sympy.Abs, "tanh": sympy.tanh, "sign": sympy.sign,
+}
+
+
+# ---------------------------------------------------------------------------
+# lookup tables
+# ---------------------------------------------------------------------------
+
+def _table_values(xs, ys):
+    return [float(v) for v in xs], [float(v) for v in ys]
+
+
+def _interp_numeric(x: float, xs, ys) -> float:
+    xs, ys = _table_values(xs, ys)
+    if x <= xs[0]:
+        return ys[0]
+    if x >= xs[-1]:
+        return ys[-1]
+    for i in range(len(xs) - 1):
+        if xs[i] <= x <= xs[i + 1]:
+            w = (x - xs[i]) / (xs[i + 1] - xs[i])
+            return ys[i] + w * (ys[i + 1] - ys[i])
+    return ys[-1]  # pragma: no cover
+
+
+def _slope_numeric(x: float, xs, ys) -> float:
+    xs, ys = _table_values(xs, ys)
+    if x < xs[0] or x > xs[-1]:
+        return 0.0
+    for i in range(len(xs) - 1):
+        if xs[i] <= x < xs[i + 1] or (i == len(xs) - 2 and x == xs[-1]):
+            return (ys[i + 1] - ys[i]) / (xs[i + 1] - xs[i])
+    return 0.0  # pragma: no cover
+
+
+class Interp(sympy.Function):
+    """Linear interpolation ``Interp(x, (x0, x1, ...), (y0, y1, ...))``.
+
+    The table is held in the arguments as sympy Tuples of numbers (strictly
+    increasing x). Clamped outside the table (like ``numpy.interp``). The
+    derivative with respect to x is the piecewise-constant slope
+    :class:`InterpSlope`; generated code prints ``jnp.interp(x, xp, fp)``.
+    """
+
+    nargs = 3
+
+    @classmethod
+    def eval(cls, x, xs, ys):
+        if x.is_Number and x.is_finite:
+            return sympy.Float(_interp_numeric(float(x), xs, ys))
+        return None
+
+    def fdiff(self, argindex=1):
+        if argindex != 1:
+            return sympy.S.Zero
+        return InterpSlope(*self.args)
+
+    def _eval_derivative(self, s):
+        # the tables are constants: only the first argument depends on s
+        return self.fdiff(1) * self.args[0].diff(s)
+
+    def _eval_is_real(self):
+        return True
+
+
+class InterpSlope(sympy.Function):
+    """Slope of :class:`Interp`: (y[i+1]-y[i])/(x[i+1]-x[i]) on segment i, 0 outside."""
+
+    nargs = 3
+
+    @classmethod
+    def eval(cls, x, xs, ys):
+        if x.is_Number and x.is_finite:
+            return sympy.Float(_slope_numeric(float(x), xs, ys))
+        return None
+
+    def fdiff(self, argindex=1):
+        return sympy.S.Zero
+
+    def _eval_derivative(self, s):
+        return sympy.S.Zero
+
+    def _eval_is_real(self):
+        return True
+
+
+def smoothsat(x, lo, hi):
+    """Smooth saturation lo + (hi-lo)*(tanh(2*(x-mid)/(hi-lo)) + 1)/2, mid=(lo+hi)/2."""
+    mid = (lo + hi) / 2
+    return lo + (hi - lo) * (sympy.tanh(2 * (x - mid) / (hi - lo)) + 1) / 2
+
+
+# ---------------------------------------------------------------------------
+# parser
+# ---------------------------------------------------------------------------
+
+class _Ctx:
+    def __init__(self, text, namespace, path, line, column, free_names, units):
+        self.text = text
+        self.namespace = namespace
+        self.path = path
+        self.line = line
+        self.column = column
+        self.free_names = free_names
+        self.units = units
+        self.free: dict[str, sympy.Symbol] = {}
+        self.aliases: dict[str, str] = {}
+
+
+def _error(ctx: _Ctx, message: str, node: ast.AST | None = None, *, hint: str | None = None,
+           offset: int | None = None, length: int | None = None):
+    if node is not None and hasattr(node, "col_offset"):
+        offset = node.col_offset
+        end = getattr(node, "end_col_offset", None)
+        if getattr(node, "end_lineno", 1) != getattr(node, "lineno", 1):
+            end = None
+        length = (end - offset) if end is not None else 1
+    return _make_error(ctx.text, message, path=ctx.path, line=ctx.line, column=ctx.column,
+                       offset=offset, length=length, hint=hint)
+
+
+def _make_error(text, message, *, path, line, column, offset, length, hint=None):
+    shown = text.replace("\n", " ")
+    if len(shown) > 200:
+        lo = max(0, (offset or 0) - 60)
+        shown_part = shown[lo:lo + 160]
+        span = (((offset or 0) - lo) + 1, max(1, min(length or 1, 160))) if offset is not None else None
+        shown = shown_part
+    else:
+        span = ((offset + 1), max(1, length or 1)) if offset is not None else None
+    col = column
+    if column is not None and offset is not None:
+        col = column + offset
+    return SpecError(message, path=path, line=line, column=col, text=shown, hint=hint, span=span)
+
+
+def did_you_mean(name: str, candidates) -> str | None:
+    """A 'did you mean `x`?' hint for ``name`` among ``candidates`` (or None)."""
+    close = difflib.get_close_matches(name, sorted(candidates), n=1, cutoff=0.6)
+    if close:
+        return f"did you mean `{close[0]}`?"
+    return None
+
+
+def _check_number(ctx, value, node):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise _error(ctx, "only int and float number literals are allowed", node)
+    if isinstance(value, float) and not math.isfinite(value):
+        raise _error(ctx, "number literal is not finite", node, hint="use a finite number")
+    if abs(value) > MAX_CONSTANT:
+        raise _error(ctx, "number literal is too large", node,
+                     hint=f"literals must be at most {MAX_CONSTANT:g} in magnitude")
+    if isinstance(value, int):
+        return sympy.Integer(value)
+    return sympy.Float(repr(value), 15)
+
+
+def _convert(ctx: _Ctx, node: ast.AST, depth: int):
+    if depth > MAX_DEPTH:
+        raise _error(ctx, "expression is nested too deeply", node,
+                     hint=f"at most {MAX_DEPTH} levels of nesting; use definitions")
+    if isinstance(node, ast.Expression):
+        return _convert(ctx, node.body, depth + 1)
+    if isinstance(node, ast.Constant):
+        return _check_number(ctx, node.value, node)
+    if isinstance(node, ast.Name):
+        return _name(ctx, node)
+    if isinstance(node, ast.UnaryOp):
+        operand = _convert(ctx, node.operand, depth + 1)
+        if isinstance(node.op, ast.USub):
+            return -operand
+        if isinstance(node.op, ast.UAdd):
+            return operand
+        raise _error(ctx, f"operator `{_op_text(node.op)}` is not allowed", node,
+                     hint="allowed: + - * / ** and unary minus")
+    if isinstance(node, ast.BinOp):
+        if ctx.units and isinstance(node.op, ast.BitXor):
+            op = ast.Pow()
+        else:
+            op = node.op
+        if not isinstance(op, (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow)):
+            hint = "allowed: + - * / **"
+            if isinstance(op, ast.BitXor):
+                hint = "use ** for powers"
+            raise _error(ctx, f"operator `{_op_text(node.op)}` is not allowed", node, hint=hint)
+        left = _convert(ctx, node.left, depth + 1)
+        right = _convert(ctx, node.right, depth + 1)
+        if isinstance(op, ast.Pow):
+            if right.is_Number and (not right.is_finite or abs(right) > MAX_EXPONENT):
+                raise _error(ctx, "exponent is too large", node.right,
+                             hint=f"exponents must be at most {MAX_EXPONENT} in magnitude")
+            if left.is_Number and right.is_Number and abs(left) > 1e6 and abs(right) > 1:
+                raise _error(ctx, "power of a large constant", node,
+                             hint="write the value as a number literal")
+            return left ** right
+        if isinstance(op, ast.Add):
+            return left + right
+        if isinstance(op, ast.Sub):
+            return left - right
+        if isinstance(op, ast.Mult):
+            return left * right
+        return left / right
+    if isinstance(node, ast.Call):
+        return _call(ctx, node, depth)
+    raise _error(ctx, _describe(node) + " is not allowed in an expression", node,
+                 hint="expressions may use numbers, declared names, + - * / **, and the "
+                      "functions " + ", ".join(FUNCTIONS))
+
+
+def _op_text(op) -> str:
+    return {ast.BitXor: "^", ast.BitAnd: "&", ast.BitOr: "|", ast.Mod: "%", ast.FloorDiv: "//",
+            ast.LShift: "<<", ast.RShift: ">>", ast.MatMult: "@", ast.Invert: "~",
+            ast.Not: "not", ast.Pow: "**"}.get(type(op), type(op).__name__)
+
+
+def _describe(node) -> str:
+    names = {
+        ast.Attribute: "attribute access", ast.Subscript: "subscript", ast.Lambda: "lambda",
+        ast.ListComp: "comprehension", ast.SetComp: "comprehension", ast.DictComp: "comprehension",
+        ast.GeneratorExp: "comprehension", ast.List: "a list", ast.Tuple: "a tuple",
+        ast.Dict: "a dict", ast.Set: "a set", ast.Compare: "comparison", ast.BoolOp: "boolean operator",
+        ast.IfExp: "conditional expression", ast.NamedExpr: "assignment", ast.JoinedStr: "a string",
+        ast.Starred: "starred argument", ast.Await: "await", ast.Yield: "yield",
+        ast.YieldFrom: "yield", ast.Slice: "slice", ast.FormattedValue: "a string",
+    }
+    return names.get(type(node), type(node).__name__)
+
+
+def _name(ctx: _Ctx, node: ast.Name):
+    name = ctx.aliases.get(node.id, node.id)
+    if name.startswith("__") or name.startswith("_"):
+        raise _error(ctx, f"name `{name}` is not allowed (leading underscore)", node)
+    if name in ctx.namespace:
+        return ctx.namespace[name]
+    if not ctx.units and name in BUILTIN_NAMES:
+        return BUILTIN_NAMES[name]
+    if ctx.free_names:
+        if not name.isascii():
+            raise _error(ctx, f"name `{name}` must be ASCII", node)
+        sym = ctx.free.get(name)
+        if sym is None:
+            sym = ctx.free[name] = sympy.Symbol(name, real=True)
+        return sym
+    what = "unit" if ctx.units else "symbol"
+    if name in FUNCTIONS and not ctx.units:
+        raise _error(ctx, f"`{name}` is a function; call it with arguments", node)
+    hint = did_you_mean(name, list(ctx.namespace) + ([] if ctx.units else list(BUILTIN_NAMES)))
+    if hint is None:
+        hint = ("declare it under states, inputs, constants, parameters or definitions"
+                if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))
+    raise _error(ctx, f"unknown {what} `{name}`", node, hint=hint)
+
+
+def _table(ctx: _Ctx, node, depth: int, what: str):
+    if not isinstance(node, (ast.List, ast.Tuple)):
+        raise _error(ctx, f"interp: the {what} must be a list of numbers like [0, 1, 2]", node)
+    if len(node.elts) < 2:
+        raise _error(ctx, f"interp: the {what} needs at least 2 values", node)
+    values = []
+    for elt in node.elts:
+        v = _convert(ctx, elt, depth + 1)
+        if not v.is_Number or not v.is_finite:
+            raise _error(ctx, f"interp: the {what} must contain numbers only", elt)
+        values.append(sympy.Float(float(v), 15))
+    return values
+
+
+def _call(ctx: _Ctx, node: ast.Call, depth: int):
+    func = node.func
+    if not isinstance(func, ast.Name):
+        raise _error(ctx, "only calls of the whitelisted function names are allowed", func,
+                     hint="allowed functions: " + ", ".join(FUNCTIONS))
+    name = func.id
+    if ctx.units or name not in FUNCTIONS:
+        hint = did_you_mean(name, FUNCTIONS) if not ctx.units else None
+        raise _error(ctx, f"unknown function `{name}`", func,
+                     hint=hint or "allowed functions: " + ", ".join(FUNCTIONS))
+    if node.keywords:
+        raise _error(ctx, f"keyword arguments are not allowed in `{name}(...)`", node.keywords[0].value
+                     if not hasattr(node.keywords[0], "col_offset") else node.keywords[0],
+                     hint="pass the arguments by position")
+    nargs = FUNCTIONS[name]
+    if nargs is None:
+        if len(node.args) < 2:
+            raise _error(ctx, f"`{name}` needs at least 2 arguments", node)
+    elif len(node.args) != nargs:
+        raise _error(ctx, f"`{name}` takes {nargs} argument{'s' if nargs > 1 else ''}, "
+                          f"got {len(node.args)}", node)
+    for a in node.args:
+        if isinstance(a, ast.Starred):
+            raise _error(ctx, "starred arguments are not allowed", a)
+    if name == "interp":
+        x = _convert(ctx, node.args[0], depth + 1)
+        xs = _table(ctx, node.args[1], depth, "x table")
+        ys = _table(ctx, node.args[2], depth, "y table")
+        if len(xs) != len(ys):
+            raise _error(ctx, f"interp: x table has {len(xs)} values but y table has {len(ys)}", node)
+        if any(not (b > a) for a, b in zip(xs, xs[1:])):
+            raise _error(ctx, "interp: x table must be strictly increasing", node.args[1])
+        return Interp(x, sympy.Tuple(*xs), sympy.Tuple(*ys))
+    args = [_convert(ctx, a, depth + 1) for a in node.args]
+    if name in _UNARY:
+        return _UNARY[name](args[0])
+    if name == "atan2":
+        return sympy.atan2(args[0], args[1])
+    if name == "min":
+        return sympy.Min(*args)
+    if name == "max":
+        return sympy.Max(*args)
+    if name == "sat":
+        return sympy.Min(sympy.Max(args[0], args[1]), args[2])
+    if name == "smoothsat":
+        return smoothsat(*args)
+    raise _error(ctx, f"unknown function `{name}`", func)  # pragma: no cover
+
+
+def _bad_result(expr) -> bool:
+    try:
+        return bool(expr.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan, sympy.I))
+    except Exception:  # pragma: no cover
+        return True
+
+
+def parse_expression(text, namespace: Mapping[str, sympy.Basic], *, path=None, line=None,
+                     column=None, free_names: bool = False, units: bool = False):
+    """Parse ``text`` into a sympy expression over the symbols of ``namespace``.
+
+    Args:
+        text: the expression (a number is accepted too).
+        namespace: name -> sympy object for every name the expression may use.
+        path, line, column: location of the first character of ``text`` in the
+            spec file (for error messages; the column of the offending token is
+            ``column + offset``).
+        free_names: every unknown identifier becomes a real ``sympy.Symbol``
+            (used for data-column expressions); read them with
+            :func:`parse_expression_free`.
+        units: unit-string mode: ``^`` means power, no functions, no ``pi``.
+
+    Raises:
+        SpecError: for anything outside the whitelist (never another exception).
+    """
+    return _parse(text, namespace, path=path, line=line, column=column,
+                  free_names=free_names, units=units)[0]
+
+
+def parse_expression_free(text, namespace: Mapping[str, sympy.Basic] | None = None, *, path=None,
+                          line=None, column=None):
+    """Like :func:`parse_expression` with unknown names as free symbols.
+
+    Returns ``(expr, names)`` where ``names`` lists the free identifiers in order
+    of first appearance (e.g. the data columns a channel expression reads).
+    """
+    expr, ctx = _parse(text, namespace or {}, path=path, line=line, column=column,
+                       free_names=True, units=False)
+    return expr, tuple(ctx.free)
+
+
+def _parse(text, namespace, *, path, line, column, free_names, units):
+    if isinstance(text, bool):
+        raise SpecError("expected an expression, got a boolean", path=path, line=line, column=column)
+    if isinstance(text, (int, float)):
+        text = repr(text)
+    if not isinstance(text, str):
+        raise SpecError(f"expected an expression (text), got {type(text).__name__}",
+                        path=path, line=line, column=column)
+    ctx = _Ctx(text, namespace, path, line, column, free_names, units)
+    if len(text) > MAX_LENGTH:
+        raise _make_error(text, f"expression is too long ({len(text)} characters)", path=path,
+                          line=line, column=column, offset=None, length=None,
+                          hint=f"at most {MAX_LENGTH} characters; split it into definitions")
+    if not text.strip():
+        raise SpecError("empty expression", path=path, line=line, column=column,
+                        hint="write an expression such as `0` or `a*b`")
+    if "\x00" in text:
+        raise SpecError("expression contains a NUL character", path=path, line=line, column=column)
+    flat = text.replace("\r", " ").replace("\n", " ").replace("\t", " ")
+    # declared names that are Python keywords (e.g. a state `lambda`): swap them for a
+    # same-length placeholder identifier so offsets stay exact
+    kw = [k for k in namespace if keyword.iskeyword(k)]
+    if kw:
+        def swap(m):
+            word = m.group(0)
+            if word in kw:
+                ph = word[:-1] + _KW_MARK
+                ctx.aliases[ph] = word
+                return ph
+            return word
+        flat = _IDENT.sub(swap, flat)
+    try:
+        tree = ast.parse(flat.strip() if False else flat, mode="eval")
+    except SyntaxError as exc:
+        off = (exc.offset - 1) if exc.offset and (exc.lineno in (None, 1)) else None
+        if off is not None and (off < 0 or off > len(flat)):
+            off = None
+        raise _make_error(text, f"syntax error: {exc.msg}", path=path, line=line, column=column,
+                          offset=off, length=1) from None
+    except (RecursionError, MemoryError):
+        raise _make_error(text, "expression is nested too deeply", path=path, line=line,
+                          column=column, offset=None, length=None) from None
+    except (ValueError, TypeError, OverflowError) as exc:
+        raise _make_error(text, f"invalid expression: {exc}", path=path, line=line,
+                          column=column, offset=None, length=None) from None
+    try:
+        expr = _convert(ctx, tree, 0)
+    except SpecError:
+        raise
+    except (RecursionError, MemoryError):
+        raise _make_error(text, "expression is nested too deeply or too large", path=path,
+                          line=line, column=column, offset=None, length=None) from None
+    except Exception as exc:  # sympy raising on odd input: still a user error
+        raise _make_error(text, f"invalid expression ({type(exc).__name__})", path=path,
+                          line=line, column=column, offset=None, length=None) from None
+    if not isinstance(expr, sympy.Basic) or isinstance(expr, sympy.Tuple):
+        raise _make_error(text, "not a scalar expression", path=path, line=line, column=column,
+                          offset=None, length=None)
+    if not units and _bad_result(expr):
+        raise _make_error(text, "expression is not finite or not real (division by zero, "
+                                "log(0), sqrt of a negative number...)", path=path, line=line,
+                          column=column, offset=None, length=None)
+    return expr, ctx

@@ -1,0 +1,424 @@
+"""Spec files: YAML with positions, duplicate-key detection and ``extends`` merging.
+
+:func:`load_spec` reads a spec (and the specs it ``extends``) into a
+:class:`RawSpec`: an ordered tree of :class:`YNode` that remembers the file,
+line and column of every key and value, so that later validation errors point
+into the file that contains the offending text. No model semantics here (see
+:mod:`vsidgen.symbolic`).
+
+Merge rules for ``extends`` (child onto parent): entries of ``states``,
+``inputs``, ``outputs``, ``constants``, ``parameters``, ``definitions``,
+``drift``, ``observations`` with new names are appended, existing names are
+replaced in place (a definition keeps its position); ``add_terms`` of parent
+and child are all applied (parent first); ``noise`` and ``data`` mappings are
+merged key by key (recursively); ``name``, ``description`` and ``integrator``
+come from the child when given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import pathlib
+from typing import Any
+
+import yaml
+
+from .errors import SpecError
+from .expr import did_you_mean, parse_expression, parse_expression_free
+
+TOP_LEVEL_KEYS = ("name", "description", "extends", "integrator", "states", "inputs", "outputs",
+                  "constants", "parameters", "definitions", "drift", "observations", "add_terms",
+                  "noise", "data")
+NAMED_SECTIONS = ("states", "inputs", "outputs", "constants", "parameters", "definitions",
+                  "drift", "observations")
+MERGED_SECTIONS = ("noise", "data")
+ADD_TERM_SECTIONS = ("definitions", "drift", "observations")
+
+_ENTRY_WORD = {
+    "drift": "equation for state", "observations": "equation for output",
+    "definitions": "definition", "parameters": "parameter", "constants": "constant",
+    "states": "state", "inputs": "input", "outputs": "output",
+}
+
+
+@dataclasses.dataclass(eq=False)
+class YNode:
+    """A YAML value with its location.
+
+    ``value``: dict[str, YNode] (ordered) for mappings, list[YNode] for
+    sequences, the constructed Python value for scalars. ``text``: the scalar
+    as written (after YAML unquoting), used for expressions and names.
+    ``line``/``column``: 1-based position of the value; ``key_line``/
+    ``key_column``: position of its key when it is a mapping entry.
+    """
+
+    kind: str  # "map" | "seq" | "scalar"
+    value: Any
+    path: pathlib.Path
+    line: int
+    column: int
+    text: str | None = None
+    style: str | None = None
+    key_line: int | None = None
+    key_column: int | None = None
+    src: str = dataclasses.field(default="", repr=False)
+    start_index: int = 0
+    end_index: int = 0
+
+    # -- locations --------------------------------------------------------
+    @property
+    def key_loc(self) -> dict:
+        return {"path": self.path, "line": self.key_line or self.line,
+                "column": self.key_column or self.column}
+
+    @property
+    def loc(self) -> dict:
+        return {"path": self.path, "line": self.line, "column": self.column}
+
+    def source_line(self) -> str:
+        lines = self.src.splitlines()
+        if 1 <= self.line <= len(lines):
+            return lines[self.line - 1].strip()
+        return ""
+
+    def locate(self, offset: int) -> tuple[int, int | None]:
+        """File (line, column) of character ``offset`` of :attr:`text` (best effort)."""
+        text = self.text or ""
+        try:
+            if self.style in (None, "'", '"'):
+                raw = self.src[self.start_index:self.end_index]
+                shift = 0
+                if self.style:
+                    raw = raw[1:-1]
+                    shift = 1
+                segs = []
+                for i, piece in enumerate(raw.split("\n")):
+                    if i == 0:
+                        segs.append((self.line, self.column + shift, piece.rstrip()))
+                    else:
+                        lead = len(piece) - len(piece.lstrip())
+                        segs.append((self.line + i, lead + 1, piece.strip()))
+                segs = [s for s in segs if s[2] or s is segs[0]]
+                if " ".join(s[2] for s in segs) == text:
+                    pos = 0
+                    for ln, col, piece in segs:
+                        if offset <= pos + len(piece):
+                            return ln, col + (offset - pos)
+                        pos += len(piece) + 1
+                return self.line, (self.column + shift if offset == 0 else None)
+            if self.style == "|":
+                before = text[:offset]
+                index = before.count("\n")
+                col_in = len(before) - (before.rfind("\n") + 1)
+                file_lines = self.src.splitlines()
+                ln = self.line + 1 + index
+                if 1 <= ln <= len(file_lines):
+                    fl = file_lines[ln - 1]
+                    indent = len(fl) - len(fl.lstrip())
+                    return ln, indent + 1 + col_in
+                return ln, None
+        except Exception:  # pragma: no cover - locating must never fail
+            pass
+        return self.line + (1 if self.style in ("|", ">") else 0), None
+
+    # -- typed accessors -------------------------------------------------
+    def expect_map(self, what: str) -> dict:
+        if self.kind == "scalar" and self.value is None:
+            return {}
+        if self.kind != "map":
+            raise SpecError(f"{what} must be a mapping (name: value), got {self.describe()}",
+                            **self.loc, text=self.source_line())
+        return self.value
+
+    def describe(self) -> str:
+        if self.kind == "map":
+            return "a mapping"
+        if self.kind == "seq":
+            return "a list"
+        if self.value is None:
+            return "nothing (null)"
+        return f"{type(self.value).__name__} `{self.text}`"
+
+    def number(self, what: str, *, allow_none: bool = False) -> float | None:
+        v = self.value if self.kind == "scalar" else self
+        if self.kind == "scalar" and v is None and allow_none:
+            return None
+        if self.kind != "scalar" or isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SpecError(f"{what} must be a number, got {self.describe()}", **self.loc,
+                            text=self.source_line(),
+                            hint="write a plain number such as 0.5 or 1e-3")
+        f = float(v)
+        if f != f or f in (float("inf"), float("-inf")):
+            raise SpecError(f"{what} must be a finite number", **self.loc, text=self.source_line())
+        return f
+
+    def boolean(self, what: str) -> bool:
+        if self.kind != "scalar" or not isinstance(self.value, bool):
+            raise SpecError(f"{what} must be true or false, got {self.describe()}", **self.loc,
+                            text=self.source_line())
+        return self.value
+
+    def string(self, what: str, *, allow_none: bool = False) -> str | None:
+        if self.kind == "scalar" and self.value is None and allow_none:
+            return None
+        if self.kind != "scalar" or self.value is None or isinstance(self.value, (list, dict)):
+            raise SpecError(f"{what} must be a text, got {self.describe()}", **self.loc,
+                            text=self.source_line())
+        return self.text if self.text is not None else str(self.value)
+
+    def expression(self, namespace, *, free_names: bool = False):
+        """Parse this scalar as an expression; errors point at the exact file position."""
+        if self.kind != "scalar" or self.value is None or isinstance(self.value, bool):
+            raise SpecError(f"expected an expression, got {self.describe()}", **self.loc,
+                            text=self.source_line())
+        text = self.text
+        try:
+            if free_names:
+                return parse_expression_free(text, namespace, path=self.path, line=1, column=1)
+            return parse_expression(text, namespace, path=self.path, line=1, column=1)
+        except SpecError as err:
+            raise self.relocate(err) from None
+
+    def relocate(self, err: SpecError) -> SpecError:
+        offset = (err.column - 1) if err.column is not None else 0
+        line, column = self.locate(offset)
+        return SpecError(err.message, path=self.path, line=line, column=column, text=err.text,
+                         hint=err.hint, span=err.span)
+
+
+def keys_check(node: YNode, allowed, what: str) -> dict:
+    """The mapping of ``node``; unknown keys raise SpecError with a did-you-mean hint."""
+    mapping = node.expect_map(what)
+    for key, child in mapping.items():
+        if key not in allowed:
+            hint = did_you_mean(key, allowed) or ("allowed keys: " + ", ".join(allowed))
+            raise SpecError(f"unknown key `{key}` in {what}", **child.key_loc,
+                            text=_line_text(child.src, child.key_line),
+                            hint=hint)
+    return mapping
+
+
+def _line_text(src: str, line: int | None) -> str:
+    lines = src.splitlines()
+    if line is not None and 1 <= line <= len(lines):
+        return lines[line - 1].strip()
+    return ""
+
+
+# ---------------------------------------------------------------------------
+# YAML with positions
+# ---------------------------------------------------------------------------
+
+class _Constructor(yaml.constructor.SafeConstructor):
+    pass
+
+
+def _convert(node, path, src, parent_key, constructor, depth=0) -> YNode:
+    if depth > 50:
+        raise SpecError("YAML nesting is too deep", path=path, line=node.start_mark.line + 1,
+                        column=node.start_mark.column + 1)
+    line, col = node.start_mark.line + 1, node.start_mark.column + 1
+    if isinstance(node, yaml.MappingNode):
+        out: dict[str, YNode] = {}
+        for knode, vnode in node.value:
+            if not isinstance(knode, yaml.ScalarNode):
+                raise SpecError("mapping keys must be plain names", path=path,
+                                line=knode.start_mark.line + 1, column=knode.start_mark.column + 1,
+                                text=_line_text(src, knode.start_mark.line + 1))
+            key = knode.value
+            if knode.tag == "tag:yaml.org,2002:merge":
+                raise SpecError("YAML merge keys (<<) are not supported", path=path,
+                                line=knode.start_mark.line + 1, column=knode.start_mark.column + 1)
+            if key in out:
+                word = _ENTRY_WORD.get(parent_key)
+                msg = (f"duplicate {word} `{key}`" if word else
+                       (f"duplicate top-level key `{key}`" if parent_key is None else
+                        f"duplicate key `{key}`"))
+                first = out[key]
+                raise SpecError(msg, path=path, line=knode.start_mark.line + 1,
+                                column=knode.start_mark.column + 1,
+                                text=_line_text(src, knode.start_mark.line + 1),
+                                hint=f"`{key}` is already given on line {first.key_line}; "
+                                     f"YAML would silently keep only the last one")
+            child = _convert(vnode, path, src, key, constructor, depth + 1)
+            child.key_line = knode.start_mark.line + 1
+            child.key_column = knode.start_mark.column + 1
+            out[key] = child
+        return YNode("map", out, path, line, col, src=src, start_index=node.start_mark.index,
+                     end_index=node.end_mark.index)
+    if isinstance(node, yaml.SequenceNode):
+        items = [_convert(v, path, src, parent_key, constructor, depth + 1) for v in node.value]
+        return YNode("seq", items, path, line, col, src=src, start_index=node.start_mark.index,
+                     end_index=node.end_mark.index)
+    try:
+        value = constructor.construct_object(node, deep=True)
+    except yaml.YAMLError as exc:
+        raise SpecError(f"invalid YAML value: {exc}", path=path, line=line, column=col) from None
+    except Exception:
+        value = node.value
+    if not isinstance(value, (str, int, float, bool, type(None))):
+        value = node.value  # dates, binary...: keep the text
+    return YNode("scalar", value, path, line, col, text=node.value, style=node.style, src=src,
+                 start_index=node.start_mark.index, end_index=node.end_mark.index)
+
+
+def load_yaml(path) -> YNode:
+    """Read one YAML file into a :class:`YNode` tree (SpecError on any problem)."""
+    path = pathlib.Path(path)
+    try:
+        src = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SpecError("spec file not found", path=path,
+                        hint="check the path (relative paths are relative to the current "
+                             "directory, or to the extending spec for `extends`)") from None
+    except IsADirectoryError:
+        raise SpecError("spec path is a directory, not a file", path=path) from None
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"spec file is not UTF-8 text ({exc.reason})", path=path) from None
+    except OSError as exc:
+        raise SpecError(f"cannot read spec file: {exc.strerror}", path=path) from None
+    try:
+        node = yaml.compose(src, Loader=yaml.SafeLoader)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark else None
+        col = mark.column + 1 if mark else None
+        raise SpecError(f"YAML syntax error: {exc.problem or exc.context}", path=path, line=line,
+                        column=col, text=_line_text(src, line),
+                        hint=("YAML needs `key: value` with consistent indentation; quote "
+                              "expressions that start with special characters")) from None
+    except yaml.YAMLError as exc:
+        raise SpecError(f"YAML error: {exc}", path=path) from None
+    if node is None:
+        raise SpecError("spec file is empty", path=path, line=1, column=1,
+                        hint="a spec needs at least name, states, drift")
+    root = _convert(node, path, src, None, _Constructor())
+    if root.kind != "map":
+        raise SpecError("a spec must be a YAML mapping (key: value) at the top level",
+                        **root.loc, text=root.source_line())
+    return root
+
+
+# ---------------------------------------------------------------------------
+# extends + merge
+# ---------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class AddTerm:
+    """One ``add_terms`` entry: add ``node`` (an expression) to ``section[name]``."""
+
+    section: str
+    name: str
+    node: YNode
+
+
+@dataclasses.dataclass
+class RawSpec:
+    """A merged spec: top-level key -> YNode, plus the add_terms in application order."""
+
+    path: pathlib.Path
+    top: dict[str, YNode]
+    add_terms: list[AddTerm]
+    files: tuple[pathlib.Path, ...]
+
+    def section(self, key: str) -> dict[str, YNode]:
+        node = self.top.get(key)
+        if node is None:
+            return {}
+        return node.expect_map(f"`{key}`")
+
+    def canonical(self) -> str:
+        """Canonical JSON of the merged content (file positions excluded)."""
+        content = [[k, _plain(self.top[k])] for k in TOP_LEVEL_KEYS
+                   if k in self.top and k not in ("extends", "add_terms")]
+        content.append(["add_terms", [[a.section, a.name, _plain(a.node)] for a in self.add_terms]])
+        return json.dumps(content, separators=(",", ":"), ensure_ascii=True)
+
+    def hash(self, generator_version: str) -> str:
+        h = hashlib.sha256()
+        h.update(self.canonical().encode())
+        h.update(b"\0" + generator_version.encode())
+        return h.hexdigest()
+
+
+def _plain(node: YNode):
+    if node.kind == "map":
+        return [[k, _plain(v)] for k, v in node.value.items()]
+    if node.kind == "seq":
+        return [_plain(v) for v in node.value]
+    v = node.value
+    if isinstance(v, float) and (v != v or v in (float("inf"), float("-inf"))):
+        return repr(v)
+    return v
+
+
+def _merge_maps(parent: YNode, child: YNode, *, recursive: bool) -> YNode:
+    if parent.kind != "map" or child.kind != "map":
+        return child
+    merged = dict(parent.value)
+    for key, value in child.value.items():
+        if recursive and key in merged and merged[key].kind == "map" and value.kind == "map":
+            merged[key] = _merge_maps(merged[key], value, recursive=True)
+        else:
+            merged[key] = value
+    return dataclasses.replace(child, value=merged)
+
+
+def _collect_add_terms(root: YNode) -> list[AddTerm]:
+    node = root.value.get("add_terms")
+    if node is None:
+        return []
+    out = []
+    for section, sub in keys_check(node, ADD_TERM_SECTIONS, "`add_terms`").items():
+        for name, expr in sub.expect_map(f"`add_terms.{section}`").items():
+            out.append(AddTerm(section, name, expr))
+    return out
+
+
+def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
+    """Load a spec and everything it ``extends``, merged (see module docstring)."""
+    path = pathlib.Path(path)
+    resolved = path.resolve()
+    if resolved in _stack:
+        chain = " -> ".join(p.name for p in _stack + (resolved,))
+        raise SpecError(f"`extends` cycle: {chain}", path=path,
+                        hint="a spec cannot extend itself, directly or indirectly")
+    root = load_yaml(path)
+    top = keys_check(root, TOP_LEVEL_KEYS, "the spec (top level)")
+    parent: RawSpec | None = None
+    ext = top.get("extends")
+    if ext is not None:
+        target = ext.string("`extends`")
+        ppath = (path.parent / target)
+        if not ppath.exists():
+            raise SpecError(f"`extends`: file `{target}` not found", **ext.loc,
+                            text=ext.source_line(),
+                            hint=f"the path is relative to {path.parent.as_posix() or '.'}")
+        try:
+            parent = load_spec(ppath, _stack=_stack + (resolved,))
+        except SpecError as err:
+            if err.message.startswith("`extends` cycle") and err.line is None:
+                raise SpecError(err.message, **ext.loc, text=ext.source_line(),
+                                hint=err.hint) from None
+            raise
+    add_terms = _collect_add_terms(root)
+    if parent is None:
+        return RawSpec(path, dict(top), add_terms, (path,))
+    merged = dict(parent.top)
+    for key, node in top.items():
+        if key in ("extends", "add_terms"):
+            continue
+        if key in NAMED_SECTIONS and key in merged:
+            merged[key] = _merge_maps(merged[key], node, recursive=False)
+        elif key in MERGED_SECTIONS and key in merged:
+            merged[key] = _merge_maps(merged[key], node, recursive=True)
+        else:
+            merged[key] = node
+    merged.pop("extends", None)
+    return RawSpec(path, merged, parent.add_terms + add_terms, parent.files + (path,))
+
+
+__all__ = ["YNode", "RawSpec", "AddTerm", "load_yaml", "load_spec", "keys_check",
+           "TOP_LEVEL_KEYS"]

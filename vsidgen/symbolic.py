@@ -1,0 +1,763 @@
+"""SymbolicModel: a validated spec as sympy expressions.
+
+:func:`compile_spec` loads a spec (:mod:`vsidgen.spec`), parses every
+expression with the safe parser (:mod:`vsidgen.expr`), validates the model
+(declarations, equations, definition cycles, bounds, noise, data mapping) and
+checks dimensional consistency (:mod:`vsidgen.units`). The model is
+
+    dx/dt = f(x, u, θ)     (``drift``, one expression per state)
+    y     = h(x, u, θ)     (``observations``, one per output)
+
+where f and h may use the ordered ``definitions`` (intermediate quantities);
+:meth:`SymbolicModel.drift_expanded` substitutes them.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import pathlib
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import sympy
+
+from .errors import DataError, Location, SpecError, SpecWarning
+from .expr import FUNCTIONS, did_you_mean
+from .metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Parameter,
+                       ProcessNoiseSpec, Variable)
+from .spec import RawSpec, YNode, keys_check, load_spec
+from . import units as _units
+
+GENERATOR_VERSION = "0.1.0"
+
+_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+__all__ = ["GENERATOR_VERSION", "SymbolicModel", "Variable", "Constant", "Parameter",
+           "ProcessNoiseSpec", "MeasurementNoiseSpec", "ChannelMap", "DataSpec",
+           "compile_spec", "check_first_sample"]
+
+
+@dataclasses.dataclass(frozen=True)
+class SymbolicModel:
+    """A compiled spec (see docs/architecture.md, "SymbolicModel")."""
+
+    name: str
+    description: str
+    source_path: pathlib.Path
+    source_hash: str
+    states: tuple[Variable, ...]
+    inputs: tuple[Variable, ...]
+    outputs: tuple[Variable, ...]
+    constants: tuple[Constant, ...]
+    parameters: tuple[Parameter, ...]
+    definitions: tuple[tuple[str, sympy.Expr], ...]
+    drift: tuple[sympy.Expr, ...]
+    observations: tuple[sympy.Expr, ...]
+    process_noise: ProcessNoiseSpec
+    measurement_noise: tuple[MeasurementNoiseSpec, ...]
+    data: DataSpec
+    integrator: str
+    substeps: int
+    warnings: tuple[SpecWarning, ...] = ()
+    #: "drift:V" / "observations:V" / "definitions:qbar" -> where the equation is written
+    locations: Mapping[str, Location] = dataclasses.field(default_factory=dict, compare=False)
+    #: every file of the spec, the `extends` ancestors first
+    files: tuple[pathlib.Path, ...] = ()
+    #: the merged spec in canonical JSON (what source_hash covers)
+    canonical: str = dataclasses.field(default="", repr=False, compare=False)
+
+    @property
+    def definition_symbols(self) -> dict[sympy.Symbol, sympy.Expr]:
+        return {sympy.Symbol(n, real=True): e for n, e in self.definitions}
+
+    def expansion(self) -> dict[sympy.Symbol, sympy.Expr]:
+        """definition symbol -> expression in states/inputs/parameters/constants only."""
+        out: dict[sympy.Symbol, sympy.Expr] = {}
+        for name, expr in self.definitions:
+            out[sympy.Symbol(name, real=True)] = expr.xreplace(out)
+        return out
+
+    def drift_expanded(self) -> tuple[sympy.Expr, ...]:
+        sub = self.expansion()
+        return tuple(e.xreplace(sub) for e in self.drift)
+
+    def observations_expanded(self) -> tuple[sympy.Expr, ...]:
+        sub = self.expansion()
+        return tuple(e.xreplace(sub) for e in self.observations)
+
+    @property
+    def state_symbols(self):
+        return tuple(v.symbol for v in self.states)
+
+    @property
+    def input_symbols(self):
+        return tuple(v.symbol for v in self.inputs)
+
+    @property
+    def parameter_symbols(self):
+        return tuple(p.symbol for p in self.parameters)
+
+    def constant_values(self) -> dict[sympy.Symbol, float]:
+        return {c.symbol: c.value for c in self.constants}
+
+
+# ---------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------
+
+def _sym(name: str) -> sympy.Symbol:
+    return sympy.Symbol(name, real=True)
+
+
+def _check_name(name: str, node: YNode, what: str) -> None:
+    if not _NAME_RE.match(name):
+        raise SpecError(f"invalid {what} name `{name}`", **node.key_loc,
+                        text=_key_text(node),
+                        hint="names start with a letter and contain only letters, digits and _")
+    if name in FUNCTIONS:
+        raise SpecError(f"{what} name `{name}` is the name of a built-in function", **node.key_loc,
+                        text=_key_text(node), hint="choose another name")
+
+
+def _key_text(node: YNode) -> str:
+    lines = node.src.splitlines()
+    ln = node.key_line or node.line
+    return lines[ln - 1].strip() if 1 <= ln <= len(lines) else ""
+
+
+def _warn(warnings: list, message: str, node: YNode | None, *, code: str, hint: str = "",
+          key: bool = True) -> None:
+    if node is None:
+        warnings.append(SpecWarning(message, code=code, hint=hint))
+        return
+    loc = node.key_loc if key else node.loc
+    warnings.append(SpecWarning(message, path=loc["path"], line=loc["line"], column=loc["column"],
+                                text=_key_text(node) if key else node.source_line(),
+                                hint=hint, code=code))
+
+
+def _variables(raw: RawSpec, key: str, what: str) -> list[tuple[str, YNode, dict]]:
+    out = []
+    for name, node in raw.section(key).items():
+        _check_name(name, node, what)
+        if node.kind == "scalar" and node.value is None:
+            fields = {}
+        elif node.kind == "scalar" and isinstance(node.value, str) and key != "constants":
+            raise SpecError(f"{what} `{name}` must be a mapping like {{unit: m/s, description: ...}}",
+                            **node.loc, text=node.source_line(),
+                            hint="write `{unit: \"...\", description: \"...\"}`")
+        else:
+            fields = node.expect_map(f"{what} `{name}`") if node.kind != "scalar" else {}
+        out.append((name, node, fields))
+    return out
+
+
+def _unit_of(fields: dict, what: str):
+    node = fields.get("unit")
+    if node is None or (node.kind == "scalar" and node.value is None):
+        return None, None
+    text = node.text if node.kind == "scalar" else None
+    if text is None:
+        node.string(f"unit of {what}")
+    try:
+        dim = _units.parse_unit(text, path=node.path, line=1, column=1)
+    except SpecError as err:
+        raise node.relocate(err) from None
+    return text, dim
+
+
+def _desc(fields: dict, what: str) -> str:
+    node = fields.get("description")
+    if node is None or node.value is None:
+        return ""
+    return str(node.value) if node.kind == "scalar" else node.string(f"description of {what}")
+
+
+def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
+    color: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(n):
+        color[n] = 1
+        stack.append(n)
+        for d in deps[n]:
+            if color.get(d) == 1:
+                return stack[stack.index(d):] + [d]
+            if color.get(d) is None:
+                found = visit(d)
+                if found:
+                    return found
+        stack.pop()
+        color[n] = 2
+        return None
+
+    for n in order:
+        if color.get(n) is None:
+            found = visit(n)
+            if found:
+                return found
+    return None
+
+
+def _topo(deps: dict[str, list[str]], order: list[str]) -> list[str]:
+    done: list[str] = []
+    seen: set[str] = set()
+
+    def visit(n):
+        if n in seen:
+            return
+        seen.add(n)
+        for d in deps[n]:
+            visit(d)
+        done.append(n)
+
+    for n in order:
+        visit(n)
+    return done
+
+
+# ---------------------------------------------------------------------------
+# compile
+# ---------------------------------------------------------------------------
+
+def compile_spec(path) -> SymbolicModel:
+    """Load, validate and compile a spec file into a :class:`SymbolicModel`.
+
+    Raises:
+        SpecError: any problem in the spec (with file, line, column and hint).
+    """
+    try:
+        return _compile(path)
+    except RecursionError:
+        raise SpecError("spec is nested too deeply", path=path) from None
+
+
+def _compile(path) -> SymbolicModel:
+    raw = load_spec(path)
+    top = raw.top
+    warnings: list[SpecWarning] = []
+    root_loc = {"path": raw.path, "line": 1, "column": 1}
+
+    # name / description / integrator ------------------------------------------------
+    if "name" not in top:
+        raise SpecError("the spec has no `name`", **root_loc,
+                        hint="add `name: mymodel` (the generated module is generated/<name>.py)")
+    name = top["name"].string("`name`")
+    if not _NAME_RE.match(name):
+        raise SpecError(f"invalid model name `{name}`", **top["name"].loc,
+                        text=top["name"].source_line(),
+                        hint="use letters, digits and _ (it becomes a Python module name)")
+    description = ""
+    if "description" in top and top["description"].value is not None:
+        description = str(top["description"].value)
+    method, substeps = "euler", 1
+    if "integrator" in top:
+        integ = keys_check(top["integrator"], ("method", "substeps"), "`integrator`")
+        if "method" in integ:
+            method = integ["method"].string("integrator method")
+            if method not in ("euler", "rk4"):
+                raise SpecError(f"unknown integrator method `{method}`", **integ["method"].loc,
+                                text=integ["method"].source_line(),
+                                hint=did_you_mean(method, ("euler", "rk4")) or "use euler or rk4")
+        if "substeps" in integ:
+            n = integ["substeps"]
+            if n.kind != "scalar" or isinstance(n.value, bool) or not isinstance(n.value, int) \
+                    or n.value < 1:
+                raise SpecError("integrator substeps must be an integer >= 1", **n.loc,
+                                text=n.source_line())
+            substeps = n.value
+
+    # declarations -----------------------------------------------------------------
+    declared: dict[str, tuple[str, YNode]] = {}
+
+    def declare(nm: str, what: str, node: YNode):
+        if nm in declared:
+            other_what, other = declared[nm]
+            raise SpecError(f"name `{nm}` is declared twice: as {other_what} "
+                            f"({other.path.name if hasattr(other.path, 'name') else other.path}"
+                            f":{other.key_line}) and as {what}", **node.key_loc,
+                            text=_key_text(node), hint="every name must be unique across states, "
+                                                       "inputs, constants, parameters and definitions")
+        declared[nm] = (what, node)
+
+    dims: dict[sympy.Symbol, Any] = {}
+    states, inputs, outputs = [], [], []
+    output_dims: dict[str, Any] = {}
+    for key, what, bucket in (("states", "state", states), ("inputs", "input", inputs),
+                              ("outputs", "output", outputs)):
+        for nm, node, fields in _variables(raw, key, what):
+            keys_check(node, ("unit", "description"), f"{what} `{nm}`") if node.kind == "map" else None
+            unit, dim = _unit_of(fields, f"{what} `{nm}`")
+            if key != "outputs":
+                declare(nm, f"a {what}", node)
+                dims[_sym(nm)] = dim
+                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))
+            else:
+                output_dims[nm] = dim
+                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))
+    if not states:
+        raise SpecError("the spec declares no states", **root_loc,
+                        hint="add a `states:` section, e.g. `states: {V: {unit: m/s}}`")
+
+    constants = []
+    const_nodes: dict[str, YNode] = {}
+    for nm, node in raw.section("constants").items():
+        _check_name(nm, node, "constant")
+        declare(nm, "a constant", node)
+        if node.kind == "scalar":
+            value = node.number(f"constant `{nm}`")
+            fields = {}
+        else:
+            fields = keys_check(node, ("value", "unit", "source", "description"), f"constant `{nm}`")
+            if "value" not in fields:
+                raise SpecError(f"constant `{nm}` has no `value`", **node.key_loc,
+                                text=_key_text(node), hint="write `{value: 9.80665, unit: m/s^2}`")
+            value = fields["value"].number(f"value of constant `{nm}`")
+        unit, dim = _unit_of(fields, f"constant `{nm}`")
+        dims[_sym(nm)] = dim
+        source = ""
+        if "source" in fields and fields["source"].value is not None:
+            source = str(fields["source"].value)
+        constants.append(Constant(nm, value, unit, source, _sym(nm)))
+        const_nodes[nm] = node
+
+    parameters = []
+    param_nodes: dict[str, YNode] = {}
+    for nm, node in raw.section("parameters").items():
+        _check_name(nm, node, "parameter")
+        declare(nm, "a parameter", node)
+        fields: dict = {}
+        initial = 0.0
+        init_node = None
+        if node.kind == "scalar" and node.value is not None:
+            initial = node.number(f"initial value of parameter `{nm}`")
+            init_node = node
+        elif node.kind != "scalar":
+            fields = keys_check(node, ("unit", "description", "initial", "bounds", "fixed"),
+                                f"parameter `{nm}`")
+            if "initial" in fields:
+                init_node = fields["initial"]
+                initial = init_node.number(f"initial value of parameter `{nm}`")
+        lower = upper = None
+        if "bounds" in fields:
+            b = fields["bounds"]
+            if b.kind != "seq" or len(b.value) != 2:
+                raise SpecError(f"bounds of parameter `{nm}` must be a list [lower, upper]", **b.loc,
+                                text=b.source_line(), hint="use null for an open side: [0, null]")
+            lower = b.value[0].number(f"lower bound of `{nm}`", allow_none=True)
+            upper = b.value[1].number(f"upper bound of `{nm}`", allow_none=True)
+            if lower is not None and upper is not None and lower >= upper:
+                raise SpecError(f"bounds of parameter `{nm}`: lower {lower:g} >= upper {upper:g}",
+                                **b.loc, text=b.source_line(), hint="write [lower, upper] with lower < upper")
+            if (lower is not None and initial < lower) or (upper is not None and initial > upper):
+                where = init_node or b
+                raise SpecError(f"initial value {initial:g} of parameter `{nm}` is outside its bounds "
+                                f"[{'-inf' if lower is None else format(lower, 'g')}, "
+                                f"{'inf' if upper is None else format(upper, 'g')}]",
+                                **where.loc, text=where.source_line(),
+                                hint="set `initial` inside the bounds"
+                                     + (" (the default initial value is 0)" if init_node is None else ""))
+        fixed = fields["fixed"].boolean(f"`fixed` of parameter `{nm}`") if "fixed" in fields else False
+        unit, dim = _unit_of(fields, f"parameter `{nm}`")
+        dims[_sym(nm)] = dim
+        parameters.append(Parameter(nm, unit, _desc(fields, nm), initial, lower, upper, fixed, _sym(nm)))
+        param_nodes[nm] = node
+
+    def_nodes = raw.section("definitions")
+    for nm, node in def_nodes.items():
+        _check_name(nm, node, "definition")
+        declare(nm, "a definition", node)
+
+    namespace = {nm: _sym(nm) for nm in declared}
+    def_syms = {nm: _sym(nm) for nm in def_nodes}
+
+    # add_terms --------------------------------------------------------------------
+    added: dict[tuple[str, str], list[sympy.Expr]] = {}
+    sections = {"definitions": def_nodes, "drift": raw.section("drift"),
+                "observations": raw.section("observations")}
+    for term in raw.add_terms:
+        target = sections[term.section]
+        if term.name not in target:
+            word = {"definitions": "definition", "drift": "drift equation for",
+                    "observations": "observation equation for"}[term.section]
+            raise SpecError(f"add_terms: there is no {word} `{term.name}` to add to",
+                            **term.node.key_loc, text=_key_text(term.node),
+                            hint=did_you_mean(term.name, target) or
+                            f"add_terms only extends existing {term.section} entries")
+        added.setdefault((term.section, term.name), []).append(term.node.expression(namespace))
+
+    locations: dict[str, Location] = {}
+
+    def equation(section: str, nm: str, node: YNode) -> sympy.Expr:
+        expr = node.expression(namespace)
+        for extra in added.get((section, nm), []):
+            expr = expr + extra
+        locations[f"{section}:{nm}"] = Location(node.path, node.line, node.column)
+        return expr
+
+    # definitions ------------------------------------------------------------------
+    def_exprs = {nm: equation("definitions", nm, node) for nm, node in def_nodes.items()}
+    deps = {nm: [d for d in def_nodes if def_syms[d] in e.free_symbols] for nm, e in def_exprs.items()}
+    order = list(def_nodes)
+    cycle = _find_cycle(deps, order)
+    if cycle:
+        first = def_nodes[cycle[0]]
+        raise SpecError("definition cycle: " + " -> ".join(cycle), **first.key_loc,
+                        text=_key_text(first),
+                        hint="definitions may refer to each other, but not in a circle")
+    topo = _topo(deps, order)
+    definitions = tuple((nm, def_exprs[nm]) for nm in topo)
+
+    # drift / observations ---------------------------------------------------------
+    def equations(section: str, variables: list[Variable], what: str) -> list[sympy.Expr]:
+        nodes = sections[section]
+        names = [v.name for v in variables]
+        for nm, node in nodes.items():
+            if nm not in names:
+                raise SpecError(f"{section} equation for undeclared {what} `{nm}`", **node.key_loc,
+                                text=_key_text(node),
+                                hint=did_you_mean(nm, names) or f"declare `{nm}` under `{what}s`")
+        out = []
+        for v in variables:
+            if v.name not in nodes:
+                where = top.get(section)
+                loc = where.key_loc if where is not None else root_loc
+                raise SpecError(f"missing {section} equation for {what} `{v.name}`", **loc,
+                                text=_key_text(where) if where is not None else None,
+                                hint=f"add `{v.name}: <expression>` under `{section}` "
+                                     f"(exactly one equation per {what})")
+            out.append(equation(section, v.name, nodes[v.name]))
+        return out
+
+    drift = equations("drift", states, "state")
+    observations = equations("observations", outputs, "output")
+
+    # unused symbols ---------------------------------------------------------------
+    expansion: dict[sympy.Symbol, sympy.Expr] = {}
+    for nm, e in definitions:
+        expansion[_sym(nm)] = e.xreplace(expansion)
+    used: set = set()
+    for e in drift + observations:
+        used |= e.xreplace(expansion).free_symbols
+        used |= e.free_symbols
+    reach: set[str] = set()
+    stack = [nm for nm in def_nodes if any(def_syms[nm] in e.free_symbols for e in drift + observations)]
+    while stack:
+        n = stack.pop()
+        if n not in reach:
+            reach.add(n)
+            stack.extend(deps[n])
+    for what, items, nodes in (("parameter", [p.name for p in parameters], param_nodes),
+                               ("constant", [c.name for c in constants], const_nodes)):
+        for nm in items:
+            if _sym(nm) not in used:
+                _warn(warnings, f"unused {what} `{nm}`", nodes[nm], code=f"unused_{what}",
+                      hint=f"remove it or use it in an equation")
+    for v in inputs:
+        if v.symbol not in used:
+            _warn(warnings, f"unused input `{v.name}`", raw.section("inputs")[v.name],
+                  code="unused_input", hint="remove it or use it in an equation")
+    for nm, node in def_nodes.items():
+        if nm not in reach:
+            _warn(warnings, f"unused definition `{nm}`", node, code="unused_definition",
+                  hint="no drift or observation equation depends on it")
+
+    # noise ------------------------------------------------------------------------
+    state_names = [s.name for s in states]
+    output_names = [o.name for o in outputs]
+    process = ProcessNoiseSpec(states=tuple(state_names))
+    measurement = {o: MeasurementNoiseSpec(o) for o in output_names}
+    if "noise" in top:
+        noise = keys_check(top["noise"], ("process", "measurement"), "`noise`")
+        if "process" in noise:
+            process = _process_noise(noise["process"], state_names)
+        if "measurement" in noise:
+            for o, node in noise["measurement"].expect_map("`noise.measurement`").items():
+                if o not in output_names:
+                    raise SpecError(f"measurement noise for undeclared output `{o}`", **node.key_loc,
+                                    text=_key_text(node), hint=did_you_mean(o, output_names) or
+                                    "keys of noise.measurement are output names")
+                measurement[o] = _measurement_noise(o, node)
+
+    # data -------------------------------------------------------------------------
+    data = _data_spec(top.get("data"), [v.name for v in inputs], output_names, root_loc)
+
+    # units ------------------------------------------------------------------------
+    _check_dimensions(warnings, dims, definitions, def_nodes, drift, sections, states,
+                      observations, outputs, output_dims)
+
+    return SymbolicModel(
+        name=name, description=description, source_path=raw.path,
+        source_hash=raw.hash(GENERATOR_VERSION),
+        states=tuple(states), inputs=tuple(inputs), outputs=tuple(outputs),
+        constants=tuple(constants), parameters=tuple(parameters), definitions=definitions,
+        drift=tuple(drift), observations=tuple(observations), process_noise=process,
+        measurement_noise=tuple(measurement[o] for o in output_names), data=data,
+        integrator=method, substeps=substeps, warnings=tuple(warnings), locations=locations,
+        files=raw.files, canonical=raw.canonical())
+
+
+def _number_map(node: YNode, allowed: list[str], what: str, *, positive: bool = False) -> dict:
+    out = {}
+    for k, v in node.expect_map(what).items():
+        if k not in allowed:
+            raise SpecError(f"{what}: `{k}` is not a state with process noise", **v.key_loc,
+                            text=_key_text(v), hint=did_you_mean(k, allowed) or
+                            "list the state under noise.process.states")
+        x = v.number(f"{what} of `{k}`")
+        if x < 0 or (positive and x == 0):
+            raise SpecError(f"{what} of `{k}` must be {'> 0' if positive else '>= 0'}", **v.loc,
+                            text=v.source_line())
+        out[k] = x
+    return out
+
+
+def _process_noise(node: YNode, state_names: list[str]) -> ProcessNoiseSpec:
+    fields = keys_check(node, ("states", "structure", "estimate", "std", "floor"), "`noise.process`")
+    names = list(state_names)
+    if "states" in fields:
+        s = fields["states"]
+        if s.kind != "seq":
+            raise SpecError("noise.process.states must be a list of state names", **s.loc,
+                            text=s.source_line())
+        names = []
+        for item in s.value:
+            nm = item.string("a process-noise state")
+            if nm not in state_names:
+                raise SpecError(f"noise.process.states: `{nm}` is not a state", **item.loc,
+                                text=item.source_line(), hint=did_you_mean(nm, state_names))
+            if nm in names:
+                raise SpecError(f"noise.process.states: `{nm}` is listed twice", **item.loc,
+                                text=item.source_line())
+            names.append(nm)
+    structure = "diagonal"
+    if "structure" in fields:
+        structure = fields["structure"].string("noise.process.structure")
+        if structure not in ("diagonal", "full"):
+            raise SpecError(f"unknown process-noise structure `{structure}`",
+                            **fields["structure"].loc, text=fields["structure"].source_line(),
+                            hint=did_you_mean(structure, ("diagonal", "full")) or "use diagonal or full")
+    estimate = fields["estimate"].boolean("noise.process.estimate") if "estimate" in fields else True
+    std = _number_map(fields["std"], names, "process noise std") if "std" in fields else {}
+    floor = _number_map(fields["floor"], names, "process noise floor") if "floor" in fields else {}
+    return ProcessNoiseSpec(tuple(names), structure, estimate, std, floor)
+
+
+def _measurement_noise(o: str, node: YNode) -> MeasurementNoiseSpec:
+    fields = keys_check(node, ("estimate", "std", "floor"), f"measurement noise of `{o}`")
+    estimate = fields["estimate"].boolean(f"noise.measurement.{o}.estimate") if "estimate" in fields else True
+    std = None
+    if "std" in fields:
+        std = fields["std"].number(f"measurement noise std of `{o}`")
+        if std <= 0:
+            raise SpecError(f"measurement noise std of `{o}` must be > 0", **fields["std"].loc,
+                            text=fields["std"].source_line())
+    if not estimate and std is None:
+        raise SpecError(f"measurement noise of `{o}` is fixed (estimate: false) but has no `std`",
+                        **node.key_loc, text=_key_text(node), hint="add `std: <value in output units>`")
+    floor: Any = "auto"
+    if "floor" in fields:
+        f = fields["floor"]
+        if f.kind == "scalar" and f.value == "auto":
+            floor = "auto"
+        else:
+            floor = f.number(f"measurement noise floor of `{o}` (a number or auto)")
+            if floor < 0:
+                raise SpecError(f"measurement noise floor of `{o}` must be >= 0", **f.loc,
+                                text=f.source_line())
+    return MeasurementNoiseSpec(o, estimate, std, floor)
+
+
+def _channel(name: str, node: YNode) -> ChannelMap:
+    if node.kind == "scalar":
+        col = node.string(f"data column of `{name}`")
+        return ChannelMap(name, column=col, columns=(col,))
+    fields = keys_check(node, ("column", "expr", "scale", "offset"), f"data mapping of `{name}`")
+    scale = fields["scale"].number(f"scale of `{name}`") if "scale" in fields else 1.0
+    offset = fields["offset"].number(f"offset of `{name}`") if "offset" in fields else 0.0
+    if ("column" in fields) == ("expr" in fields):
+        raise SpecError(f"data mapping of `{name}` needs exactly one of `column` or `expr`",
+                        **node.key_loc, text=_key_text(node),
+                        hint="e.g. {column: de_rad} or {expr: \"(a_rad - b_rad)/2\"}")
+    if "column" in fields:
+        col = fields["column"].string(f"column of `{name}`")
+        return ChannelMap(name, column=col, scale=scale, offset=offset, columns=(col,))
+    expr, cols = fields["expr"].expression({}, free_names=True)
+    return ChannelMap(name, column=None, scale=scale, offset=offset, expr=expr, columns=cols)
+
+
+def _data_spec(node: YNode | None, input_names, output_names, root_loc) -> DataSpec:
+    if node is None:
+        if input_names or output_names:
+            raise SpecError("the spec has no `data` mapping", **root_loc,
+                            hint="add `data: {time: t_s, inputs: {...}, outputs: {...}}` mapping "
+                                 "every input and output to CSV columns")
+        return DataSpec()
+    fields = keys_check(node, ("time", "inputs", "outputs"), "`data`")
+    time = fields["time"].string("data.time") if "time" in fields else "t_s"
+    result = {}
+    for key, names in (("inputs", input_names), ("outputs", output_names)):
+        sub = fields[key].expect_map(f"`data.{key}`") if key in fields else {}
+        what = key[:-1]
+        for nm, ch in sub.items():
+            if nm not in names:
+                raise SpecError(f"data mapping for unknown {what} `{nm}`", **ch.key_loc,
+                                text=_key_text(ch),
+                                hint=did_you_mean(nm, names) or f"declare `{nm}` under `{key}`")
+        chans = []
+        for nm in names:
+            if nm not in sub:
+                where = fields.get(key, node)
+                raise SpecError(f"{what} `{nm}` is not mapped to a data column", **where.key_loc,
+                                text=_key_text(where),
+                                hint=f"add `{nm}: <column name>` under `data.{key}`")
+            chans.append(_channel(nm, sub[nm]))
+        result[key] = tuple(chans)
+    return DataSpec(time, result["inputs"], result["outputs"])
+
+
+def _check_dimensions(warnings, dims, definitions, def_nodes, drift, sections, states,
+                      observations, outputs, output_dims) -> None:
+    dims = dict(dims)
+    seen: set[str] = set()
+
+    def reporter(where: str, node: YNode):
+        def report(issue: _units.DimensionIssue):
+            msg = f"inconsistent units in {where}: {issue.message()}"
+            if msg in seen:
+                return
+            seen.add(msg)
+            _warn(warnings, msg, node, code="units", key=False,
+                  hint="check the units of the symbols in this term")
+        return report
+
+    for nm, expr in definitions:
+        node = def_nodes[nm]
+        dims[_sym(nm)] = _units.dimension_of(expr, dims, reporter(f"definition `{nm}`", node))
+    for v, expr in zip(states, drift):
+        node = sections["drift"][v.name]
+        d = _units.dimension_of(expr, dims, reporter(f"drift of `{v.name}`", node))
+        want = dims.get(v.symbol)
+        if d is not None and want is not None:
+            want = _units.Dimension(want.name / _units.time.name)
+            if not _units.same(d, want):
+                _warn(warnings, f"inconsistent units in drift of `{v.name}`: the expression has "
+                      f"dimension {_units.show(d)} but d{v.name}/dt must have dimension "
+                      f"{_units.show(want)} (unit({v.name})/s)", node, code="units", key=False)
+    for o, expr in zip(outputs, observations):
+        node = sections["observations"][o.name]
+        d = _units.dimension_of(expr, dims, reporter(f"observation of `{o.name}`", node))
+        want = output_dims.get(o.name)
+        if d is not None and want is not None and not _units.same(d, want):
+            _warn(warnings, f"inconsistent units in observation of `{o.name}`: the expression has "
+                  f"dimension {_units.show(d)} but output `{o.name}` has dimension "
+                  f"{_units.show(want)}", node, code="units", key=False)
+
+
+# ---------------------------------------------------------------------------
+# first-sample check
+# ---------------------------------------------------------------------------
+
+def _finite_value(expr: sympy.Expr, values: Mapping) -> float | None:
+    try:
+        v = expr.xreplace(values)
+        v = sympy.N(v) if not v.is_Number else v
+        if v.has(sympy.zoo, sympy.nan, sympy.oo, -sympy.oo, sympy.I):
+            return None
+        f = complex(v)
+        if f.imag != 0 or not math.isfinite(f.real):
+            return None
+        return f.real
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return None
+
+
+def read_first_row(csv_path) -> dict[str, float]:
+    """Header and first data row of a CSV file as {column: value} (DataError on problems)."""
+    csv_path = pathlib.Path(csv_path)
+    try:
+        with csv_path.open(newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = next(reader, None)
+            row = next(reader, None)
+    except FileNotFoundError:
+        raise DataError("data file not found", path=csv_path) from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise DataError(f"cannot read data file: {exc}", path=csv_path) from None
+    if not header or row is None:
+        raise DataError("data file needs a header row and at least one data row", path=csv_path)
+    header = [h.strip() for h in header]
+    if len(row) != len(header):
+        raise DataError(f"first data row has {len(row)} fields but the header has {len(header)}",
+                        path=csv_path, sample=0)
+    out = {}
+    for h, cell in zip(header, row):
+        try:
+            out[h] = float(cell)
+        except ValueError:
+            out[h] = float("nan")
+    return out
+
+
+def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns) -> float:
+    for c in ch.columns:
+        if c not in row:
+            raise DataError(f"column `{c}` (for `{ch.name}`) is not in the file", path=csv_path,
+                            column=c, hint=did_you_mean(c, columns) or
+                            "columns: " + ", ".join(columns))
+    if ch.expr is None:
+        base = row[ch.column]
+    else:
+        v = _finite_value(ch.expr, {sympy.Symbol(c, real=True): row[c] for c in ch.columns})
+        base = float("nan") if v is None else v
+    return base * ch.scale + ch.offset
+
+
+def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
+    """Evaluate drift and outputs at the first sample of ``csv_path``.
+
+    Inputs come from the data mapping, x0 from the outputs whose observation
+    is exactly a state (zeros otherwise), parameters at their initial values.
+    Non-finite inputs are returned as warnings; a non-finite drift or output
+    raises SpecError naming the equation(s).
+    """
+    row = read_first_row(csv_path)
+    columns = list(row)
+    warnings: list[SpecWarning] = []
+    if symbolic.data.time not in row:
+        raise DataError(f"time column `{symbolic.data.time}` is not in the file", path=csv_path,
+                        column=symbolic.data.time, hint=did_you_mean(symbolic.data.time, columns))
+    values: dict = dict(symbolic.constant_values())
+    for p in symbolic.parameters:
+        values[p.symbol] = p.initial
+    for v, ch in zip(symbolic.inputs, symbolic.data.inputs):
+        val = _channel_value(ch, row, csv_path, columns)
+        if not math.isfinite(val):
+            warnings.append(SpecWarning(f"input `{v.name}` is not finite at the first sample",
+                                        path=csv_path, code="nonfinite_input"))
+        values[v.symbol] = val
+    x0 = {s.symbol: 0.0 for s in symbolic.states}
+    for o, ch, h in zip(symbolic.outputs, symbolic.data.outputs, symbolic.observations):
+        if h in x0:
+            val = _channel_value(ch, row, csv_path, columns)
+            if math.isfinite(val):
+                x0[h] = val
+    values.update(x0)
+    bad = []
+    for kind, names, exprs in (("drift", symbolic.states, symbolic.drift_expanded()),
+                               ("observations", symbolic.outputs, symbolic.observations_expanded())):
+        for v, e in zip(names, exprs):
+            if _finite_value(e, values) is None:
+                bad.append(f"{kind}:{v.name}")
+    if bad:
+        loc = symbolic.locations.get(bad[0], Location(symbolic.source_path))
+        named = ", ".join(("drift of `" if b.startswith("drift") else "observation of `")
+                          + b.split(":", 1)[1] + "`" for b in bad)
+        raise SpecError(f"non-finite value at the first sample of {pathlib.Path(csv_path).name}: "
+                        f"{named}", path=loc.path, line=loc.line, column=loc.column,
+                        hint="x0 comes from outputs that are a state (else 0), parameters at "
+                             "their initial values: check divisions, log and sqrt")
+    return warnings

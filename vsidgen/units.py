@@ -1,0 +1,186 @@
+"""Unit strings -> physical dimensions, and dimensional-consistency checks.
+
+Unit strings ("m/s", "m/s^2", "1/(kg*m)", "kg/m^3", "rad", "1") are parsed by
+the same safe parser as model expressions (``^`` means power) into
+``sympy.physics.units`` dimensions. Angles (rad, deg) are dimensionless.
+
+:func:`dimension_of` computes the dimension of an expression recursively:
+sums must agree, arguments of transcendental functions must be
+dimensionless, ``min/max/sat/abs`` keep the dimension of their arguments,
+``sign``/Heaviside and numbers are dimensionless. Terms whose dimension is
+unknown (a symbol without unit, a lookup table) make the containing
+expression unknown; checks involving them are skipped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+
+import sympy
+from sympy.physics.units import Dimension
+from sympy.physics.units.definitions.dimension_definitions import (
+    amount_of_substance, current, length, mass, temperature, time,
+)
+
+from .errors import SpecError
+from .expr import Interp, InterpSlope, parse_expression
+
+ONE = Dimension(1)
+
+#: unit name -> dimension
+UNITS: dict[str, Dimension] = {
+    "m": length, "km": length, "ft": length,
+    "s": time, "min": time, "h": time,
+    "kg": mass,
+    "K": temperature,
+    "A": current, "mol": amount_of_substance,
+    "N": mass * length / time**2,
+    "Pa": mass / (length * time**2),
+    "J": mass * length**2 / time**2,
+    "W": mass * length**2 / time**3,
+    "Hz": 1 / time,
+    "rad": ONE, "deg": ONE, "sr": ONE,
+}
+
+_UNIT_SYMBOLS = {name: sympy.Symbol(name, positive=True) for name in UNITS}
+
+
+def parse_unit(text, *, path=None, line=None, column=None) -> Dimension:
+    """Parse a unit string into a dimension (``"1"`` and ``""``-free numbers are dimensionless)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        text = repr(text)
+    if not isinstance(text, str):
+        raise SpecError(f"a unit must be a text like \"m/s\", got {type(text).__name__}",
+                        path=path, line=line, column=column)
+    # `^` binds like `**` in units ("m/s^2" = m/(s**2)); Python's `^` would bind last.
+    expr = parse_expression(text.replace("^", "**"), _UNIT_SYMBOLS, path=path, line=line,
+                            column=column, units=True)
+    subs = {sym: UNITS[name].name for name, sym in _UNIT_SYMBOLS.items()}
+    try:
+        dim_expr = expr.xreplace(subs)
+    except Exception:  # pragma: no cover
+        raise SpecError(f"invalid unit `{text}`", path=path, line=line, column=column) from None
+    if dim_expr.is_Number:
+        return ONE
+    # drop numeric factors (e.g. "1/(kg*m)" has a 1)
+    coeff, rest = dim_expr.as_coeff_Mul()
+    return Dimension(rest)
+
+
+def same(a: Dimension, b: Dimension) -> bool:
+    """Whether two dimensions are equal."""
+    return sympy.simplify(a.name - b.name) == 0 if a.name != b.name else True
+
+
+def show(d: Dimension) -> str:
+    """Readable dimension, e.g. ``length/time``; ``1`` for dimensionless."""
+    return str(d.name)
+
+
+@dataclasses.dataclass(frozen=True)
+class DimensionIssue:
+    """A dimensional inconsistency: the offending term and both dimensions."""
+
+    term: sympy.Expr
+    dimension: Dimension
+    expected: Dimension
+    other: sympy.Expr | None
+    reason: str
+
+    def message(self) -> str:
+        if self.other is not None:
+            return (f"term `{self.term}` has dimension {show(self.dimension)} but "
+                    f"`{self.other}` has dimension {show(self.expected)} ({self.reason})")
+        return (f"term `{self.term}` has dimension {show(self.dimension)}, expected "
+                f"{show(self.expected)} ({self.reason})")
+
+
+_TRANSCENDENTAL = (sympy.sin, sympy.cos, sympy.tan, sympy.asin, sympy.acos, sympy.atan,
+                   sympy.exp, sympy.log, sympy.tanh)
+
+
+def dimension_of(expr: sympy.Expr, dims: Mapping[sympy.Symbol, Dimension | None],
+                 report: Callable[[DimensionIssue], None]) -> Dimension | None:
+    """Dimension of ``expr`` (None if unknown); inconsistencies go to ``report``."""
+    if expr.is_Number or expr in (sympy.pi, sympy.E):
+        return ONE
+    if expr.is_Symbol:
+        return dims.get(expr)
+    if isinstance(expr, sympy.Add):
+        first_term, first_dim = None, None
+        unknown = False
+        for term in expr.args:
+            d = dimension_of(term, dims, report)
+            if d is None:
+                unknown = True
+                continue
+            if term.is_Number:
+                # a bare number in a sum takes the dimension of the sum (offsets like V - 100)
+                continue
+            if first_dim is None:
+                first_term, first_dim = term, d
+            elif not same(d, first_dim):
+                report(DimensionIssue(term, d, first_dim, first_term, "terms of a sum must agree"))
+        if unknown:
+            return None
+        return first_dim if first_dim is not None else ONE
+    if isinstance(expr, sympy.Mul):
+        out = ONE
+        for factor in expr.args:
+            d = dimension_of(factor, dims, report)
+            if d is None:
+                out = None
+            elif out is not None:
+                out = out * d
+        return out
+    if isinstance(expr, sympy.Pow):
+        base, exp = expr.args
+        db = dimension_of(base, dims, report)
+        if exp.is_Number:
+            return None if db is None else Dimension(db.name ** exp)
+        de = dimension_of(exp, dims, report)
+        if de is not None and not same(de, ONE):
+            report(DimensionIssue(exp, de, ONE, None, "an exponent must be dimensionless"))
+        if db is not None and not same(db, ONE):
+            report(DimensionIssue(base, db, ONE, None, "base of a symbolic power must be dimensionless"))
+        return ONE
+    if isinstance(expr, _TRANSCENDENTAL):
+        d = dimension_of(expr.args[0], dims, report)
+        if d is not None and not same(d, ONE):
+            report(DimensionIssue(expr.args[0], d, ONE, None,
+                                  f"the argument of {type(expr).__name__} must be dimensionless"))
+        return ONE
+    if isinstance(expr, sympy.atan2):
+        a = dimension_of(expr.args[0], dims, report)
+        b = dimension_of(expr.args[1], dims, report)
+        if a is not None and b is not None and not same(a, b):
+            report(DimensionIssue(expr.args[0], a, b, expr.args[1],
+                                  "the arguments of atan2 must agree"))
+        return ONE
+    if isinstance(expr, (sympy.sign, sympy.Heaviside, InterpSlope)):
+        for a in expr.args[:1]:
+            dimension_of(a, dims, report)
+        return ONE if not isinstance(expr, InterpSlope) else None
+    if isinstance(expr, sympy.Abs):
+        return dimension_of(expr.args[0], dims, report)
+    if isinstance(expr, (sympy.Min, sympy.Max)):
+        first_term, first_dim, unknown = None, None, False
+        for a in expr.args:
+            d = dimension_of(a, dims, report)
+            if d is None:
+                unknown = True
+            elif a.is_Number:
+                continue
+            elif first_dim is None:
+                first_term, first_dim = a, d
+            elif not same(d, first_dim):
+                report(DimensionIssue(a, d, first_dim, first_term,
+                                      f"the arguments of {type(expr).__name__.lower()} must agree"))
+        if unknown:
+            return None
+        return first_dim if first_dim is not None else ONE
+    if isinstance(expr, Interp):
+        dimension_of(expr.args[0], dims, report)
+        return None
+    return None
