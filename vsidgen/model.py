@@ -67,3 +67,58 @@ class Model:
     @property
     def np(self) -> int:
         return len(self.parameters)
+
+
+def default_generated_dir(spec_path) -> pathlib.Path:
+    """``<parent of specs>/generated`` when the spec lies in a folder named ``specs``, else ``./generated``."""
+    spec_path = pathlib.Path(spec_path).resolve()
+    if spec_path.parent.name == "specs":
+        return spec_path.parent.parent / "generated"
+    return pathlib.Path("generated")
+
+
+def _import_module(module_path: pathlib.Path, name: str, spec_hash: str) -> types.ModuleType:
+    import importlib.util
+
+    unique = f"vsidgen_generated_{name}_{spec_hash[:16]}"
+    spec = importlib.util.spec_from_file_location(unique, module_path)
+    if spec is None or spec.loader is None:  # pragma: no cover
+        raise ImportError(f"cannot import {module_path}")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
+    """Compile ``spec_path``, (re)build its generated module if needed, import it.
+
+    Args:
+        spec_path: the YAML spec.
+        generated_dir: where ``<name>.py`` lives (default: :func:`default_generated_dir`).
+        build: write the module when it is missing or its SPEC_HASH is stale; with
+            ``build=False`` a missing/stale module raises SpecError.
+
+    Raises:
+        SpecError: invalid spec, or stale module with ``build=False``.
+    """
+    from .codegen import build_model, embedded_hash
+    from .errors import SpecError
+    from .symbolic import compile_spec
+
+    symbolic = compile_spec(spec_path)
+    out_dir = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec_path)
+    module_path = out_dir / f"{symbolic.name}.py"
+    if build:
+        build_model(symbolic, out_dir=out_dir)
+    elif embedded_hash(module_path) != symbolic.source_hash:
+        raise SpecError(f"generated module {module_path} is missing or out of date",
+                        path=spec_path, hint=f"run `vsidgen build {spec_path}`")
+    module = _import_module(module_path, symbolic.name, symbolic.source_hash)
+    return Model(
+        name=symbolic.name, drift=module.drift, output=module.output,
+        states=symbolic.states, inputs=symbolic.inputs, outputs=symbolic.outputs,
+        parameters=symbolic.parameters, process_noise=symbolic.process_noise,
+        measurement_noise=symbolic.measurement_noise, data=symbolic.data,
+        integrator=symbolic.integrator, substeps=symbolic.substeps, symbolic=symbolic,
+        module=module, module_path=module_path,
+    )
