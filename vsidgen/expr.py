@@ -30,6 +30,7 @@ import ast
 import difflib
 import keyword
 import re
+import warnings
 import math
 from collections.abc import Mapping
 
@@ -446,7 +447,9 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
             return word
         flat = _IDENT.sub(swap, flat)
     try:
-        tree = ast.parse(flat.strip() if False else flat, mode="eval")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tree = ast.parse(flat, mode="eval")
     except SyntaxError as exc:
         off = (exc.offset - 1) if exc.offset and (exc.lineno in (None, 1)) else None
         if off is not None and (off < 0 or off > len(flat)):

@@ -114,9 +114,9 @@ class YNode:
                 col_in = len(before) - (before.rfind("\n") + 1)
                 file_lines = self.src.splitlines()
                 ln = self.line + 1 + index
-                if 1 <= ln <= len(file_lines):
-                    fl = file_lines[ln - 1]
-                    indent = len(fl) - len(fl.lstrip())
+                content = [fl for fl in file_lines[self.line:] if fl.strip()]
+                if 1 <= ln <= len(file_lines) and content:
+                    indent = len(content[0]) - len(content[0].lstrip())  # block indentation
                     return ln, indent + 1 + col_in
                 return ln, None
         except Exception:  # pragma: no cover - locating must never fail

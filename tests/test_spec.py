@@ -1,0 +1,241 @@
+"""Spec loading and validation: one test per class of spec error (message, location, hint)."""
+
+import textwrap
+
+import pytest
+
+from vsidgen.errors import SpecError
+from vsidgen.symbolic import compile_spec
+
+GOOD = """\
+name: mini
+states:
+  V: {unit: m/s}
+  alpha: {unit: rad}
+inputs:
+  de: {unit: rad}
+outputs:
+  V: {unit: m/s}
+constants:
+  G0: {value: 9.80665, unit: m/s^2}
+parameters:
+  CD0: {initial: 0.1, bounds: [0, 1]}
+  MDE: {unit: 1/s}
+definitions:
+  drag: CD0*V**2
+drift:
+  V: -drag + G0*sin(alpha)
+  alpha: MDE*de
+observations:
+  V: V
+data:
+  time: t_s
+  inputs: {de: de_rad}
+  outputs: {V: v_mps}
+"""
+
+
+def write(tmp_path, text, name="spec.yaml"):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def error(tmp_path, text, name="spec.yaml") -> SpecError:
+    path = write(tmp_path, text, name)
+    with pytest.raises(SpecError) as ei:
+        compile_spec(path)
+    return ei.value
+
+
+def replace(old, new, text=GOOD):
+    assert old in text, old
+    return text.replace(old, new, 1)
+
+
+def test_good_spec_compiles(tmp_path):
+    m = compile_spec(write(tmp_path, GOOD))
+    assert [s.name for s in m.states] == ["V", "alpha"]
+    assert m.parameters[0].lower == 0 and m.parameters[0].initial == 0.1
+    assert [w.code for w in m.warnings] == []
+
+
+def test_unknown_symbol_points_to_token(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", "  alpha: MDE*dee"))
+    assert err.message == "unknown symbol `dee`"
+    assert (err.line, err.column) == (18, 14)
+    assert err.hint == "did you mean `de`?"
+    assert str(err).startswith(f"{tmp_path / 'spec.yaml'}:18:14: error:")
+
+
+def test_unknown_symbol_in_quoted_scalar(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", '  alpha: "MDE*alfa"'))
+    assert (err.line, err.column) == (18, 15)
+    assert err.hint == "did you mean `alpha`?"
+
+
+def test_unknown_symbol_in_block_scalar(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", "  alpha: |\n    MDE*de\n      + G0*alfa"))
+    assert (err.line, err.column) == (20, 12)
+
+
+def test_unknown_symbol_in_multiline_plain_scalar(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", "  alpha: MDE*de\n    + G0*alfa"))
+    assert (err.line, err.column) == (19, 10)
+
+
+def test_duplicate_equation(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", "  alpha: MDE*de\n  V: 0"))
+    assert err.message == "duplicate equation for state `V`"
+    assert (err.line, err.column) == (19, 3)
+    assert "line 17" in err.hint
+
+
+def test_duplicate_parameter(tmp_path):
+    err = error(tmp_path, replace("  MDE: {unit: 1/s}", "  MDE: {unit: 1/s}\n  CD0: 1"))
+    assert err.message == "duplicate parameter `CD0`"
+    assert err.line == 14
+
+
+def test_unknown_top_level_key(tmp_path):
+    err = error(tmp_path, replace("definitions:", "definitons:"))
+    assert err.message == "unknown key `definitons` in the spec (top level)"
+    assert (err.line, err.column) == (14, 1)
+    assert err.hint == "did you mean `definitions`?"
+
+
+def test_unknown_entry_key(tmp_path):
+    err = error(tmp_path, replace("CD0: {initial: 0.1, bounds: [0, 1]}", "CD0: {inital: 0.1}"))
+    assert err.message == "unknown key `inital` in parameter `CD0`"
+    assert (err.line, err.column) == (12, 9)
+    assert err.hint == "did you mean `initial`?"
+
+
+def test_type_error(tmp_path):
+    err = error(tmp_path, replace("value: 9.80665", "value: fast"))
+    assert err.message == "value of constant `G0` must be a number, got str `fast`"
+    assert (err.line, err.column) == (10, 15)
+    assert "number" in err.hint
+
+
+def test_yaml_syntax_error(tmp_path):
+    err = error(tmp_path, replace("  V: {unit: m/s}\n  alpha", "  V: {unit: m/s\n  alpha"))
+    assert err.message.startswith("YAML syntax error")
+    assert err.line == 4 and err.column is not None
+    assert err.hint
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(SpecError) as ei:
+        compile_spec(tmp_path / "nope.yaml")
+    assert ei.value.message == "spec file not found"
+    assert ei.value.hint
+
+
+def test_missing_equation(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de\n", ""))
+    assert err.message == "missing drift equation for state `alpha`"
+    assert err.line == 16
+    assert "exactly one equation" in err.hint
+
+
+def test_equation_for_undeclared_state(tmp_path):
+    err = error(tmp_path, replace("  alpha: MDE*de", "  alpha: MDE*de\n  alfa: 0"))
+    assert err.message == "drift equation for undeclared state `alfa`"
+    assert (err.line, err.column) == (19, 3)
+    assert err.hint == "did you mean `alpha`?"
+
+
+def test_unmapped_output(tmp_path):
+    err = error(tmp_path, replace("  outputs: {V: v_mps}", "  outputs: {}"))
+    assert err.message == "output `V` is not mapped to a data column"
+    assert err.line == 24
+    assert "data.outputs" in err.hint
+
+
+def test_mapping_for_unknown_channel(tmp_path):
+    err = error(tmp_path, replace("  inputs: {de: de_rad}", "  inputs: {de: de_rad, dee: dr_rad}"))
+    assert err.message == "data mapping for unknown input `dee`"
+    assert (err.line, err.column) == (23, 24)
+    assert err.hint == "did you mean `de`?"
+
+
+def test_definition_cycle_is_reported(tmp_path):
+    err = error(tmp_path, replace("  drag: CD0*V**2", "  drag: CD0*V**2*lift\n  lift: 2*drag"))
+    assert err.message == "definition cycle: drag -> lift -> drag"
+    assert (err.line, err.column) == (15, 3)
+    assert err.hint
+
+
+def test_name_clash(tmp_path):
+    err = error(tmp_path, replace("  MDE: {unit: 1/s}", "  MDE: {unit: 1/s}\n  G0: 1"))
+    assert "name `G0` is declared twice: as a constant" in err.message
+    assert "and as a parameter" in err.message
+    assert (err.line, err.column) == (14, 3)
+    assert err.hint
+
+
+def test_bounds_lo_ge_hi(tmp_path):
+    err = error(tmp_path, replace("bounds: [0, 1]", "bounds: [1, 0]"))
+    assert err.message == "bounds of parameter `CD0`: lower 1 >= upper 0"
+    assert (err.line, err.column) == (12, 31)
+    assert err.hint
+
+
+def test_initial_outside_bounds(tmp_path):
+    err = error(tmp_path, replace("initial: 0.1", "initial: 2"))
+    assert "initial value 2 of parameter `CD0` is outside its bounds [0, 1]" == err.message
+    assert (err.line, err.column) == (12, 18)
+    assert "inside the bounds" in err.hint
+
+
+def test_unknown_unit(tmp_path):
+    err = error(tmp_path, replace("  V: {unit: m/s}", "  V: {unit: m/sec}", ))
+    assert err.message == "unknown unit `sec`"
+    assert (err.line, err.column) == (3, 15)
+    assert "known units" in err.hint
+
+
+def test_extends_cycle(tmp_path):
+    write(tmp_path, "name: a\nextends: b.yaml\n", "a.yaml")
+    write(tmp_path, "name: b\nextends: a.yaml\n", "b.yaml")
+    with pytest.raises(SpecError) as ei:
+        compile_spec(tmp_path / "a.yaml")
+    assert ei.value.message == "`extends` cycle: a.yaml -> b.yaml -> a.yaml"
+    assert ei.value.line == 2 and ei.value.hint
+
+
+def test_add_terms_unknown_target(tmp_path):
+    err = error(tmp_path, GOOD + "add_terms:\n  drift:\n    alfa: 1\n")
+    assert err.message == "add_terms: there is no drift equation for `alfa` to add to"
+    assert (err.line, err.column) == (27, 5)
+    assert err.hint == "did you mean `alpha`?"
+
+
+def test_bad_noise(tmp_path):
+    err = error(tmp_path, GOOD + "noise:\n  measurement:\n    V: {estimate: false}\n")
+    assert "fixed (estimate: false) but has no `std`" in err.message
+    assert err.line == 27 and "std" in err.hint
+    err = error(tmp_path, GOOD + "noise:\n  process: {states: [V, alfa]}\n")
+    assert err.message == "noise.process.states: `alfa` is not a state"
+    assert (err.line, err.column) == (26, 25)
+
+
+def test_expression_error_inside_extending_file_points_to_child(tmp_path):
+    write(tmp_path, GOOD, "base.yaml")
+    err = error(tmp_path, "name: kid\nextends: base.yaml\ndefinitions:\n  drag: CD0*V**2 + CDX\n",
+                "kid.yaml")
+    assert err.message == "unknown symbol `CDX`"
+    assert err.path.name == "kid.yaml" and (err.line, err.column) == (4, 20)
+
+
+def test_warnings_unused_and_units(tmp_path):
+    text = replace("  MDE: {unit: 1/s}", "  MDE: {unit: 1/s}\n  CX: 0")
+    text = replace("  V: -drag + G0*sin(alpha)", "  V: -drag + G0*sin(alpha) + V", text)
+    m = compile_spec(write(tmp_path, text))
+    msgs = [w.message for w in m.warnings]
+    assert "unused parameter `CX`" in msgs
+    units = [w for w in m.warnings if w.code == "units"]
+    assert any("`V` has dimension length/time " in w.message and "length/time**2" in w.message
+               and "drift of `V`" in w.message for w in units), msgs
+    assert units and all(w.line == 18 for w in units)
