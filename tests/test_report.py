@@ -1,0 +1,286 @@
+"""Tests of the HTML report generator (vsidgen.report, issue 4)."""
+
+from __future__ import annotations
+
+import base64
+import html.parser
+import json
+import re
+import time
+
+import numpy as np
+import pytest
+
+from report_fixture import OUTPUTS, STATES, write_results_dir
+from vsidgen.errors import VsidgenError
+from vsidgen.report import _autocorrelation, _ljung_box, _readable_tex, write_report
+
+REFERENCE = {
+    "description": "test reference",
+    "oem": {"parameters": {"CLAL": {"value": 4.0, "std": 0.04}, "CMQ": {"value": -27.0, "std": 0.7}},
+            "R_diag": {"V": 0.0169}},
+    "fem": {"parameters": {"CLAL": {"value": 4.32785, "std": 0.047},
+                           "CMQ": {"value": -34.7098, "std": 0.79}}},
+}
+
+
+class _Page(html.parser.HTMLParser):
+    """Collects <img> attributes, section ids and table cell text."""
+
+    def __init__(self):
+        super().__init__()
+        self.imgs, self.ids, self.text, self.external = [], set(), [], []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if "id" in a:
+            self.ids.add(a["id"])
+        if tag == "img":
+            self.imgs.append(a)
+        for k in ("src", "href"):
+            v = a.get(k)
+            if v and re.match(r"^(https?:|//)", v):
+                self.external.append(v)
+        if tag in ("script", "link") and (a.get("src") or a.get("href")):
+            self.external.append(a.get("src") or a.get("href"))
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def _parse(path):
+    page = _Page()
+    page.feed(path.read_text(encoding="utf-8"))
+    page.body = " ".join(page.text)
+    return page
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    d = write_results_dir(tmp_path_factory.mktemp("fit"), nan_fraction=0.01, n_samples=300)
+    ref = d / "ref.json"
+    ref.write_text(json.dumps(REFERENCE))
+    t0 = time.perf_counter()
+    path = write_report(d, reference=str(ref))
+    return d, path, time.perf_counter() - t0
+
+
+def test_writes_self_contained_report_with_all_figures(report):
+    d, path, _ = report
+    assert path == d / "report.html" and path.is_file()
+    assert not list(d.glob(".report-*")), "temporary file left behind"
+    page = _parse(path)
+    figs = [i for i in page.imgs if "data-figure" in i]
+    n_rec = 2
+    expected = 1 + n_rec * (2 * len(OUTPUTS) + len(STATES))
+    assert len(figs) == expected
+    src = path.read_text(encoding="utf-8")
+    assert f'data-figures-expected="{expected}"' in src
+    names = [i["data-figure"] for i in figs]
+    for o, _, _ in OUTPUTS:
+        assert names.count(f"output-{o}") == n_rec and names.count(f"diagnostics-{o}") == n_rec
+    for s, _, _ in STATES:
+        assert names.count(f"state-{s}") == n_rec
+    for img in figs:   # every figure is an embedded, decodable, non-trivial PNG
+        m = re.match(r"^data:image/png;base64,(.+)$", img["src"])
+        assert m, img["data-figure"]
+        raw = base64.b64decode(m.group(1))
+        assert raw[:8] == b"\x89PNG\r\n\x1a\n" and len(raw) > 5000
+        assert img.get("alt")
+    assert page.external == []
+    assert "Content-Security-Policy" in src and "default-src 'none'" in src
+    assert "http://" not in src and "https://" not in src
+
+
+def test_sections_and_content(report):
+    _, path, _ = report
+    page = _parse(path)
+    for sid in ("summary", "parameters", "correlation", "equations", "noise", "estimation",
+                "validation", "warnings"):
+        assert sid in page.ids, sid
+    body = page.body
+    # run summary
+    for s in ("hfb320", "3f9a1c0d5e7b2a49", "synthetic/hfb320_1_10.csv", "structured-newton",
+              "converged: gradient norm", "23", "4.2", "0.1.0"):
+        assert s in body, s
+    # warnings shown, noise at floor flagged
+    assert "noise_at_floor" in body and "at floor" in body
+    # validation has its own section with its record
+    val = path.read_text().split('id="validation"')[1]
+    assert "hfb320_synthetic_val" in val and "hfb320_synthetic_val" not in \
+        path.read_text().split('id="estimation"')[1].split('id="validation"')[0]
+    # whiteness test table, metrics, units
+    assert "Ljung–Box" in body and "p-value" in body
+    assert "Theil U" in body and "R²" in body
+    assert "rad/s/√s" in body   # process noise unit of q
+
+
+def test_parameter_table_reference_and_strong_correlations(report):
+    _, path, _ = report
+    src = path.read_text()
+    params = src.split('id="parameters"')[1].split("</section>")[0]
+    # default method is fem; difference in standard errors (4.31 - 4.32785)/0.0467 = -0.38
+    assert "ref.json:fem" in params
+    row = re.search(r"<td>CLAL</td>.*?</tr>", params, re.S).group(0)
+    assert "4.32785" in row and "-0.38" in row and "[0, 10]" in row
+    row = re.search(r"<td>CMQ</td>.*?</tr>", params, re.S).group(0)
+    assert "+0.52" in row
+    assert re.search(r"<td>SIGMAT</td>.*?fixed", params, re.S)
+    corr = src.split('id="correlation"')[1].split("</section>")[0]
+    flagged = re.findall(r'<tr class="flag"><td>(\w+)</td><td>(\w+)</td>', corr)
+    assert sorted(flagged) == [("CD0", "CDV"), ("CL0", "CLV")]
+
+
+def test_reference_method_selection_and_errors(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, with_parameter_reference=False, n_samples=100, n_outputs=1)
+    ref = tmp_path / "ref.json"
+    ref.write_text(json.dumps(REFERENCE))
+    out = write_report(d, reference=f"{ref}:oem", out=tmp_path / "sub" / "r.html")
+    src = out.read_text()
+    assert "ref.json:oem" in src and "27.0" not in src.split("<td>CLAL</td>")[0][-10:]
+    row = re.search(r"<td>CMQ</td>.*?</tr>", src, re.S).group(0)
+    assert "-27" in row
+    assert 'id="validation"' not in src
+    assert "0.13" in src   # sqrt(R_diag V) reference measurement std
+    with pytest.raises(VsidgenError, match="reference method `xyz` not found"):
+        write_report(d, reference=f"{ref}:xyz")
+    with pytest.raises(VsidgenError, match="reference file not found"):
+        write_report(d, reference=str(tmp_path / "nope.json"))
+
+
+def test_unreliable_standard_errors_and_not_converged(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, warnings=False,
+                          std_errors_reliable=False, converged=False, n_samples=100, n_outputs=1)
+    src = write_report(d, title="My title").read_text()
+    assert "<title>My title</title>" in src
+    assert "standard errors unreliable" in src and "(unreliable)" in src
+    assert "not converged" in src and 'id="warnings"' in src
+
+
+def test_no_warnings_section_when_clean(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, warnings=False, n_samples=100, n_outputs=1)
+    src = write_report(d).read_text()
+    assert 'id="warnings"' not in src
+
+
+def test_equations_typeset_with_fallback(report):
+    _, path, _ = report
+    page = _parse(path)
+    eqs = [i for i in page.imgs if "data-equation" in i]
+    # 4 definitions + 4 drift + 7 observations, az uses \begin{cases} -> <code> fallback
+    assert len(eqs) == 14
+    for img in eqs:
+        assert img["src"].startswith("data:image/svg+xml;base64,")
+        assert b"<svg" in base64.b64decode(img["src"].split(",", 1)[1])
+    src = path.read_text()
+    assert re.search(r'<code class="tex"[^>]*>[^<]*\\begin\{cases\}', src)
+    assert "MathJax" not in src
+
+
+def test_extra_sections_hook(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, n_samples=100, n_outputs=1)
+    src = write_report(d, extra_sections=[("Discrepancy", "<p id='disc'>found <b>x</b></p>")]
+                       ).read_text()
+    assert "<h2>Discrepancy</h2>" in src and "<p id='disc'>found <b>x</b></p>" in src
+
+
+def test_text_is_escaped(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, n_samples=100, n_outputs=1)
+    res = json.loads((d / "results.json").read_text())
+    res["warnings"].append({"code": "x", "message": "<script>alert(1)</script>"})
+    (d / "results.json").write_text(json.dumps(res))
+    src = write_report(d).read_text()
+    assert "<script>alert(1)</script>" not in src and "&lt;script&gt;" in src
+
+
+def test_generation_is_fast(tmp_path):
+    """7 outputs x 601 samples, one record: well under 10 s."""
+    d = write_results_dir(tmp_path / "fit", validation=False)
+    t0 = time.perf_counter()
+    write_report(d)
+    assert time.perf_counter() - t0 < 10.0
+
+
+@pytest.mark.parametrize("breakage, message", [
+    ("nodir", "does not exist"),
+    ("nojson", "results.json not found"),
+    ("badjson", "not valid JSON"),
+    ("notobject", "must hold a JSON object"),
+    ("noparams", "no valid `parameters`"),
+    ("nosignals", "signals file listed in results.json is missing"),
+    ("badsignals", "not a number"),
+    ("shortrow", "expected 21 values"),
+    ("badcorr", "correlation.matrix"),
+])
+def test_bad_results_dir_raises_vsidgen_error(tmp_path, breakage, message):
+    d = write_results_dir(tmp_path / "fit", validation=False, n_samples=60, n_outputs=1)
+    res = json.loads((d / "results.json").read_text())
+    sig = d / "signals_hfb320_1_10.csv"
+    if breakage == "nodir":
+        d = tmp_path / "missing"
+    elif breakage == "nojson":
+        (d / "results.json").unlink()
+    elif breakage == "badjson":
+        (d / "results.json").write_text('{"spec": ')
+    elif breakage == "notobject":
+        (d / "results.json").write_text("[1, 2]")
+    elif breakage == "noparams":
+        del res["parameters"]
+        (d / "results.json").write_text(json.dumps(res))
+    elif breakage == "nosignals":
+        sig.unlink()
+    elif breakage == "badsignals":
+        lines = sig.read_text().splitlines()
+        cells = lines[3].split(",")
+        cells[2] = "abc"
+        lines[3] = ",".join(cells)
+        sig.write_text("\n".join(lines) + "\n")
+    elif breakage == "shortrow":
+        lines = sig.read_text().splitlines()
+        lines[5] = ",".join(lines[5].split(",")[:-3])
+        sig.write_text("\n".join(lines) + "\n")
+    elif breakage == "badcorr":
+        res["correlation"]["matrix"] = res["correlation"]["matrix"][:-1]
+        (d / "results.json").write_text(json.dumps(res))
+    with pytest.raises(VsidgenError, match=re.escape(message)):
+        write_report(d)
+    assert not (d / "report.html").exists() if d.exists() else True
+
+
+def test_existing_report_replaced_atomically(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, n_samples=80, n_outputs=1)
+    (d / "report.html").write_text("old")
+    write_report(d)
+    assert (d / "report.html").read_text().startswith("<!DOCTYPE html>")
+    # a failing run leaves the previous report untouched
+    (d / "signals_hfb320_1_10.csv").write_text("t_s\n")
+    with pytest.raises(VsidgenError):
+        write_report(d)
+    assert (d / "report.html").read_text().startswith("<!DOCTYPE html>")
+
+
+def test_autocorrelation_and_ljung_box():
+    rng = np.random.default_rng(0)
+    n = 2000
+    white = rng.normal(size=n)
+    r, nn = _autocorrelation(white, 20)
+    assert nn == n and r[0] == pytest.approx(1.0) and np.all(np.abs(r[1:]) < 4 / np.sqrt(n))
+    q, dof, p = _ljung_box(r, nn, 20)
+    assert dof == 20 and p > 0.001
+    ar = np.zeros(n)
+    for k in range(1, n):
+        ar[k] = 0.8 * ar[k - 1] + white[k]
+    r, nn = _autocorrelation(ar, 20)
+    assert r[1] == pytest.approx(0.8, abs=0.05)
+    q, dof, p = _ljung_box(r, nn, 20)
+    assert p < 1e-10
+    with_nan = white.copy()
+    with_nan[::10] = np.nan
+    r, nn = _autocorrelation(with_nan, 5)
+    assert nn == n - n // 10 and np.all(np.isfinite(r))
+
+
+def test_readable_tex():
+    assert _readable_tex(r"CD SBYM \bar{q}") == r"\mathrm{CD}\,\mathrm{SBYM}\,\bar{q}"
+    assert _readable_tex(r"\frac{CDV V}{V_{0}}") == r"\frac{\mathrm{CDV}\,V}{V_{0}}"
+    assert _readable_tex(r"\begin{cases} x \end{cases}").startswith(r"\begin{cases}")
