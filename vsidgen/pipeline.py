@@ -1,0 +1,172 @@
+"""The fit job end to end: spec + records → estimator → evaluation → results directory.
+
+This is what ``vsidgen fit`` runs; it holds no numerics of its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .data import Record, load_record, write_csv
+from .errors import VsidgenError
+from .evaluation import evaluate
+from .model import Model, load_model
+from .results import atomic_directory, dumps, signals_table, write_text_atomic
+
+
+@dataclasses.dataclass(frozen=True)
+class FitJob:
+    """What a finished ``vsidgen fit`` produced."""
+
+    out_dir: pathlib.Path
+    results: dict[str, Any]
+    fit: Any                 # estimator FitResult (estimation records)
+    validation: Any | None   # estimator FitResult of the smoothing-only validation run
+
+
+def _latex_equations(model: Model) -> dict[str, dict[str, str]]:
+    sym = model.symbolic
+    if sym is None:
+        return {}
+    import sympy
+
+    def tex(e):
+        return sympy.latex(e)
+
+    out = {"definitions": {name: tex(expr) for name, expr in sym.definitions},
+           "drift": {}, "observations": {}}
+    for v, e in zip(sym.states, sym.drift):
+        out["drift"][v.name] = tex(e)
+    for v, e in zip(sym.outputs, sym.observations):
+        out["observations"][v.name] = tex(e)
+    return out
+
+
+def _variables(vs) -> list[dict[str, Any]]:
+    return [{"name": v.name, "unit": v.unit, "description": v.description} for v in vs]
+
+
+def _record_info(rec: Record) -> dict[str, Any]:
+    n = len(rec.t)
+    return {"name": rec.name, "path": None if rec.path is None else str(rec.path),
+            "n_samples": n, "dt": float(rec.dt), "duration_s": float(rec.dt * (n - 1))}
+
+
+def _unique_names(records: Sequence[Record]) -> list[Record]:
+    seen: dict[str, int] = {}
+    out = []
+    for rec in records:
+        name = rec.name
+        if name in seen:
+            seen[name] += 1
+            name = f"{name}_{seen[name]}"
+            rec = dataclasses.replace(rec, name=name)
+        else:
+            seen[name] = 0
+        out.append(rec)
+    return out
+
+
+def _evaluate_all(model, records, fit, *, integrator, substeps):
+    signals = []
+    for rec, sm in zip(records, fit.smoothers):
+        signals.append(evaluate(model, rec, fit.theta, mu=np.asarray(sm.mu), G=fit.G, R=fit.R,
+                                integrator=integrator, substeps=substeps))
+    return signals
+
+
+def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
+            out: str | os.PathLike, validate: Sequence[str | os.PathLike] = (),
+            integrator: str | None = None, substeps: int | None = None,
+            optimizer: str = "structured-newton", max_iter: int = 200,
+            init_states: str = "measured", generated_dir: str | os.PathLike | None = None,
+            progress: Callable | None = None, report: bool = False,
+            reference: str | None = None) -> FitJob:
+    """Fit ``spec`` to the ``data`` records and write the results directory ``out``.
+
+    Validation records (``validate``) are smoothed with θ and the noise fixed at
+    the estimates (the paper's validation mode) and evaluated separately.
+    """
+    from .estimator import FitOptions, fit, smooth
+
+    if not data:
+        raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
+    model = load_model(spec, generated_dir=generated_dir)
+    integrator = integrator or model.integrator
+    substeps = int(substeps or model.substeps)
+    records = _unique_names([load_record(model, p) for p in data])
+    vrecords = _unique_names([load_record(model, p) for p in validate])
+    t0 = time.perf_counter()
+    options = FitOptions(integrator=integrator, substeps=substeps, max_iter=max_iter,
+                         init_states=init_states, optimizer=optimizer, progress=progress)
+    result = fit(model, records, options=options)
+    vresult = None
+    if vrecords:
+        vresult = smooth(model, vrecords, result, options=dataclasses.replace(options, progress=None))
+    signals = _evaluate_all(model, records, result, integrator=integrator, substeps=substeps)
+    vsignals = (_evaluate_all(model, vrecords, vresult, integrator=integrator, substeps=substeps)
+                if vresult is not None else [])
+    total_time = time.perf_counter() - t0
+
+    names = model.parameter_names
+    params: dict[str, Any] = {}
+    for i, p in enumerate(model.parameters):
+        params[p.name] = {
+            "estimate": float(result.theta[i]),
+            "std_error": None if p.fixed else float(result.std_errors[i]),
+            "fixed": bool(p.fixed), "unit": p.unit, "lower": p.lower, "upper": p.upper,
+            "description": p.description, "reference": None,
+        }
+    free_names = [n for n, f in zip(names, result.free_mask) if f]
+    sym = model.symbolic
+    results: dict[str, Any] = {
+        "vsidgen_version": __version__,
+        "spec": {"name": model.name,
+                 "path": None if sym is None else str(sym.source_path),
+                 "hash": None if sym is None else sym.source_hash,
+                 "module": None if model.module_path is None else str(model.module_path)},
+        "model": {"states": _variables(model.states), "inputs": _variables(model.inputs),
+                  "outputs": _variables(model.outputs),
+                  "equations_latex": _latex_equations(model)},
+        "method": {"estimator": "variational (ELBO)", "integrator": integrator,
+                   "substeps": substeps, "optimizer": optimizer},
+        "records": {"estimation": [_record_info(r) for r in records],
+                    "validation": [_record_info(r) for r in vrecords]},
+        "parameters": params,
+        "correlation": {"names": free_names, "matrix": np.asarray(result.correlation)},
+        "noise": {"measurement_std": dict(result.measurement_std),
+                  "process_std": dict(result.process_std),
+                  "measurement_floor": dict(getattr(result, "measurement_floor", {}) or {}),
+                  "G": np.asarray(result.G), "R": np.asarray(result.R)},
+        "elbo": float(result.elbo), "converged": bool(result.converged), "status": result.status,
+        "iterations": int(result.iterations), "wall_time_s": float(result.wall_time_s),
+        "total_time_s": total_time,
+        "metrics": {"estimation": {s.record: s.metrics for s in signals},
+                    "validation": {s.record: s.metrics for s in vsignals}},
+        "validation": {"elbo": None if vresult is None else float(vresult.elbo)},
+        "warnings": list(result.warnings) + [
+            {"code": "evaluation", "message": f"{s.record}: {w}"}
+            for s in signals + vsignals for w in getattr(s, "warnings", ())],
+        "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),
+        "signals": {s.record: f"signals_{s.record}.csv" for s in signals + vsignals},
+    }
+
+    with atomic_directory(out) as tmp:
+        for s, sm in list(zip(signals, result.smoothers)) + list(
+                zip(vsignals, vresult.smoothers if vresult is not None else [])):
+            mu_std = np.sqrt(np.diag(np.asarray(sm.cov_marg)))
+            write_csv(tmp / f"signals_{s.record}.csv",
+                      signals_table(s, model.state_names, model.output_names, mu_std))
+        write_text_atomic(tmp / "results.json", dumps(results))
+        if report:
+            from .report import write_report
+            write_report(tmp, reference=reference)
+    return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult)
