@@ -663,7 +663,7 @@ def _check_dimensions(warnings, dims, definitions, def_nodes, drift, sections, s
 
 def _finite_value(expr: sympy.Expr, values: Mapping) -> float | None:
     try:
-        v = expr.xreplace(values)
+        v = sympy.S(expr).xreplace({k: sympy.Float(float(x)) for k, x in values.items()})
         v = sympy.N(v) if not v.is_Number else v
         if v.has(sympy.zoo, sympy.nan, sympy.oo, -sympy.oo, sympy.I):
             return None

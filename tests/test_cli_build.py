@@ -1,0 +1,94 @@
+"""CLI: build / check / show exit codes and output."""
+
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+from vsidgen.cli import main
+from vsidgen.errors import SpecError
+from vsidgen.symbolic import check_first_sample, compile_spec
+
+SPECS = pathlib.Path(__file__).parent / "specs"
+
+CSV = "t_s,de_rad,v_mps,alpha_deg,az_mps2\n0.0,0.01,100.0,3.0,-9.7\n0.1,0.01,100.1,3.1,-9.8\n"
+
+
+def test_build_and_up_to_date(tmp_path, capsys):
+    assert main(["build", str(SPECS / "base.yaml"), "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr()
+    assert "wrote:" in out.out and (tmp_path / "base.py").exists()
+    assert "unused constant `V0`" in out.err
+    assert main(["build", str(SPECS / "base.yaml"), "--out", str(tmp_path)]) == 0
+    assert "up to date:" in capsys.readouterr().out
+    assert main(["build", str(SPECS / "base.yaml"), "--out", str(tmp_path), "--force"]) == 0
+    assert "wrote:" in capsys.readouterr().out
+
+
+def test_check_ok(capsys):
+    assert main(["check", str(SPECS / "child.yaml")]) == 0
+    out = capsys.readouterr()
+    assert "ok (child: 3 states" in out.out
+
+
+def test_check_bad_spec_reports_location_without_traceback(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nstates:\n  V: {}\ndrift:\n  V: -V + alfa\n")
+    proc = subprocess.run([sys.executable, "-m", "vsidgen.cli", "check", str(bad)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert f"{bad}:5:11: error: unknown symbol `alfa`" in proc.stderr
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
+
+
+def test_check_missing_file_and_usage(capsys):
+    assert main(["check", "does/not/exist.yaml"]) == 2
+    assert "spec file not found" in capsys.readouterr().err
+    assert main(["frobnicate"]) == 2
+    assert main(["--help"]) == 0
+
+
+def test_show_plain_and_latex(capsys):
+    assert main(["show", str(SPECS / "base.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "dV/dt = -SBYM*qbar*(CD0 + 0.1*CL**2)" in out
+    assert "qbar = RHO*V**2/2" in out and "V [m/s]" in out
+    assert main(["show", "--latex", str(SPECS / "base.yaml")]) == 0
+    latex = capsys.readouterr().out
+    assert latex.startswith("\\begin{align}") and "\\dot{V}" in latex
+
+
+def test_check_with_data(tmp_path, capsys):
+    csv = tmp_path / "rec.csv"
+    csv.write_text(CSV)
+    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 0
+    assert check_first_sample(compile_spec(SPECS / "base.yaml"), csv) == []
+
+
+def test_check_data_nonfinite_drift(tmp_path):
+    csv = tmp_path / "rec.csv"
+    csv.write_text(CSV.replace("0.0,0.01,100.0", "0.0,0.01,0.0"))  # V = 0 -> log(V) = -inf
+    (tmp_path / "base.yaml").write_text((SPECS / "base.yaml").read_text())
+    kid = tmp_path / "kid.yaml"
+    kid.write_text("name: kid\nextends: base.yaml\nadd_terms:\n  drift: {alpha: 0.01*log(V)}\n")
+    assert check_first_sample(compile_spec(tmp_path / "base.yaml"), csv) == []
+    with pytest.raises(SpecError) as ei:
+        check_first_sample(compile_spec(kid), csv)
+    assert "drift of `alpha`" in ei.value.message and "drift of `V`" not in ei.value.message
+    assert ei.value.line == 29 and ei.value.path.name == "base.yaml"
+    assert main(["check", str(kid), "--data", str(csv)]) == 2
+
+
+def test_check_data_missing_column(tmp_path, capsys):
+    csv = tmp_path / "rec.csv"
+    csv.write_text(CSV.replace("de_rad", "de_rd"))
+    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert "column `de_rad`" in err and "did you mean `de_rd`?" in err
+
+
+def test_channel_expression_evaluated(tmp_path):
+    csv = tmp_path / "rec.csv"
+    csv.write_text("t_s,u1_mps2,p_right_rad,p_left_rad,y1_m,y2_rad,y3\n0,0.1,0.3,0.1,0.5,0.2,0.1\n")
+    assert check_first_sample(compile_spec(SPECS / "nonlinear.yaml"), csv) == []
