@@ -266,16 +266,26 @@ def _style(key: str, **override) -> dict:
              else k): v for k, v in s.items()}
 
 
+def _rate_unit(unit: str | None) -> str:
+    """Unit of a time derivative: m/s -> m/s², rad -> rad/s, 1 -> 1/s."""
+    if not unit or unit == "1":
+        return "1/s"
+    if unit.endswith("/s"):
+        return unit + "²"
+    return f"{unit}/s"
+
+
 def _output_figure(t, sig, name, unit, desc) -> str:
     fig = _new_figure(10.0, 5.2)
     ax1, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2.2, 1]})
-    fig.subplots_adjust(left=0.09, right=0.985, top=0.92, bottom=0.1, hspace=0.08)
+    fig.subplots_adjust(left=0.09, right=0.985, top=0.87, bottom=0.1, hspace=0.08)
     for key in ("meas", "smooth", "sim", "pred"):
         y = sig.get(f"{name}_{key}")
         if y is not None:
             ax1.plot(t, y, **_style(key))
     ax1.set_ylabel(_unit_label(name, unit))
-    ax1.set_title(f"Output {name}" + (f" — {desc}" if desc else ""), fontsize=11, loc="left")
+    fig.text(0.09, 0.985, f"Output {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+             va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=4, frameon=False,
                borderaxespad=0.2)
     ax1.grid(alpha=0.3)
@@ -295,7 +305,7 @@ def _output_figure(t, sig, name, unit, desc) -> str:
 def _state_figure(t, sig, name, unit, desc) -> str:
     fig = _new_figure(10.0, 4.6)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
-    fig.subplots_adjust(left=0.09, right=0.985, top=0.91, bottom=0.11, hspace=0.1)
+    fig.subplots_adjust(left=0.09, right=0.985, top=0.86, bottom=0.11, hspace=0.1)
     mu = sig.get(f"{name}_mu")
     sd = sig.get(f"{name}_mu_std")
     if mu is not None:
@@ -304,13 +314,14 @@ def _state_figure(t, sig, name, unit, desc) -> str:
             ax1.fill_between(t, mu - 2 * sd, mu + 2 * sd, color=SIGNAL_STYLE["smooth"]["color"],
                              alpha=0.2, lw=0, label="μ ± 2σ")
     ax1.set_ylabel(_unit_label(name, unit))
-    ax1.set_title(f"State {name}" + (f" — {desc}" if desc else ""), fontsize=11, loc="left")
+    fig.text(0.09, 0.985, f"State {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+             va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=2,
                frameon=False, borderaxespad=0.2)
     ax1.grid(alpha=0.3)
     fd = sig.get(f"{name}_dot_fd")
     dr = sig.get(f"{name}_drift")
-    dunit = f"{unit}/s" if unit and unit != "1" else "1/s"
+    dunit = _rate_unit(unit)
     if fd is not None:
         ax2.plot(t, fd, **_style("smooth", label="finite difference (μₖ₊₁ − μₖ)/T", lw=1.0))
     if dr is not None:
@@ -325,18 +336,23 @@ def _state_figure(t, sig, name, unit, desc) -> str:
 def _diagnostics_figure(name, unit, acfs, spectra, lags) -> str:
     fig = _new_figure(10.0, 3.4)
     axa, axb = fig.subplots(1, 2)
-    fig.subplots_adjust(left=0.075, right=0.985, top=0.9, bottom=0.15, wspace=0.25)
+    fig.subplots_adjust(left=0.085, right=0.985, top=0.9, bottom=0.15, wspace=0.25)
     for key, label in _RESIDUALS:
         r, n = acfs[key]
         if np.any(np.isfinite(r)):
             off = -0.15 if key == "smooth" else 0.15
-            axa.vlines(lags + off, 0, r, color=SIGNAL_STYLE[key]["color"], lw=1.6,
+            axa.vlines(lags[1:] + off, 0, r[1:], color=SIGNAL_STYLE[key]["color"], lw=1.6,
                        label=label.split(" (")[0])
     n = max(acfs["pred"][1], acfs["smooth"][1], 1)
     band = 1.96 / math.sqrt(n)
     axa.axhspan(-band, band, color="0.6", alpha=0.25, lw=0, label=f"95 % band ±1.96/√N (N={n})")
     axa.axhline(0.0, color="0.3", lw=0.6)
-    axa.set_xlabel("lag (samples)")
+    rmax = max([float(np.nanmax(np.abs(acfs[k][0][1:]))) for k in acfs
+                if np.any(np.isfinite(acfs[k][0][1:]))] or [0.0])
+    lim = max(2.5 * band, 1.15 * rmax)
+    axa.set_ylim(-lim, lim)
+    axa.set_xlim(0, lags[-1] + 1)
+    axa.set_xlabel("lag (samples; lag 0 = 1 not shown)")
     axa.set_ylabel("autocorrelation (–)")
     axa.set_title(f"{name}: residual autocorrelation", fontsize=10, loc="left")
     axa.legend(fontsize=7, loc="upper right")
@@ -596,7 +612,7 @@ def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: st
     sec["derivative"] = [{"name": s["name"], "rms": _fmt((der.get(s["name"]) or {}).get("rms")),
                           "theil": _fmt((der.get(s["name"]) or {}).get("theil"), 3),
                           "r2": _fmt((der.get(s["name"]) or {}).get("r2"), 4),
-                          "unit": (f"{s['unit']}/s" if s["unit"] and s["unit"] != "1" else "1/s")}
+                          "unit": _rate_unit(s["unit"])}
                          for s in states if der.get(s["name"])]
     if not sig_file:
         sec["missing"] = "no signals file recorded for this record in results.json"
