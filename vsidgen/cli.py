@@ -12,6 +12,7 @@ stderr without a traceback and give exit status 2; Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
+import pathlib
 import sys
 
 import sympy
@@ -149,8 +150,222 @@ def _cmd_show(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------- simulate / fit / report
+
+def _name_values(items, what):
+    """Parse repeated NAME=VALUE options into a dict of floats."""
+    out = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip():
+            raise VsidgenError(f"--{what} {item!r}: expected NAME=VALUE")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise VsidgenError(f"--{what} {item!r}: {value!r} is not a number") from None
+    return out
+
+
+def _check_names(given, known, what):
+    import difflib
+    for name in given:
+        if name not in known:
+            close = difflib.get_close_matches(name, list(known), n=1)
+            hint = f" — did you mean `{close[0]}`?" if close else f" (known: {', '.join(known)})"
+            raise VsidgenError(f"unknown {what} `{name}`{hint}")
+
+
+def _add_simulate(sub):
+    p = sub.add_parser(
+        "simulate", help="simulate a spec and write a synthetic record (CSV)",
+        description="Simulate the model of SPEC with process and measurement noise and write a "
+                    "CSV record laid out like the spec's data mapping, so that `vsidgen fit` "
+                    "reads it back. Inputs come from maneuver generators (--input) or from a "
+                    "CSV record (--inputs-from).")
+    p.add_argument("spec", help="model spec (YAML)")
+    p.add_argument("--out", required=True, help="CSV file to write (atomically)")
+    p.add_argument("--param", action="append", metavar="NAME=VALUE",
+                   help="parameter value (repeatable; others take their spec initial value)")
+    p.add_argument("--params-from", metavar="RESULTS_JSON",
+                   help="take parameter values from a fit's results.json")
+    p.add_argument("--input", action="append", metavar="NAME=MANEUVER[:OPT=V,...]",
+                   help="input generator, e.g. de=3211:amplitude=0.02,start=1,unit=0.5 "
+                        "(maneuvers: 3211, doublet, multisine, step, const)")
+    p.add_argument("--inputs-from", metavar="CSV", help="read inputs (and time) from a record")
+    p.add_argument("--duration", type=float, default=None, help="record length in s")
+    p.add_argument("--dt", type=float, default=None, help="sample period in s")
+    p.add_argument("--x0", action="append", metavar="NAME=VALUE", help="initial state")
+    p.add_argument("--process-std", action="append", metavar="STATE=STD",
+                   help="process-noise std in state-unit/sqrt(s)")
+    p.add_argument("--measurement-std", action="append", metavar="OUTPUT=STD",
+                   help="measurement-noise std in output units")
+    p.add_argument("--quantize", action="append", metavar="OUTPUT=STEP",
+                   help="quantize an output to a resolution step")
+    p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
+    p.add_argument("--substeps", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(handler=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    import json
+
+    import numpy as np
+
+    from .data import load_record
+    from .model import load_model
+    from .simulate import parse_input_spec, simulate_to_csv
+
+    model = load_model(args.spec)
+    theta = {}
+    if args.params_from:
+        try:
+            res = json.loads(pathlib.Path(args.params_from).read_text())
+            theta.update({k: v["estimate"] for k, v in res["parameters"].items()})
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise VsidgenError(f"{args.params_from}: cannot read parameter estimates ({exc})") from None
+    theta.update(_name_values(args.param, "param"))
+    _check_names(theta, model.parameter_names, "parameter")
+    x0 = _name_values(args.x0, "x0")
+    _check_names(x0, model.state_names, "state")
+    pstd = _name_values(args.process_std, "process-std")
+    _check_names(pstd, model.state_names, "state")
+    mstd = _name_values(args.measurement_std, "measurement-std")
+    _check_names(mstd, model.output_names, "output")
+    quant = _name_values(args.quantize, "quantize")
+    _check_names(quant, model.output_names, "output")
+    if args.inputs_from:
+        if args.input:
+            raise VsidgenError("give either --input generators or --inputs-from, not both")
+        rec = load_record(model, args.inputs_from)
+        t, u = rec.t, rec.u
+    else:
+        dt = args.dt
+        if dt is None or args.duration is None:
+            raise VsidgenError("--duration and --dt are needed when inputs come from generators")
+        if dt <= 0 or args.duration <= dt:
+            raise VsidgenError("--dt must be positive and smaller than --duration")
+        n = int(round(args.duration / dt)) + 1
+        t = np.arange(n) * dt
+        gens = {}
+        for item in args.input or ():
+            spec = parse_input_spec(item)
+            gens[spec.name] = spec.evaluate
+        _check_names(gens, model.input_names, "input")
+        u = np.zeros((n, model.nu))
+        for j, name in enumerate(model.input_names):
+            if name in gens:
+                u[:, j] = gens[name](t)
+    x0v = np.array([x0.get(s, 0.0) for s in model.state_names])
+    simulate_to_csv(model, args.out, theta=theta, t=t, u=u, x0=x0v, process_std=pstd,
+                    measurement_std=mstd, integrator=args.integrator or model.integrator,
+                    substeps=args.substeps or model.substeps, seed=args.seed,
+                    quantize=quant or None)
+    print(f"wrote {args.out} ({len(t)} samples, dt = {t[1] - t[0]:g} s)")
+    return 0
+
+
+def _add_fit(sub):
+    p = sub.add_parser(
+        "fit", help="estimate parameters and noise from flight records",
+        description="Fit SPEC to one or more records (shared parameters, one smoother per "
+                    "record) by maximising the evidence lower bound, from null initial guesses. "
+                    "Writes DIR/results.json and DIR/signals_<record>.csv atomically: a failed "
+                    "or interrupted fit leaves earlier results in DIR intact. Exit status 0 "
+                    "when converged, 1 when the optimizer stopped without converging (results "
+                    "are still written and say so), 2 on bad input.")
+    p.add_argument("spec", help="model spec (YAML)")
+    p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
+    p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
+                   help="validation record(s): θ fixed at the estimate, smoothing only")
+    p.add_argument("--out", required=True, help="results directory")
+    p.add_argument("--integrator", choices=("euler", "rk4"), default=None,
+                   help="transition mean (default: the spec's; euler = the paper's Euler–Maruyama)")
+    p.add_argument("--substeps", type=int, default=None, help="integration sub-steps per sample")
+    p.add_argument("--optimizer", choices=("structured-newton", "trust-constr"),
+                   default="structured-newton",
+                   help="structured Newton (default) or the paper's scipy trust-constr")
+    p.add_argument("--max-iter", type=int, default=200)
+    p.add_argument("--init-states", choices=("measured", "zero"), default="measured",
+                   help="initial state-path mean: measured states where possible, or zero")
+    p.add_argument("--report", action="store_true", help="also write DIR/report.html")
+    p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
+                   help="reference estimates to compare in the report")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(handler=_cmd_fit)
+
+
+class _Progress:
+    """Live one-line progress display on a terminal, a line per iteration otherwise."""
+
+    def __init__(self, stream):
+        self.stream = stream
+        self.tty = stream.isatty()
+
+    def __call__(self, iteration, elbo, grad_norm, elapsed):
+        line = (f"iter {iteration:4d}  ELBO {elbo: .6e}  |grad| {grad_norm:.3e}  "
+                f"{elapsed:7.1f} s")
+        if self.tty:
+            self.stream.write("\r" + line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def close(self):
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _cmd_fit(args) -> int:
+    from .pipeline import run_fit
+
+    progress = None if args.quiet else _Progress(sys.stderr)
+    try:
+        job = run_fit(args.spec, args.data, out=args.out, validate=args.validate,
+                      integrator=args.integrator, substeps=args.substeps,
+                      optimizer=args.optimizer, max_iter=args.max_iter,
+                      init_states=args.init_states, progress=progress,
+                      report=args.report, reference=args.reference)
+    finally:
+        if progress is not None:
+            progress.close()
+    res = job.results
+    for w in res["warnings"]:
+        print(f"warning: {w['message']}", file=sys.stderr)
+    if not args.quiet:
+        width = max(len(n) for n in res["parameters"]) if res["parameters"] else 4
+        print(f"{'parameter':<{width}}  {'estimate':>13}  {'std error':>11}")
+        for name, p in res["parameters"].items():
+            se = "fixed" if p["fixed"] else (f"{p['std_error']:.4g}" if p["std_error"] is not None else "n/a")
+            print(f"{name:<{width}}  {p['estimate']:>13.6g}  {se:>11}")
+    state = "" if res["converged"] else "NOT CONVERGED — "
+    print(f"{state}{res['status']} ({res['iterations']} iterations, "
+          f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
+    return 0 if res["converged"] else 1
+
+
+def _add_report(sub):
+    p = sub.add_parser("report", help="write DIR/report.html for a results directory",
+                       description="Render a fit's results directory as one self-contained "
+                                   "HTML file (figures embedded, no network needed).")
+    p.add_argument("dir", help="results directory written by `vsidgen fit`")
+    p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
+                   help="reference estimates (e.g. ../shared/reference/hfb320_reference.json:fem)")
+    p.add_argument("--out", default=None, help="HTML file (default DIR/report.html)")
+    p.set_defaults(handler=_cmd_report)
+
+
+def _cmd_report(args) -> int:
+    from .report import write_report
+
+    path = write_report(args.dir, out=args.out, reference=args.reference)
+    print(f"wrote {path}")
+    return 0
+
+
 #: subcommand registrars, in --help order (the coordinator appends simulate, fit, report, diagnose)
-COMMANDS = [_add_build, _add_check, _add_show]
+COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_report]
 
 
 def make_parser() -> argparse.ArgumentParser:

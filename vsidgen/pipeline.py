@@ -110,7 +110,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     result = fit(model, records, options=options)
     vresult = None
     if vrecords:
-        vresult = smooth(model, vrecords, result, options=dataclasses.replace(options, progress=None))
+        vresult = smooth(model, vrecords, result.theta, result,
+                         options=dataclasses.replace(options, progress=None))
     signals = _evaluate_all(model, records, result, integrator=integrator, substeps=substeps)
     vsignals = (_evaluate_all(model, vrecords, vresult, integrator=integrator, substeps=substeps)
                 if vresult is not None else [])
