@@ -83,6 +83,33 @@ def get_transition(model, integrator: str, substeps: int):
     return dynamics.transition(model, integrator=integrator, substeps=substeps)
 
 
+# --------------------------------------------------------------------------- small dense linear algebra
+# Unrolled Cholesky / triangular solve for the small (n ≲ 12) matrices of the
+# assumed density: plain arithmetic differentiates twice into a much smaller
+# XLA graph than the LAPACK-backed primitives (compile time of the Hessians).
+def chol_small(A):
+    """Lower Cholesky factor of a small SPD matrix (NaN if not positive definite)."""
+    n = A.shape[0]
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        acc = A[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = jnp.sqrt(acc)
+        for i in range(j + 1, n):
+            L[i][j] = (A[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    zero = jnp.zeros((), A.dtype)
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def tri_solve_small(L, B):
+    """Solve L X = B for small lower-triangular L; B (n, m)."""
+    n = L.shape[0]
+    X = []
+    for i in range(n):
+        acc = B[i] - sum(L[i, k] * X[k] for k in range(i)) if i else B[i]
+        X.append(acc / L[i, i])
+    return jnp.stack(X)
+
+
 # --------------------------------------------------------------------------- θ map
 class ThetaMap:
     """Smooth bijection between unconstrained z (free parameters only) and θ (all parameters).
@@ -318,7 +345,7 @@ class Objective:
         L = jnp.eye(n).at[self._tril].set(r[n:n + self.nl])
         C = r[n + self.nl:].reshape(n, n)
         Sc = L * jnp.exp(0.5 * d)[None, :]
-        Sm = jnp.linalg.cholesky(Sc @ Sc.T + C @ C.T)
+        Sm = chol_small(Sc @ Sc.T + C @ C.T)
         return Sc, C, Sm, d
 
     # -- local terms (negative expected log densities)
@@ -334,7 +361,7 @@ class Objective:
         X1 = mu1 + dx1
         Fx = jax.vmap(lambda x: self.F(x, u0, theta, dt))(X0)
         Lq = jnp.sqrt(dt) * G
-        res = solve_triangular(Lq, (X1 - Fx).T, lower=True)  # (n, 4n)
+        res = tri_solve_small(Lq, (X1 - Fx).T)  # (n, 4n)
         quad = jnp.mean(jnp.sum(res ** 2, axis=0))
         logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lq))))
         return 0.5 * quad + 0.5 * logdet + 0.5 * n * LOG2PI

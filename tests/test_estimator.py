@@ -1,0 +1,354 @@
+"""Tests of the variational estimator against independent numpy references.
+
+Linear-Gaussian reference: x_{k+1} = Ad x_k + Bd u_k + w_k, Ad = I + T A, Bd = T B,
+w ~ N(0, Q = T G Gᵀ); y_k = C x_k + v_k, v ~ N(0, R). With a flat prior on x_0 the
+log-likelihood is log p(y) = ∫ p(x_0: , y) dx_0.. ; a Kalman filter started from the
+diffuse prior N(0, P0 I) gives log p_KF(y) ≈ log p(y) − (n/2) log(2π P0) for P0 → ∞
+(the Gaussian prior density is ≈ (2π P0)^{-n/2} over the likelihood's support). So we
+compare the ELBO with  log p_KF(y) + (n/2) log(2π P0).
+"""
+
+from __future__ import annotations
+
+import math
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+from vsidgen.estimator import FitOptions, fit, smooth
+from vsidgen.estimator.fit import _Problem
+from vsidgen.estimator.linalg import btd_solve, btd_to_dense
+from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
+from vsidgen.model import Model
+
+jax.config.update("jax_enable_x64", True)
+
+T = 0.05
+A_TRUE = np.array([[-0.5, 1.0], [-2.0, -0.8]])
+B_TRUE = np.array([0.0, 1.5])
+C_OUT = np.array([[1.0, 0.0], [0.5, 1.0]])
+G_TRUE = np.array([0.1, 0.2])
+R_STD = np.array([0.05, 0.08])
+THETA_TRUE = np.array([A_TRUE[0, 0], A_TRUE[1, 0], A_TRUE[1, 1], B_TRUE[1]])
+
+
+def _A(p):
+    return np.array([[p[0], 1.0], [p[1], p[2]]])
+
+
+def lin_drift(x, u, p):
+    A = jnp.array([[p[0], 1.0], [p[1], p[2]]])
+    return A @ x + jnp.array([0.0, p[3]]) * u[0]
+
+
+def lin_output(x, u, p):
+    return jnp.asarray(C_OUT) @ x
+
+
+def lin_model(*, floor=0.0, est_noise=True, structure="diagonal"):
+    pars = tuple(Parameter(n) for n in ("a11", "a21", "a22", "b2"))
+    return Model(
+        name="lin", drift=lin_drift, output=lin_output,
+        states=(Variable("x1"), Variable("x2")), inputs=(Variable("u"),),
+        outputs=(Variable("y1"), Variable("y2")), parameters=pars,
+        process_noise=ProcessNoiseSpec(states=("x1", "x2"), structure=structure, estimate=est_noise,
+                                       std={"x1": G_TRUE[0], "x2": G_TRUE[1]}),
+        measurement_noise=tuple(MeasurementNoiseSpec(o, estimate=est_noise, std=float(s), floor=floor)
+                                for o, s in zip(("y1", "y2"), R_STD)))
+
+
+def make_record(N, seed, name="r", u_freq=1.3, r_std=R_STD):
+    rng = np.random.default_rng(seed)
+    k = np.arange(N)
+    u = (np.sign(np.sin(k * T * u_freq)) + 0.3 * np.sin(k * T * 4.1))[:, None]
+    x = np.array([0.3, -0.2])
+    X = np.empty((N, 2))
+    for i in range(N):
+        X[i] = x
+        x = x + T * (A_TRUE @ x + B_TRUE * u[i, 0]) + math.sqrt(T) * G_TRUE * rng.normal(size=2)
+    y = X @ C_OUT.T + r_std * rng.normal(size=(N, 2))
+    return types.SimpleNamespace(name=name, path=None, t=k * T, dt=T, u=u, y=y,
+                                 input_names=("u",), output_names=("y1", "y2"))
+
+
+# ----------------------------------------------------------------- numpy Kalman reference
+def kalman(theta, g, r, rec, P0=1e6, smooth=False):
+    """Kalman filter log-likelihood (diffuse prior N(0, P0 I)) and optional RTS means."""
+    Ad = np.eye(2) + T * _A(theta)
+    Bd = T * np.array([0.0, theta[3]])
+    Q = T * np.diag(np.asarray(g) ** 2)
+    R = np.diag(np.asarray(r) ** 2)
+    y, u = rec.y, rec.u[:, 0]
+    N = len(y)
+    m = np.zeros(2)
+    P = P0 * np.eye(2)
+    ll = 0.0
+    mf, Pf, mp, Pp = [], [], [], []
+    for k in range(N):
+        mp.append(m)
+        Pp.append(P)
+        S = C_OUT @ P @ C_OUT.T + R
+        e = y[k] - C_OUT @ m
+        Si = np.linalg.inv(S)
+        ll += -0.5 * (e @ Si @ e + np.linalg.slogdet(2 * np.pi * S)[1])
+        K = P @ C_OUT.T @ Si
+        m = m + K @ e
+        P = (np.eye(2) - K @ C_OUT) @ P
+        mf.append(m)
+        Pf.append(P)
+        m = Ad @ m + Bd * u[k]
+        P = Ad @ P @ Ad.T + Q
+    if not smooth:
+        return ll
+    ms = [None] * N
+    ms[-1] = mf[-1]
+    Ps = [None] * N
+    Ps[-1] = Pf[-1]
+    for k in range(N - 2, -1, -1):
+        J = Pf[k] @ Ad.T @ np.linalg.inv(Pp[k + 1])
+        ms[k] = mf[k] + J @ (ms[k + 1] - mp[k + 1])
+        Ps[k] = Pf[k] + J @ (Ps[k + 1] - Pp[k + 1]) @ J.T
+    return ll, np.array(ms), np.array(Ps)
+
+
+def flat_loglik(theta, g, r, rec, P0=1e6):
+    return kalman(theta, g, r, rec, P0) + 0.5 * 2 * math.log(2 * math.pi * P0)
+
+
+# ----------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def rec400():
+    return make_record(400, seed=1)
+
+
+@pytest.fixture(scope="module")
+def full_fit(rec400):
+    return fit(lin_model(), [rec400], options=FitOptions())
+
+
+# ----------------------------------------------------------------- 1. ELBO vs exact likelihood
+def test_smooth_elbo_is_tight_lower_bound_and_mu_matches_rts(rec400):
+    model = lin_model(est_noise=False)
+    res = smooth(model, [rec400], THETA_TRUE, {"G": np.diag(G_TRUE), "R": np.diag(R_STD ** 2)})
+    assert res.converged, res.status
+    ll = flat_loglik(THETA_TRUE, G_TRUE, R_STD, rec400)
+    gap = ll - res.elbo
+    # lower bound, and tight: the only slack is the stationary covariance near the record ends
+    assert gap >= -1e-6
+    assert gap < 3.0, gap
+    _, ms, Ps = kalman(THETA_TRUE, G_TRUE, R_STD, rec400, smooth=True)
+    mu = res.smoothers[0].mu
+    mid = slice(30, -30)
+    err = np.abs(mu[mid] - ms[mid]) / np.sqrt(np.diagonal(Ps[mid], axis1=1, axis2=2))
+    assert err.max() < 0.02, err.max()
+    # steady-state marginal covariance equals the RTS covariance in the middle
+    np.testing.assert_allclose(res.smoothers[0].cov_marg, Ps[200], rtol=0.02, atol=1e-8)
+    # and std errors are NaN in validation mode
+    assert np.all(np.isnan(res.std_errors))
+
+
+# ----------------------------------------------------------------- 2. full fit vs KF maximum likelihood
+def test_full_fit_recovers_truth_and_matches_kalman_mle(full_fit, rec400):
+    res = full_fit
+    assert res.converged, res.status
+    assert res.iterations < 60
+    se = res.std_errors
+    assert np.all(np.isfinite(se)) and np.all(se > 0)
+    assert np.all(np.abs(res.theta - THETA_TRUE) < 3 * se), (res.theta, se)
+
+    def nll(v):
+        return -kalman(v[:4], np.exp(v[4:6]), np.exp(v[6:8]), rec400)
+
+    v0 = np.concatenate([THETA_TRUE, np.log(G_TRUE), np.log(R_STD)])
+    opt = scipy.optimize.minimize(nll, v0, method="BFGS", options={"gtol": 1e-6})
+    mle = opt.x[:4]
+    assert np.all(np.abs(res.theta - mle) < 0.5 * se), (res.theta, mle, se)
+    np.testing.assert_allclose([res.process_std["x1"], res.process_std["x2"]], np.exp(opt.x[4:6]), rtol=0.15)
+    np.testing.assert_allclose([res.measurement_std["y1"], res.measurement_std["y2"]], np.exp(opt.x[6:8]),
+                               rtol=0.15)
+    # the maximised ELBO cannot exceed the maximised likelihood
+    assert res.elbo <= -opt.fun + math.log(2 * math.pi * 1e6) + 1e-6
+    # standard errors agree with the KF curvature (finite-difference Hessian of the KF likelihood)
+    h = 1e-4 * np.maximum(np.abs(opt.x), 1.0)
+    n = len(opt.x)
+    H = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            ei, ej = np.eye(n)[i] * h[i], np.eye(n)[j] * h[j]
+            H[i, j] = (nll(opt.x + ei + ej) - nll(opt.x + ei - ej) - nll(opt.x - ei + ej)
+                       + nll(opt.x - ei - ej)) / (4 * h[i] * h[j])
+    se_kf = np.sqrt(np.diag(np.linalg.inv(H)))[:4]
+    np.testing.assert_allclose(se, se_kf, rtol=0.25)
+    # result bookkeeping
+    assert res.free_mask.all() and res.correlation.shape == (4, 4)
+    np.testing.assert_allclose(np.diag(res.correlation), 1.0)
+    assert res.history[-1]["grad_norm"] < 1e-6
+    assert res.history[0]["elbo"] < res.elbo
+
+
+def test_fit_progress_callback_and_warm_start(full_fit, rec400):
+    calls = []
+    res = fit(lin_model(), [rec400], options=FitOptions(warm_start=full_fit,
+                                                         progress=lambda *a: calls.append(a)))
+    assert res.converged and res.iterations <= 2
+    assert calls and len(calls[0]) == 4
+    np.testing.assert_allclose(res.theta, full_fit.theta, rtol=1e-6)
+
+
+# ----------------------------------------------------------------- multi-record, missing data
+def test_multi_record_different_lengths_and_missing_outputs():
+    r1 = make_record(300, seed=5, name="a")
+    r2 = make_record(220, seed=6, name="b", u_freq=2.0)
+    y = r2.y.copy()
+    y[50:80, 0] = np.nan
+    y[::7, 1] = np.nan
+    r2 = types.SimpleNamespace(**{**vars(r2), "y": y})
+    res = fit(lin_model(), [r1, r2])
+    assert res.converged, res.status
+    assert len(res.smoothers) == 2 and res.smoothers[1].mu.shape == (220, 2)
+    assert np.all(np.isfinite(res.smoothers[1].mu))
+    assert np.all(np.abs(res.theta - THETA_TRUE) < 3.5 * res.std_errors)
+
+
+# ----------------------------------------------------------------- 3. nonlinear model from zero
+def pend_drift(x, u, p):
+    return jnp.array([x[1], -p[0] * jnp.sin(x[0]) - p[1] * x[1] + p[2] * u[0]])
+
+
+def pend_output(x, u, p):
+    return jnp.array([x[0], x[1], p[0] * jnp.sin(x[0])])
+
+
+def test_nonlinear_pendulum_converges_from_zero():
+    theta = np.array([4.0, 0.6, 2.0])
+    rng = np.random.default_rng(3)
+    N, dt = 500, 0.02
+    k = np.arange(N)
+    u = (np.sin(k * dt * 1.1) + np.sign(np.sin(k * dt * 0.37)))[:, None]
+    x = np.array([0.5, 0.0])
+    X = np.empty((N, 2))
+    for i in range(N):
+        X[i] = x
+        f = np.array([x[1], -theta[0] * np.sin(x[0]) - theta[1] * x[1] + theta[2] * u[i, 0]])
+        x = x + dt * f + math.sqrt(dt) * np.array([0.01, 0.05]) * rng.normal(size=2)
+    Y = np.column_stack([X[:, 0], X[:, 1], theta[0] * np.sin(X[:, 0])]) + np.array([0.01, 0.02, 0.05]) * \
+        rng.normal(size=(N, 3))
+    rec = types.SimpleNamespace(name="p", path=None, t=k * dt, dt=dt, u=u, y=Y, input_names=("u",),
+                                output_names=("th", "om", "acc"))
+    model = Model(name="pend", drift=pend_drift, output=pend_output,
+                  states=(Variable("th"), Variable("om")), inputs=(Variable("u"),),
+                  outputs=(Variable("th"), Variable("om"), Variable("acc")),
+                  parameters=(Parameter("k"), Parameter("c", lower=0.0, initial=0.1), Parameter("b")),
+                  process_noise=ProcessNoiseSpec(states=("th", "om")),
+                  measurement_noise=tuple(MeasurementNoiseSpec(o, floor=0) for o in ("th", "om", "acc")))
+    res = fit(model, [rec], options=FitOptions(integrator="rk4"))
+    assert res.converged, res.status
+    assert np.all(np.abs(res.theta - theta) < 3 * res.std_errors), (res.theta, res.std_errors)
+    assert res.theta[1] > 0
+
+
+# ----------------------------------------------------------------- 4. measurement floors
+def test_quantized_outputs_hit_floor_and_fit_stays_well_conditioned():
+    # true measurement noise (0.002) well below the resolution q/sqrt(12) = 0.029 of the quantized data
+    q = 0.1
+    rec = make_record(400, seed=11, r_std=np.array([0.002, 0.002]))
+    rec = types.SimpleNamespace(**{**vars(rec), "y": np.round(rec.y / q) * q})
+    res = fit(lin_model(floor="auto"), [rec])
+    assert res.converged, res.status
+    floor = q / math.sqrt(12)
+    assert res.measurement_floor["y1"] == pytest.approx(floor)
+    codes = [w["code"] for w in res.warnings]
+    assert "noise_at_floor" in codes
+    assert "ill_conditioned" not in codes and "hessian_not_positive_definite" not in codes
+    assert not res.std_errors_reliable
+    for o in ("y1", "y2"):
+        assert res.measurement_std[o] >= floor
+    assert np.all(np.isfinite(res.std_errors))
+    assert np.all(np.abs(res.theta - THETA_TRUE) < 3 * res.std_errors), (res.theta, res.std_errors)
+
+
+# ----------------------------------------------------------------- 5. structured Hessian and solve
+def test_structured_hessian_and_newton_step_equal_dense():
+    model = lin_model(structure="full")
+    r1 = make_record(6, seed=2, name="a")
+    r2 = make_record(5, seed=3, name="b")
+    P = _Problem(model, [r1, r2], FitOptions())
+    s, recs = P.initial(FitOptions())
+    rng = np.random.default_rng(0)
+    s = s + 0.3 * rng.normal(size=s.shape)
+    recs = [(m + 0.2 * rng.normal(size=m.shape), r + 0.2 * rng.normal(size=r.shape)) for m, r in recs]
+    n, nq = 2, P.obj.nq
+    sizes = [m.size for m, _ in recs]
+
+    def unflat(v):
+        o = 0
+        mus = []
+        for (m, _), sz in zip(recs, sizes):
+            mus.append(v[o:o + sz].reshape(m.shape))
+            o += sz
+        rs = [v[o + i * nq:o + (i + 1) * nq] for i in range(len(recs))]
+        return mus, rs, v[o + len(recs) * nq:]
+
+    def total(v):
+        mus, rs, ss = unflat(v)
+        return sum(P.obj._value_impl(m, r, ss, d) for m, r, d in zip(mus, rs, P.data))
+
+    v = jnp.asarray(np.concatenate([m.ravel() for m, _ in recs] + [r for _, r in recs] + [s]))
+    Hd = np.asarray(jax.jit(jax.hessian(total))(v))
+    gd = np.asarray(jax.jit(jax.grad(total))(v))
+    blks = P.blocks(s, recs)
+    gg, Hg = P.gather(blks)
+    # assemble the structured pieces into a dense matrix
+    nmu = sum(sizes)
+    Hs = np.zeros_like(Hd)
+    gs = np.zeros_like(gd)
+    o = 0
+    for b, ix, sz in zip(blks, P.idx, sizes):
+        Hs[o:o + sz, o:o + sz] = btd_to_dense(b["D"], b["B"])
+        Wd = np.asarray(b["W"]).reshape(sz, -1)
+        Hs[o:o + sz, nmu + ix] = Wd
+        Hs[nmu + ix, o:o + sz] = Wd.T
+        gs[o:o + sz] = np.asarray(b["gmu"]).ravel()
+        o += sz
+    Hs[nmu:, nmu:] = Hg
+    gs[nmu:] = gg
+    np.testing.assert_allclose(Hs, Hd, rtol=1e-9, atol=1e-9 * np.abs(Hd).max())
+    np.testing.assert_allclose(gs, gd, rtol=1e-9, atol=1e-9 * np.abs(gd).max())
+    # damped Newton step: structured vs dense solve
+    lam = 30.0  # large enough for H + λD to be positive definite at this random point
+    dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) + 1.0 for b in blks]
+    dglob = np.abs(np.diag(Hg)) + 1.0
+    Dfull = np.concatenate([d.ravel() for d in dmus] + [dglob])
+    sol = P.newton_step(blks, lam, dmus, dglob)
+    assert sol is not None
+    ds, dmu, dr, _ = sol
+    dense = np.linalg.solve(Hd + lam * np.diag(Dfull), -gd)
+    got = np.concatenate([d.ravel() for d in dmu] + dr + [ds])
+    np.testing.assert_allclose(got, dense, rtol=1e-7, atol=1e-9 * np.abs(dense).max())
+
+
+def test_btd_solve_detects_indefinite():
+    rng = np.random.default_rng(0)
+    N, n = 7, 3
+    M = rng.normal(size=(N * n, N * n))
+    band = np.zeros_like(M)
+    for k in range(N):
+        for j in (k - 1, k, k + 1):
+            if 0 <= j < N:
+                band[k * n:(k + 1) * n, j * n:(j + 1) * n] = 1
+    A = (M @ M.T + N * n * np.eye(N * n)) * band
+    D = np.stack([A[k * n:(k + 1) * n, k * n:(k + 1) * n] for k in range(N)])
+    B = np.stack([A[k * n:(k + 1) * n, (k + 1) * n:(k + 2) * n] for k in range(N - 1)])
+    R = rng.normal(size=(N, n, 2))
+    X, ok, logdet = btd_solve(jnp.asarray(D), jnp.asarray(B), jnp.asarray(R))
+    assert bool(ok)
+    np.testing.assert_allclose(np.asarray(X).reshape(N * n, 2), np.linalg.solve(A, R.reshape(N * n, 2)), rtol=1e-10)
+    np.testing.assert_allclose(float(logdet), np.linalg.slogdet(A)[1], rtol=1e-10)
+    D2 = D.copy()
+    D2[3] -= 100 * np.eye(n)
+    _, ok2, _ = btd_solve(jnp.asarray(D2), jnp.asarray(B), jnp.asarray(R))
+    assert not bool(ok2)
