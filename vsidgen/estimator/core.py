@@ -163,16 +163,24 @@ class ThetaMap:
         self.z0 = z0[fi]
         self.n_free = len(fi)
 
-    def theta(self, z):
-        """All parameters θ from the free unconstrained z."""
-        k = self.kind
+    def static_key(self):
+        return ("theta", tuple(self.free_idx.tolist()), len(self.full0))
+
+    def arrays(self):
+        """Numeric configuration passed to the jitted objective (so compiled code is shared)."""
+        return {"full0": self.full0, "kind": self.kind.astype(float), "lo": self.lo, "hi": self.hi, "sc": self.sc}
+
+    def theta(self, z, c=None):
+        """All parameters θ from the free unconstrained z (``c``: arrays(), default this map's)."""
+        c = self.arrays() if c is None else c
+        k, lo, hi, sc = c["kind"], c["lo"], c["hi"], c["sc"]
         ez = jnp.exp(jnp.where((k == 1) | (k == 2), z, 0.0))
         sig = jax.nn.sigmoid(z)
         val = jnp.where(k == 0, z,
-              jnp.where(k == 1, self.lo + self.sc * ez,
-              jnp.where(k == 2, self.hi - self.sc * ez,
-                        self.lo + (self.hi - self.lo) * sig)))
-        return jnp.asarray(self.full0).at[self.free_idx].set(val)
+              jnp.where(k == 1, lo + sc * ez,
+              jnp.where(k == 2, hi - sc * ez,
+                        lo + (hi - lo) * sig)))
+        return jnp.asarray(c["full0"]).at[self.free_idx].set(val)
 
     def dtheta_dz(self, z):
         z = np.asarray(z, float)
@@ -283,13 +291,24 @@ class NoiseMap:
         self.init = np.array(init + minit, float)
         self.n = self.n_proc + self.n_meas
 
-    def G(self, w):
+    def static_key(self):
+        return ("noise", self.fixed_G is None, tuple(self.proc_est_idx.tolist()), tuple(self.offdiag),
+                tuple(self.meas_est_idx.tolist()), self.n_proc, self.n_meas)
+
+    def arrays(self):
+        """Numeric configuration passed to the jitted objective (so compiled code is shared)."""
+        return {"det_std": np.full(self.nx, self.det_std), "proc_floor": self.proc_floor,
+                "fixed_G": self.fixed_G if self.fixed_G is not None else np.zeros((self.nx, self.nx)),
+                "meas_floor": self.meas_floor, "meas_fixed": self.meas_fixed}
+
+    def G(self, w, c=None):
         """Lower-triangular factor used in the likelihood (Q = T G Gᵀ)."""
+        c = self.arrays() if c is None else c
         if self.fixed_G is not None:
-            return jnp.asarray(self.fixed_G)
-        diag = jnp.full(self.nx, self.det_std)
+            return jnp.asarray(c["fixed_G"])
+        diag = jnp.asarray(c["det_std"])
         ne = len(self.proc_est_idx)
-        diag = diag.at[self.proc_est_idx].set(jnp.asarray(self.proc_floor[self.proc_est_idx]) + jnp.exp(w[:ne]))
+        diag = diag.at[self.proc_est_idx].set(jnp.asarray(c["proc_floor"])[self.proc_est_idx] + jnp.exp(w[:ne]))
         G = jnp.diag(diag)
         if self.offdiag:
             rows = np.array([a for a, _ in self.offdiag])
@@ -297,11 +316,12 @@ class NoiseMap:
             G = G.at[rows, cols].set(w[ne:self.n_proc])
         return G
 
-    def sigma(self, w):
-        s = jnp.asarray(self.meas_fixed)
+    def sigma(self, w, c=None):
+        c = self.arrays() if c is None else c
+        s = jnp.asarray(c["meas_fixed"])
         if self.n_meas:
             wm = w[self.n_proc:]
-            s = s.at[self.meas_est_idx].set(jnp.asarray(self.meas_floor[self.meas_est_idx]) + jnp.exp(wm))
+            s = s.at[self.meas_est_idx].set(jnp.asarray(c["meas_floor"])[self.meas_est_idx] + jnp.exp(wm))
         return s
 
     def G_report(self, w):
@@ -333,11 +353,11 @@ class Objective:
         self._back = jax.jit(self._back_impl)
 
     # -- unpacking
-    def unpack_s(self, s):
+    def unpack_s(self, s, cfg):
         nt = self.tm.n_free
-        theta = self.tm.theta(s[:nt])
+        theta = self.tm.theta(s[:nt], cfg["theta"])
         w = s[nt:]
-        return theta, self.nm.G(w), self.nm.sigma(w)
+        return theta, self.nm.G(w, cfg["noise"]), self.nm.sigma(w, cfg["noise"])
 
     def cov_factors(self, r):
         n = self.n
@@ -349,9 +369,9 @@ class Objective:
         return Sc, C, Sm, d
 
     # -- local terms (negative expected log densities)
-    def pair_nll(self, mu0, mu1, r, s, u0, dt):
+    def pair_nll(self, mu0, mu1, r, s, u0, dt, cfg):
         n = self.n
-        theta, G, _ = self.unpack_s(s)
+        theta, G, _ = self.unpack_s(s, cfg)
         Sc, C, Sm, _ = self.cov_factors(r)
         a = math.sqrt(2 * n)
         Z = jnp.zeros((n, n))
@@ -366,9 +386,9 @@ class Objective:
         logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lq))))
         return 0.5 * quad + 0.5 * logdet + 0.5 * n * LOG2PI
 
-    def node_nll(self, mu, r, s, u, y, m):
+    def node_nll(self, mu, r, s, u, y, m, cfg):
         n = self.n
-        theta, _, sig = self.unpack_s(s)
+        theta, _, sig = self.unpack_s(s, cfg)
         _, _, Sm, _ = self.cov_factors(r)
         a = math.sqrt(n)
         X = mu + jnp.concatenate([a * Sm.T, -a * Sm.T])
@@ -385,17 +405,18 @@ class Objective:
         return -H
 
     # -- record objective
-    def _value_impl(self, mu, r, s, data):
+    def _value_impl(self, mu, r, s, data, cfg):
         u, y, m, dt = data
         N = mu.shape[0]
-        vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None))(mu[:-1], mu[1:], r, s, u[:-1], dt)
-        vn = jax.vmap(self.node_nll, in_axes=(0, None, None, 0, 0, 0))(mu, r, s, u, y, m)
+        vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None, None))(mu[:-1], mu[1:], r, s, u[:-1],
+                                                                                dt, cfg)
+        vn = jax.vmap(self.node_nll, in_axes=(0, None, None, 0, 0, 0, None))(mu, r, s, u, y, m, cfg)
         return jnp.sum(vp) + jnp.sum(vn) + self.neg_entropy(r, N)
 
-    def value(self, mu, r, s, data):
-        return self._value(mu, r, s, data)
+    def value(self, mu, r, s, data, cfg):
+        return self._value(mu, r, s, data, cfg)
 
-    def _blocks_impl(self, mu, r, s, data):
+    def _blocks_impl(self, mu, r, s, data, cfg):
         """Value, gradient and structured Hessian blocks of one record's negative ELBO."""
         u, y, m, dt = data
         N, n = mu.shape
@@ -403,10 +424,10 @@ class Objective:
         b = jnp.concatenate([r, s])
 
         def pf(w, u0):
-            return self.pair_nll(w[:n], w[n:2 * n], w[2 * n:2 * n + self.nq], w[2 * n + self.nq:], u0, dt)
+            return self.pair_nll(w[:n], w[n:2 * n], w[2 * n:2 * n + self.nq], w[2 * n + self.nq:], u0, dt, cfg)
 
         def nf(w, uk, yk, mk):
-            return self.node_nll(w[:n], w[n:n + self.nq], w[n + self.nq:], uk, yk, mk)
+            return self.node_nll(w[:n], w[n:n + self.nq], w[n + self.nq:], uk, yk, mk, cfg)
 
         def ef(bb):
             return self.neg_entropy(bb[:self.nq], N)
@@ -432,8 +453,8 @@ class Objective:
         gb = jnp.sum(gn[:, n:], 0) + jnp.sum(gp[:, 2 * n:], 0) + ge
         return dict(f=f, D=D, B=B, W=W, Hbb=Hbb, gmu=gmu, gb=gb)
 
-    def blocks(self, mu, r, s, data):
-        return self._blocks(mu, r, s, data)
+    def blocks(self, mu, r, s, data, cfg):
+        return self._blocks(mu, r, s, data, cfg)
 
     def _factor_impl(self, blk, dmu, lam):
         """Eliminate μ: Schur complement S = Hbb − Wᵀ A⁻¹ W and reduced rhs −g_b + Wᵀ A⁻¹ g_μ.
@@ -457,6 +478,33 @@ class Objective:
 
     def back(self, fac, db):
         return self._back(fac, db)
+
+
+_OBJECTIVES: dict = {}
+
+
+def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra):
+    """Objective with compiled functions shared between problems of the same structure.
+
+    The numeric configuration (initial θ, bounds, floors, fixed noise) is a
+    jit argument (``cfg``), so refitting the same model (other records, other
+    fixed values) reuses the compiled code. Keyed on the model's functions,
+    dimensions, integrator and the static index structure of the maps.
+    """
+    key = (model.drift, model.output, model.nx, model.nu, model.ny, model.np, key_extra,
+           theta_map.static_key(), noise_map.static_key())
+    obj = _OBJECTIVES.get(key)
+    if obj is None:
+        if len(_OBJECTIVES) >= 16:
+            _OBJECTIVES.pop(next(iter(_OBJECTIVES)))
+        obj = Objective(model, theta_map, noise_map, F)
+        _OBJECTIVES[key] = obj
+    return obj
+
+
+def make_cfg(theta_map: ThetaMap, noise_map: NoiseMap):
+    return {"theta": {k: jnp.asarray(v) for k, v in theta_map.arrays().items()},
+            "noise": {k: jnp.asarray(v) for k, v in noise_map.arrays().items()}}
 
 
 def record_data(rec, output_index=None):

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from .core import NoiseMap, Objective, ThetaMap, get_transition, record_data
+from .core import NoiseMap, ThetaMap, get_objective, get_transition, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath
 
 jax.config.update("jax_enable_x64", True)
@@ -126,7 +126,8 @@ class _Problem:
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R)
-        self.obj = Objective(model, self.tm, self.nm, F)
+        self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
+        self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]
         self.nrec = len(self.records)
         nq, ng = self.obj.nq, self.obj.ng
@@ -152,11 +153,11 @@ class _Problem:
 
     def value(self, s, recs):
         sj = jnp.asarray(s)
-        return float(sum(self.obj.value(jnp.asarray(m), jnp.asarray(r), sj, d) for (m, r), d in zip(recs, self.data)))
+        return float(sum(self.obj.value(jnp.asarray(m), jnp.asarray(r), sj, d, self.cfg) for (m, r), d in zip(recs, self.data)))
 
     def blocks(self, s, recs):
         sj = jnp.asarray(s)
-        return [self.obj.blocks(jnp.asarray(m), jnp.asarray(r), sj, d) for (m, r), d in zip(recs, self.data)]
+        return [self.obj.blocks(jnp.asarray(m), jnp.asarray(r), sj, d, self.cfg) for (m, r), d in zip(recs, self.data)]
 
     def gather(self, blks):
         """Global border gradient and Hessian (sum over records)."""
