@@ -1,0 +1,671 @@
+"""Catalogue plumbing: the :class:`Effect` base class, :class:`Candidate` records,
+the model summary :class:`ModelInfo` that effects instantiate themselves for, the
+effect registry and plugin loading.
+
+An *effect* is a documented template of physics that aircraft models commonly
+leave out (a missing derivative, a sensor bias, an actuator lag, ...). For a
+given model it proposes concrete :class:`Candidate` augmentations: new
+parameters (starting at the value that reproduces the base model, so that the
+augmented model *nests* the base one), new states, new definitions and
+``add_terms`` for drift/observation equations. A candidate becomes a spec that
+``extends`` the base spec (:meth:`Candidate.spec_dict`); it is compiled by the
+normal spec compiler and refitted by the search (:mod:`.search`).
+
+Adding an effect (no change to the search code)::
+
+    from vsidgen.discrepancy import Effect, Candidate, register_effect
+
+    @register_effect
+    class GearDrag(Effect):
+        id = "gear_drag"
+        title = "landing-gear drag"
+        explanation = "The {target} equation lacks a drag increment of the extended gear ..."
+        def applies_to(self, info):
+            return [...]               # list[Candidate]
+        def score(self, candidate, evidence):
+            return ...                 # float, larger = more plausible
+
+Effects are also found through the entry-point group ``vsidgen.effects``
+(``[project.entry-points."vsidgen.effects"] gear = "mypkg.effects:GearDrag"``)
+and in Python files given to ``vsidgen diagnose --effects-module path.py``
+(every :class:`Effect` subclass defined there with an ``id`` is registered).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import pathlib
+import re
+import sys
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import sympy
+import yaml
+
+from ..errors import SpecError, VsidgenError
+
+ENTRY_POINT_GROUP = "vsidgen.effects"
+
+#: parameter/state names the catalogue creates start with this prefix
+PREFIX = "D_"
+
+FLOW_ANGLE_NAMES = {"alpha": "alpha", "alfa": "alpha", "aoa": "alpha", "beta": "beta",
+                    "bet": "beta"}
+RATE_NAMES = {"p": "p", "q": "q", "r": "r"}
+
+
+class DiscrepancyError(VsidgenError):
+    """A problem with the discrepancy search (bad effect plugin, bad options...)."""
+
+
+# ---------------------------------------------------------------------------
+# model summary
+# ---------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class VarInfo:
+    """A state, input or output of the model at hand."""
+
+    name: str
+    unit: str | None = None
+    description: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelInfo:
+    """What an effect needs to know about the model it augments.
+
+    ``drift``/``observations`` hold spec text for each equation as written
+    (definition names allowed); ``drift_expanded``/``observations_expanded`` hold
+    sympy expressions with the definitions substituted (used for derivatives and
+    "does this equation already depend on x?" questions). ``dt`` is the sample
+    period of the estimation data when known (used for lag lower bounds).
+    """
+
+    spec_path: pathlib.Path
+    name: str
+    states: tuple[VarInfo, ...]
+    inputs: tuple[VarInfo, ...]
+    outputs: tuple[VarInfo, ...]
+    parameters: tuple[str, ...]
+    constants: tuple[str, ...]
+    definitions: tuple[str, ...]
+    drift: Mapping[str, str]
+    observations: Mapping[str, str]
+    drift_expanded: Mapping[str, Any]
+    observations_expanded: Mapping[str, Any]
+    process_states: tuple[str, ...]
+    dt: float | None = None
+    #: break points of flow angles/inputs seen in the data: {name: (("hinge", b), ("hingelo", b))}
+    breaks: Mapping[str, tuple[tuple[str, float], ...]] = dataclasses.field(default_factory=dict)
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.states)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.inputs)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.outputs)
+
+    @property
+    def names(self) -> frozenset[str]:
+        return frozenset(self.state_names + self.input_names + self.output_names
+                         + self.parameters + self.constants + self.definitions)
+
+    def unit(self, name: str) -> str | None:
+        for v in self.states + self.inputs + self.outputs:
+            if v.name == name:
+                return v.unit
+        return None
+
+    def symbol(self, name: str) -> sympy.Symbol:
+        return sympy.Symbol(name, real=True)
+
+    def depends(self, state: str, name: str) -> bool:
+        """Whether the (expanded) drift of ``state`` already contains ``name``."""
+        e = self.drift_expanded[state]
+        return name in {s.name for s in e.free_symbols}
+
+    def measured_state(self, output: str) -> str | None:
+        """The state an output measures directly (observation ``y = x``), else None."""
+        e = self.observations_expanded.get(output)
+        if isinstance(e, sympy.Symbol) and e.name in self.state_names:
+            return e.name
+        return None
+
+    def flow_angle(self, kind: str) -> str | None:
+        """The state that is the angle of attack (kind 'alpha') or sideslip ('beta')."""
+        for v in self.states:
+            if FLOW_ANGLE_NAMES.get(v.name.lower()) == kind:
+                return v.name
+        return None
+
+    def rate_states(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.states if v.name.lower() in RATE_NAMES)
+
+    def drift_text_of(self, state: str) -> str:
+        return self.drift[state]
+
+    def gain_text(self, state: str, name: str) -> str | None:
+        """Spec text of ∂f_state/∂name (expanded), or None when it cannot be written."""
+        d = sympy.diff(self.drift_expanded[state], self.symbol(name))
+        d = sympy.simplify(d) if d.count_ops() < 60 else d
+        if d == 0:
+            return None
+        return spec_text(d)
+
+    def fresh(self, base: str, taken: Iterable[str] = ()) -> str:
+        """A new identifier derived from ``base`` not used by the model (or ``taken``)."""
+        base = re.sub(r"[^A-Za-z0-9_]", "_", base)
+        if not re.match(r"[A-Za-z_]", base):
+            base = "D_" + base
+        used = set(self.names) | set(taken)
+        name, i = base, 2
+        while name in used:
+            name, i = f"{base}_{i}", i + 1
+        return name
+
+
+class _SpecPrinter(sympy.printing.str.StrPrinter):
+    """Prints sympy expressions in the spec expression language (whitelist only)."""
+
+    _FUN = {"Abs": "abs", "Min": "min", "Max": "max", "sin": "sin", "cos": "cos",
+            "tan": "tan", "asin": "asin", "acos": "acos", "atan": "atan", "atan2": "atan2",
+            "exp": "exp", "log": "log", "tanh": "tanh", "sign": "sign"}
+
+    def _print_Function(self, expr):
+        name = type(expr).__name__
+        if name not in self._FUN:
+            raise _Unprintable(name)
+        return f"{self._FUN[name]}({', '.join(self._print(a) for a in expr.args)})"
+
+    _print_Abs = _print_Function
+    _print_Min = _print_Function
+    _print_Max = _print_Function
+
+    def _print_Exp1(self, expr):
+        return "exp(1)"
+
+    def _print_Pi(self, expr):
+        return "pi"
+
+    def _print_Float(self, expr):
+        return repr(float(expr))
+
+    def _print_Rational(self, expr):
+        return f"({expr.p}/{expr.q})"
+
+    def _print_Half(self, expr):
+        return "(1/2)"
+
+    def _print_Infinity(self, expr):
+        raise _Unprintable("oo")
+
+    _print_NegativeInfinity = _print_Infinity
+    _print_ComplexInfinity = _print_Infinity
+    _print_NaN = _print_Infinity
+
+    def _print_Piecewise(self, expr):
+        raise _Unprintable("Piecewise")
+
+    def _print_Derivative(self, expr):
+        raise _Unprintable("Derivative")
+
+    def _print_Heaviside(self, expr):
+        raise _Unprintable("Heaviside")
+
+    def _print_Pow(self, expr, rational=False):
+        b, e = expr.args
+        if e == sympy.Rational(1, 2):
+            return f"sqrt({self._print(b)})"
+        return f"({self._print(b)})**({self._print(e)})"
+
+
+class _Unprintable(Exception):
+    pass
+
+
+def spec_text(expr) -> str | None:
+    """Spec-language text of a sympy expression, or None if it uses anything else."""
+    try:
+        return _SpecPrinter().doprint(expr)
+    except _Unprintable:
+        return None
+    except Exception:  # pragma: no cover - defensive
+        return None
+
+
+def model_info(spec_path, *, dt: float | None = None) -> ModelInfo:
+    """Summarise the spec at ``spec_path`` (``extends`` resolved) for the catalogue.
+
+    Uses the spec compiler (:func:`vsidgen.symbolic.compile_spec`) when it is
+    available; raises :class:`~vsidgen.errors.SpecError` for a bad spec.
+    """
+    spec_path = pathlib.Path(spec_path)
+    try:
+        from ..symbolic import compile_spec  # type: ignore
+    except ImportError:
+        compile_spec = None
+    if compile_spec is not None:
+        return _info_from_symbolic(compile_spec(spec_path), spec_path, dt)
+    return _info_from_yaml(spec_path, dt)  # pragma: no cover - bridge until the compiler lands
+
+
+def info_from_model(model, *, dt: float | None = None) -> ModelInfo:
+    """:class:`ModelInfo` of a runtime :class:`vsidgen.model.Model` loaded from a spec."""
+    sym = model.symbolic
+    if sym is None:
+        raise DiscrepancyError("diagnose needs a model loaded from a spec (no symbolic model)")
+    return _info_from_symbolic(sym, pathlib.Path(sym.source_path), dt)
+
+
+def _vars(vs) -> tuple[VarInfo, ...]:
+    return tuple(VarInfo(v.name, getattr(v, "unit", None), getattr(v, "description", "") or "")
+                 for v in vs)
+
+
+def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
+    states = _vars(sym.states)
+    drift_exp = sym.drift_expanded()
+    obs_exp = sym.observations_expanded()
+    drift_txt = {}
+    for v, e in zip(states, sym.drift):
+        drift_txt[v.name] = spec_text(e) or spec_text(drift_exp[len(drift_txt)])
+    outputs = _vars(sym.outputs)
+    obs_txt = {}
+    for i, (v, e) in enumerate(zip(outputs, sym.observations)):
+        obs_txt[v.name] = spec_text(e) or spec_text(obs_exp[i])
+    pn = sym.process_noise
+    pstates = tuple(pn.states) if pn is not None and pn.states else tuple(v.name for v in states)
+    return ModelInfo(
+        spec_path=pathlib.Path(spec_path), name=sym.name, states=states,
+        inputs=_vars(sym.inputs), outputs=outputs,
+        parameters=tuple(p.name for p in sym.parameters),
+        constants=tuple(c.name for c in sym.constants),
+        definitions=tuple(n for n, _ in sym.definitions),
+        drift=drift_txt, observations=obs_txt,
+        drift_expanded={v.name: _realify(e) for v, e in zip(states, drift_exp)},
+        observations_expanded={v.name: _realify(e) for v, e in zip(outputs, obs_exp)},
+        process_states=pstates, dt=dt)
+
+
+def _realify(e):
+    """Replace every symbol by a real symbol of the same name (for name comparisons)."""
+    return e.xreplace({s: sympy.Symbol(s.name, real=True) for s in e.free_symbols})
+
+
+# -- bridge: a minimal YAML reader used only while vsidgen.symbolic is absent -----------------
+
+def _load_yaml(path: pathlib.Path) -> dict:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise SpecError(f"cannot read spec: {err}", path=path) from None
+    if not isinstance(data, dict):
+        raise SpecError("a spec must be a mapping", path=path)
+    return data
+
+
+def merged_spec_dict(path) -> dict:
+    """The spec at ``path`` with ``extends`` resolved (structure only; for tests and the bridge)."""
+    path = pathlib.Path(path)
+    data = _load_yaml(path)
+    adds = []
+    if data.get("extends"):
+        parent = merged_spec_dict((path.parent / str(data["extends"])).resolve())
+        adds.extend(parent.pop("_add_terms", []))
+        merged = parent
+        for key in ("states", "inputs", "outputs", "constants", "parameters", "definitions",
+                    "drift", "observations"):
+            if data.get(key):
+                merged.setdefault(key, {}).update(data[key])
+        for key in ("noise", "data"):
+            if data.get(key):
+                base = merged.setdefault(key, {})
+                for k, v in data[key].items():
+                    if isinstance(v, dict) and isinstance(base.get(k), dict):
+                        base[k] = {**base[k], **v}
+                    else:
+                        base[k] = v
+        for key in ("name", "description", "integrator"):
+            if key in data:
+                merged[key] = data[key]
+    else:
+        merged = dict(data)
+    if data.get("add_terms"):
+        adds.append(data["add_terms"])
+    merged.pop("add_terms", None)
+    merged.pop("extends", None)
+    merged["_add_terms"] = adds
+    return merged
+
+
+def _info_from_yaml(path: pathlib.Path, dt) -> ModelInfo:  # pragma: no cover - bridge
+    from ..expr import parse_expression
+
+    d = merged_spec_dict(path)
+    names = {}
+    for key in ("states", "inputs", "parameters", "constants"):
+        for n in (d.get(key) or {}):
+            names[n] = sympy.Symbol(n, real=True)
+    defs_txt = {k: str(v) for k, v in (d.get("definitions") or {}).items()}
+    drift_txt = {k: str(v) for k, v in (d.get("drift") or {}).items()}
+    obs_txt = {k: str(v) for k, v in (d.get("observations") or {}).items()}
+    for adds in d["_add_terms"]:
+        for sect, target in (("definitions", defs_txt), ("drift", drift_txt),
+                             ("observations", obs_txt)):
+            for k, v in (adds.get(sect) or {}).items():
+                target[k] = f"({target[k]}) + ({v})"
+    for n in defs_txt:
+        names[n] = sympy.Symbol(n, real=True)
+    defs = {}
+    for n, t in defs_txt.items():
+        defs[n] = parse_expression(t, names)
+    def expand(e):
+        for _ in range(len(defs) + 1):
+            e2 = e.xreplace(defs)
+            if e2 == e:
+                break
+            e = e2
+        return e
+    def var(sect):
+        return tuple(VarInfo(n, (v or {}).get("unit"), (v or {}).get("description", ""))
+                     for n, v in (d.get(sect) or {}).items())
+    proc = ((d.get("noise") or {}).get("process") or {}).get("states")
+    states = var("states")
+    return ModelInfo(
+        spec_path=path, name=d.get("name", path.stem), states=states, inputs=var("inputs"),
+        outputs=var("outputs"), parameters=tuple(d.get("parameters") or {}),
+        constants=tuple(d.get("constants") or {}), definitions=tuple(defs_txt),
+        drift=drift_txt, observations=obs_txt,
+        drift_expanded={k: expand(parse_expression(t, names)) for k, t in drift_txt.items()},
+        observations_expanded={k: expand(parse_expression(t, names)) for k, t in obs_txt.items()},
+        process_states=tuple(proc) if proc else tuple(v.name for v in states), dt=dt)
+
+
+# ---------------------------------------------------------------------------
+# candidates
+# ---------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class NewParameter:
+    """A parameter a candidate adds. ``initial`` is the value that reproduces the base model."""
+
+    name: str
+    unit: str | None = None
+    description: str = ""
+    initial: float = 0.0
+    lower: float | None = None
+    upper: float | None = None
+    fixed: bool = False
+
+    def spec(self) -> dict:
+        d: dict[str, Any] = {"unit": self.unit if self.unit is not None else "1",
+                             "description": self.description, "initial": float(self.initial)}
+        if self.lower is not None or self.upper is not None:
+            d["bounds"] = [self.lower, self.upper]
+        if self.fixed:
+            d["fixed"] = True
+        return d
+
+
+@dataclasses.dataclass(frozen=True)
+class NewState:
+    """A state a candidate adds (actuator/lag/delay/mode/wind state) with its drift text."""
+
+    name: str
+    drift: str
+    unit: str | None = None
+    description: str = ""
+    process_noise: bool = False   # receives process noise (a wind/gust state does)
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One concrete augmentation of the model at hand proposed by an effect.
+
+    Attributes:
+        effect: catalogue identifier of the effect (``Effect.id``).
+        key: unique identifier of this candidate, e.g. ``missing_derivative:q:de``.
+        target: the state equation (``"drift:q"``) or output channel
+            (``"output:alpha"``) it changes.
+        explanation: plain-words text for an engineer.
+        parameters, states, definitions: what is added.
+        add_terms: ``{"drift": {state: text}, "observations": {output: text},
+            "definitions": {name: text}}`` terms added to existing equations.
+        evidence_keys: which locate statistics the score came from (for the report).
+        info: free-form details (regressor, break point, ...).
+    """
+
+    effect: str
+    key: str
+    target: str
+    explanation: str
+    parameters: tuple[NewParameter, ...] = ()
+    states: tuple[NewState, ...] = ()
+    definitions: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    add_terms: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict)
+    info: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_free(self) -> int:
+        """Number of new free parameters (the degrees of freedom of the LR test)."""
+        return sum(1 for p in self.parameters if not p.fixed)
+
+    @property
+    def target_kind(self) -> str:
+        return self.target.split(":", 1)[0]
+
+    @property
+    def target_name(self) -> str:
+        return self.target.split(":", 1)[1]
+
+    def added_terms(self) -> dict[str, Any]:
+        """The spec fragments this candidate adds, for findings.json."""
+        out: dict[str, Any] = {}
+        for sect in ("drift", "observations", "definitions"):
+            if self.add_terms.get(sect):
+                out[sect] = dict(self.add_terms[sect])
+        if self.definitions:
+            out["new_definitions"] = dict(self.definitions)
+        if self.states:
+            out["new_states"] = {s.name: s.drift for s in self.states}
+        return out
+
+    def spec_dict(self, base_spec, *, name: str, candidate_path=None,
+                  info: ModelInfo | None = None) -> dict:
+        """The YAML mapping of the augmented spec extending ``base_spec``.
+
+        ``candidate_path`` is where the YAML will be written (``extends`` is made
+        relative to it). ``info`` (the base model's) is needed when new states
+        receive process noise (the process-noise state list is extended).
+        """
+        base_spec = pathlib.Path(base_spec).resolve()
+        if candidate_path is not None:
+            import os
+            ext = os.path.relpath(base_spec, pathlib.Path(candidate_path).resolve().parent)
+        else:
+            ext = str(base_spec)
+        d: dict[str, Any] = {"name": name,
+                             "description": f"{self.key}: {self.explanation}"[:400],
+                             "extends": ext}
+        if self.states:
+            d["states"] = {s.name: {"unit": s.unit if s.unit is not None else "1",
+                                    "description": s.description} for s in self.states}
+        if self.parameters:
+            d["parameters"] = {p.name: p.spec() for p in self.parameters}
+        if self.definitions:
+            d["definitions"] = dict(self.definitions)
+        if self.states:
+            d["drift"] = {s.name: s.drift for s in self.states}
+        adds = {k: dict(v) for k, v in self.add_terms.items() if v}
+        if adds:
+            d["add_terms"] = adds
+        noisy = [s.name for s in self.states if s.process_noise]
+        if noisy:
+            base_states = list(info.process_states) if info is not None else []
+            d["noise"] = {"process": {"states": base_states + noisy}}
+        return d
+
+    def spec_yaml(self, base_spec, *, name: str, candidate_path=None,
+                  info: ModelInfo | None = None) -> str:
+        head = (f"# vsidgen diagnose candidate {self.key}\n"
+                f"# effect: {self.effect}; target: {self.target}\n")
+        return head + yaml.safe_dump(self.spec_dict(base_spec, name=name,
+                                                    candidate_path=candidate_path, info=info),
+                                     sort_keys=False, width=100)
+
+
+# ---------------------------------------------------------------------------
+# effects and registry
+# ---------------------------------------------------------------------------
+
+class Effect:
+    """Base class of a catalogue entry.
+
+    Subclasses set ``id`` (identifier used in findings.json), ``title``,
+    ``explanation`` (a ``str.format`` template; fields are those of the
+    candidate's ``info`` plus ``target``) and implement :meth:`applies_to` and
+    :meth:`score`.
+    """
+
+    id: str = ""
+    title: str = ""
+    explanation: str = ""
+    #: short physics description for the documentation
+    doc: str = ""
+
+    def applies_to(self, info: ModelInfo) -> list[Candidate]:
+        """Concrete candidates for the model described by ``info``."""
+        raise NotImplementedError
+
+    def score(self, candidate: Candidate, evidence) -> float:
+        """Plausibility of ``candidate`` given the locate evidence (:class:`.locate.Evidence`).
+
+        Conventionally ``-log10`` of the p-value of the locate statistic that
+        supports the candidate (0 = no support). Only the best-scoring candidates
+        are refitted.
+        """
+        return 0.0
+
+    def explain(self, **fields) -> str:
+        try:
+            return self.explanation.format(**fields)
+        except (KeyError, IndexError, ValueError):
+            return self.explanation
+
+    def __repr__(self) -> str:
+        return f"<Effect {self.id}>"
+
+
+_REGISTRY: dict[str, Effect] = {}
+
+
+def register_effect(effect, *, replace: bool = False):
+    """Register an :class:`Effect` subclass or instance (usable as a class decorator)."""
+    inst = effect() if isinstance(effect, type) else effect
+    if not isinstance(inst, Effect):
+        raise DiscrepancyError(f"{effect!r} is not a vsidgen.discrepancy.Effect")
+    if not inst.id or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", inst.id):
+        raise DiscrepancyError(f"effect {effect!r} needs an identifier `id` (letters, digits, _)")
+    if inst.id in _REGISTRY and not replace and type(_REGISTRY[inst.id]) is not type(inst):
+        raise DiscrepancyError(f"an effect with id '{inst.id}' is already registered")
+    _REGISTRY[inst.id] = inst
+    return effect
+
+
+def unregister_effect(effect_id: str) -> None:
+    _REGISTRY.pop(effect_id, None)
+
+
+_ENTRY_POINTS_LOADED = False
+
+
+def load_entry_points() -> list[str]:
+    """Register the effects of the ``vsidgen.effects`` entry-point group; returns their ids."""
+    global _ENTRY_POINTS_LOADED
+    from importlib.metadata import entry_points
+
+    ids = []
+    try:
+        eps = entry_points(group=ENTRY_POINT_GROUP)
+    except TypeError:  # pragma: no cover - python < 3.10
+        eps = entry_points().get(ENTRY_POINT_GROUP, [])
+    for ep in eps:
+        try:
+            obj = ep.load()
+        except Exception as err:  # noqa: BLE001 - a broken plugin must not crash diagnose
+            raise DiscrepancyError(f"cannot load effect plugin '{ep.name}' ({ep.value}): {err}") \
+                from None
+        register_effect(obj, replace=True)
+        ids.append(obj.id)
+    _ENTRY_POINTS_LOADED = True
+    return ids
+
+
+def load_effects_module(path) -> list[str]:
+    """Import the Python file ``path`` and register every Effect subclass it defines."""
+    path = pathlib.Path(path)
+    if not path.is_file():
+        raise DiscrepancyError(f"effects module not found: {path}")
+    modname = f"vsidgen_effects_{re.sub(r'[^A-Za-z0-9_]', '_', path.stem)}"
+    spec = importlib.util.spec_from_file_location(modname, path)
+    if spec is None or spec.loader is None:
+        raise DiscrepancyError(f"cannot import effects module {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[modname] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as err:  # noqa: BLE001
+        raise DiscrepancyError(f"error while importing effects module {path}: "
+                               f"{type(err).__name__}: {err}") from None
+    ids = []
+    for obj in vars(module).values():
+        if (isinstance(obj, type) and issubclass(obj, Effect) and obj is not Effect
+                and obj.__module__ == modname and obj.id):
+            register_effect(obj, replace=True)
+            ids.append(obj.id)
+    if not ids:
+        raise DiscrepancyError(f"effects module {path} defines no Effect subclass with an `id`")
+    return ids
+
+
+def registered_effects(*, entry_points: bool = True) -> tuple[Effect, ...]:
+    """All registered effects (built-in catalogue first, then plugins)."""
+    from . import catalogue  # noqa: F401  (registers the built-ins)
+
+    if entry_points and not _ENTRY_POINTS_LOADED:
+        load_entry_points()
+    return tuple(_REGISTRY.values())
+
+
+def get_effect(effect_id: str) -> Effect:
+    registered_effects()
+    try:
+        return _REGISTRY[effect_id]
+    except KeyError:
+        raise DiscrepancyError(f"unknown effect '{effect_id}'; known: "
+                               f"{', '.join(sorted(_REGISTRY))}") from None
+
+
+def propose(info: ModelInfo, effects: Sequence[Effect] | None = None) -> list[Candidate]:
+    """Every candidate of every effect for the model ``info`` (duplicates by key removed)."""
+    effects = registered_effects() if effects is None else effects
+    out: dict[str, Candidate] = {}
+    for eff in effects:
+        try:
+            cands = eff.applies_to(info)
+        except VsidgenError:
+            raise
+        except Exception as err:  # noqa: BLE001 - plugin bugs become clear errors
+            raise DiscrepancyError(f"effect '{eff.id}' failed for model {info.name}: "
+                                   f"{type(err).__name__}: {err}") from None
+        for c in cands:
+            out.setdefault(c.key, c)
+    return list(out.values())

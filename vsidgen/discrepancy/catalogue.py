@@ -1,0 +1,507 @@
+"""The built-in catalogue of physical effects that aircraft models commonly leave out.
+
+Every entry is an :class:`~vsidgen.discrepancy.base.Effect`; its candidates add
+spec terms whose new parameters start at the value that reproduces the base
+model (0 for gains, the smallest admissible value for time constants), so the
+augmented spec nests the base one. Notation: :math:`f_s` the drift of state
+:math:`s`, :math:`h_o` the observation of output :math:`o`, :math:`T` the sample
+period.
+
+=====================  ===========================================================
+id                     what is added
+=====================  ===========================================================
+missing_derivative     :math:`f_s \\mathrel{+}= D\\,v` for a state/input ``v`` absent from :math:`f_s`
+nonlinear_aero         :math:`D\\,v^2`, :math:`D\\,a v` (a flow angle), :math:`D\\max(v-b,0)`,
+                       :math:`D\\max(b-v,0)` (stall break / control saturation at ``b``)
+unsteady_aero          :math:`D\\,\\dot a` through a downwash-lag state
+                       :math:`\\dot a_l = (a - a_l)/τ_l`, :math:`\\dot a ≈ (a-a_l)/τ_l`
+control_delay          first-order Padé delay of input ``u``: :math:`\\dot z = 2(u-z)/τ`,
+                       :math:`u(t-τ) ≈ 2z-u`; :math:`f_s \\mathrel{+}= ∂f_s/∂u\\,(2z-2u)`
+actuator_lag           :math:`\\dot z = (u-z)/τ`; :math:`f_s \\mathrel{+}= ∂f_s/∂u\\,(z-u)`
+                       (engine/thrust lag when ``u`` is a thrust or throttle input)
+sensor_bias            :math:`h_o \\mathrel{+}= b`
+sensor_scale           :math:`h_o \\mathrel{+}= k\\,h_o`
+sensor_position        vane: :math:`h_o \\mathrel{+}= c\\,ω` (``c = −x/V`` s);
+                       accelerometer: :math:`h_o \\mathrel{+}= l\\,\\dot ω` (lever arm)
+time_skew              :math:`h_o(t-τ) ≈ h_o - τ\\,\\dot h_o`, :math:`\\dot h_o = ∑_i ∂h_o/∂x_i f_i`
+missing_dynamics       a first-order mode :math:`\\dot m = -m/τ + K v`, :math:`f_s \\mathrel{+}= m`
+unmodelled_wind        a Gauss–Markov gust angle :math:`\\dot w = -w/τ_w + σ_w \\dot W` added to
+                       the aerodynamic angle: :math:`f_s \\mathrel{+}= ∂f_s/∂a\\,w`, vane :math:`+w`
+=====================  ===========================================================
+"""
+
+from __future__ import annotations
+
+from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
+                   spec_text)
+
+
+def _drift_unit(info: ModelInfo, state: str) -> str:
+    u = info.unit(state)
+    return f"({u})/s" if u and u != "1" else "1/s"
+
+
+def _ratio(num: str, den: str | None) -> str:
+    if not den or den == "1":
+        return num
+    return f"{num}/({den})"
+
+
+def _paren(text: str) -> str:
+    return f"({text})"
+
+
+def _lag_bounds(info: ModelInfo, factor: float = 1.0) -> float:
+    dt = info.dt or 0.01
+    return factor * dt
+
+
+@register_effect
+class MissingDerivative(Effect):
+    id = "missing_derivative"
+    title = "missing stability or control derivative"
+    explanation = ("The {state} equation lacks a linear dependence on {var}: the equation error "
+                   "between the smoothed derivative of {state} and the model drift follows {var}. "
+                   "Physically this is a stability or control derivative the model left out "
+                   "(d {state}/dt += {param}·{var}).")
+    doc = "A linear term in a state or input absent from a state equation."
+
+    def applies_to(self, info):
+        out = []
+        for s in info.state_names:
+            for v in info.state_names + info.input_names:
+                if info.depends(s, v):
+                    continue
+                p = info.fresh(f"D_{s}_{v}")
+                kind = "x" if v in info.state_names else "u"
+                out.append(Candidate(
+                    effect=self.id, key=f"{self.id}:{s}:{v}", target=f"drift:{s}",
+                    explanation=self.explain(state=s, var=v, param=p),
+                    parameters=(NewParameter(p, _ratio(_drift_unit(info, s), info.unit(v)),
+                                             f"derivative of d{s}/dt with respect to {v}"),),
+                    add_terms={"drift": {s: f"{p}*{v}"}},
+                    info={"regressor": f"{kind}:{v}", "state": s, "var": v}))
+        return out
+
+    def score(self, c, ev):
+        return ev.state_score(c.info["state"], c.info["regressor"])
+
+
+@register_effect
+class NonlinearAero(Effect):
+    id = "nonlinear_aero"
+    title = "nonlinear aerodynamic dependence"
+    explanation = ("The {state} equation depends nonlinearly on {var}: {what}. The equation error "
+                   "grows with {var} in a way no linear term reproduces (typical of flow "
+                   "separation near stall, sideslip-dependent moments or control saturation).")
+    doc = "Squares, products, breaks or saturation in angle of attack, sideslip or a control."
+
+    def applies_to(self, info):
+        out = []
+        flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
+        nonlin = flow + list(info.input_names)
+        for s in info.state_names:
+            du = _drift_unit(info, s)
+            for v in nonlin:
+                p = info.fresh(f"D_{s}_{v}{v}")
+                out.append(self._cand(info, s, f"sq:{v}", p, f"{p}*{v}**2",
+                                      _ratio(du, f"({info.unit(v)})^2" if info.unit(v) else None),
+                                      var=v, what=f"a quadratic term {p}·{v}²"))
+                for kind, b in info.breaks.get(v, ()):
+                    p = info.fresh(f"D_{s}_{v}_brk")
+                    term = (f"{p}*max({v} - ({b!r}), 0)" if kind == "hinge"
+                            else f"{p}*max(({b!r}) - {v}, 0)")
+                    side = "above" if kind == "hinge" else "below"
+                    out.append(self._cand(info, s, f"{kind}:{v}:{b:.6g}", p, term,
+                                          _ratio(du, info.unit(v)), var=v,
+                                          what=f"a change of slope {side} {v} = {b:.4g} "
+                                               f"({'break, e.g. flow separation' if v in flow else 'saturation'})"))
+            for a in flow:
+                for o in info.state_names + info.input_names:
+                    if o == a:
+                        continue
+                    p = info.fresh(f"D_{s}_{a}{o}")
+                    out.append(self._cand(info, s, f"prod:{a}*{o}", p, f"{p}*{a}*{o}",
+                                          _ratio(du, f"({info.unit(a)})*({info.unit(o)})"
+                                                 if info.unit(a) and info.unit(o) else None),
+                                          var=f"{a}·{o}",
+                                          what=f"the effect of {o} changes with {a} "
+                                               f"(product term {p}·{a}·{o})"))
+        return out
+
+    def _cand(self, info, s, reg, p, term, unit, *, var, what):
+        return Candidate(
+            effect=self.id, key=f"{self.id}:{s}:{reg}", target=f"drift:{s}",
+            explanation=self.explain(state=s, var=var, what=what),
+            parameters=(NewParameter(p, unit, f"nonlinear term {reg} in d{s}/dt"),),
+            add_terms={"drift": {s: term}}, info={"regressor": reg, "state": s})
+
+    def score(self, c, ev):
+        return ev.state_score(c.info["state"], c.info["regressor"])
+
+
+@register_effect
+class UnsteadyAero(Effect):
+    id = "unsteady_aero"
+    title = "unsteady aerodynamics (flow-angle rate / downwash lag)"
+    explanation = ("The {state} equation responds to the rate of change of {angle}, not only to "
+                   "{angle} itself: downwash from the wing reaches the tail with a lag, giving a "
+                   "{angle}-dot derivative ({param}; approximated by a lag state with time "
+                   "constant {tau:.3g} s).")
+    doc = "alpha-dot / beta-dot derivatives through a downwash-lag state."
+
+    def applies_to(self, info):
+        out = []
+        for kind in ("alpha", "beta"):
+            a = info.flow_angle(kind)
+            if a is None:
+                continue
+            tau = max(0.1, 4 * (info.dt or 0.025))
+            lag = info.fresh(f"D_{a}_lag")
+            for s in info.state_names:
+                if s == a:
+                    continue
+                p = info.fresh(f"D_{s}_{a}dot", taken=[lag])
+                tp = info.fresh(f"D_TAU_{a}_lag", taken=[lag, p])
+                out.append(Candidate(
+                    effect=self.id, key=f"{self.id}:{s}:{a}", target=f"drift:{s}",
+                    explanation=self.explain(state=s, angle=a, param=p, tau=tau),
+                    parameters=(NewParameter(p, _ratio(_drift_unit(info, s), info.unit(a) and
+                                                       f"({info.unit(a)})/s"),
+                                             f"{a}-dot derivative of d{s}/dt"),
+                                NewParameter(tp, "s", f"time constant of the {a} lag filter",
+                                             initial=tau, fixed=True)),
+                    states=(NewState(lag, f"({a} - {lag})/{tp}", info.unit(a),
+                                     f"{a} through a first-order lag (downwash lag)"),),
+                    add_terms={"drift": {s: f"{p}*({a} - {lag})/{tp}"}},
+                    info={"regressor": f"xdot:{a}", "state": s}))
+        return out
+
+    def score(self, c, ev):
+        return ev.state_score(c.info["state"], c.info["regressor"])
+
+
+def _input_gains(info: ModelInfo, u: str) -> dict[str, str]:
+    gains = {}
+    for s in info.state_names:
+        if info.depends(s, u):
+            g = info.gain_text(s, u)
+            if g is not None:
+                gains[s] = g
+    return gains
+
+
+def _is_engine(u: str) -> bool:
+    return any(k in u.lower() for k in ("thrust", "throttle", "thr", "engine", "power", "rpm", "pla"))
+
+
+@register_effect
+class ControlDelay(Effect):
+    id = "control_delay"
+    title = "control time delay"
+    explanation = ("The aircraft responds to {input} later than the recorded {input} signal: a pure "
+                   "time delay (transport delay in the control system, filters or data "
+                   "acquisition). Modelled as a first-order Padé delay of {param} seconds.")
+    doc = "A time delay on one input (first-order Padé state)."
+
+    def applies_to(self, info):
+        out = []
+        for u in info.input_names:
+            gains = _input_gains(info, u)
+            if not gains:
+                continue
+            z = info.fresh(f"D_{u}_pade")
+            tau = info.fresh(f"D_DELAY_{u}", taken=[z])
+            lo = _lag_bounds(info, 2.0)
+            adds = {s: f"{_paren(g)}*(2*{z} - 2*{u})" for s, g in gains.items()}
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
+                explanation=self.explain(input=u, param=tau),
+                parameters=(NewParameter(tau, "s", f"time delay of {u}", initial=lo * 1.5,
+                                         lower=lo, upper=1.0),),
+                states=(NewState(z, f"2*({u} - {z})/{tau}", info.unit(u),
+                                 f"Padé state of the delayed {u}"),),
+                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
+        return out
+
+    def score(self, c, ev):
+        return max((ev.state_score(s, f"udot:{c.info['input']}") for s in c.info["states"]),
+                   default=0.0)
+
+
+@register_effect
+class ActuatorLag(Effect):
+    id = "actuator_lag"
+    title = "actuator or engine lag"
+    explanation = ("The recorded {input} is not what acts on the aircraft: the {what} responds "
+                   "with a first-order lag (time constant {param}); the model uses the commanded "
+                   "value directly.")
+    doc = "A first-order actuator (or engine, for thrust inputs) state between input and aircraft."
+
+    def applies_to(self, info):
+        out = []
+        for u in info.input_names:
+            gains = _input_gains(info, u)
+            if not gains:
+                continue
+            z = info.fresh(f"D_{u}_act")
+            tau = info.fresh(f"D_TAU_{u}", taken=[z])
+            lo = _lag_bounds(info, 1.0)
+            what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
+            adds = {s: f"{_paren(g)}*({z} - {u})" for s, g in gains.items()}
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
+                explanation=self.explain(input=u, param=tau, what=what),
+                parameters=(NewParameter(tau, "s", f"lag time constant of {u}", initial=lo * 1.5,
+                                         lower=lo, upper=5.0),),
+                states=(NewState(z, f"({u} - {z})/{tau}", info.unit(u),
+                                 f"lagged {u} ({what})"),),
+                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
+        return out
+
+    def score(self, c, ev):
+        return max((ev.state_score(s, f"udot:{c.info['input']}") for s in c.info["states"]),
+                   default=0.0)
+
+
+@register_effect
+class SensorBias(Effect):
+    id = "sensor_bias"
+    title = "sensor bias"
+    explanation = ("The {output} sensor reads with a constant offset ({param}): the residual "
+                   "of {output} has a mean that measurement noise cannot explain.")
+    doc = "A constant offset on one output channel."
+
+    def applies_to(self, info):
+        out = []
+        for o in info.output_names:
+            p = info.fresh(f"D_BIAS_{o}")
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
+                explanation=self.explain(output=o, param=p),
+                parameters=(NewParameter(p, info.unit(o), f"bias of the {o} sensor"),),
+                add_terms={"observations": {o: p}}, info={"output": o}))
+        return out
+
+    def score(self, c, ev):
+        return ev.output_score(c.info["output"], "bias")
+
+
+@register_effect
+class SensorScale(Effect):
+    id = "sensor_scale"
+    title = "sensor scale-factor error"
+    explanation = ("The {output} sensor has a scale-factor (gain) error ({param}): its residual "
+                   "is proportional to {output} itself (calibration error, wrong unit factor, "
+                   "upwash on a flow vane).")
+    doc = "A multiplicative error on one output channel."
+
+    def applies_to(self, info):
+        out = []
+        for o in info.output_names:
+            h = info.observations.get(o)
+            if not h:
+                continue
+            p = info.fresh(f"D_SCALE_{o}")
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
+                explanation=self.explain(output=o, param=p),
+                parameters=(NewParameter(p, "1", f"scale-factor error of the {o} sensor"),),
+                add_terms={"observations": {o: f"{p}*{_paren(h)}"}}, info={"output": o}))
+        return out
+
+    def score(self, c, ev):
+        return ev.output_score(c.info["output"], "scale")
+
+
+_ACCEL = ("ax", "ay", "az", "an", "a_x", "a_y", "a_z", "nx", "ny", "nz")
+
+
+@register_effect
+class SensorPosition(Effect):
+    id = "sensor_position"
+    title = "sensor position offset"
+    explanation = ("The {output} sensor is not at the centre of gravity: {what}. The residual of "
+                   "{output} follows {signal}.")
+    doc = "Flow-angle vanes and accelerometers away from the centre of gravity."
+
+    def applies_to(self, info):
+        out = []
+        rates = info.rate_states()
+        for o in info.output_names:
+            ms = info.measured_state(o)
+            kind = None
+            if ms is not None and info.flow_angle("alpha") == ms or o.lower() in ("alpha", "alfa"):
+                kind = "alpha"
+            elif ms is not None and info.flow_angle("beta") == ms or o.lower() == "beta":
+                kind = "beta"
+            elif o.lower() in _ACCEL or (info.unit(o) or "").replace(" ", "") in ("m/s^2", "m/s**2", "g"):
+                kind = "accel"
+            if kind is None:
+                continue
+            for r in rates:
+                rl = r.lower()
+                if kind in ("alpha", "beta"):
+                    if (kind == "alpha" and rl != "q") or (kind == "beta" and rl not in ("p", "r")):
+                        continue
+                    p = info.fresh(f"D_POS_{o}_{r}")
+                    what = (f"a flow vane ahead of/above the CG sees an induced angle "
+                            f"proportional to the {r} rate ({p} = −lever arm / airspeed, in s)")
+                    out.append(Candidate(
+                        effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
+                        explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
+                        parameters=(NewParameter(p, "s", f"{o} vane position / airspeed ({r})"),),
+                        add_terms={"observations": {o: f"{p}*{r}"}},
+                        info={"output": o, "regressor": f"rate:{r}"}))
+                else:
+                    rdot = info.drift.get(r)
+                    if not rdot:
+                        continue
+                    p = info.fresh(f"D_ARM_{o}_{r}")
+                    what = (f"an accelerometer at a lever arm {p} (m) from the CG measures the "
+                            f"tangential acceleration of the angular acceleration d{r}/dt")
+                    out.append(Candidate(
+                        effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
+                        explanation=self.explain(output=o, what=what,
+                                                 signal=f"the angular acceleration d{r}/dt"),
+                        parameters=(NewParameter(p, "m", f"{o} accelerometer lever arm ({r}-dot)"),),
+                        add_terms={"observations": {o: f"{p}*{_paren(rdot)}"}},
+                        info={"output": o, "regressor": f"accel:{r}"}))
+        return out
+
+    def score(self, c, ev):
+        return ev.output_score(c.info["output"], c.info["regressor"])
+
+
+@register_effect
+class TimeSkew(Effect):
+    id = "time_skew"
+    title = "time skew between channels"
+    explanation = ("The {output} channel is shifted in time against the other channels by "
+                   "{param} seconds (sensor or data-acquisition latency, unsynchronised "
+                   "recorders): its residual follows the rate of {output}, and the "
+                   "cross-correlation of measured and modelled {output} peaks at a lag of "
+                   "{lag:.3g} s.")
+    doc = "A time shift of one output channel, first order: h(t−τ) ≈ h − τ dh/dt."
+
+    def applies_to(self, info):
+        import sympy
+        out = []
+        for o in info.output_names:
+            h = info.observations_expanded.get(o)
+            if h is None:
+                continue
+            pieces = []
+            for s in info.state_names:
+                d = sympy.diff(h, info.symbol(s))
+                if d == 0:
+                    continue
+                dt_ = spec_text(d)
+                if dt_ is None:
+                    pieces = None
+                    break
+                pieces.append(f"{_paren(dt_)}*{_paren(info.drift[s])}" if dt_ != "1"
+                              else _paren(info.drift[s]))
+            if not pieces:
+                continue
+            p = info.fresh(f"D_SKEW_{o}")
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
+                explanation=self.explain(output=o, param=p, lag=0.0),
+                parameters=(NewParameter(p, "s", f"time skew of the {o} channel (positive: late)",
+                                         lower=-1.0, upper=1.0),),
+                add_terms={"observations": {o: f"-{p}*({' + '.join(pieces)})"}},
+                info={"output": o}))
+        return out
+
+    def score(self, c, ev):
+        return ev.output_score(c.info["output"], "rate")
+
+
+@register_effect
+class MissingDynamics(Effect):
+    id = "missing_dynamics"
+    title = "missing state dynamics"
+    explanation = ("The {state} equation is driven by a slow dynamic mode the model omits "
+                   "(e.g. the speed/attitude (phugoid) motion absent from a short-period model, "
+                   "or an engine state): its equation error follows {var} filtered through a "
+                   "first-order lag. Added as a new state {mode} with dynamics "
+                   "d{mode}/dt = -{mode}/{tau} + {gain}·{var}.")
+    doc = "A first-order mode driven by a state or input, feeding one state equation."
+
+    def applies_to(self, info):
+        from .locate import LOWPASS_TAU
+        out = []
+        for s in info.state_names:
+            for v in info.state_names + info.input_names:
+                m = info.fresh(f"D_MODE_{s}")
+                tau = info.fresh(f"D_TAU_MODE_{s}", taken=[m])
+                k = info.fresh(f"D_K_MODE_{s}_{v}", taken=[m, tau])
+                lo = _lag_bounds(info, 4.0)
+                out.append(Candidate(
+                    effect=self.id, key=f"{self.id}:{s}:{v}", target=f"drift:{s}",
+                    explanation=self.explain(state=s, var=v, mode=m, tau=tau, gain=k),
+                    parameters=(NewParameter(k, None, f"gain of {v} into the missing mode"),
+                                NewParameter(tau, "s", "time constant of the missing mode",
+                                             initial=LOWPASS_TAU, lower=lo, upper=100.0)),
+                    states=(NewState(m, f"-{m}/{tau} + {k}*{v}", _drift_unit(info, s),
+                                     f"missing mode feeding d{s}/dt"),),
+                    add_terms={"drift": {s: m}},
+                    info={"state": s, "regressor": f"lp:{v}"}))
+        return out
+
+    def score(self, c, ev):
+        # the missing-mode signature: low-passed regressor, weighed down against a plain
+        # linear term in the same variable (that is missing_derivative's job)
+        s, reg = c.info["state"], c.info["regressor"]
+        v = reg.split(":", 1)[1]
+        lin = max(ev.state_score(s, f"x:{v}"), ev.state_score(s, f"u:{v}"))
+        return max(0.0, ev.state_score(s, reg) - 0.5 * lin)
+
+
+@register_effect
+class UnmodelledWind(Effect):
+    id = "unmodelled_wind"
+    title = "unmodelled wind / turbulence with a correlation time"
+    explanation = ("The air mass moves: a gust component of {angle} with correlation time "
+                   "{tau} (Dryden-like first-order Gauss–Markov state {w}) changes the "
+                   "aerodynamic {angle} seen by the wings and the vane, while the inertial "
+                   "motion does not. The equation errors are slow and coloured rather than "
+                   "white turbulence increments.")
+    doc = "A Gauss–Markov gust state added to the aerodynamic flow angle."
+
+    def applies_to(self, info):
+        out = []
+        for kind in ("alpha", "beta"):
+            a = info.flow_angle(kind)
+            if a is None:
+                continue
+            gains = {s: g for s, g in ((s, info.gain_text(s, a)) for s in info.state_names
+                                       if info.depends(s, a)) if g is not None}
+            if not gains:
+                continue
+            w = info.fresh(f"D_WIND_{a}")
+            tau = info.fresh(f"D_TAU_WIND_{a}", taken=[w])
+            lo = _lag_bounds(info, 4.0)
+            obs = {o: w for o in info.output_names if info.measured_state(o) == a}
+            adds = {"drift": {s: f"{_paren(g)}*{w}" for s, g in gains.items()}}
+            if obs:
+                adds["observations"] = obs
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{a}", target=f"drift:{a}",
+                explanation=self.explain(angle=a, tau=tau, w=w),
+                parameters=(NewParameter(tau, "s", f"correlation time of the {a} gust",
+                                         initial=1.0, lower=lo, upper=50.0),),
+                states=(NewState(w, f"-{w}/{tau}", info.unit(a), f"gust component of {a}",
+                                 process_noise=True),),
+                add_terms=adds, info={"angle": a, "states": tuple(gains)}))
+        return out
+
+    def score(self, c, ev):
+        return max((ev.colored_score(s) for s in c.info["states"]), default=0.0)
+
+
+BUILTIN_EFFECTS = ("missing_derivative", "nonlinear_aero", "unsteady_aero", "control_delay",
+                   "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
+                   "missing_dynamics", "unmodelled_wind")
+

@@ -1,0 +1,283 @@
+"""``findings.json`` and the diagnose report section (HTML with embedded plots).
+
+findings.json (keys in this order)::
+
+    {"vsidgen_version", "spec", "records": {"estimation": [...], "validation": [...]},
+     "options": {...}, "conclusion": "plain words",
+     "findings": [                      # ranked: order of acceptance (most significant first)
+        {"rank": 1, "effect": "missing_derivative", "title": "...",
+         "explanation": "plain words", "target": "drift:q",
+         "added_terms": {"drift": {"q": "D_q_q*q"}, ...},
+         "parameters": {"D_q_q": {"estimate", "std_error", "unit", "at_acceptance"}},
+         "evidence": {"elbo_before", "elbo_after", "statistic", "dof", "p_value",
+                      "threshold", "alpha", "n_candidates", "test": "...",
+                      "validation_elbo_before", "validation_elbo_after",
+                      "metrics_before", "metrics_after", "locate": {...}},
+         "spec": "DIR/candidates/r1_...yaml"}],
+     "final_spec": "path", "base": {"elbo", "metrics"}, "final": {"elbo", "metrics"},
+     "locate": {evidence of the base fit}, "rounds": [...], "report": "diagnose.html",
+     "wall_time_s": ...}
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import pathlib
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..results import dumps, write_text_atomic
+
+
+def _f(v):
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+def metrics_summary(st) -> dict:
+    """Compact RMS metrics of a fitted state: {record: {kind: {channel: rms}}}."""
+    out = {}
+    for s in st.signals:
+        out[s.record] = {kind: {ch: _f(m.get("rms")) for ch, m in (s.metrics.get(kind) or {}).items()}
+                         for kind in ("prediction", "simulation", "smoother", "derivative")}
+    return out
+
+
+def _target_metrics(m: dict, target: str) -> dict:
+    kind, name = target.split(":", 1)
+    out = {}
+    for rec, d in m.items():
+        if kind == "output":
+            out[rec] = {k: d.get(k, {}).get(name) for k in ("prediction", "simulation", "smoother")}
+        elif kind == "drift":
+            out[rec] = {"derivative": d.get("derivative", {}).get(name)}
+        else:
+            out[rec] = {"prediction": d.get("prediction", {}), "simulation": d.get("simulation", {})}
+    return out
+
+
+def _params(c, st) -> dict:
+    names = list(st.model.parameter_names)
+    out = {}
+    for p in c.parameters:
+        if p.name not in names:
+            continue
+        i = names.index(p.name)
+        se = st.fit.std_errors[i] if not p.fixed else None
+        out[p.name] = {"estimate": _f(st.fit.theta[i]), "std_error": _f(se), "unit": p.unit,
+                       "fixed": bool(p.fixed), "description": p.description}
+    return out
+
+
+def _records(st) -> dict:
+    def info(r):
+        return {"name": r.name, "path": None if r.path is None else str(r.path),
+                "n_samples": int(len(r.t)), "dt": float(r.dt)}
+    return {"estimation": [info(r) for r in st.records],
+            "validation": [info(r) for r in st.vrecords]}
+
+
+def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
+                   wall_time_s, out, options) -> dict:
+    """The findings.json mapping (see the module docstring)."""
+    findings = []
+    for rank, (trial, before, ev) in enumerate(accepted, start=1):
+        c = trial.candidate
+        after = trial.state
+        params = _params(c, final)
+        at_acc = _params(c, after)
+        for k in params:
+            params[k]["at_acceptance"] = at_acc.get(k, {}).get("estimate")
+        mb, ma = metrics_summary(before), metrics_summary(after)
+        locate_part = {}
+        if c.target_kind == "drift" and c.target_name in ev.states:
+            locate_part = ev.states[c.target_name].to_json()
+        elif c.target_kind == "output" and c.target_name in ev.outputs:
+            locate_part = ev.outputs[c.target_name].to_json()
+        findings.append({
+            "rank": rank, "effect": c.effect, "title": _title(c.effect),
+            "explanation": c.explanation, "target": c.target, "key": c.key,
+            "added_terms": c.added_terms(), "parameters": params,
+            "evidence": {
+                "test": "likelihood-ratio type: 2*(ELBO_after - ELBO_before) vs chi2(dof), "
+                        "Holm-corrected over the candidates of the round",
+                "elbo_before": _f(before.elbo), "elbo_after": _f(after.elbo),
+                "statistic": _f(trial.statistic), "dof": trial.dof, "p_value": trial.p_value,
+                "threshold": _f(trial.threshold), "alpha": alpha,
+                "n_candidates": next((r["n_candidates"] for r in rounds
+                                      if r["round"] == rank), None),
+                "locate_score": _f(trial.score),
+                "validation_elbo_before": _f(before.val_elbo),
+                "validation_elbo_after": _f(after.val_elbo),
+                "metrics_before": _target_metrics(mb, c.target),
+                "metrics_after": _target_metrics(ma, c.target),
+                "locate": locate_part},
+            "spec": str(trial.spec_path)})
+    if findings:
+        conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
+                      f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
+                      + f". Final augmented spec: {final.spec_path}.")
+    else:
+        conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
+                      f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
+                      + (" and on the validation records" if base.vrecords else "")
+                      + ". The model is kept as it is; the residual mismatch is consistent with "
+                        "the estimated turbulence (process noise) and sensor noise.")
+    return {
+        "vsidgen_version": version,
+        "spec": {"name": base.model.name, "path": str(base.spec_path)},
+        "records": _records(base), "options": options, "conclusion": conclusion,
+        "findings": findings, "final_spec": str(final.spec_path),
+        "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
+                 "metrics": metrics_summary(base)},
+        "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
+                  "metrics": metrics_summary(final)},
+        "locate": evidence.to_json(), "locate_final": final_evidence.to_json(),
+        "rounds": rounds, "report": "diagnose.html", "wall_time_s": _f(wall_time_s)}
+
+
+def _title(effect_id: str) -> str:
+    from .base import get_effect
+    try:
+        return get_effect(effect_id).title
+    except Exception:  # noqa: BLE001
+        return effect_id
+
+
+def write_findings(out, doc, *, base, final, accepted) -> pathlib.Path:
+    """Write ``out/findings.json`` and ``out/diagnose.html``; returns the JSON path."""
+    out = pathlib.Path(out)
+    section = report_section(doc, base=base, final=final, accepted=accepted)
+    page = ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>vsidgen diagnose: "
+            f"{html.escape(doc['spec']['name'])}</title></head><body>{section}</body></html>\n")
+    write_text_atomic(out / "diagnose.html", page)
+    return write_text_atomic(out / "findings.json", dumps(doc))
+
+
+# ---------------------------------------------------------------------------
+# report section
+# ---------------------------------------------------------------------------
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _channels(finding, base) -> tuple[list[str], list[str]]:
+    """(outputs, states) to plot for a finding."""
+    kind, name = finding["target"].split(":", 1)
+    outs, sts = [], []
+    if kind == "output":
+        outs.append(name)
+    elif kind == "drift":
+        sts.append(name)
+        for o in base.model.output_names:
+            sym = base.model.symbolic
+            if sym is not None:
+                i = base.model.output_names.index(o)
+                e = sym.observations[i]
+                if getattr(e, "name", None) == name:
+                    outs.append(o)
+    else:
+        sts = list(finding["added_terms"].get("drift", {}).keys())
+    return outs, sts
+
+
+def plot_finding(finding, base, final) -> str | None:
+    """Before/after figure (base64 PNG) of the channels where the mismatch was found."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # pragma: no cover
+        return None
+    outs, sts = _channels(finding, base)
+    rows = [("out", o) for o in outs if o in base.model.output_names] + \
+           [("eq", s) for s in sts if s in base.model.state_names]
+    if not rows:
+        return None
+    sb, sf = base.signals[0], final.signals[0]
+    fig, axes = plt.subplots(len(rows), 1, figsize=(8, 2.4 * len(rows)), squeeze=False)
+    for ax, (kind, name) in zip(axes[:, 0], rows):
+        if kind == "out":
+            j = base.model.output_names.index(name)
+            jf = final.model.output_names.index(name)
+            ax.plot(sb.t, sb.y_meas[:, j], color="0.6", lw=1.0, label="measured")
+            ax.plot(sb.t, sb.y_sim[:, j], color="tab:red", lw=1.0, label="simulation, base")
+            ax.plot(sf.t, sf.y_sim[:, jf], color="tab:blue", lw=1.0, label="simulation, augmented")
+            ax.set_ylabel(name)
+        else:
+            j = base.model.state_names.index(name)
+            jf = final.model.state_names.index(name)
+            eb = sb.xdot_fd[:, j] - sb.f_smooth[:, j]
+            ef = sf.xdot_fd[:, jf] - sf.f_smooth[:, jf]
+            ax.plot(sb.t[:-1], eb, color="tab:red", lw=0.8, label="equation error, base")
+            ax.plot(sf.t[:-1], ef, color="tab:blue", lw=0.8, label="equation error, augmented")
+            ax.set_ylabel(f"d{name}/dt − f")
+        ax.legend(fontsize=7, loc="upper right")
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.suptitle(f"{finding['effect']} on {finding['target']} ({sb.record})", fontsize=9)
+    return _png(fig)
+
+
+def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ()) -> str:
+    """HTML section "Discrepancy diagnosis" for the report (findings table, text, plots)."""
+    e = html.escape
+    parts = ["<section id='diagnose'><h2>Discrepancy diagnosis</h2>",
+             f"<p>{e(doc['conclusion'])}</p>"]
+    loc = doc.get("locate", {})
+    if loc:
+        parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "
+                     "cellpadding='3' style='border-collapse:collapse;font-size:90%'>"
+                     "<tr><th>target</th><th>flagged</th><th>systematic share</th>"
+                     "<th>best regressor / test</th><th>windows (s)</th></tr>")
+        for s, ev in loc.get("states", {}).items():
+            top = (ev.get("top_regressors") or [{}])[0]
+            wins = ", ".join(f"{w['t0']:.1f}–{w['t1']:.1f}" for w in ev.get("windows", [])
+                             if w.get("t0") is not None)
+            parts.append(f"<tr><td>equation {e(s)}</td><td>{'yes' if ev['flagged'] else 'no'}</td>"
+                         f"<td>{(ev.get('systematic_share') or 0):.0%}</td>"
+                         f"<td>{e(str(top.get('name', '')))} (p={top.get('p') or 0:.2g})</td>"
+                         f"<td>{e(wins)}</td></tr>")
+        for o, ev in loc.get("outputs", {}).items():
+            wins = ", ".join(f"{w['t0']:.1f}–{w['t1']:.1f}" for w in ev.get("windows", [])
+                             if w.get("t0") is not None)
+            parts.append(f"<tr><td>output {e(o)}</td><td>{'yes' if ev['flagged'] else 'no'}</td>"
+                         f"<td>{(ev.get('systematic_share') or 0):.0%}</td>"
+                         f"<td>bias p={ev['bias']['p'] or 0:.2g}, scale p={ev['scale']['p'] or 0:.2g}, "
+                         f"lag {ev.get('lag_s') or 0:+.3g} s</td><td>{e(wins)}</td></tr>")
+        parts.append("</table>")
+    for f in doc["findings"]:
+        ev = f["evidence"]
+        parts.append(f"<h3>{f['rank']}. {e(f['title'])} — {e(f['target'])}</h3>"
+                     f"<p>{e(f['explanation'])}</p>")
+        terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
+                          for sect, d in f["added_terms"].items() for k, v in d.items())
+        parts.append(f"<p><b>Added:</b> <code>{e(terms)}</code></p>")
+        ptxt = ", ".join(f"{k} = {p['estimate']:.4g}" + (f" ± {p['std_error']:.2g}"
+                                                          if p.get('std_error') else "")
+                         + (f" {p['unit']}" if p.get("unit") else "")
+                         for k, p in f["parameters"].items() if p.get("estimate") is not None)
+        parts.append(f"<p><b>Estimates:</b> {e(ptxt)}</p>")
+        parts.append(f"<p><b>Evidence:</b> ELBO {ev['elbo_before']:.6g} → {ev['elbo_after']:.6g}; "
+                     f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({ev['dof']}) threshold "
+                     f"{ev['threshold']:.4g} (α = {ev['alpha']}, {ev['n_candidates']} candidates, "
+                     f"Holm)</p>")
+        if base is not None and final is not None:
+            img = plot_finding(f, base, final)
+            if img:
+                parts.append(f"<img alt='before/after {e(f['target'])}' "
+                             f"src='data:image/png;base64,{img}'/>")
+    parts.append("</section>")
+    return "\n".join(parts)
