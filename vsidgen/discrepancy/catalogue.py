@@ -415,7 +415,11 @@ class TimeSkew(Effect):
         return out
 
     def score(self, c, ev):
-        return ev.output_score(c.info["output"], "rate")
+        s = ev.output_score(c.info["output"], "rate")
+        o = ev.outputs.get(c.info["output"])
+        if s > 0 and o is not None and abs(o.lag_s) >= 0.5 * ev.dt:
+            s += 3.0    # the cross-correlation peak is shifted: a skew, not a rate-proportional term
+        return s
 
 
 @register_effect

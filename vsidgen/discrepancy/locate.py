@@ -241,7 +241,11 @@ class Evidence:
                 b = ev.best()
                 if b is not None and b.p * len(ev.regressors) < self.alpha:
                     explained = max(explained, b.share)
-        return float(_score(p) * (1.0 - explained))
+        for ev in self.outputs.values():
+            if ev.flagged:
+                explained = max(explained, ev.systematic_share)
+        # a fallback explanation: half weight against a specific deterministic one
+        return float(0.5 * _score(p) * (1.0 - explained) ** 2)
 
     def summary(self) -> str:
         lines = []
@@ -692,6 +696,9 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
             best[name] = dataclasses.replace(st, p=min(1.0, 2 * st.p))
             return best[name]
 
+        regs = {"bias": np.ones_like(ys), "scale": ys, "rate": Ys_dot[:, j]}
+        regs.update({f"rate:{s}": Xs[:, k] for s, k in rates})
+        regs.update({f"accel:{s}": Xs_dot[:, k] for s, k in rates})
         bias = test("bias", np.ones_like(ys))
         scale = test("scale", ys)
         rate = test("rate", Ys_dot[:, j]) if np.nanstd(Ys_dot[:, j]) > 0 else None
@@ -714,8 +721,25 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         outputs[o] = OutputEvidence(
             o, int(np.isfinite(res_s).sum()), _rms(res_s), _rms(res_p), _rms(Ym[:, j] - Yi[:, j]),
             sigma, bias, scale, rate, lag, tuple(offs), float(share),
-            bool(sig) and share >= min_share, tuple(wins[:5]), ljung_box(res_p, seg_o))
+            bool(sig) and share >= min_share, tuple(wins[:5]),
+            ljung_box(_remove(res_p, [regs[t_.name] for t_ in sig if t_.name in regs]), seg_o))
     return Evidence(states, outputs, dt, alpha)
+
+
+def _remove(e: np.ndarray, cols: list[np.ndarray]) -> np.ndarray:
+    """``e`` minus its least-squares fit on ``cols`` (NaN-aware)."""
+    if not cols:
+        return e
+    ok = np.isfinite(e)
+    for c in cols:
+        ok &= np.isfinite(c)
+    if ok.sum() <= len(cols) + 2:
+        return e
+    A = np.column_stack([c[ok] for c in cols])
+    coef, *_ = np.linalg.lstsq(A, e[ok], rcond=None)
+    out = np.full_like(e, np.nan)
+    out[ok] = e[ok] - A @ coef
+    return out
 
 
 def _rms(x):

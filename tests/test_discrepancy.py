@@ -1,0 +1,337 @@
+"""Discrepancy discovery: locate on hand-made signals, the catalogue, plugins, the test logic."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+
+import numpy as np
+import pytest
+import yaml
+
+from vsidgen.discrepancy import (Candidate, DiscrepancyError, Effect, LocateRecord, NewParameter,
+                                 load_effects_module, locate, model_info, propose,
+                                 register_effect, registered_effects, unregister_effect)
+from vsidgen.discrepancy.catalogue import BUILTIN_EFFECTS
+from vsidgen.discrepancy.search import holm, lr_test, rank_candidates
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ATTAS = ROOT / "specs" / "attas_sp.yaml"
+HFB = ROOT / "specs" / "hfb320.yaml"
+DT = 0.04
+
+
+# ---------------------------------------------------------------------------
+# hand-made signals: a linear short-period-like system simulated in numpy
+# ---------------------------------------------------------------------------
+
+def _signals(*, extra_q=None, seed=0, n=700, y_fn=None, g=(0.002, 0.005), r=(0.001, 0.001)):
+    """Arrays as the evaluation would give them for a 2-state model (alpha, q; input de).
+
+    ``extra_q(x, u)`` is a term the *data* have in the q equation but the model's drift
+    lacks; ``y_fn(y_true, x, xdot)`` distorts the measured outputs (sensor effects).
+    The smoother mean is taken as the true state path (a perfect smoother).
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT
+    u = np.zeros((n, 1))
+    u[50:60, 0], u[60:75, 0], u[75:85, 0], u[85:90, 0] = 0.03, -0.03, 0.03, -0.03
+    u[300:330, 0], u[330:360, 0] = 0.02, -0.02
+    u[500:, 0] = 0.01 * np.sin(2 * np.pi * 0.7 * t[500:])
+    A = np.array([[-0.5, 1.0], [-4.9, -2.0]])
+    B = np.array([-0.1, -7.2])
+
+    def f(x, uk):
+        return A @ x + B * uk
+
+    X = np.zeros((n, 2))
+    for k in range(n - 1):
+        w = rng.standard_normal(2) * np.array(g) * np.sqrt(DT)
+        d = f(X[k], u[k, 0])
+        if extra_q is not None:
+            d = d + np.array([0.0, extra_q(X[k], u[k, 0])])
+        X[k + 1] = X[k] + DT * d + w
+    F = np.array([f(X[k], u[k, 0]) for k in range(n - 1)])
+    Xdot = np.diff(X, axis=0) / DT
+    y_true = X.copy()
+    xdot_full = np.vstack([Xdot, Xdot[-1:]])
+    y = y_true if y_fn is None else y_fn(y_true, X, xdot_full)
+    y_meas = y + rng.standard_normal((n, 2)) * np.array(r)
+    rec = LocateRecord(name="hand", t=t, u=u, y_meas=y_meas, y_smooth=y_true, y_pred=y_true,
+                       y_sim=y_true, x_smooth=X, xdot_fd=Xdot, f_smooth=F)
+    return rec
+
+
+def _locate(rec, **kw):
+    return locate([rec], state_names=("alpha", "q"), input_names=("de",),
+                  output_names=("alpha", "q"), process_std={"alpha": 0.002, "q": 0.005},
+                  measurement_std={"alpha": 0.001, "q": 0.001}, **kw)
+
+
+def test_locate_white_noise_flags_nothing():
+    for seed in range(3):
+        ev = _locate(_signals(seed=seed))
+        assert ev.flagged_states() == [], ev.summary()
+        assert ev.flagged_outputs() == [], ev.summary()
+        for s in ev.states.values():
+            assert s.systematic_share < 0.02
+
+
+def test_locate_missing_linear_term_flags_equation_and_regressor():
+    ev = _locate(_signals(extra_q=lambda x, u: 3.0 * u))     # missing extra de in q equation
+    assert ev.flagged_states() == ["q"], ev.summary()
+    best = ev.states["q"].best()
+    assert best.name == "u:de"
+    assert best.coef == pytest.approx(3.0, rel=0.1)
+    assert ev.states["q"].systematic_share > 0.3
+    assert ev.states["q"].windows, "the maneuver windows should show large equation error"
+    w = ev.states["q"].windows[0]
+    assert 1.0 < w.t0 < 15 and w.t0 < w.t1 and "de" in w.condition   # maneuver starts at 2 s
+
+
+def test_locate_missing_square_term_ranks_square_or_break_first():
+    ev = _locate(_signals(extra_q=lambda x, u: -100.0 * x[0] ** 2))
+    assert "q" in ev.flagged_states(), ev.summary()
+    assert ev.states["q"].best().name.split(":")[0] in ("sq", "hinge", "hingelo")
+
+
+def test_locate_output_bias_ranked_first_by_catalogue():
+    rec = _signals(y_fn=lambda y, x, xd: y + np.array([0.0, 0.004]))
+    ev = _locate(rec)
+    assert ev.flagged_outputs() == ["q"]
+    assert ev.outputs["q"].bias.coef == pytest.approx(0.004, rel=0.1)
+    info = model_info(ATTAS, dt=DT)
+    ranked = rank_candidates(info, ev, registered_effects(), max_candidates=3, min_score=1.0)
+    assert ranked[0][1].key == "sensor_bias:q"
+
+
+def test_locate_scale_factor():
+    rec = _signals(y_fn=lambda y, x, xd: y * np.array([1.08, 1.0]))
+    ev = _locate(rec)
+    assert "alpha" in ev.flagged_outputs()
+    assert ev.outputs["alpha"].scale.coef == pytest.approx(0.08, rel=0.15)
+    info = model_info(ATTAS, dt=DT)
+    ranked = rank_candidates(info, ev, registered_effects(), max_candidates=3, min_score=1.0)
+    assert ranked[0][1].key == "sensor_scale:alpha"
+
+
+def test_locate_time_skew_by_cross_correlation():
+    n = 700
+    lag = 3  # samples: the alpha channel is 0.12 s late
+    def skew(y, x, xd):
+        out = y.copy()
+        out[lag:, 0] = y[:-lag, 0]
+        return out
+    ev = _locate(_signals(y_fn=skew, n=n))
+    assert ev.outputs["alpha"].lag_s == pytest.approx(lag * DT, abs=0.02)
+    assert abs(ev.outputs["q"].lag_s) < 0.01
+    info = model_info(ATTAS, dt=DT)
+    ranked = rank_candidates(info, ev, registered_effects(), max_candidates=3, min_score=1.0)
+    assert ranked[0][1].key == "time_skew:alpha"
+
+
+def test_locate_json_is_serialisable():
+    ev = _locate(_signals(extra_q=lambda x, u: 3.0 * u))
+    json.dumps(ev.to_json(), allow_nan=False)
+
+
+# ---------------------------------------------------------------------------
+# explain: the catalogue instantiates valid specs
+# ---------------------------------------------------------------------------
+
+def _write(c, base, tmp_path, info):
+    p = tmp_path / f"{c.key.replace(':', '_').replace('*', 'x')}.yaml"
+    p.write_text(c.spec_yaml(base, name="cand_" + str(abs(hash(c.key)) % 10**8),
+                             candidate_path=p, info=info))
+    return p
+
+
+@pytest.mark.parametrize("spec", [ATTAS, HFB], ids=["attas_sp", "hfb320"])
+def test_every_effect_instantiates_a_compilable_spec(spec, tmp_path):
+    from vsidgen.symbolic import compile_spec
+
+    info = model_info(spec, dt=0.04)
+    info = dataclasses.replace(info, breaks={"alpha": (("hinge", 0.05), ("hingelo", -0.01)),
+                                             "de": (("hinge", 0.01),)})
+    cands = propose(info)
+    by_effect = {}
+    for c in cands:
+        by_effect.setdefault(c.effect, []).append(c)
+    expected = set(BUILTIN_EFFECTS)
+    if spec == ATTAS:     # every linear term is already in both attas_sp equations
+        expected.discard("missing_derivative")
+    assert expected <= set(by_effect), expected - set(by_effect)
+    for eff, cs in by_effect.items():
+        for c in cs[:2]:
+            assert c.explanation and "{" not in c.explanation
+            p = _write(c, spec, tmp_path, info)
+            d = yaml.safe_load(p.read_text())
+            assert (p.parent / d["extends"]).resolve() == spec.resolve()
+            assert d["parameters"]
+            for name, ent in d["parameters"].items():
+                assert name.startswith("D_") and "initial" in ent
+            sym = compile_spec(p)
+            names = [q.name for q in sym.parameters]
+            for q in c.parameters:
+                assert q.name in names
+            for s in c.states:
+                assert s.name in [v.name for v in sym.states]
+            base_sym = compile_spec(spec)
+            changed = [i for i, (a, b) in enumerate(zip(sym.drift_expanded(), base_sym.drift_expanded()))
+                       if a != b]
+            changed_o = [i for i, (a, b) in enumerate(zip(sym.observations_expanded(),
+                                                          base_sym.observations_expanded())) if a != b]
+            assert changed or changed_o, f"{c.key} changes nothing"
+
+
+def test_candidate_nests_the_base_model():
+    """At the initial values of gain parameters the augmented drift equals the base drift."""
+    import sympy
+
+    info = model_info(ATTAS, dt=0.04)
+    for c in propose(info):
+        if c.states:
+            continue
+        subs = {sympy.Symbol(p.name, real=True): p.initial for p in c.parameters}
+        for sect, eqs in c.add_terms.items():
+            for _, text in eqs.items():
+                from vsidgen.expr import parse_expression
+                ns = {n: sympy.Symbol(n, real=True) for n in info.names | {p.name for p in c.parameters}}
+                e = parse_expression(text, ns)
+                assert sympy.simplify(e.xreplace(subs)).is_zero, c.key
+
+
+def test_missing_derivative_only_for_absent_terms():
+    info = model_info(ATTAS, dt=0.04)
+    assert not [c for c in propose(info) if c.effect == "missing_derivative"]
+    info = model_info(HFB, dt=0.1)
+    keys = {c.key for c in propose(info) if c.effect == "missing_derivative"}
+    assert "missing_derivative:theta:de" in keys and "missing_derivative:q:q" not in keys
+
+
+# ---------------------------------------------------------------------------
+# plugins
+# ---------------------------------------------------------------------------
+
+class _GearDrag(Effect):
+    id = "test_gear_drag"
+    title = "landing-gear drag"
+    explanation = "The {state} equation lacks the drag of the extended gear."
+
+    def applies_to(self, info):
+        s = info.state_names[0]
+        p = info.fresh("D_GEAR")
+        return [Candidate(effect=self.id, key=f"{self.id}:{s}", target=f"drift:{s}",
+                          explanation=self.explain(state=s),
+                          parameters=(NewParameter(p, "1/s"),),
+                          add_terms={"drift": {s: f"-{p}"}})]
+
+    def score(self, c, ev):
+        return 99.0
+
+
+def test_registered_plugin_is_proposed_and_ranked():
+    register_effect(_GearDrag)
+    try:
+        info = model_info(ATTAS, dt=0.04)
+        keys = [c.key for c in propose(info)]
+        assert "test_gear_drag:alpha" in keys
+        ev = _locate(_signals())
+        ranked = rank_candidates(info, ev, registered_effects(), max_candidates=2, min_score=1.0)
+        assert ranked[0][1].key == "test_gear_drag:alpha"
+    finally:
+        unregister_effect("test_gear_drag")
+    assert "test_gear_drag" not in {e.id for e in registered_effects()}
+
+
+def test_effects_module_file(tmp_path):
+    mod = tmp_path / "my_effects.py"
+    mod.write_text(
+        "from vsidgen.discrepancy import Effect, Candidate, NewParameter\n"
+        "class Flap(Effect):\n"
+        "    id = 'test_flap_lift'\n"
+        "    title = 'flap lift'\n"
+        "    explanation = 'flap lift increment'\n"
+        "    def applies_to(self, info):\n"
+        "        return [Candidate(effect=self.id, key='test_flap_lift', target='drift:alpha',\n"
+        "                          explanation=self.explanation,\n"
+        "                          parameters=(NewParameter('D_FLAP', '1/s'),),\n"
+        "                          add_terms={'drift': {'alpha': 'D_FLAP'}})]\n")
+    try:
+        assert load_effects_module(mod) == ["test_flap_lift"]
+        assert "test_flap_lift" in [c.key for c in propose(model_info(ATTAS))]
+    finally:
+        unregister_effect("test_flap_lift")
+    bad = tmp_path / "bad.py"
+    bad.write_text("raise RuntimeError('boom')\n")
+    with pytest.raises(DiscrepancyError, match="boom"):
+        load_effects_module(bad)
+    with pytest.raises(DiscrepancyError, match="not found"):
+        load_effects_module(tmp_path / "missing.py")
+    empty = tmp_path / "empty.py"
+    empty.write_text("x = 1\n")
+    with pytest.raises(DiscrepancyError, match="no Effect"):
+        load_effects_module(empty)
+
+
+def test_bad_plugin_raises_clear_error():
+    class Broken(Effect):
+        id = "test_broken"
+
+        def applies_to(self, info):
+            raise ZeroDivisionError("oops")
+
+    with pytest.raises(DiscrepancyError, match="test_broken.*oops"):
+        propose(model_info(ATTAS), [Broken()])
+    with pytest.raises(DiscrepancyError, match="identifier"):
+        register_effect(type("NoId", (Effect,), {}))
+
+
+# ---------------------------------------------------------------------------
+# confirm: test statistic and multiple-testing correction
+# ---------------------------------------------------------------------------
+
+def test_lr_test_and_holm():
+    lam, p = lr_test(100.0, 110.0, 1)
+    assert lam == 20.0 and p == pytest.approx(7.74e-6, rel=1e-2)
+    assert lr_test(100.0, 99.0, 1) == (-2.0, 1.0)
+    res = holm([0.001, 0.04, 0.2], 0.05)
+    assert [r[0] for r in res] == [True, False, False]
+    assert res[0][1] == pytest.approx(0.05 / 3)
+    # Holm: once one fails, later ones fail too
+    assert [r[0] for r in holm([0.03, 0.001], 0.05)] == [True, True]
+    assert [r[0] for r in holm([0.02, 0.02, 0.02], 0.05)] == [False, False, False]
+
+
+def test_cli_parser():
+    from vsidgen.discrepancy import add_diagnose_parser
+
+    ap = argparse.ArgumentParser()
+    sub = ap.add_subparsers(dest="command")
+    add_diagnose_parser(sub)
+    a = ap.parse_args(["diagnose", "s.yaml", "a.csv", "b.csv", "--validate", "c.csv",
+                       "--out", "D", "--alpha", "0.05"])
+    assert a.data == ["a.csv", "b.csv"] and a.validate == ["c.csv"] and a.alpha == 0.05
+    assert a.max_rounds == 3 and a.max_candidates == 8 and callable(a.handler)
+
+
+def test_run_diagnose_rejects_bad_options(tmp_path):
+    from vsidgen.discrepancy import run_diagnose
+    from vsidgen.errors import VsidgenError
+
+    with pytest.raises(VsidgenError, match="no data"):
+        run_diagnose(ATTAS, [], out=tmp_path / "o")
+    with pytest.raises(VsidgenError, match="alpha"):
+        run_diagnose(ATTAS, ["x.csv"], out=tmp_path / "o", alpha=2.0)
+    with pytest.raises(VsidgenError, match="unknown effect"):
+        run_diagnose(ATTAS, ["x.csv"], out=tmp_path / "o", effects=["nope"])
+
+
+def test_report_section_without_fits():
+    from vsidgen.discrepancy.findings import report_section
+
+    doc = {"conclusion": "No significant discrepancy found.", "findings": [], "locate": {}}
+    html = report_section(doc)
+    assert "No significant discrepancy" in html and "<section" in html
