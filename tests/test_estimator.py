@@ -352,3 +352,13 @@ def test_btd_solve_detects_indefinite():
     D2[3] -= 100 * np.eye(n)
     _, ok2, _ = btd_solve(jnp.asarray(D2), jnp.asarray(B), jnp.asarray(R))
     assert not bool(ok2)
+
+
+def test_bad_input_raises_fit_error(rec400):
+    from vsidgen.errors import FitError
+
+    with pytest.raises(FitError, match="unknown optimizer"):
+        fit(lin_model(), [rec400], options=FitOptions(optimizer="nope"))
+    bad = types.SimpleNamespace(**{**vars(rec400), "y": rec400.y[:, :1]})
+    with pytest.raises(FitError, match="y has shape"):
+        fit(lin_model(), [bad])

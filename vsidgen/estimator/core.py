@@ -210,7 +210,8 @@ def measurement_resolution(records, j: int) -> float:
 class NoiseMap:
     """Unconstrained noise parameters → (lower-triangular G, measurement std σ).
 
-    Process: G is lower triangular on the state order; on the noisy states its
+    Process: an empty ``ProcessNoiseSpec.states`` means all states (the spec default).
+    G is lower triangular on the state order; on the noisy states its
     diagonal is ``floor_i + exp(g_i)`` (estimated) or the fixed std; for
     ``structure: full`` the strictly-lower entries among noisy states are free
     (start at 0). States without process noise get the fixed tiny diagonal

@@ -434,9 +434,8 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     if options.optimizer == "structured-newton":
         out = _optimize(P, options)
     elif options.optimizer == "trust-constr":
-        from .reference import optimize_trust_constr
-
-        out = optimize_trust_constr(P, options)
+        raise FitError("optimizer 'trust-constr' (the paper's scipy reference path) is not implemented yet; "
+                       "use 'structured-newton'")
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
     return _finish(P, out, mode="fit", options=options)
