@@ -139,12 +139,12 @@ def test_smooth_elbo_is_tight_lower_bound_and_mu_matches_rts(rec400):
     gap = ll - res.elbo
     # lower bound, and tight: the only slack is the stationary covariance near the record ends
     assert gap >= -1e-6
-    assert gap < 3.0, gap
+    assert gap < 1.0, gap  # measured: 0.195 nats for N = 400
     _, ms, Ps = kalman(THETA_TRUE, G_TRUE, R_STD, rec400, smooth=True)
     mu = res.smoothers[0].mu
     mid = slice(30, -30)
     err = np.abs(mu[mid] - ms[mid]) / np.sqrt(np.diagonal(Ps[mid], axis1=1, axis2=2))
-    assert err.max() < 0.02, err.max()
+    assert err.max() < 1e-6, err.max()  # measured ~1e-14
     # steady-state marginal covariance equals the RTS covariance in the middle
     np.testing.assert_allclose(res.smoothers[0].cov_marg, Ps[200], rtol=0.02, atol=1e-8)
     # and std errors are NaN in validation mode
