@@ -1,0 +1,153 @@
+"""`vsidgen simulate` and `vsidgen fit` end to end on the synthetic records shipped in data/.
+
+The true parameter values are those of data/make_synthetic.sh; the fit starts from
+null initial guesses and must recover them within 3 standard errors. Bad input must
+give a clear message, a non-zero exit status and leave earlier results intact.
+"""
+
+import json
+import pathlib
+import shutil
+
+import numpy as np
+import pytest
+
+from vsidgen.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SPEC = ROOT / "specs" / "attas_sp.yaml"
+DATA = ROOT / "data" / "attas_sp_synthetic.csv"
+VAL = ROOT / "data" / "attas_sp_synthetic_val.csv"
+TRUTH = {"Z0": -0.009, "ZAL": -0.483, "ZQ": 0.104, "ZDE": 0.676,
+         "M0": 0.475, "MAL": -4.93, "MQ": -2.01, "MDE": -7.21}
+TRUE_PROCESS = {"alpha": 0.005, "q": 0.01}
+TRUE_MEAS = {"alpha": 0.0017, "q": 0.0028}
+
+
+@pytest.fixture(scope="module")
+def demo_fit(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "demo"
+    rc = main(["fit", str(SPEC), str(DATA), "--validate", str(VAL), "--out", str(out), "--quiet"])
+    return rc, out
+
+
+def test_demo_fit_converges_and_recovers_truth(demo_fit):
+    rc, out = demo_fit
+    assert rc == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["converged"] is True
+    assert res["iterations"] > 0 and res["wall_time_s"] > 0
+    for name, truth in TRUTH.items():
+        p = res["parameters"][name]
+        assert p["fixed"] is False
+        assert abs(p["estimate"] - truth) < 3 * p["std_error"], (name, p, truth)
+    for name, truth in TRUE_MEAS.items():
+        assert abs(res["noise"]["measurement_std"][name] / truth - 1) < 0.15
+    for name, truth in TRUE_PROCESS.items():
+        assert abs(res["noise"]["process_std"][name] / truth - 1) < 0.3
+    corr = np.array(res["correlation"]["matrix"])
+    assert corr.shape == (8, 8) and np.allclose(np.diag(corr), 1.0)
+
+
+def test_demo_fit_writes_signals_and_validation_metrics(demo_fit):
+    _, out = demo_fit
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["signals"]) == {"attas_sp_synthetic", "attas_sp_synthetic_val"}
+    for rec, fname in res["signals"].items():
+        header = (out / fname).read_text().splitlines()[0].split(",")
+        for col in ("t_s", "alpha_meas", "alpha_smooth", "alpha_sim", "alpha_pred",
+                    "q_mu", "q_dot_fd", "q_drift"):
+            assert col in header
+    val = res["metrics"]["validation"]["attas_sp_synthetic_val"]
+    # the smoother tracks the validation record; the free simulation is worse but informative
+    assert val["smoother"]["alpha"]["r2"] > 0.9
+    assert val["prediction"]["q"]["r2"] > val["simulation"]["q"]["r2"] > 0.5
+    assert res["validation"]["elbo"] is not None
+
+
+def test_simulate_command_round_trip(tmp_path):
+    out = tmp_path / "sim.csv"
+    rc = main(["simulate", str(SPEC), "--out", str(out), "--param", "MAL=-4.9", "--param", "MQ=-2",
+               "--param", "MDE=-7", "--param", "ZAL=-0.5", "--input",
+               "de=doublet:amplitude=0.02,start=1,width=1", "--duration", "5", "--dt", "0.04"])
+    assert rc == 0
+    lines = out.read_text().splitlines()
+    assert lines[0].split(",") == ["t_s", "de_rad", "alpha_rad", "q_radps"]
+    assert len(lines) == 1 + 126
+
+
+def _bad_fit(tmp_path, capsys, csv_text, expect):
+    bad = tmp_path / "bad.csv"
+    bad.write_text(csv_text)
+    out = tmp_path / "res"
+    out.mkdir(exist_ok=True)
+    (out / "results.json").write_text('{"earlier": true}')
+    rc = main(["fit", str(SPEC), str(bad), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "Traceback" not in err
+    for text in expect:
+        assert text in err, err
+    assert json.loads((out / "results.json").read_text()) == {"earlier": True}
+
+
+def _rows(n, dt=0.04, jitter_at=None):
+    lines = ["t_s,de_rad,alpha_rad,q_radps"]
+    for k in range(n):
+        t = k * dt + (0.5 * dt if k == jitter_at else 0.0)
+        lines.append(f"{t},{0.01 * np.sin(k / 5)},{0.03 + 0.001 * k},{0.001 * k}")
+    return "\n".join(lines) + "\n"
+
+
+def test_missing_column(tmp_path, capsys):
+    text = _rows(50).replace("q_radps", "q_degps")
+    _bad_fit(tmp_path, capsys, text, ["q_radps", "q_degps"])
+
+
+def test_non_uniform_time(tmp_path, capsys):
+    _bad_fit(tmp_path, capsys, _rows(50, jitter_at=20), ["t_s", "sample 20", "non-uniform"])
+
+
+def test_too_few_samples(tmp_path, capsys):
+    _bad_fit(tmp_path, capsys, _rows(4), ["samples"])
+
+
+def test_all_nan_channel(tmp_path, capsys):
+    lines = _rows(50).splitlines()
+    lines = [lines[0]] + [",".join(r.split(",")[:3] + ["nan"]) for r in lines[1:]]
+    _bad_fit(tmp_path, capsys, "\n".join(lines) + "\n", ["q_radps", "NaN"])
+
+
+def test_spec_data_mismatch(tmp_path, capsys):
+    # a record of another aircraft: none of the mapped channels is there
+    text = "t_s,v_mps,theta_rad\n" + "".join(f"{k * 0.1},{100 + k},{0.01 * k}\n" for k in range(50))
+    _bad_fit(tmp_path, capsys, text, ["de_rad"])
+
+
+def test_failed_run_leaves_earlier_results_intact(tmp_path, monkeypatch, capsys):
+    """An exception while writing results (here: the report) leaves DIR as it was."""
+    out = tmp_path / "res"
+    shutil.copytree(ROOT / "data", tmp_path / "data")
+    out.mkdir()
+    (out / "results.json").write_text('{"earlier": true}')
+    import vsidgen.report
+
+    def broken(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(vsidgen.report, "write_report", broken)
+    rc = main(["fit", str(SPEC), str(DATA), "--out", str(out), "--quiet", "--report",
+               "--max-iter", "3"])
+    assert rc == 130
+    assert json.loads((out / "results.json").read_text()) == {"earlier": True}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "res"]  # no temp dirs left
+
+
+def test_not_converged_is_reported(tmp_path, capsys):
+    out = tmp_path / "res"
+    rc = main(["fit", str(SPEC), str(DATA), "--out", str(out), "--quiet", "--max-iter", "2"])
+    captured = capsys.readouterr()
+    assert rc == 1
+    assert "NOT CONVERGED" in captured.out
+    res = json.loads((out / "results.json").read_text())
+    assert res["converged"] is False and res["status"]
