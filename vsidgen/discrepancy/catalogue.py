@@ -225,8 +225,9 @@ class ControlDelay(Effect):
         return out
 
     def score(self, c, ev):
-        return max((ev.state_score(s, f"udot:{c.info['input']}") for s in c.info["states"]),
-                   default=0.0)
+        u = c.info["input"]
+        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                    for s in c.info["states"]), default=0.0)
 
 
 @register_effect
@@ -260,8 +261,9 @@ class ActuatorLag(Effect):
         return out
 
     def score(self, c, ev):
-        return max((ev.state_score(s, f"udot:{c.info['input']}") for s in c.info["states"]),
-                   default=0.0)
+        u = c.info["input"]
+        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                    for s in c.info["states"]), default=0.0)
 
 
 @register_effect

@@ -509,6 +509,8 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
         for j, i in enumerate(input_names):
             if np.ptp(U[:, j]) > 0:
                 reg[f"lp:{i}"] = lowpass(U[:, j], dt, LOWPASS_TAU, seg)
+                # signature of a short lag/delay of the input: lowpass(u, 3T) − u
+                reg[f"lag:{i}"] = lowpass(U[:, j], dt, 3 * dt, seg) - U[:, j]
     return reg
 
 

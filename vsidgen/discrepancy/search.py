@@ -366,7 +366,9 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                        "trials": [t.to_json() for t in final_trials]})
         if not good:
             break
-        best = max(good, key=lambda t: t.statistic)
+        # most significant = smallest p (log scale: no underflow); fewer parameters win ties
+        best = min(good, key=lambda t: (float(stats.chi2.logsf(max(t.statistic, 0.0), max(t.dof, 1))),
+                                        t.dof))
         _say(progress, f"round {rnd}: accepted {best.candidate.key} "
                        f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})")
         accepted.append((best, current, evidence))
