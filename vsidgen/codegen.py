@@ -16,15 +16,14 @@ import keyword
 import os
 import pathlib
 import re
-import tempfile
 
 import jinja2
 import sympy
 from sympy.printing.numpy import JaxPrinter
 from sympy.printing.precedence import precedence
 
+from .atomic import write_text_atomic
 from .errors import SpecError
-from .expr import Interp, InterpSlope
 from .symbolic import GENERATOR_VERSION, SymbolicModel, compile_spec
 
 __all__ = ["GENERATOR_VERSION", "BuildResult", "generate", "build", "build_model",
@@ -277,27 +276,12 @@ class BuildResult:
     symbolic: SymbolicModel
 
 
-def _atomic_write(path: pathlib.Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def build_model(symbolic: SymbolicModel, *, out_dir="generated", force: bool = False) -> BuildResult:
     """Write ``out_dir/<name>.py`` for a compiled spec unless it is up to date."""
     module_path = pathlib.Path(out_dir) / f"{symbolic.name}.py"
     if not force and embedded_hash(module_path) == symbolic.source_hash:
         return BuildResult(symbolic.source_path, module_path, False, symbolic)
-    _atomic_write(module_path, generate(symbolic))
+    write_text_atomic(module_path, generate(symbolic))
     return BuildResult(symbolic.source_path, module_path, True, symbolic)
 
 

@@ -28,16 +28,15 @@ import datetime as _dt
 import io
 import json
 import math
-import os
 import pathlib
 import platform
 import re
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from .atomic import write_text_atomic
 from .errors import VsidgenError
 
 __all__ = ["write_report", "SIGNAL_STYLE", "STRONG_CORRELATION"]
@@ -784,18 +783,7 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
                            f"template: {err}") from None
 
     try:
-        out_path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".report-", suffix=".html.tmp", dir=out_path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as fh:
-                fh.write(html)
-            os.replace(tmp, out_path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+        write_text_atomic(out_path, html)
     except OSError as err:
         raise VsidgenError(f"{out_path}: error: cannot write report: {err}") from None
     return out_path

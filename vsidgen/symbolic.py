@@ -455,7 +455,7 @@ def _compile(path) -> SymbolicModel:
         for nm in items:
             if _sym(nm) not in used:
                 _warn(warnings, f"unused {what} `{nm}`", nodes[nm], code=f"unused_{what}",
-                      hint=f"remove it or use it in an equation")
+                      hint="remove it or use it in an equation")
     for v in inputs:
         if v.symbol not in used:
             _warn(warnings, f"unused input `{v.name}`", raw.section("inputs")[v.name],

@@ -1,0 +1,101 @@
+"""Real flight records fitted from null initial guesses with `vsidgen fit` (issues 3 and 7).
+
+Each case runs the command line once (module-scoped) and checks: convergence on the
+gradient criterion; no measurement standard deviation below its channel's floor unless
+flagged; smoothed states within a few measurement standard deviations of their direct
+measurements; and, for HFB-320, the estimates against the textbook filter-error results
+in ../shared/reference/hfb320_reference.json.
+"""
+
+import csv
+import json
+import pathlib
+
+import numpy as np
+import pytest
+
+from vsidgen.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CASES = {
+    "hfb320": ("hfb320.yaml", ["hfb320_1_10.csv"], []),
+    "attas_sp": ("attas_sp.yaml", ["attas_elv1.csv"], ["attas_elv2.csv"]),
+    "totter_sp": ("totter_sp.yaml", ["totter_lon_9752ed20.csv"], []),
+    "attas_lat": ("attas_lat.yaml", ["attas_ail1.csv", "attas_rud1.csv"],
+                  ["attas_ail2.csv", "attas_rud2.csv"]),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def flight_fit(request, flight_data_dir, tmp_path_factory):
+    spec, data, val = CASES[request.param]
+    out = tmp_path_factory.mktemp(request.param) / "fit"
+    argv = ["fit", str(ROOT / "specs" / spec), *[str(flight_data_dir / d) for d in data]]
+    if val:
+        argv += ["--validate", *[str(flight_data_dir / d) for d in val]]
+    argv += ["--out", str(out), "--quiet"]
+    rc = main(argv)
+    res = json.loads((out / "results.json").read_text())
+    return request.param, rc, res, out
+
+
+def _signals(out, fname):
+    with open(out / fname, newline="") as fh:
+        rows = list(csv.reader(fh))
+    header, body = rows[0], np.array(rows[1:], dtype=float)
+    return {name: body[:, i] for i, name in enumerate(header)}
+
+
+def test_converges_on_gradient_criterion(flight_fit):
+    case, rc, res, _ = flight_fit
+    assert rc == 0, res["status"]
+    assert res["converged"] is True
+    assert "gradient" in res["status"]
+    codes = {w["code"] for w in res["warnings"]}
+    assert "step_size_stop" not in codes and "iteration_limit" not in codes
+
+
+def test_measurement_noise_not_below_floor_unless_flagged(flight_fit):
+    case, rc, res, _ = flight_fit
+    floors = res["noise"]["measurement_floor"]
+    flagged = " ".join(w["message"] for w in res["warnings"] if w["code"] == "noise_at_floor")
+    for name, std in res["noise"]["measurement_std"].items():
+        floor = floors.get(name) or 0.0
+        assert std >= floor * (1 - 1e-9), (name, std, floor)
+        if std < 1.01 * floor:
+            assert name in flagged, (name, std, floor, res["warnings"])
+
+
+def test_smoothed_states_follow_their_measurements(flight_fit):
+    case, rc, res, out = flight_fit
+    states = {s["name"] for s in res["model"]["states"]}
+    meas_std = res["noise"]["measurement_std"]
+    for rec, fname in res["signals"].items():
+        sig = _signals(out, fname)
+        for name in states & set(meas_std):
+            resid = sig[f"{name}_mu"] - sig[f"{name}_meas"]
+            resid = resid[np.isfinite(resid)]
+            rms = float(np.sqrt(np.mean(resid**2)))
+            scale = max(meas_std[name], 1e-12)
+            assert rms < 5 * scale, (case, rec, name, rms, meas_std[name])
+            # no sample-to-sample sign flipping of the smoothed state (issue 7)
+            mu = sig[f"{name}_mu"]
+            assert np.std(np.diff(mu)) < 3 * np.std(np.diff(sig[f"{name}_meas"])) + 5 * scale
+
+
+def test_hfb320_against_filter_error_reference(flight_fit, flight_data_dir):
+    case, rc, res, _ = flight_fit
+    if case != "hfb320":
+        pytest.skip("HFB-320 reference comparison only")
+    ref_path = flight_data_dir.parent.parent / "reference" / "hfb320_reference.json"
+    ref = json.loads(ref_path.read_text())
+    fem = ref["fem"]["parameters"]
+    far = {}
+    for name, r in fem.items():
+        p = res["parameters"][name]
+        diff = abs(p["estimate"] - r["value"])
+        if not (diff < 3 * p["std_error"] or diff < 0.15 * abs(r["value"])):
+            far[name] = (p["estimate"], r["value"], diff / p["std_error"])
+    # docs/hfb320.md explains the remaining differences (the filter-error cost itself is flat
+    # in CM0, CMV and CMQ); at most those may differ by more than 3 SE and 15 %.
+    assert set(far) <= {"CM0", "CMV", "CMQ"}, far
