@@ -216,6 +216,8 @@ def _cmd_simulate(args) -> int:
     from .model import load_model
     from .simulate import parse_input_spec, simulate_to_csv
 
+    _enable_compilation_cache()
+
     model = load_model(args.spec)
     theta = {}
     if args.params_from:
@@ -317,8 +319,32 @@ class _Progress:
             self.stream.flush()
 
 
+def _enable_compilation_cache() -> None:
+    """Persist JAX compilations across runs (``$VSIDGEN_CACHE_DIR``, default ~/.cache/vsidgen/jax).
+
+    A second fit of the same model then skips most of its compile time. Set
+    ``VSIDGEN_CACHE_DIR=`` (empty) to disable.
+    """
+    import os
+
+    default = pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache"))
+    cache = os.environ.get("VSIDGEN_CACHE_DIR", str(default / "vsidgen" / "jax"))
+    if not cache:
+        return
+    try:
+        import jax
+
+        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", cache)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    except (OSError, AttributeError, ValueError):  # read-only home, older jax: run uncached
+        pass
+
+
 def _cmd_fit(args) -> int:
     from .pipeline import run_fit
+
+    _enable_compilation_cache()
 
     progress = None if args.quiet else _Progress(sys.stderr)
     try:
@@ -395,6 +421,15 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug in vsidgen, not in the user's input
+        import os
+        import traceback
+
+        if os.environ.get("VSIDGEN_DEBUG"):
+            traceback.print_exc()
+        print(f"internal error: {type(exc).__name__}: {exc}\n  hint: this is a bug in vsidgen; "
+              "rerun with VSIDGEN_DEBUG=1 for the traceback and report it", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":  # pragma: no cover
