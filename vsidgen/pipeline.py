@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__
+from .codegen import display_path
 from .data import Record, load_record, write_csv
 from .errors import VsidgenError
 from .evaluation import evaluate
@@ -133,7 +134,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         "spec": {"name": model.name,
                  "path": None if sym is None else str(sym.source_path),
                  "hash": None if sym is None else sym.source_hash,
-                 "module": None if model.module_path is None else str(model.module_path)},
+                 "module": None if model.module_path is None else display_path(model.module_path)},
         "model": {"states": _variables(model.states), "inputs": _variables(model.inputs),
                   "outputs": _variables(model.outputs),
                   "equations_latex": _latex_equations(model)},
