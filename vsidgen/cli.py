@@ -390,8 +390,15 @@ def _cmd_report(args) -> int:
     return 0
 
 
+def _add_diagnose(sub):
+    from .discrepancy.search import add_diagnose_parser
+
+    add_diagnose_parser(sub)
+
+
 #: subcommand registrars, in --help order (the coordinator appends simulate, fit, report, diagnose)
-COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_report]
+COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_report,
+            _add_diagnose]
 
 
 def make_parser() -> argparse.ArgumentParser:
