@@ -400,10 +400,18 @@ def load_record(model, path, *, name: str | None = None) -> Record:
 def resolution(values) -> float:
     """Default measurement-noise floor of a channel: quantisation step / √12.
 
-    ``q = min |y_{k+1} - y_k|`` over consecutive *finite* samples (NaN dropped)
-    with non-zero difference; differences below ``1e-12 max|y|`` are taken as
-    zero (round-off). A uniform quantiser of step ``q`` has error variance
-    ``q²/12``. Returns 0.0 for a constant (or empty) channel.
+    Rule (robust to print-rounding artefacts): take the absolute differences
+    ``|y_{k+1} - y_k|`` of consecutive *finite* samples (NaN dropped), discard
+    zeros and differences below ``1e-12 max|y|`` (round-off), sort them and
+    take the 1st percentile (nearest rank, ``d[floor(0.01 n)]``; the minimum
+    when fewer than 100 steps) as the step ``q``. A few spurious tiny steps
+    (a value printed with fewer digits, e.g. one step of 1e-8 in a channel
+    quantised at 1.7e-4) are thus ignored, while for a quantised channel the
+    smallest quantum is found (it is normally far more frequent than 1 %).
+    For a continuous, noisy channel of noise std σ the 1st percentile of the
+    steps is ≈ 0.018 σ, so the floor stays far below the real noise. A
+    uniform quantiser of step ``q`` has error variance ``q²/12``.
+    Returns 0.0 for a constant (or empty) channel.
     """
     v = np.asarray(values, dtype=np.float64).ravel()
     v = v[np.isfinite(v)]
@@ -413,7 +421,8 @@ def resolution(values) -> float:
     d = d[d > 1e-12 * np.max(np.abs(v))]
     if d.size == 0:
         return 0.0
-    return float(d.min() / math.sqrt(12.0))
+    d.sort()
+    return float(d[int(0.01 * d.size)] / math.sqrt(12.0))
 
 
 def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
