@@ -335,3 +335,80 @@ def test_report_section_without_fits():
     doc = {"conclusion": "No significant discrepancy found.", "findings": [], "locate": {}}
     html = report_section(doc)
     assert "No significant discrepancy" in html and "<section" in html
+
+
+# ---------------------------------------------------------------------------
+# staged refit: stage specs and the nesting start (no fits: fast)
+# ---------------------------------------------------------------------------
+
+def _fake_state(tmp_path):
+    import types
+
+    from vsidgen.model import load_model
+
+    m = load_model(ATTAS, generated_dir=tmp_path / "gen")
+    theta = np.array([0.01, -0.5, 0.02, -0.1, -0.03, -4.9, -2.0, -7.2])
+    return types.SimpleNamespace(spec_path=ATTAS, model=m,
+                                 fit=types.SimpleNamespace(theta=theta))
+
+
+def test_stage_specs_fix_base_and_start_new_parameters(tmp_path):
+    from vsidgen.discrepancy.search import write_candidate
+
+    st = _fake_state(tmp_path)
+    info = model_info(ATTAS, dt=DT)
+    c = {c.key: c for c in propose(info)}["actuator_lag:de"]
+    p1 = write_candidate(c, st, info, tmp_path / "c.stage1.yaml", "c_s1", fix_base=True)
+    d1 = yaml.safe_load(p1.read_text())
+    assert all(d1["parameters"][n]["fixed"] for n in st.model.parameter_names)
+    assert d1["parameters"]["MQ"]["initial"] == pytest.approx(-2.0)
+    tau = d1["parameters"]["D_TAU_de"]
+    assert not tau.get("fixed") and tau["initial"] == pytest.approx(tau["bounds"][0])  # nesting value
+    # stage 2: base free at its estimates, new parameter from stage 1 (clamped into its bounds)
+    p2 = write_candidate(c, st, info, tmp_path / "c.yaml", "c", new_initial={"D_TAU_de": 99.0})
+    d2 = yaml.safe_load(p2.read_text())
+    assert not any(d2["parameters"][n].get("fixed") for n in st.model.parameter_names)
+    assert d2["parameters"]["D_TAU_de"]["initial"] == pytest.approx(d2["parameters"]["D_TAU_de"]["bounds"][1])
+
+
+def test_stage0_start_embeds_base_path_and_starts_lag_at_the_input(tmp_path):
+    """The nesting start: base means and covariance kept, a lag state tracks its input."""
+    import types
+
+    from vsidgen.discrepancy.refit import _embed_r, _z0, stage0_start
+    from vsidgen.discrepancy.search import write_candidate
+    from vsidgen.model import load_model
+
+    st = _fake_state(tmp_path)
+    info = model_info(ATTAS, dt=DT)
+    c = {c.key: c for c in propose(info)}["actuator_lag:de"]
+    p1 = write_candidate(c, st, info, tmp_path / "c.stage1.yaml", "c_s1", fix_base=True)
+    m1 = load_model(p1, generated_dir=tmp_path / "gen")
+    rec = _signals()
+    n = len(rec.t)
+    rng = np.random.default_rng(0)
+    r0 = rng.normal(size=2 + 1 + 4)
+    base_fit = types.SimpleNamespace(G=np.diag([0.002, 0.005]), R=np.diag([1e-6, 1e-6]),
+                                     decision={"records": [{"mu": rec.x_smooth, "r": r0}]})
+    record = types.SimpleNamespace(u=rec.u, dt=DT)
+    _, theta1 = _z0(m1)
+    dec, G1, R1, H0, notes = stage0_start(m1, [record], base_fit, st.model, theta1, 1e-5)
+    mu = dec["records"][0]["mu"]
+    assert mu.shape == (n, 3) and not notes
+    np.testing.assert_allclose(mu[:, :2], rec.x_smooth)
+    assert mu[0, 2] == pytest.approx(rec.u[0, 0])                   # equilibrium: z0 = u0
+    tau = theta1[list(m1.parameter_names).index("D_TAU_de")]
+    a = 1 - DT / tau
+    z = np.zeros(n)
+    for k in range(n - 1):                                          # Euler lag along the input
+        z[k + 1] = a * z[k] + (1 - a) * rec.u[k, 0]
+    np.testing.assert_allclose(mu[:, 2], z, atol=1e-12)
+    assert G1.shape == (3, 3) and G1[2, 2] == 0 and G1[1, 1] == 0.005
+    assert np.isfinite(H0) and H0 < 0                               # entropy of a tiny x0 marginal
+    # the assumed-density parameters of the base block are unchanged
+    r1 = dec["records"][0]["r"]
+    back = _embed_r(r1, 3, 3, [0, 1, 2], [], [], [])
+    np.testing.assert_allclose(back, r1)
+    assert r1[:2] == pytest.approx(r0[:2]) and r1[3 + 0] == pytest.approx(r0[2])
+    C1 = r1[3 + 3:].reshape(3, 3)
+    np.testing.assert_allclose(C1[:2, :2], r0[3:].reshape(2, 2))

@@ -217,7 +217,7 @@ class ControlDelay(Effect):
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
                 explanation=self.explain(input=u, param=tau),
-                parameters=(NewParameter(tau, "s", f"time delay of {u}", initial=lo * 1.5,
+                parameters=(NewParameter(tau, "s", f"time delay of {u}", initial=lo,
                                          lower=lo, upper=1.0),),
                 states=(NewState(z, f"2*({u} - {z})/{tau}", info.unit(u),
                                  f"Padé state of the delayed {u}"),),
@@ -253,7 +253,7 @@ class ActuatorLag(Effect):
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
                 explanation=self.explain(input=u, param=tau, what=what),
-                parameters=(NewParameter(tau, "s", f"lag time constant of {u}", initial=lo * 1.5,
+                parameters=(NewParameter(tau, "s", f"lag time constant of {u}", initial=lo,
                                          lower=lo, upper=5.0),),
                 states=(NewState(z, f"({u} - {z})/{tau}", info.unit(u),
                                  f"lagged {u} ({what})"),),

@@ -106,6 +106,9 @@ class Trial:
     significant: bool = False
     validation_ok: bool | None = None
     error: str | None = None
+    refit: Any = None                # RefitOutcome of the staged refit
+    statistic_vs_base: float = math.nan   # 2(ELBO_candidate − ELBO_base), for reference
+    converged: bool = False          # the final (stage-2) refit met the gradient criterion
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -115,7 +118,10 @@ class Trial:
                 "statistic": _f(self.statistic), "dof": self.dof, "p_value": _f(self.p_value),
                 "threshold": _f(self.threshold), "significant": self.significant,
                 "validation_ok": self.validation_ok, "error": self.error,
-                "converged": None if self.state is None else bool(self.state.fit.converged)}
+                "converged": None if self.state is None else bool(self.state.fit.converged),
+                "status": None if self.state is None else self.state.fit.status,
+                "statistic_vs_base": _f(self.statistic_vs_base),
+                "refit": None if self.refit is None else self.refit.to_json()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,28 +156,146 @@ def _say(progress, msg):
 # fitting helpers
 # ---------------------------------------------------------------------------
 
+def _diag_options(max_iter, **kw):
+    from ..estimator import FitOptions
+    from .refit import REFIT_DETERMINISTIC_STD
+    return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
+
+
+def _evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
+    """Evaluate a fit (and smooth the validation records with θ and noise fixed)."""
+    from ..estimator import smooth
+    from ..evaluation import evaluate
+
+    signals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
+                    for r, sm in zip(records, res.smoothers))
+    vfit, vsignals = None, ()
+    if vrecords:
+        vfit = smooth(model, list(vrecords), res.theta, res, options=_diag_options(max_iter))
+        vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
+                         for r, sm in zip(vrecords, vfit.smoothers))
+    return FitState(pathlib.Path(spec_path), model, tuple(records), res, signals, tuple(vrecords),
+                    vfit, vsignals)
+
+
 def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
              warm_theta: dict | None = None) -> FitState:
     """Load, fit, evaluate (and validate) one spec on the given record files."""
     from ..data import load_record
-    from ..estimator import FitOptions, fit, smooth
-    from ..evaluation import evaluate
+    from ..estimator import fit
     from ..model import load_model
     from ..pipeline import _unique_names
 
     model = load_model(spec_path, generated_dir=generated_dir)
     records = tuple(_unique_names([load_record(model, p) for p in data]))
     vrecords = tuple(_unique_names([load_record(model, p) for p in validate]))
-    options = FitOptions(max_iter=max_iter)
-    res = fit(model, list(records), options=options)
-    signals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                    for r, sm in zip(records, res.smoothers))
-    vfit, vsignals = None, ()
-    if vrecords:
-        vfit = smooth(model, list(vrecords), res.theta, res, options=options)
-        vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                         for r, sm in zip(vrecords, vfit.smoothers))
-    return FitState(pathlib.Path(spec_path), model, records, res, signals, vrecords, vfit, vsignals)
+    res = fit(model, list(records), options=_diag_options(max_iter))
+    return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
+
+
+def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib.Path,
+                 name: str, *, generated_dir, max_iter: int, progress=None):
+    """Refit candidate ``c`` in stages (see :mod:`.refit`); returns a RefitOutcome.
+
+    Stage 1 (``<path stem>.stage1.yaml``) fixes the current parameters at their
+    estimates; stage 2 (``path``) releases them from stage 1's estimates.
+    """
+    from ..estimator import fit, smooth
+    from ..model import load_model
+    from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, _noise_of, _noise_w, _ns,
+                        _z0, stage0_start, x0_entropy)
+
+    t0 = time.perf_counter()
+    out = RefitOutcome()
+    records = list(current.records)
+    base_fit = current.fit
+    # ---- stage 1 spec: current parameters fixed, new ones at their nesting values
+    p1 = path.with_name(path.stem + ".stage1.yaml")
+    write_candidate(c, current, info, p1, name + "_s1", fix_base=True)
+    m1 = load_model(p1, generated_dir=generated_dir)
+    new_states = [n for n in m1.state_names if n not in current.model.state_names]
+    z1, theta1 = _z0(m1)
+    proc_std, offd, meas_std = _noise_of(base_fit, current.model)
+    decision0 = base_fit.decision
+    warm = base_fit.decision is not None
+    out.elbo_ref = current.elbo
+    if new_states and warm:
+        # ---- stage 0: candidate at its nesting point, only q fitted
+        try:
+            dec0, G1, R1, H0, notes = stage0_start(m1, records, base_fit, current.model, theta1, DET)
+            out.notes += notes
+            r0 = smooth(m1, records, theta1, {"G": G1, "R": R1},
+                        options=_diag_options(max_iter, warm_start=_ns(dec0)))
+            out.elbo_stage0, out.converged_stage0 = float(r0.elbo), bool(r0.converged)
+            out.x0_entropy = H0
+            out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
+                               current.elbo + H0)
+            decision0 = r0.decision
+            out.warm = "stage0"
+        except (FitError, ValueError, ArithmeticError, np.linalg.LinAlgError) as err:
+            out.notes.append(f"stage 0 failed ({str(err).splitlines()[0]}); cold start")
+            warm = False
+    elif new_states:
+        warm = False
+    opts1 = {}
+    if warm:
+        try:
+            s1 = np.concatenate([z1, _noise_w(m1, records, DET, proc_std=proc_std, proc_G=offd,
+                                              meas_std=meas_std)])
+            opts1["warm_start"] = _ns({"s": s1, "records": decision0["records"]})
+            out.warm = out.warm or "base"
+        except (FitError, ValueError, KeyError) as err:
+            out.notes.append(f"no warm start for stage 1 ({err})")
+    else:
+        out.warm = "cold"
+    try:
+        res1 = fit(m1, records, options=_diag_options(max_iter, **opts1))
+    except FitError as err:
+        if "warm_start" not in opts1:
+            raise
+        out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
+        res1 = fit(m1, records, options=_diag_options(max_iter))
+    out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
+    if not new_states and not opts1:
+        out.elbo_ref = current.elbo
+    _say(progress, f"    stage 1: ELBO {res1.elbo:.6g} (reference {out.elbo_ref:.6g}, "
+                   f"{'converged' if res1.converged else 'not converged'})")
+    # ---- stage 2: everything free from stage 1's estimates
+    est1 = dict(zip(m1.parameter_names, map(float, res1.theta)))
+    write_candidate(c, current, info, path, name, new_initial=est1)
+    m2 = load_model(path, generated_dir=generated_dir)
+    opts2 = {}
+    try:
+        z2, _ = _z0(m2)
+        ps, od, ms = _noise_of(res1, m1)
+        s2 = np.concatenate([z2, _noise_w(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
+        opts2["warm_start"] = _ns({"s": s2, "records": res1.decision["records"]})
+    except (FitError, ValueError, KeyError, TypeError) as err:
+        out.notes.append(f"no warm start for stage 2 ({err})")
+    try:
+        res2 = fit(m2, records, options=_diag_options(2 * max_iter, **opts2))
+    except FitError as err:
+        if not opts2:
+            raise
+        out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
+        res2 = fit(m2, records, options=_diag_options(2 * max_iter))
+    if not res2.converged and "no further progress" in (res2.status or ""):
+        # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
+        try:
+            res2b = fit(m2, records, options=_diag_options(max_iter, warm_start=res2))
+            if res2b.elbo >= res2.elbo:
+                out.notes.append(f"stage 2 restarted after a stall: {res2b.status}")
+                res2 = res2b
+        except FitError as err:
+            out.notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
+    if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
+        out.notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
+    st = _evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
+    if new_states and st.vfit is not None:
+        out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
+    out.state = st
+    out.wall_s = time.perf_counter() - t0
+    return out
 
 
 def locate_state(st: FitState) -> Evidence:
@@ -222,13 +346,33 @@ def _safe(key: str) -> str:
 
 
 def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.Path,
-                    name: str, *, warm: bool = True) -> pathlib.Path:
+                    name: str, *, warm: bool = True, fix_base: bool = False,
+                    new_initial: dict | None = None) -> pathlib.Path:
+    """Write the candidate spec extending the current spec.
+
+    ``warm``: the current estimates become the initial values; ``fix_base``: and
+    they are fixed (stage 1 of the refit); ``new_initial``: initial values of the
+    new parameters (stage 2 starts from stage 1's estimates).
+    """
     import yaml
 
     d = c.spec_dict(st.spec_path, name=name, candidate_path=path, info=info)
     if warm:
         params = _warm_parameters(st)
-        params.update(d.get("parameters") or {})
+        if fix_base:
+            for v in params.values():
+                v["fixed"] = True
+        new = d.get("parameters") or {}
+        for k, v in new.items():
+            if new_initial and k in new_initial and math.isfinite(new_initial[k]) and not v.get("fixed"):
+                x = float(new_initial[k])
+                lo, hi = (v.get("bounds") or [None, None])
+                if lo is not None:
+                    x = max(x, lo)
+                if hi is not None:
+                    x = min(x, hi)
+                v["initial"] = x
+        params.update(new)
         d["parameters"] = params
     text = (f"# vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; target: {c.target}\n"
             + yaml.safe_dump(d, sort_keys=False, width=100, allow_unicode=True))
@@ -341,22 +485,30 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
             name = f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}"
             _say(progress, f"round {rnd}: refitting {c.key} (score {score:.3g})")
             try:
-                write_candidate(c, current, info, path, name)
-                st = fit_spec(path, data, validate=validate, generated_dir=gen,
-                              max_iter=max_iter)
+                ro = staged_refit(c, current, info, path, name, generated_dir=gen,
+                                  max_iter=max_iter, progress=progress)
             except (SpecError, FitError, VsidgenError) as err:
                 trials.append(Trial(c, score, path, None, math.nan, c.n_free, 1.0,
                                     error=str(err).splitlines()[0]))
                 continue
-            lam, p = lr_test(current.elbo, st.elbo, c.n_free)
-            trials.append(Trial(c, score, path, st, lam, c.n_free, p))
-        decisions = holm([t.p_value for t in trials], alpha)
+            st = ro.state
+            lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
+            conv = bool(st.fit.converged)
+            _say(progress, f"    stage 2: ELBO {st.elbo:.6g}, 2ΔELBO vs nested reference "
+                           f"{lam:.4g}, {'converged' if conv else 'NOT converged'} "
+                           f"({ro.wall_s:.0f} s)")
+            trials.append(Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
+                                statistic_vs_base=2.0 * (st.elbo - current.elbo),
+                                converged=conv))
+        # an unconverged refit is never accepted: it enters the Holm family with p = 1
+        decisions = holm([t.p_value if t.converged else 1.0 for t in trials], alpha)
         final_trials = []
         for t, (sig, level) in zip(trials, decisions):
             thr = float(stats.chi2.isf(level, max(t.dof, 1)))
             vok = None
             if sig and t.state is not None and t.state.vfit is not None:
-                vok = bool(t.state.val_elbo > current.val_elbo)
+                corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
+                vok = bool(t.state.val_elbo - corr > current.val_elbo)
             final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
                                                     validation_ok=vok))
         good = [t for t in final_trials if t.significant and t.validation_ok is not False
