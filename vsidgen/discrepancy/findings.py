@@ -106,8 +106,14 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
             "explanation": c.explanation, "target": c.target, "key": c.key,
             "added_terms": c.added_terms(), "parameters": params,
             "evidence": {
-                "test": "likelihood-ratio type: 2*(ELBO_after - ELBO_before) vs chi2(dof), "
-                        "Holm-corrected over the candidates of the round",
+                "test": "likelihood-ratio type: 2*(ELBO_after - ELBO_reference) vs chi2(dof), "
+                        "Holm-corrected over the candidates of the round; ELBO_reference is "
+                        "the candidate at its nesting point (= ELBO_before when no state is "
+                        "added; see refit)",
+                "elbo_reference": _f(trial.refit.elbo_ref) if trial.refit is not None else None,
+                "statistic_vs_before": _f(trial.statistic_vs_base),
+                "converged": bool(trial.converged),
+                "refit": trial.refit.to_json() if trial.refit is not None else None,
                 "elbo_before": _f(before.elbo), "elbo_after": _f(after.elbo),
                 "statistic": _f(trial.statistic), "dof": trial.dof, "p_value": trial.p_value,
                 "threshold": _f(trial.threshold), "alpha": alpha,
@@ -279,5 +285,22 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             if img:
                 parts.append(f"<img alt='before/after {e(f['target'])}' "
                              f"src='data:image/png;base64,{img}'/>")
+    rows = [(r["round"], t) for r in doc.get("rounds", []) for t in r.get("trials", [])]
+    if rows:
+        parts.append("<h3>Every candidate refitted</h3><table border='1' cellpadding='3'>"
+                     "<tr><th>round</th><th>candidate</th><th>locate score</th>"
+                     "<th>2ΔELBO vs nested reference</th><th>threshold</th><th>converged</th>"
+                     "<th>significant</th><th>validation</th></tr>")
+        for rnd, t in rows:
+            def num(v, fmt=".4g"):
+                return "–" if v is None else format(v, fmt)
+            conv = {True: "yes", False: "<b>no</b>", None: "–"}[t.get("converged")]
+            val = {True: "holds", False: "<b>fails</b>", None: "–"}[t.get("validation_ok")]
+            parts.append(f"<tr><td>{rnd}</td><td>{e(t['key'])}</td><td>{num(t.get('score'), '.3g')}</td>"
+                         f"<td>{num(t.get('statistic'))}</td><td>{num(t.get('threshold'))}</td>"
+                         f"<td>{conv}</td><td>{'yes' if t.get('significant') else 'no'}</td>"
+                         f"<td>{val}</td></tr>")
+        parts.append("</table><p>An unconverged refit is never accepted (it enters the Holm "
+                     "family with p = 1).</p>")
     parts.append("</section>")
     return "\n".join(parts)

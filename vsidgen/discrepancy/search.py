@@ -193,6 +193,11 @@ def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
     return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 
+def _stage1_iter(max_iter: int) -> int:
+    """Stage 1 only has to bring the new parameters near their optimum (stage 2 finishes)."""
+    return max(10, min(max_iter, 40))
+
+
 def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib.Path,
                  name: str, *, generated_dir, max_iter: int, progress=None):
     """Refit candidate ``c`` in stages (see :mod:`.refit`); returns a RefitOutcome.
@@ -249,12 +254,12 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m1, records, options=_diag_options(max_iter, **opts1))
+        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter), **opts1))
     except FitError as err:
         if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m1, records, options=_diag_options(max_iter))
+        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter)))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     if not new_states and not opts1:
         out.elbo_ref = current.elbo
