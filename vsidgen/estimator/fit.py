@@ -190,8 +190,13 @@ class _Problem:
             Hg[np.ix_(ix, ix)] += np.asarray(b["Hbb"])
         return gg, Hg
 
-    def newton_step(self, blks, lam, dmus, dglob):
-        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok)."""
+    def newton_step(self, blks, lam, dmus, dglob, frozen=None, delta=None):
+        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok).
+
+        ``frozen``: mask over s of variables whose step is prescribed (``delta``, default 0:
+        active floor bounds held fixed): the other variables get the (damped) Newton step
+        given these components (projected Newton step).
+        """
         facs = [self.obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
         if not all(bool(f["ok"]) for f in facs):
             return None
@@ -202,6 +207,14 @@ class _Problem:
             rhs[ix] += np.asarray(f["rhs"])
         S += lam * np.diag(dglob)
         S = 0.5 * (S + S.T)
+        if frozen is not None and np.any(frozen):
+            k = self.nrec * self.obj.nq + np.nonzero(frozen)[0]
+            dk = np.zeros(len(k)) if delta is None else np.asarray(delta, float)[np.nonzero(frozen)[0]]
+            rhs = rhs - S[:, k] @ dk
+            S[k, :] = 0.0
+            S[:, k] = 0.0
+            S[k, k] = 1.0
+            rhs[k] = dk
         if self.nglob:
             try:
                 Lc = np.linalg.cholesky(S)
@@ -281,7 +294,7 @@ def _optimize(P: _Problem, options: FitOptions):
         dglob = np.maximum(dglob, floor)
         accepted = False
         while True:
-            sol = P.newton_step(blks, lam, dmus, dglob)
+            sol = P.newton_step(blks, lam, dmus, dglob, frozen=active)
             if sol is None:
                 lam *= nu
                 nu *= 2.0
@@ -372,7 +385,7 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions):
         return float(f), np.asarray(g, float)
 
     def hessp(v, w):
-        return np.asarray(hvp(jnp.asarray(v), jnp.asarray(w), cfg, data), float)
+        return np.asarray(hvp(jnp.asarray(v, float), jnp.asarray(w, float), cfg, data), float)
 
     def relgrad(v, f, g):
         ss, recs = split(v)
