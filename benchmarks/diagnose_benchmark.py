@@ -43,6 +43,8 @@ HFB_NOISE = dict(process={"V": 0.05, "alpha": 0.002, "theta": 0.0005, "q": 0.003
                  measurement={"V": 0.1, "alpha": 0.001, "theta": 0.001, "q": 0.001, "qdot": 0.005,
                               "ax": 0.05, "az": 0.05})
 HFB_THRUST = 11500.0
+#: record lengths (s); the maneuvers end by 6 s (3-2-1-1) and 17 s (doublet)
+DURATION = {"attas": 25.0, "hfb": 30.0}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +149,7 @@ def make_case(case: Case, work: pathlib.Path, *, seeds=(1,), duration: float | N
 
     work.mkdir(parents=True, exist_ok=True)
     hfb = case.base == "hfb320"
-    duration = duration or (30.0 if hfb else 25.0)
+    duration = duration or (DURATION["hfb"] if hfb else DURATION["attas"])
     dt = dt or (0.05 if hfb else 0.04)
     base = write_base(case.base, work)
     theta = dict(HFB_THETA if hfb else ATTAS_THETA)
@@ -247,12 +249,16 @@ def main(argv=None) -> int:
     ap.add_argument("--max-candidates", type=int, default=4)
     ap.add_argument("--max-rounds", type=int, default=2)
     ap.add_argument("--max-iter", type=int, default=100)
+    ap.add_argument("--duration", nargs=2, type=float, default=None, metavar=("ATTAS", "HFB"),
+                    help="record lengths in s (default 25 30)")
     ap.add_argument("--validate", action="store_true", help="also simulate a validation record")
     args = ap.parse_args(argv)
     if args.list:
         for c in CASES:
             print(f"{c.name:18s} {c.key or 'none':30s} {c.note}")
         return 0
+    if args.duration:
+        DURATION["attas"], DURATION["hfb"] = args.duration
     wanted = DEFAULT_CASES if args.cases is None else args.cases
     cases = [c for c in CASES if c.name in wanted]
     root = pathlib.Path(args.out or tempfile.mkdtemp(prefix="vsidgen_diag_bench_"))

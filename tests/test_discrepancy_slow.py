@@ -41,3 +41,19 @@ def test_diagnose_clean_model_gives_empty_findings(tmp_path):
     assert row["n_findings"] == 0, row
     doc = json.loads((tmp_path / "clean" / "diagnose" / "findings.json").read_text())
     assert doc["findings"] == [] and "No significant discrepancy" in doc["conclusion"]
+
+
+@pytest.mark.slow
+def test_diagnose_names_actuator_lag_after_staged_refit(tmp_path):
+    """The lag candidate adds a state; the staged refit must converge and win (it used to lose)."""
+    b = _bench()
+    case = next(c for c in b.CASES if c.name == "de_lag")
+    row = b.run_case(case, tmp_path / "lag", max_rounds=1, max_candidates=3)
+    assert row["named_key"] == "actuator_lag:de", row
+    doc = json.loads((tmp_path / "lag" / "diagnose" / "findings.json").read_text())
+    f = doc["findings"][0]
+    assert f["parameters"]["D_TAU_de"]["estimate"] == pytest.approx(0.15, abs=0.04)
+    assert f["evidence"]["converged"] is True
+    for t in doc["rounds"][0]["trials"]:          # no refit ends below its nested reference start
+        if t["refit"]["elbo_stage1"] is not None and t["refit"]["elbo_stage0"] is not None:
+            assert t["refit"]["elbo_stage1"] >= t["refit"]["elbo_stage0"] - 1e-6
