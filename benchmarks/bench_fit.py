@@ -79,7 +79,15 @@ def run_one(case: str, optimizer: str, max_iter: int) -> dict:
     n = sum(len(r.t) for r in records)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     t0 = time.perf_counter()
-    res = fit(model, records, options=FitOptions(optimizer=optimizer, max_iter=max_iter))
+    log = os.environ.get("BENCH_PROGRESS")
+    fh = open(log, "w") if log else None
+
+    def progress(it, elbo, rg, elapsed):
+        if fh is not None:
+            fh.write(json.dumps({"it": it, "elbo": elbo, "t": elapsed}) + "\n")
+            fh.flush()
+
+    res = fit(model, records, options=FitOptions(optimizer=optimizer, max_iter=max_iter, progress=progress))
     wall = time.perf_counter() - t0
     hist = [{"it": h["iteration"], "elbo": h["elbo"], "t": h["elapsed_s"]} for h in res.history]
     return {"case": case, "optimizer": optimizer, "n": n, "wall_s": wall,
@@ -93,10 +101,21 @@ def run_one(case: str, optimizer: str, max_iter: int) -> dict:
 def child(case: str, optimizer: str, max_iter: int, timeout: float) -> dict:
     cmd = [sys.executable, __file__, "--one", case, "--optimizer", optimizer, "--max-iter", str(max_iter)]
     t0 = time.perf_counter()
+    import tempfile
+
+    prog = tempfile.NamedTemporaryFile(suffix=".jsonl", delete=False).name
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT,
+                             env={**os.environ, "BENCH_PROGRESS": prog})
     except subprocess.TimeoutExpired:
-        return {"case": case, "optimizer": optimizer, "error": f"timed out after {timeout:.0f} s"}
+        lines = [json.loads(x) for x in pathlib.Path(prog).read_text().splitlines() if x.strip()]
+        best = max(lines, key=lambda h: h["elbo"]) if lines else None
+        msg = f"timed out after {timeout:.0f} s"
+        if best:
+            msg += f" (best ELBO so far {best['elbo']:.6f} at {best['t']:.1f} s, iteration {best['it']})"
+        return {"case": case, "optimizer": optimizer, "error": msg, "partial": lines}
+    finally:
+        pass
     if out.returncode != 0:
         return {"case": case, "optimizer": optimizer, "error": out.stderr.strip().splitlines()[-1:]}
     d = json.loads(out.stdout.strip().splitlines()[-1])

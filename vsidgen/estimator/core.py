@@ -193,6 +193,24 @@ class ThetaMap:
 
 
 # --------------------------------------------------------------------------- noise map
+def diff_scale(records, j: int) -> float:
+    """Robust std (1.4826 · MAD) of the sample-to-sample differences of output j, pooled over records.
+
+    Data-driven starting scale of the noise parameters: for a measured state it bounds
+    the random-walk rate of the state (process noise ≲ scale/√T) and the measurement
+    noise (σ ≲ scale/√2). 0 when there are no differences.
+    """
+    d = []
+    for r in records:
+        col = np.asarray(r.y, float)[:, j]
+        dif = np.diff(col)
+        d.append(dif[np.isfinite(dif)])
+    d = np.concatenate(d) if d else np.zeros(0)
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))))
+
+
 class NoiseMap:
     """Unconstrained noise parameters → (lower-triangular G, measurement std σ).
 
@@ -202,11 +220,15 @@ class NoiseMap:
     ``structure: full`` the strictly-lower entries among noisy states are free
     (start at 0). States without process noise get the fixed tiny diagonal
     ``deterministic_std`` (a quasi-deterministic transition; see FitOptions).
-    Measurement: σ_j = floor_j + exp(s_j) (estimated, s_j starts at 0 or at the
-    spec's std) or the fixed std. Floors are honoured by the map, never by clipping.
+    Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
+    Starting values (``inits``): the spec's std where given; otherwise "unit":
+    exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =
+    max(scale_j/√2, 2·floor_j) and, for a state measured directly by output j,
+    G_ii = scale_j/√T; "data-meas": σ from the data, G unit. Floors are honoured by the map, never by clipping.
     """
 
-    def __init__(self, model, records, *, deterministic_std: float, fixed_G=None, fixed_R=None):
+    def __init__(self, model, records, *, deterministic_std: float, fixed_G=None, fixed_R=None,
+                 state_outputs=None):
         nx, ny = model.nx, model.ny
         self.nx, self.ny = nx, ny
         states = model.state_names
@@ -223,6 +245,7 @@ class NoiseMap:
         self.proc_est_idx = np.zeros(0, int)
         self.offdiag = []
         init = []
+        init_pd = []
         if fixed_G is not None:
             Gm = np.array(fixed_G, float).reshape(nx, nx)
             for i in range(nx):
@@ -234,11 +257,19 @@ class NoiseMap:
             self.proc_est_idx = np.nonzero(self.noisy)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)
-                init.append(math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else 0.0)
+                v = math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else 0.0
+                init.append(v)
+                if not s0 > 0 and state_outputs and i in state_outputs:
+                    dt = float(np.mean([float(r.dt) for r in records]))
+                    sd = diff_scale(records, state_outputs[i]) / math.sqrt(dt)
+                    if sd > self.proc_floor[i]:
+                        v = math.log(sd - self.proc_floor[i])
+                init_pd.append(v)
             if pn.structure == "full":
                 idx = self.proc_est_idx
                 self.offdiag = [(int(a), int(b)) for ai, a in enumerate(idx) for b in idx[:ai]]
                 init += [0.0] * len(self.offdiag)
+                init_pd += [0.0] * len(self.offdiag)
         else:
             fixed = np.full(nx, self.det_std)
             for i, s in enumerate(states):
@@ -255,6 +286,7 @@ class NoiseMap:
         self.meas_est = np.zeros(ny, bool)
         self.meas_fixed = np.ones(ny)
         minit = []
+        minit_d = []
         for j, o in enumerate(model.output_names):
             sp = specs.get(o)
             est = True if sp is None else bool(sp.estimate)
@@ -269,14 +301,23 @@ class NoiseMap:
             if est:
                 self.meas_est[j] = True
                 s0 = None if sp is None else sp.std
-                minit.append(math.log(s0 - self.meas_floor[j]) if s0 and s0 > self.meas_floor[j] else 0.0)
+                v = math.log(s0 - self.meas_floor[j]) if s0 and s0 > self.meas_floor[j] else 0.0
+                minit.append(v)
+                if not s0:
+                    sd = max(diff_scale(records, j) / math.sqrt(2.0), 2.0 * self.meas_floor[j])
+                    if sd > self.meas_floor[j]:
+                        v = math.log(sd - self.meas_floor[j])
+                minit_d.append(v)
             else:
                 if sp.std is None or not sp.std > 0:
                     raise FitError(f"measurement noise of output '{o}' is fixed but has no positive std")
                 self.meas_fixed[j] = float(sp.std)
         self.meas_est_idx = np.nonzero(self.meas_est)[0]
         self.n_meas = len(minit)
-        self.init = np.array(init + minit, float)
+        # starting points of the noise parameters (see FitOptions.noise_start)
+        self.inits = {"data": np.array(init_pd + minit_d, float), "data-meas": np.array(init + minit_d, float),
+                      "unit": np.array(init + minit, float)}
+        self.init = self.inits["data"]
         self.n = self.n_proc + self.n_meas
 
     def static_key(self):

@@ -125,7 +125,7 @@ class _Problem:
         F = get_transition(model, self.integrator, self.substeps)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R)
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model))
         self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
         self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]
@@ -136,7 +136,7 @@ class _Problem:
                     for i in range(self.nrec)]
         self.theta_idx = self.nrec * nq + np.arange(self.tm.n_free)
 
-    def initial(self, options: FitOptions):
+    def initial(self, options: FitOptions, start: str = "data"):
         ws = options.warm_start
         if ws is not None and getattr(ws, "decision", None) is not None:
             dec = ws.decision
@@ -146,7 +146,7 @@ class _Problem:
                     m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
                 return s, recs
             raise FitError("warm_start result does not match this problem's shape")
-        s = np.concatenate([self.tm.z0, self.nm.init])
+        s = np.concatenate([self.tm.z0, self.nm.inits[start]])
         pairs = measured_states(self.model)
         recs = [(_initial_mu(self.model, r, pairs, options.init_states), np.zeros(self.obj.nq)) for r in self.records]
         return s, recs
@@ -239,9 +239,9 @@ def _relgrad(f, s, recs, gs, gmus, grs):
     return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
 
 
-def _optimize(P: _Problem, options: FitOptions):
-    t0 = time.perf_counter()
-    s, recs = P.initial(options)
+def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None):
+    t0 = time.perf_counter() if t0 is None else t0
+    s, recs = P.initial(options, start)
     nq = P.obj.nq
     lam = float(options.lambda0)
     nu = 2.0
@@ -336,7 +336,18 @@ def _optimize(P: _Problem, options: FitOptions):
                 history=tuple(history), stop_code=stop_code, t0=t0)
 
 
-def _optimize_trust_constr(P: _Problem, options: FitOptions):
+def _starts(options: FitOptions):
+    if options.warm_start is not None:
+        return ["data"]
+    st = options.noise_start
+    if st == "auto":
+        return ["data", "data-meas", "unit"]
+    if st not in ("data", "data-meas", "unit"):
+        raise FitError(f"noise_start must be 'auto', 'data', 'data-meas' or 'unit', got '{st}'")
+    return [st]
+
+
+def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"):
     """Reference path (the paper's code): scipy.optimize.minimize(method="trust-constr").
 
     Same problem and decision vector as the structured optimizer, flattened to
@@ -350,7 +361,7 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions):
     import scipy.optimize
 
     t0 = time.perf_counter()
-    s0, recs0 = P.initial(options)
+    s0, recs0 = P.initial(options, start)
     nq = P.obj.nq
     shapes = [m.shape for m, _ in recs0]
     sizes = [int(np.prod(sh)) for sh in shapes]
@@ -566,10 +577,26 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
         without meeting the gradient criterion. Raises FitError on unusable input.
     """
     P = _Problem(model, records, options)
+    starts = _starts(options)
     if options.optimizer == "structured-newton":
-        out = _optimize(P, options)
+        t0 = time.perf_counter()
+        tried = []
+        for start in starts:
+            out = _optimize(P, options, start, t0=t0)
+            tried.append((start, out))
+            if out["converged"]:
+                break
+        if not out["converged"]:  # none converged: keep the highest ELBO
+            out = min((o for _, o in tried), key=lambda o: float(sum(float(b["f"]) for b in o["blks"])))
+        out["starts"] = [(st, bool(o["converged"]), -float(sum(float(b["f"]) for b in o["blks"])), o["iterations"])
+                         for st, o in tried]
+        out["history"] = tuple(h for _, o in tried for h in o["history"])
+        out["iterations"] = sum(o["iterations"] for _, o in tried)
+        if len(tried) > 1:
+            out["status"] += "; noise starts tried: " + ", ".join(
+                f"{st} ({'converged' if c else 'not converged'}, ELBO {e:.6g}, {k} it.)" for st, c, e, k in out["starts"])
     elif options.optimizer == "trust-constr":
-        out = _optimize_trust_constr(P, options)
+        out = _optimize_trust_constr(P, options, starts[0])
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
     return _finish(P, out, mode="fit", options=options)

@@ -35,6 +35,16 @@ class FitOptions:
         xtol: stop (not converged) when the relative step falls below this.
         warm_start: a previous FitResult of the same problem shape to start from.
         lambda0: initial Levenberg–Marquardt damping (Marquardt diagonal scaling).
+        noise_start: starting point of the noise parameters (θ always starts at the
+            spec's initial values): "data" (measurement std from the robust spread of
+            the sample-to-sample differences, process std of measured states from the
+            same spread / √T), "data-meas" (measurement std from the data, process std
+            1), "unit" (all std 1 above their floors) or "auto" (default: try them in
+            this order until one converges; the result of the first converged start is
+            returned, else the highest ELBO; ``iterations`` and ``history`` count all
+            starts). The likelihood surfaces of real records have local optima in which
+            one channel's measurement std collapses onto its floor; different noise
+            starts reach different ones.
     """
 
     integrator: str | None = None
@@ -49,6 +59,7 @@ class FitOptions:
     xtol: float = 1e-13
     warm_start: Any = None
     lambda0: float = 1e-3
+    noise_start: str = "auto"
 
 
 @dataclasses.dataclass(frozen=True)
