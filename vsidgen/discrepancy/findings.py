@@ -136,8 +136,13 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                       + (" and on the validation records" if base.vrecords else "")
                       + ". The model is kept as it is; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
+    if not base.fit.converged:
+        conclusion = ("INCONCLUSIVE: the base fit did not converge "
+                      f"({base.fit.status}); candidates are not accepted against an "
+                      "unconverged base ELBO. " + conclusion)
     return {
         "vsidgen_version": version,
+        "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
         "findings": findings, "final_spec": str(final.spec_path),

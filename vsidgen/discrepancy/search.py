@@ -193,6 +193,20 @@ def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
     return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 
+def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
+    """Continue an unconverged fit from where it stopped (2 × max_iter iterations)."""
+    from ..estimator import fit
+
+    _say(progress, f"base fit not converged ({st.fit.status}); continuing it")
+    try:
+        res = fit(st.model, list(st.records), options=_diag_options(2 * max_iter, warm_start=st.fit))
+    except FitError:
+        return st
+    if res.elbo < st.elbo:
+        return st
+    return _evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
+
+
 def _stage1_iter(max_iter: int) -> int:
     """Stage 1 only has to bring the new parameters near their optimum (stage 2 finishes)."""
     return max(10, min(max_iter, 40))
@@ -469,6 +483,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
 
     _say(progress, f"fitting the base model {spec}")
     base = fit_spec(spec, data, validate=validate, generated_dir=gen, max_iter=max_iter)
+    if not base.fit.converged:
+        base = polish(base, max_iter=max_iter, progress=progress)
     current = base
     evidence0 = locate_state(base)
     evidence = evidence0
@@ -518,6 +534,16 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                                                     validation_ok=vok))
         good = [t for t in final_trials if t.significant and t.validation_ok is not False
                 and t.state is not None]
+        if good and not current.fit.converged:
+            # an unconverged base ELBO is below its optimum: Λ would be inflated by the
+            # refit merely finishing the base fit (a false positive), so nothing is accepted
+            rounds.append({"round": rnd, "base_spec": str(current.spec_path),
+                           "base_elbo": current.elbo, "alpha": alpha,
+                           "n_candidates": len(trials),
+                           "trials": [t.to_json() for t in final_trials],
+                           "note": "not accepted: the base fit did not converge "
+                                   f"({current.fit.status})"})
+            break
         rounds.append({"round": rnd, "base_spec": str(current.spec_path),
                        "base_elbo": current.elbo, "alpha": alpha, "n_candidates": len(trials),
                        "trials": [t.to_json() for t in final_trials]})
