@@ -48,7 +48,7 @@ def test_diagnose_names_actuator_lag_after_staged_refit(tmp_path):
     """The lag candidate adds a state; the staged refit must converge and win (it used to lose)."""
     b = _bench()
     case = next(c for c in b.CASES if c.name == "de_lag")
-    row = b.run_case(case, tmp_path / "lag", max_rounds=1, max_candidates=3)
+    row = b.run_case(case, tmp_path / "lag", max_rounds=1, max_candidates=3, max_iter=200)
     assert row["named_key"] == "actuator_lag:de", row
     doc = json.loads((tmp_path / "lag" / "diagnose" / "findings.json").read_text())
     f = doc["findings"][0]
