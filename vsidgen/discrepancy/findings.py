@@ -136,6 +136,15 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                       + (" and on the validation records" if base.vrecords else "")
                       + ". The model is kept as it is; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
+    tried = [t for r in rounds for t in r.get("trials", [])]
+    val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
+    unconv = [t["key"] for t in tried if t.get("converged") is False]
+    if val_rej:
+        conclusion += (" Significant on the estimation records but rejected because the validation "
+                       "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
+    if unconv:
+        conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
+                       "candidates): " + ", ".join(unconv) + ".")
     if not base.fit.converged:
         conclusion = ("INCONCLUSIVE: the base fit did not converge "
                       f"({base.fit.status}); candidates are not accepted against an "
