@@ -290,6 +290,10 @@ def _add_fit(sub):
     p.add_argument("--max-iter", type=int, default=200)
     p.add_argument("--init-states", choices=("measured", "zero"), default="measured",
                    help="initial state-path mean: measured states where possible, or zero")
+    p.add_argument("--noise-start", choices=("auto", "data", "data-meas", "unit"), default="auto",
+                   help="starting noise levels: from the data's sample-to-sample spread, or "
+                        "std = 1 ('unit', the paper's); auto tries them in turn until one "
+                        "converges (θ always starts at the spec's null guesses)")
     p.add_argument("--report", action="store_true", help="also write DIR/report.html")
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates to compare in the report")
@@ -351,7 +355,8 @@ def _cmd_fit(args) -> int:
         job = run_fit(args.spec, args.data, out=args.out, validate=args.validate,
                       integrator=args.integrator, substeps=args.substeps,
                       optimizer=args.optimizer, max_iter=args.max_iter,
-                      init_states=args.init_states, progress=progress,
+                      init_states=args.init_states, noise_start=args.noise_start,
+                      progress=progress,
                       report=args.report, reference=args.reference)
     finally:
         if progress is not None:

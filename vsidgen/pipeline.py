@@ -88,7 +88,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             out: str | os.PathLike, validate: Sequence[str | os.PathLike] = (),
             integrator: str | None = None, substeps: int | None = None,
             optimizer: str = "structured-newton", max_iter: int = 200,
-            init_states: str = "measured", generated_dir: str | os.PathLike | None = None,
+            init_states: str = "measured", noise_start: str = "auto",
+            generated_dir: str | os.PathLike | None = None,
             progress: Callable | None = None, report: bool = False,
             reference: str | None = None) -> FitJob:
     """Fit ``spec`` to the ``data`` records and write the results directory ``out``.
@@ -107,7 +108,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     vrecords = _unique_names([load_record(model, p) for p in validate])
     t0 = time.perf_counter()
     options = FitOptions(integrator=integrator, substeps=substeps, max_iter=max_iter,
-                         init_states=init_states, optimizer=optimizer, progress=progress)
+                         init_states=init_states, noise_start=noise_start, optimizer=optimizer,
+                         progress=progress)
     result = fit(model, records, options=options)
     vresult = None
     if vrecords:
@@ -139,7 +141,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "outputs": _variables(model.outputs),
                   "equations_latex": _latex_equations(model)},
         "method": {"estimator": "variational (ELBO)", "integrator": integrator,
-                   "substeps": substeps, "optimizer": optimizer},
+                   "substeps": substeps, "optimizer": optimizer, "noise_start": noise_start},
         "records": {"estimation": [_record_info(r) for r in records],
                     "validation": [_record_info(r) for r in vrecords]},
         "parameters": params,
