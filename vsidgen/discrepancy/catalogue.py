@@ -195,6 +195,14 @@ def _is_engine(u: str) -> bool:
     return any(k in u.lower() for k in ("thrust", "throttle", "thr", "engine", "power", "rpm", "pla"))
 
 
+def _input_dynamics_score(c, ev) -> float:
+    """Evidence for dynamics between an input and the aircraft (delay or lag): the equation
+    errors of the states the input drives correlate with its rate or a lagged copy."""
+    u = c.info["input"]
+    return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                for s in c.info["states"]), default=0.0)
+
+
 @register_effect
 class ControlDelay(Effect):
     id = "control_delay"
@@ -225,9 +233,7 @@ class ControlDelay(Effect):
         return out
 
     def score(self, c, ev):
-        u = c.info["input"]
-        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
-                    for s in c.info["states"]), default=0.0)
+        return _input_dynamics_score(c, ev)
 
 
 @register_effect
@@ -261,9 +267,7 @@ class ActuatorLag(Effect):
         return out
 
     def score(self, c, ev):
-        u = c.info["input"]
-        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
-                    for s in c.info["states"]), default=0.0)
+        return _input_dynamics_score(c, ev)
 
 
 @register_effect
