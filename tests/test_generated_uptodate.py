@@ -30,3 +30,18 @@ def test_every_generated_module_has_a_spec():
             continue
         assert mod.stem in names, f"generated/{mod.name} has no spec in specs/"
     assert os.path.isdir(ROOT / "generated")
+
+
+@pytest.mark.parametrize("module", sorted((ROOT / "generated").glob("*.py")),
+                         ids=lambda p: p.stem)
+def test_generated_code_imports_only_jax_and_numpy(module):
+    import ast
+
+    tree = ast.parse(module.read_text())
+    roots = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            roots.add((node.module or "").split(".")[0] if node.level == 0 else ".")
+    assert roots and roots <= {"jax", "numpy"}, roots
