@@ -427,3 +427,43 @@ def test_structured_hessian_exact_for_nonlinear_model_and_chunks():
 def test_structured_hessian_exact_rk4():
     model, rec = _pend_problem()
     _dense_vs_structured(model, [rec], seed=2, integrator="rk4", substeps=2)
+
+
+def test_curvature_vars_restricts_model_curvature_only_when_provably_exact():
+    """The curvature of the linear model lives only in its θ–x products; a model with a
+    branch (select) keeps the general path (all variables)."""
+    from vsidgen.estimator.core import curvature_vars
+
+    n, npar = 2, 4
+    lin = curvature_vars(lambda a, u: lin_drift(a[:n], u, a[n:]), n + npar, 1)
+    np.testing.assert_array_equal(lin, [0, 1, 2, 3, 4])  # x1, x2, a11, a21, a22 (not b2)
+    out = curvature_vars(lambda a, u: lin_output(a[:n], u, a[n:]), n + npar, 1)
+    assert out is not None and len(out) == 0
+
+    def branchy(a, u):
+        return jnp.where(a[0] > 5.0, a[0] ** 2, a[0]) + a[1] * a[2]
+
+    assert curvature_vars(branchy, 3, 1) is None
+
+
+def _branch_drift(x, u, p):
+    # curvature in x only beyond a threshold no random point may reach: must keep the general path
+    stall = jnp.where(x[0] > 0.3, 4.0 * (x[0] - 0.3) ** 2, 0.0)
+    return jnp.array([p[0] * x[0] + x[1] - stall, p[1] * x[0] + p[2] * x[1] + p[3] * u[0]])
+
+
+def test_structured_hessian_exact_with_branching_model():
+    rng = np.random.default_rng(3)
+    N, dt = 6, 0.05
+    u = rng.normal(size=(N, 1))
+    y = 0.5 * rng.normal(size=(N, 2))
+    rec = types.SimpleNamespace(name="b", path=None, t=np.arange(N) * dt, dt=dt, u=u, y=y,
+                                input_names=("u",), output_names=("y1", "y2"))
+    model = Model(name="branch", drift=_branch_drift, output=lin_output,
+                  states=(Variable("x1"), Variable("x2")), inputs=(Variable("u"),),
+                  outputs=(Variable("y1"), Variable("y2")),
+                  parameters=tuple(Parameter(n, initial=v) for n, v in
+                                   (("a11", -0.5), ("a21", -2.0), ("a22", -0.8), ("b2", 1.5))),
+                  process_noise=ProcessNoiseSpec(states=("x1", "x2")),
+                  measurement_noise=tuple(MeasurementNoiseSpec(o) for o in ("y1", "y2")))
+    _dense_vs_structured(model, [rec], seed=2)
