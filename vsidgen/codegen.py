@@ -169,20 +169,26 @@ def _needed_definitions(symbolic: SymbolicModel, exprs) -> list[tuple[str, sympy
     return [(n, e) for n, e in symbolic.definitions if n in needed]
 
 
+def _used_locals(exprs, rename) -> set[str]:
+    """Names of the generated locals that ``exprs`` read (so each function unpacks only those)."""
+    return {str(rename.get(s, s)) for e in exprs for s in sympy.sympify(e).free_symbols}
+
+
 def _jacobian_body(printer, exprs, variables, rename, shape) -> dict:
     rows = []
     for e in exprs:
         rows.append([_clean(sympy.diff(e, v)) for v in variables])
     flat = [entry for row in rows for entry in row]
     if not flat:
-        return {"cse": [], "matrix": None, "shape": shape}
+        return {"cse": [], "matrix": None, "shape": shape, "used": set()}
     gen = (sympy.Symbol(f"_c{i}", real=True) for i in range(10**9))
     replacements, reduced = sympy.cse(flat, symbols=gen, order="canonical")
     cse_lines = [(str(s), _print(printer, _clean(v).xreplace(rename))) for s, v in replacements]
     printed = [_print(printer, _clean(r).xreplace(rename)) for r in reduced]
     ncol = shape[1]
     matrix = [printed[i * ncol:(i + 1) * ncol] for i in range(shape[0])]
-    return {"cse": cse_lines, "matrix": matrix, "shape": shape}
+    used = _used_locals([v for _, v in replacements] + list(reduced), rename)
+    return {"cse": cse_lines, "matrix": matrix, "shape": shape, "used": used}
 
 
 def _fmt_equation(lhs: str, expr: sympy.Expr) -> str:
@@ -201,6 +207,7 @@ def generate(symbolic: SymbolicModel, *, spec_path: str | None = None) -> str:
     def func_body(exprs, lhs_names):
         defs = _needed_definitions(symbolic, exprs)
         return {
+            "used": _used_locals(list(exprs) + [e for _, e in defs], rename),
             "definitions": [(names[n], pr(e)) for n, e in defs],
             "results": [pr(e) for e in exprs],
             "doc": [_fmt_equation(n, e) for n, e in defs]

@@ -31,7 +31,7 @@ from .metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Par
 from .spec import RawSpec, YNode, keys_check, load_spec
 from . import units as _units
 
-GENERATOR_VERSION = "0.1.0"
+GENERATOR_VERSION = "0.1.1"
 
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
