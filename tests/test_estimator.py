@@ -281,7 +281,7 @@ def test_structured_hessian_and_newton_step_equal_dense():
     rng = np.random.default_rng(0)
     s = s + 0.3 * rng.normal(size=s.shape)
     recs = [(m + 0.2 * rng.normal(size=m.shape), r + 0.2 * rng.normal(size=r.shape)) for m, r in recs]
-    n, nq = 2, P.obj.nq
+    nq = P.obj.nq
     sizes = [m.size for m, _ in recs]
 
     def unflat(v):

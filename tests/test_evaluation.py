@@ -36,7 +36,6 @@ def _model(output=None):
 
 
 def _record(res, y=None):
-    n = res.t.size
     return Record(name="syn", path=None, t=res.t, dt=float(res.t[1] - res.t[0]), u=res.u,
                   y=res.y if y is None else y, input_names=("de",),
                   output_names=("alpha", "q", "nz"), t_raw=res.t)

@@ -195,79 +195,78 @@ def _is_engine(u: str) -> bool:
     return any(k in u.lower() for k in ("thrust", "throttle", "thr", "engine", "power", "rpm", "pla"))
 
 
-def _input_dynamics_score(c, ev) -> float:
-    """Evidence for dynamics between an input and the aircraft (delay or lag): the equation
-    errors of the states the input drives correlate with its rate or a lagged copy."""
-    u = c.info["input"]
-    return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
-                for s in c.info["states"]), default=0.0)
+class _InputDynamics(Effect):
+    """Shared form of the delay and lag effects: a new state ``z`` driven by input ``u`` that
+    replaces ``u`` in every state equation it enters (``f_s += ∂f_s/∂u · (coupling − u)``).
+    Subclasses give the names, the time-constant range and the state equation."""
+
+    state_prefix = param_prefix = ""
+    min_steps, upper = 1.0, 1.0
+
+    def pieces(self, info, u, z, tau) -> dict:
+        """``coupling`` (replaces u), ``drift`` of z, ``param_doc``, ``state_doc``, ``explain``."""
+        raise NotImplementedError
+
+    def applies_to(self, info):
+        out = []
+        for u in info.input_names:
+            gains = _input_gains(info, u)
+            if not gains:
+                continue
+            z = info.fresh(f"D_{u}_{self.state_prefix}")
+            tau = info.fresh(f"D_{self.param_prefix}_{u}", taken=[z])
+            lo = _lag_bounds(info, self.min_steps)
+            pc = self.pieces(info, u, z, tau)
+            adds = {s: f"{_paren(g)}*({pc['coupling']} - {u})" for s, g in gains.items()}
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
+                explanation=self.explain(input=u, param=tau, **pc["explain"]),
+                parameters=(NewParameter(tau, "s", pc["param_doc"], initial=lo,
+                                         lower=lo, upper=self.upper),),
+                states=(NewState(z, pc["drift"], info.unit(u), pc["state_doc"]),),
+                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
+        return out
+
+    def score(self, c, ev):
+        """Evidence for dynamics between an input and the aircraft: the equation errors of the
+        states the input drives correlate with its rate or a lagged copy."""
+        u = c.info["input"]
+        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                    for s in c.info["states"]), default=0.0)
 
 
 @register_effect
-class ControlDelay(Effect):
+class ControlDelay(_InputDynamics):
     id = "control_delay"
     title = "control time delay"
     explanation = ("The aircraft responds to {input} later than the recorded {input} signal: a pure "
                    "time delay (transport delay in the control system, filters or data "
                    "acquisition). Modelled as a first-order Padé delay of {param} seconds.")
     doc = "A time delay on one input (first-order Padé state)."
+    state_prefix, param_prefix, min_steps, upper = "pade", "DELAY", 2.0, 1.0
 
-    def applies_to(self, info):
-        out = []
-        for u in info.input_names:
-            gains = _input_gains(info, u)
-            if not gains:
-                continue
-            z = info.fresh(f"D_{u}_pade")
-            tau = info.fresh(f"D_DELAY_{u}", taken=[z])
-            lo = _lag_bounds(info, 2.0)
-            adds = {s: f"{_paren(g)}*(2*{z} - 2*{u})" for s, g in gains.items()}
-            out.append(Candidate(
-                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
-                explanation=self.explain(input=u, param=tau),
-                parameters=(NewParameter(tau, "s", f"time delay of {u}", initial=lo,
-                                         lower=lo, upper=1.0),),
-                states=(NewState(z, f"2*({u} - {z})/{tau}", info.unit(u),
-                                 f"Padé state of the delayed {u}"),),
-                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
-        return out
-
-    def score(self, c, ev):
-        return _input_dynamics_score(c, ev)
+    def pieces(self, info, u, z, tau):
+        # first-order Padé: delayed u = 2 z - u with dz/dt = 2 (u - z)/tau
+        return {"coupling": f"(2*{z} - {u})", "drift": f"2*({u} - {z})/{tau}",
+                "param_doc": f"time delay of {u}", "state_doc": f"Padé state of the delayed {u}",
+                "explain": {}}
 
 
 @register_effect
-class ActuatorLag(Effect):
+class ActuatorLag(_InputDynamics):
     id = "actuator_lag"
     title = "actuator or engine lag"
     explanation = ("The recorded {input} is not what acts on the aircraft: the {what} responds "
                    "with a first-order lag (time constant {param}); the model uses the commanded "
                    "value directly.")
     doc = "A first-order actuator (or engine, for thrust inputs) state between input and aircraft."
+    state_prefix, param_prefix, min_steps, upper = "act", "TAU", 1.0, 5.0
 
-    def applies_to(self, info):
-        out = []
-        for u in info.input_names:
-            gains = _input_gains(info, u)
-            if not gains:
-                continue
-            z = info.fresh(f"D_{u}_act")
-            tau = info.fresh(f"D_TAU_{u}", taken=[z])
-            lo = _lag_bounds(info, 1.0)
-            what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
-            adds = {s: f"{_paren(g)}*({z} - {u})" for s, g in gains.items()}
-            out.append(Candidate(
-                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
-                explanation=self.explain(input=u, param=tau, what=what),
-                parameters=(NewParameter(tau, "s", f"lag time constant of {u}", initial=lo,
-                                         lower=lo, upper=5.0),),
-                states=(NewState(z, f"({u} - {z})/{tau}", info.unit(u),
-                                 f"lagged {u} ({what})"),),
-                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
-        return out
-
-    def score(self, c, ev):
-        return _input_dynamics_score(c, ev)
+    def pieces(self, info, u, z, tau):
+        what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
+        return {"coupling": z, "drift": f"({u} - {z})/{tau}",
+                "param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
+                "explain": {"what": what}}
 
 
 @register_effect

@@ -26,7 +26,6 @@ import html
 import io
 import pathlib
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import pathlib
 import types
 from typing import Any
 
@@ -191,7 +190,6 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     G0 = np.asarray(base_fit.G, float)
     G1 = np.zeros((n1, n1))
     G1[np.ix_(base_idx, base_idx)] = G0
-    Q_new = None
     for rec, dec in zip(records, base_fit.decision["records"]):
         mu0 = np.asarray(dec["mu"], float)
         u = np.asarray(rec.u, float)
@@ -217,7 +215,6 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
         a = np.clip(Js[:, ni, ni].mean(axis=0), -0.999, 0.999)
         Q = dt * det_std ** 2 * np.ones(len(ni))
         P = Q / (1.0 - a ** 2)
-        Q_new = Q
         d_new = np.log(Q)
         c_new = a * np.sqrt(P)
         r1 = _embed_r(dec["r"], n0, n1, base_idx, new_idx, d_new, c_new)

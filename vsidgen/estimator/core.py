@@ -36,7 +36,6 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.scipy.linalg import solve_triangular
 
 from ..data import resolution
 from ..errors import FitError
