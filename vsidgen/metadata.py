@@ -23,6 +23,22 @@ class Variable:
     symbol: Any = None  # sympy.Symbol when built from a spec
 
 
+class VariableNames:
+    """Mixin for records with ``states``, ``inputs`` and ``outputs`` tuples of named variables."""
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.states)
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.inputs)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return tuple(v.name for v in self.outputs)
+
+
 @dataclasses.dataclass(frozen=True)
 class Constant:
     """A named constant with its value, unit and source."""

@@ -8,11 +8,12 @@ import types
 from collections.abc import Callable
 from typing import Any
 
-from .metadata import DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
+from .metadata import (DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable,
+                       VariableNames)
 
 
 @dataclasses.dataclass(frozen=True)
-class Model:
+class Model(VariableNames):
     """Everything the estimator needs to know about a model.
 
     ``drift(x, u, p)`` and ``output(x, u, p)`` take one sample (1-D arrays;
@@ -35,18 +36,6 @@ class Model:
     symbolic: Any = None                 # SymbolicModel when loaded from a spec
     module: types.ModuleType | None = None
     module_path: pathlib.Path | None = None
-
-    @property
-    def state_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.states)
-
-    @property
-    def input_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.inputs)
-
-    @property
-    def output_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.outputs)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:

@@ -45,6 +45,7 @@ import sympy
 import yaml
 
 from ..errors import SpecError, VsidgenError
+from ..metadata import VariableNames
 
 ENTRY_POINT_GROUP = "vsidgen.effects"
 
@@ -74,7 +75,7 @@ class VarInfo:
 
 
 @dataclasses.dataclass(frozen=True)
-class ModelInfo:
+class ModelInfo(VariableNames):
     """What an effect needs to know about the model it augments.
 
     ``drift``/``observations`` hold spec text for each equation as written
@@ -100,18 +101,6 @@ class ModelInfo:
     dt: float | None = None
     #: break points of flow angles/inputs seen in the data: {name: (("hinge", b), ("hingelo", b))}
     breaks: Mapping[str, tuple[tuple[str, float], ...]] = dataclasses.field(default_factory=dict)
-
-    @property
-    def state_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.states)
-
-    @property
-    def input_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.inputs)
-
-    @property
-    def output_names(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.outputs)
 
     @property
     def names(self) -> frozenset[str]:
