@@ -365,7 +365,7 @@ def test_bad_input_raises_fit_error(rec400):
 
 
 def _dense_vs_structured(model, recs_in, chunk=None, seed=0, integrator="euler", substeps=1):
-    P = _Problem(model, recs_in, FitOptions(integrator=integrator, substeps=substeps))
+    P = _Problem(model, recs_in, FitOptions(integrator=integrator, substeps=substeps, bucket=False))
     if chunk is not None:
         P.obj.chunk = chunk
         P.obj._blocks = jax.jit(P.obj._blocks_impl)

@@ -31,6 +31,7 @@ free θ (unconstrained coordinates) and noise parameters. Its Hessian over
 
 from __future__ import annotations
 
+import collections
 import math
 
 import jax
@@ -435,6 +436,7 @@ class Objective:
         # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)
         self.kv_F = curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu)
         self.kv_h = curvature_vars(lambda a, u: model.output(a[:n], u, a[n:]), na, nu)
+        self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
         self._blocks = jax.jit(self._blocks_impl)
         self._value = jax.jit(self._value_impl)
         self._factor = jax.jit(self._factor_impl)
@@ -520,6 +522,7 @@ class Objective:
         return self.node_from_H(H, y, m, sig)
 
     def neg_entropy(self, r, N):
+        """−H[q] for N samples (N may be a traced scalar: the true length of a padded record)."""
         _, _, Sm, d = self.cov_factors(r)
         n = self.n
         H = (jnp.sum(jnp.log(jnp.diagonal(Sm))) + 0.5 * (N - 1) * jnp.sum(d)
@@ -528,12 +531,14 @@ class Objective:
 
     # -- record objective
     def _value_impl(self, mu, r, s, data, cfg):
-        u, y, m, dt = data
-        N = mu.shape[0]
+        """Negative ELBO of one record; padded samples (see :func:`record_data`) contribute nothing."""
+        self.traces["value"] += 1  # Python side effect: runs once per trace (tests count recompilations)
+        u, y, m, dt, wp, wn, nt = data
         vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None, None))(mu[:-1], mu[1:], r, s, u[:-1],
                                                                                 dt, cfg)
         vn = jax.vmap(self.node_nll, in_axes=(0, None, None, 0, 0, 0, None))(mu, r, s, u, y, m, cfg)
-        return jnp.sum(vp) + jnp.sum(vn) + self.neg_entropy(r, N)
+        return (jnp.sum(jnp.where(wp > 0, vp, 0.0)) + jnp.sum(jnp.where(wn > 0, vn, 0.0))
+                + self.neg_entropy(r, nt))
 
     def value(self, mu, r, s, data, cfg):
         return self._value(mu, r, s, data, cfg)
@@ -568,8 +573,9 @@ class Objective:
         O(N n n_b) for W plus one chunk of per-point blocks. Tests compare the
         result with jax.hessian of the flat objective.
         """
-        u, y, m, dt = data
-        N, n = mu.shape
+        self.traces["blocks"] += 1
+        u, y, m, dt, wp, wn, n_true = data
+        N, n = mu.shape  # N: padded length; n_true: number of real samples (traced)
         nq = self.nq
         npar = self.model.np
         nz = 2 * n + npar
@@ -676,12 +682,14 @@ class Objective:
                         Wc0=jnp.sum(Cz[:, :n, :], 0), g0=jnp.sum(gz[:, :n], 0),
                         sHz=Hz, sCz=Cz, sgz=gz, sSe=cn * jnp.sum(mw * e ** 2, 0), sM=mw)
 
-        def chunked(fn, args, count):
-            """vmap ``fn`` over ``count`` items in chunks (lax.scan); keys 's…' are summed, others stacked."""
-            ch = min(count, self.chunk)
-            nc = -(-count // ch)
+        def chunked(fn, args, count, w):
+            """vmap ``fn`` over ``count`` items in chunks (lax.scan); keys 's…' are summed, others stacked.
+
+            ``w`` (count,): per-item weight passed last to ``fn`` (0 for padded samples)."""
+            nc = -(-count // self.chunk)  # chunks of at most self.chunk items,
+            ch = -(-count // nc)  # as equal as possible (601 pairs: 2 x 301, not 2 x 512)
             pad = nc * ch - count
-            wts = jnp.concatenate([jnp.ones(count), jnp.zeros(pad)])
+            wts = jnp.concatenate([w, jnp.zeros(pad)])
             args = [jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])]) if pad else a
                     for a in args] + [wts]
             args = [a.reshape((nc, ch) + a.shape[1:]) for a in args]
@@ -697,17 +705,17 @@ class Objective:
             rest = {k: v.reshape((nc * ch,) + v.shape[2:])[:count] for k, v in rest.items()}
             return acc, rest
 
-        pa, pr = chunked(pair_piece, [mu[:-1], mu[1:], u[:-1]], N - 1)
-        na, nr = chunked(node_piece, [mu, u, y, m], N)
+        pa, pr = chunked(pair_piece, [mu[:-1], mu[1:], u[:-1]], N - 1, wp)
+        na, nr = chunked(node_piece, [mu, u, y, m], N, wn)
 
         # shared functions of the border: noise terms, lifting curvature, entropy
         def shared(bb):
             d0b, d1b, dnb, thb, sigb, Pb = lift(bb)
             _, Gb, _ = self.unpack_s(bb[nq:], cfg)
             logdetQ = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(jnp.sqrt(dt) * Gb))))
-            val = (0.5 * jnp.sum(Pb * pa["sS"]) + (N - 1) * 0.5 * (logdetQ + n * LOG2PI)
+            val = (0.5 * jnp.sum(Pb * pa["sS"]) + (n_true - 1) * 0.5 * (logdetQ + n * LOG2PI)
                    + jnp.sum(0.5 * na["sSe"] / sigb ** 2 + na["sM"] * (jnp.log(sigb) + 0.5 * LOG2PI))
-                   + self.neg_entropy(bb[:nq], N))
+                   + self.neg_entropy(bb[:nq], n_true))
             zp = jnp.concatenate([d0b, d1b, jnp.broadcast_to(thb, (4 * n, npar))], axis=1)
             zn = jnp.concatenate([dnb, jnp.broadcast_to(thb, (2 * n, npar))], axis=1)
             lin = jnp.sum(jax.lax.stop_gradient(pa["sgz"]) * zp) + jnp.sum(jax.lax.stop_gradient(na["sgz"]) * zn)
@@ -721,6 +729,7 @@ class Objective:
               + jnp.einsum("iwa,iwc,cb->ab", An, na["sCz"], Es))
         Hbb = Hbb + Cb + Cb.T
         D = nr["D0"].at[:-1].add(pr["D0"]).at[1:].add(pr["D1"])
+        D = D + (1.0 - wn)[:, None, None] * jnp.eye(n)  # padded μ: identity block (H stays regular, Δμ = 0)
 
         def wfull(Wr, Wt, Wc, E):
             """Border coupling rows from their r, θ and noise-column parts."""
@@ -736,6 +745,7 @@ class Objective:
         return self._blocks(mu, r, s, data, cfg)
 
     def _factor_impl(self, blk, dmu, lam):
+        self.traces["factor"] += 1
         """Eliminate μ: Schur complement S = Hbb − Wᵀ A⁻¹ W and reduced rhs −g_b + Wᵀ A⁻¹ g_μ.
 
         ``A`` is damped by λ·diag(dmu); the border damping is added globally by the caller.
@@ -753,6 +763,7 @@ class Objective:
         return self._factor(blk, dmu, lam)
 
     def _back_impl(self, fac, db):
+        self.traces["back"] += 1
         return -fac["Xg"] - jnp.einsum("kib,b->ki", fac["Y"], db)
 
     def back(self, fac, db):
@@ -786,9 +797,41 @@ def make_cfg(theta_map: ThetaMap, noise_map: NoiseMap):
             "noise": {k: jnp.asarray(v) for k, v in noise_map.arrays().items()}}
 
 
-def record_data(rec, output_index=None):
-    """(u, y with NaN→0, mask, dt) arrays of a record for the jitted functions."""
+def bucket_length(n: int) -> int:
+    """Padded length of a record of n samples: n rounded up to a multiple of 2^e, e = max(0, ⌊log₂ n⌋ − 3).
+
+    The ladder 8·2^e, 9·2^e, ..., 15·2^e, 16·2^e, ... has consecutive ratios ≤ 9/8, so the padding
+    is < 2^e ≤ n/8 (≤ 12.5 %) and records whose lengths fall in one bucket share the compiled
+    functions (their shapes are the same). n < 16 is not padded.
+    """
+    n = int(n)
+    e = max(0, n.bit_length() - 4)
+    return -(-n >> e) << e
+
+
+def record_data(rec, output_index=None, *, length: int | None = None):
+    """(u, y with NaN→0, mask, dt, pair weights, node weights, N) arrays of a record for the jitted functions.
+
+    ``length`` ≥ N pads the record to that many samples (:func:`bucket_length`): inputs are
+    repeated from the last sample, the observation mask, the node weights w_n and the pair
+    weights w_p are 0 on the padding (w_p is also 0 for the transition from the last real
+    sample into the padding), and N (the true length, a traced scalar) enters the entropy and
+    the log det Q count. Every term of the objective is therefore exactly that of the
+    unpadded record; the padded μ get an identity Hessian block (:meth:`Objective.blocks`).
+    """
     y = np.asarray(rec.y, float)
+    u = np.asarray(rec.u, float)
+    N = y.shape[0]
+    L = N if length is None else int(length)
+    if L < N:
+        raise FitError(f"padded length {L} is shorter than the record ({N} samples)")
     m = np.isfinite(y).astype(float)
-    return (jnp.asarray(np.asarray(rec.u, float)), jnp.asarray(np.where(m > 0, y, 0.0)),
-            jnp.asarray(m), jnp.asarray(float(rec.dt)))
+    y = np.where(m > 0, y, 0.0)
+    if L > N:
+        y = np.concatenate([y, np.zeros((L - N, y.shape[1]))])
+        m = np.concatenate([m, np.zeros((L - N, m.shape[1]))])
+        u = np.concatenate([u, np.repeat(u[-1:], L - N, axis=0)])
+    wn = (np.arange(L) < N).astype(float)
+    wp = (np.arange(L - 1) < N - 1).astype(float)
+    return (jnp.asarray(u), jnp.asarray(y), jnp.asarray(m), jnp.asarray(float(rec.dt)), jnp.asarray(wp),
+            jnp.asarray(wn), jnp.asarray(float(N)))

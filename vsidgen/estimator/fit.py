@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from .core import NoiseMap, ThetaMap, get_objective, get_transition, make_cfg, record_data
+from .core import NoiseMap, ThetaMap, bucket_length, get_objective, get_transition, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath
 
 jax.config.update("jax_enable_x64", True)
@@ -128,7 +128,12 @@ class _Problem:
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model))
         self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
         self.cfg = make_cfg(self.tm, self.nm)
-        self.data = [record_data(r) for r in self.records]
+        self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
+        self.lengths = [int(np.asarray(r.y).shape[0]) for r in self.records]
+        # the structured path pads each record to its bucket length (shared compiled code)
+        self.padded = [bucket_length(n) if options.bucket else n for n in self.lengths]
+        self.bdata = [record_data(r, length=L) if L > n else d
+                      for r, n, L, d in zip(self.records, self.lengths, self.padded, self.data)]
         self.nrec = len(self.records)
         nq, ng = self.obj.nq, self.obj.ng
         self.nglob = self.nrec * nq + ng
@@ -173,13 +178,23 @@ class _Problem:
             act[nt + k] = fl > 0 and math.exp(min(w[k], 700.0)) <= 0.01 * fl and gw[k] > 0
         return act
 
+    @staticmethod
+    def pad(m, L):
+        """μ (N, n) padded to L rows by repeating its last row (the model is evaluated there, weight 0)."""
+        m = np.asarray(m)
+        return jnp.asarray(m if L == m.shape[0] else np.concatenate([m, np.repeat(m[-1:], L - m.shape[0], 0)]))
+
     def value(self, s, recs):
         sj = jnp.asarray(s)
-        return float(sum(self.obj.value(jnp.asarray(m), jnp.asarray(r), sj, d, self.cfg) for (m, r), d in zip(recs, self.data)))
+        return float(sum(self.obj.value(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+                         for (m, r), d, L in zip(recs, self.bdata, self.padded)))
 
     def blocks(self, s, recs):
+        """Per-record blocks on the padded length (D, B, W, gmu have ``self.padded[i]`` rows; the padding's
+        gradient, couplings and off-diagonal blocks are exactly 0 and its diagonal blocks the identity)."""
         sj = jnp.asarray(s)
-        return [self.obj.blocks(jnp.asarray(m), jnp.asarray(r), sj, d, self.cfg) for (m, r), d in zip(recs, self.data)]
+        return [self.obj.blocks(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+                for (m, r), d, L in zip(recs, self.bdata, self.padded)]
 
     def gather(self, blks):
         """Global border gradient and Hessian (sum over records)."""
@@ -223,7 +238,7 @@ class _Problem:
             db = np.linalg.solve(Lc.T, np.linalg.solve(Lc, rhs))
         else:
             db = np.zeros(0)
-        dmu = [np.asarray(self.obj.back(f, jnp.asarray(db[ix]))) for ix, f in zip(self.idx, facs)]
+        dmu = [np.asarray(self.obj.back(f, jnp.asarray(db[ix])))[:n] for ix, f, n in zip(self.idx, facs, self.lengths)]
         nq = self.obj.nq
         dr = [db[i * nq:(i + 1) * nq] for i in range(self.nrec)]
         ds = db[self.nrec * nq:]
@@ -239,27 +254,68 @@ def _relgrad(f, s, recs, gs, gmus, grs):
     return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
 
 
-def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None):
+def _stalled(P: "_Problem", history, ws, window: int, rtol: float, remaining: int) -> bool:
+    """Is this start creeping without a prospect of converging within the iteration budget?
+
+    True when (i) the ELBO rose by less than ``rtol · max(|ELBO|, 1)`` over the last ``window``
+    iterations and (ii) no noise parameter is on its way to an active floor within the
+    ``remaining`` iterations. (ii) keeps a start whose last step to convergence is a
+    std sliding onto its floor (σ = floor + e^w, the floor counts as active once
+    e^w ≤ 0.01·floor): with w falling by δ per iteration (its mean over the window) the
+    floor is reached after (w − log(0.01·floor))/δ iterations. A std creeping towards a
+    floor of 0, or towards a floor too far away for its rate, does not count.
+    """
+    if window <= 0 or len(history) <= window or len(ws) <= window:
+        return False
+    e1, e0 = history[-1]["elbo"], history[-1 - window]["elbo"]
+    if e1 - e0 >= rtol * max(abs(e1), 1.0):
+        return False
+    nm = P.nm
+    floors = [(a, nm.proc_floor[i]) for a, i in enumerate(nm.proc_est_idx)]
+    floors += [(nm.n_proc + a, nm.meas_floor[j]) for a, j in enumerate(nm.meas_est_idx)]
+    w1, w0 = ws[-1], ws[-1 - window]
+    for k, fl in floors:
+        rate = (w0[k] - w1[k]) / window
+        if fl > 0 and rate > 0 and (w1[k] - math.log(0.01 * fl)) / rate <= remaining:
+            return False
+    return True
+
+
+def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
+              stall: bool = False):
+    """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
+
+    With ``stall`` the run also stops (``stop_code`` "stalled", resumable) when the ELBO rose by less
+    than ``options.stall_rtol`` (relative) over ``options.stall_window`` iterations without meeting the
+    gradient criterion; used while other noise starts remain to be tried.
+    """
     t0 = time.perf_counter() if t0 is None else t0
-    s, recs = P.initial(options, start)
     nq = P.obj.nq
-    lam = float(options.lambda0)
+    if resume is None:
+        s, recs = P.initial(options, start)
+        lam = float(options.lambda0)
+        history = []
+        it0 = 0
+        f0 = P.value(s, recs)
+        if not math.isfinite(f0):
+            raise FitError("the negative ELBO is not finite at the initial point "
+                           "(check initial parameter values and the measured-state initialisation)")
+    else:
+        s, recs, lam = resume["s"], resume["recs"], resume["lam"]
+        history = list(resume["history"])[:-1]  # its last point is evaluated again below
+        it0 = resume["iterations"]
     nu = 2.0
-    history = []
+    ws = []  # noise parameters per iteration (stall test)
     converged = False
     status = ""
-    it = 0
+    it = it0
     stop_code = None
     blks = None
-    f0 = P.value(s, recs)
-    if not math.isfinite(f0):
-        raise FitError("the negative ELBO is not finite at the initial point "
-                       "(check initial parameter values and the measured-state initialisation)")
-    for it in range(options.max_iter + 1):
+    for it in range(it0, options.max_iter + 1):
         blks = P.blocks(s, recs)
         f = float(sum(float(b["f"]) for b in blks))
         gg, Hg = P.gather(blks)
-        gmus = [np.asarray(b["gmu"]) for b in blks]
+        gmus = [np.asarray(b["gmu"])[:n] for b, n in zip(blks, P.lengths)]
         grs = [gg[i * nq:(i + 1) * nq] for i in range(P.nrec)]
         gs = gg[P.nrec * nq:]
         active = P.floor_active(s, gs)
@@ -285,6 +341,16 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None):
             status = f"stopped: iteration limit {options.max_iter} reached (relative gradient {rg:.3g})"
             stop_code = "iteration_limit"
             break
+        if options.time_limit is not None and elapsed > options.time_limit:
+            status = f"stopped: time limit {options.time_limit:g} s reached (relative gradient {rg:.3g})"
+            stop_code = "iteration_limit"
+            break
+        ws.append(np.asarray(s[P.tm.n_free:], float).copy())
+        if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it):
+            status = (f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) over "
+                      f"{options.stall_window} iterations (relative gradient {rg:.3g})")
+            stop_code = "stalled"
+            break
         # Marquardt scaling
         dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in blks]
         dglob = np.abs(np.diag(Hg))
@@ -302,7 +368,7 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None):
                 ds, dmu, dr, _ = sol
                 gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
                              + sum(float(g @ d) for g, d in zip(grs, dr)))
-                dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm * d ** 2)) for dm, d in zip(dmus, dmu))
+                dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm[:len(d)] * d ** 2)) for dm, d in zip(dmus, dmu))
                             + sum(float(dglob[i * nq:(i + 1) * nq] @ d ** 2) for i, d in enumerate(dr)))
                 pred = -0.5 * gdot + 0.5 * lam * dDd
                 s_new = s + ds
@@ -333,7 +399,14 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None):
         if not accepted:
             break
     return dict(s=s, recs=recs, blks=blks, converged=converged, status=status, iterations=it,
-                history=tuple(history), stop_code=stop_code, t0=t0)
+                history=tuple(history), stop_code=stop_code, t0=t0, lam=lam)
+
+
+AUTO_STARTS = ("data", "data-meas", "unit")
+
+
+def _negelbo(out) -> float:
+    return float(sum(float(b["f"]) for b in out["blks"]))
 
 
 def _starts(options: FitOptions):
@@ -341,7 +414,7 @@ def _starts(options: FitOptions):
         return ["data"]
     st = options.noise_start
     if st == "auto":
-        return ["data", "data-meas", "unit"]
+        return list(AUTO_STARTS)
     if st not in ("data", "data-meas", "unit"):
         raise FitError(f"noise_start must be 'auto', 'data', 'data-meas' or 'unit', got '{st}'")
     return [st]
@@ -383,7 +456,7 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
     vg = jax.jit(jax.value_and_grad(total))
     hvp = jax.jit(lambda v, w, cfg, data: jax.jvp(lambda x: jax.grad(total)(x, cfg, data), (v,), (w,))[1])
     v0 = np.concatenate([m.ravel() for m, _ in recs0] + [r for _, r in recs0] + [s0])
-    cfg, data = P.cfg, P.data
+    cfg, data = P.cfg, P.data  # unpadded records
     history = []
     state = {"it": 0, "converged": False, "rg": float("nan")}
 
@@ -420,6 +493,9 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
         if rg < options.gtol:
             state["converged"] = True
             raise StopIteration
+        if options.time_limit is not None and elapsed > options.time_limit:
+            state["timed_out"] = True
+            raise StopIteration
 
     f0, _ = fun(v0)
     if not math.isfinite(f0):
@@ -433,6 +509,9 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
     if state["converged"]:
         status = f"converged: relative gradient {state['rg']:.3g} < gtol {options.gtol:g} (trust-constr)"
         stop_code = None
+    elif state.get("timed_out"):
+        status = f"stopped: time limit {options.time_limit:g} s reached (trust-constr, relative gradient {state['rg']:.3g})"
+        stop_code = "iteration_limit"
     elif int(res.nit) >= 50 * max(options.max_iter, 1):
         status = f"stopped: trust-constr iteration limit {res.nit} reached (relative gradient {state['rg']:.3g})"
         stop_code = "iteration_limit"
@@ -581,20 +660,27 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     if options.optimizer == "structured-newton":
         t0 = time.perf_counter()
         tried = []
-        for start in starts:
-            out = _optimize(P, options, start, t0=t0)
+        for i, start in enumerate(starts):
+            out = _optimize(P, options, start, t0=t0, stall=i < len(starts) - 1)
             tried.append((start, out))
             if out["converged"]:
                 break
-        if not out["converged"]:  # none converged: keep the highest ELBO
-            out = min((o for _, o in tried), key=lambda o: float(sum(float(b["f"]) for b in o["blks"])))
-        out["starts"] = [(st, bool(o["converged"]), -float(sum(float(b["f"]) for b in o["blks"])), o["iterations"])
-                         for st, o in tried]
-        out["history"] = tuple(h for _, o in tried for h in o["history"])
-        out["iterations"] = sum(o["iterations"] for _, o in tried)
+        if not out["converged"]:
+            stalled = [k for k, (_, o) in enumerate(tried) if o["stop_code"] == "stalled"]
+            if stalled:  # none converged: continue the best stalled start with its remaining iterations
+                k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
+                tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1]))
+            out = next((o for _, o in tried if o["converged"]), None)
+            if out is None:  # none converged: keep the highest ELBO
+                out = min((o for _, o in tried), key=_negelbo)
+        label = {None: "converged", "stalled": "stalled"}
+        out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
         if len(tried) > 1:
             out["status"] += "; noise starts tried: " + ", ".join(
-                f"{st} ({'converged' if c else 'not converged'}, ELBO {e:.6g}, {k} it.)" for st, c, e, k in out["starts"])
+                f"{st} ({label.get(o['stop_code'], 'not converged')}, ELBO {-_negelbo(o):.6g}, {o['iterations']} it.)"
+                for st, o in tried)
+        out["history"] = tuple(h for _, o in tried for h in o["history"])
+        out["iterations"] = sum(o["iterations"] for _, o in tried)
     elif options.optimizer == "trust-constr":
         out = _optimize_trust_constr(P, options, starts[0])
     else:

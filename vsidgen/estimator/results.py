@@ -45,6 +45,24 @@ class FitOptions:
             starts). The likelihood surfaces of real records have local optima in which
             one channel's measurement std collapses onto its floor; different noise
             starts reach different ones.
+        stall_window, stall_rtol: while further noise starts remain ("auto"), a start is
+            abandoned as *stalled* when its ELBO L rose by less than
+            ``stall_rtol · max(|L|, 1)`` over the last ``stall_window`` iterations without
+            meeting the gradient criterion, unless a noise std is sliding onto a positive
+            floor fast enough to make it active within the remaining iterations (then the
+            start is about to converge). A start creeping along a collapsed-noise valley (a
+            measurement std shrinking towards a floor it would need hundreds of iterations
+            to reach, with the state glued to the measurement) gains nothing per iteration
+            while its gradient stays large. If no start converges, the stalled start with
+            the highest ELBO is continued with its remaining iterations.
+            ``stall_window=0`` disables the test.
+        bucket: pad each record to a bucket length (:func:`vsidgen.estimator.core.bucket_length`,
+            ≤ 12.5 % longer) for the structured optimizer, with the padding masked out of every
+            term, so records of different lengths in one bucket reuse the compiled functions;
+            the ELBO, gradient and optimum are those of the unpadded records.
+        time_limit: wall-clock budget in seconds (None: none); when it is exceeded the
+            optimizer stops after the current iteration (not converged, status says so,
+            ``iteration_limit`` warning). Used by the benchmark to bound the reference path.
     """
 
     integrator: str | None = None
@@ -60,6 +78,10 @@ class FitOptions:
     warm_start: Any = None
     lambda0: float = 1e-3
     noise_start: str = "auto"
+    stall_window: int = 10
+    bucket: bool = True
+    time_limit: float | None = None
+    stall_rtol: float = 1e-8
 
 
 @dataclasses.dataclass(frozen=True)
