@@ -1,34 +1,47 @@
 """Fit benchmark: vsidgen's structured Newton optimizer vs the reference approach (trust-constr).
 
-Prints, per case, for each optimizer: time to the first iterate (jit compile + first
-evaluation), iterations, wall time to converge (compile included), final ELBO, peak
-memory (ru_maxrss of the process that ran it) and the time vsidgen needed to reach the
-reference's final ELBO, with the ratio.
+Not a test: it prints figures. For each case both optimizers run **in this process**, one
+after the other, from null initial guesses (the specs' initial values, 0) with
+measured-state initialisation, and the script prints per fit
+
+* compile: seconds spent tracing, lowering and compiling JAX code during the fit (summed
+  from JAX's own compilation-duration events), then ``1st iter``: time to the first
+  iterate (compile + first evaluation);
+* iterations, wall time (to convergence, or to the stop), final ELBO, convergence;
+* peak memory of the fit: the kernel's resident-set high-water mark (VmHWM) is reset
+  before each fit (``echo 5 > /proc/self/clear_refs``) and read afterwards; the reset sets
+  it to the current RSS, which after earlier fits includes memory the allocator kept, so
+  the RSS before the fit is printed beside it (``(before)``): the peak is an upper bound
+  on the fit's own need;
+
+and per case the time vsidgen needed to exceed the reference's final ELBO and the ratios
+(reference wall / that time, and reference wall / vsidgen's wall to convergence). When the
+reference stops on its wall budget (``--reference-budget``) without converging, the ratios
+are lower bounds and printed as "≥".
+
+Compile times are made comparable: ``jax.clear_caches()`` (and vsidgen's objective cache)
+is cleared before each fit and the persistent compilation cache is not used.
 
 Cases: HFB-320 and ATTAS short period (real flight data from ../shared/data/flight;
 skipped with a message when absent) and synthetic ATTAS short-period records of N samples
 (vsidgen.simulate.simulate, specs/attas_sp.yaml, dt = 0.04 s, repeated 3-2-1-1 + doublet
-manoeuvres, process and measurement noise). All fits start from null initial guesses
-(the specs' initial values, 0) with measured-state initialisation.
-
-Each (case, optimizer) runs in its own child process (``--one``), so the peak memory and
-the compile time are those of that fit alone; the parent runs them one after the other
-(never in parallel) and prints the table.
+manoeuvres, process and measurement noise).
 
     python benchmarks/bench_fit.py                 # hfb320, attas_sp, synthetic 1e3..1e6
     python benchmarks/bench_fit.py --quick         # hfb320, attas_sp, synthetic 1e3, 1e4
     python benchmarks/bench_fit.py --sizes 1000 100000 --no-real
-    python benchmarks/bench_fit.py --reference-max-n 10000   # largest N for trust-constr
+    python benchmarks/bench_fit.py --reference-max-n 10000 --reference-budget 600
+
+Pin it to one core for reproducible figures on a shared machine: ``taskset -c 1 python ...``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pathlib
-import resource
-import subprocess
 import sys
 import time
 
@@ -40,6 +53,7 @@ REAL = {
 }
 SYN_THETA = {"Z0": -0.009, "ZAL": -0.483, "ZQ": 0.104, "ZDE": 0.676,
              "M0": 0.475, "MAL": -4.93, "MQ": -2.01, "MDE": -7.21}
+OPTIMIZERS = ("structured-newton", "trust-constr")
 
 
 def synthetic_record(model, n: int, seed: int = 1):
@@ -63,10 +77,57 @@ def synthetic_record(model, n: int, seed: int = 1):
                   input_names=model.input_names, output_names=model.output_names, t_raw=t)
 
 
-def run_one(case: str, optimizer: str, max_iter: int) -> dict:
-    """Run one fit in this process and return the measured figures."""
+# --------------------------------------------------------------------------- measurement helpers
+def _reset_peak() -> bool:
+    """Reset the kernel's peak-RSS mark of this process (Linux ≥ 4.0); False where unsupported."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _status_kib(key: str) -> float:
+    try:
+        for line in pathlib.Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return float(line.split()[1])
+    except OSError:
+        pass
+    return float("nan")
+
+
+class _CompileClock:
+    """Sums JAX's compilation-duration events (trace, lowering, backend compile) while active."""
+
+    EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+              "/jax/core/compile/backend_compile_duration")
+
+    def __init__(self):
+        import jax
+
+        self.total = 0.0
+        self.active = False
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+
+    def _listen(self, event, duration, **_):
+        if self.active and event in self.EVENTS:
+            self.total += float(duration)
+
+
+def _fresh_jax():
+    """Forget every compiled function (fair compile times for the next fit)."""
+    import jax
+
+    from vsidgen.estimator import core
+
+    core._OBJECTIVES.clear()
+    jax.clear_caches()
+
+
+def load_case(case: str):
     from vsidgen.data import load_record
-    from vsidgen.estimator import FitOptions, fit
     from vsidgen.model import load_model
 
     if case in REAL:
@@ -76,58 +137,65 @@ def run_one(case: str, optimizer: str, max_iter: int) -> dict:
     else:
         model = load_model(ROOT / "specs/attas_sp.yaml")
         records = [synthetic_record(model, int(float(case.removeprefix("syn"))))]
-    n = sum(len(r.t) for r in records)
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return model, records
+
+
+def run_fit(model, records, optimizer: str, *, max_iter: int, budget: float | None, clock: _CompileClock) -> dict:
+    """One fit in this process with fresh JAX caches; returns the measured figures."""
+    import gc
+
+    from vsidgen.estimator import FitOptions, fit
+
+    _fresh_jax()
+    gc.collect()
+    rss0 = _status_kib("VmRSS")
+    peak_ok = _reset_peak()
+    clock.total, clock.active = 0.0, True
     t0 = time.perf_counter()
-    log = os.environ.get("BENCH_PROGRESS")
-    fh = open(log, "w") if log else None
-
-    def progress(it, elbo, rg, elapsed):
-        if fh is not None:
-            fh.write(json.dumps({"it": it, "elbo": elbo, "t": elapsed}) + "\n")
-            fh.flush()
-
-    res = fit(model, records, options=FitOptions(optimizer=optimizer, max_iter=max_iter, progress=progress))
+    try:
+        res = fit(model, records, options=FitOptions(optimizer=optimizer, max_iter=max_iter, time_limit=budget))
+    finally:
+        clock.active = False
     wall = time.perf_counter() - t0
     hist = [{"it": h["iteration"], "elbo": h["elbo"], "t": h["elapsed_s"]} for h in res.history]
-    return {"case": case, "optimizer": optimizer, "n": n, "wall_s": wall,
-            "first_iterate_s": hist[0]["t"] if hist else float("nan"),
+    return {"optimizer": optimizer, "n": sum(len(r.t) for r in records), "wall_s": wall,
+            "compile_s": clock.total, "first_iterate_s": hist[0]["t"] if hist else float("nan"),
             "iterations": res.iterations, "elbo": res.elbo, "converged": res.converged, "status": res.status,
+            "budget_stop": "time limit" in res.status,
             "warnings": [w["code"] for w in res.warnings], "history": hist,
-            "maxrss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20,
-            "maxrss_before_fit_gib": rss0 / 2 ** 20}
+            "peak_gib": _status_kib("VmHWM") / 2 ** 20 if peak_ok else float("nan"),
+            "rss_before_gib": rss0 / 2 ** 20}
 
 
-def child(case: str, optimizer: str, max_iter: int, timeout: float) -> dict:
-    cmd = [sys.executable, __file__, "--one", case, "--optimizer", optimizer, "--max-iter", str(max_iter)]
-    t0 = time.perf_counter()
-    import tempfile
-
-    prog = tempfile.NamedTemporaryFile(suffix=".jsonl", delete=False).name
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT,
-                             env={**os.environ, "BENCH_PROGRESS": prog})
-    except subprocess.TimeoutExpired:
-        lines = [json.loads(x) for x in pathlib.Path(prog).read_text().splitlines() if x.strip()]
-        best = max(lines, key=lambda h: h["elbo"]) if lines else None
-        msg = f"timed out after {timeout:.0f} s"
-        if best:
-            msg += f" (best ELBO so far {best['elbo']:.6f} at {best['t']:.1f} s, iteration {best['it']})"
-        return {"case": case, "optimizer": optimizer, "error": msg, "partial": lines}
-    finally:
-        pass
-    if out.returncode != 0:
-        return {"case": case, "optimizer": optimizer, "error": out.stderr.strip().splitlines()[-1:]}
-    d = json.loads(out.stdout.strip().splitlines()[-1])
-    d["process_s"] = time.perf_counter() - t0
-    return d
-
-
-def time_to_reach(hist, elbo):
+def time_to_exceed(hist, elbo):
+    """Elapsed time of the first iterate whose ELBO is ≥ ``elbo`` (None if never)."""
     for h in hist:
         if h["elbo"] >= elbo:
             return h["t"]
     return None
+
+
+def per_iteration(d) -> float:
+    """Seconds per iteration after the first iterate (compile excluded)."""
+    h = d["history"]
+    if len(h) < 2:
+        return float("nan")
+    return (h[-1]["t"] - h[0]["t"]) / (len(h) - 1)
+
+
+def compare(vs: dict, ref: dict) -> str:
+    lb = "≥ " if not ref["converged"] else ""
+    how = ("stopped by its wall budget" if ref["budget_stop"] else "converged" if ref["converged"]
+           else "stopped without converging")
+    t = time_to_exceed(vs["history"], ref["elbo"])
+    out = f"reference {how} at ELBO {ref['elbo']:.6f} after {ref['wall_s']:.1f} s; "
+    if t is None:
+        out += (f"vsidgen did not reach it (final {vs['elbo']:.6f}, difference {vs['elbo'] - ref['elbo']:.3g})")
+    else:
+        out += (f"vsidgen exceeded it after {t:.2f} s (compile included): ratio {lb}{ref['wall_s'] / t:.1f}x; "
+                f"vsidgen converged={vs['converged']} after {vs['wall_s']:.2f} s at ELBO {vs['elbo']:.6f}: "
+                f"ratio to convergence {lb}{ref['wall_s'] / vs['wall_s']:.1f}x")
+    return out
 
 
 def main(argv=None):
@@ -135,75 +203,65 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="real cases + synthetic 1e3, 1e4")
     ap.add_argument("--sizes", type=float, nargs="*", help="synthetic record lengths (default 1e3 1e4 1e5 1e6)")
     ap.add_argument("--no-real", action="store_true", help="skip the real-data cases")
+    ap.add_argument("--real", nargs="*", choices=sorted(REAL), help="real cases to run (default: all)")
     ap.add_argument("--reference-max-n", type=float, default=1e4,
-                    help="largest N for which the reference (trust-constr) is run (default 1e4)")
+                    help="largest synthetic N for which the reference (trust-constr) is run (default 1e4)")
+    ap.add_argument("--reference-budget", type=float, default=600.0,
+                    help="wall budget of the reference per case in seconds (default 600; 0: none)")
     ap.add_argument("--max-iter", type=int, default=200)
-    ap.add_argument("--timeout", type=float, default=1800, help="seconds per (case, optimizer)")
     ap.add_argument("--json", help="also write the results to this file")
-    ap.add_argument("--one", help=argparse.SUPPRESS)
-    ap.add_argument("--optimizer", default="structured-newton", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
-    if a.one:
-        print(json.dumps(run_one(a.one, a.optimizer, a.max_iter)))
-        return 0
+
+    import jax
+
+    jax.config.update("jax_enable_compilation_cache", False)  # no persistent cache: compile every time
+    clock = _CompileClock()
     sizes = a.sizes if a.sizes is not None else ([1e3, 1e4] if a.quick else [1e3, 1e4, 1e5, 1e6])
-    cases = [] if a.no_real else [c for c in REAL if (FLIGHT / REAL[c][1][0]).exists()]
-    if not a.no_real and len(cases) < len(REAL):
-        print(f"# real data not found under {FLIGHT}: skipped {sorted(set(REAL) - set(cases))}")
+    real = [] if a.no_real else (a.real if a.real is not None else list(REAL))
+    cases = [c for c in real if (FLIGHT / REAL[c][1][0]).exists()]
+    if len(cases) < len(real):
+        print(f"# real data not found under {FLIGHT}: skipped {sorted(set(real) - set(cases))}")
     cases += [f"syn{int(s)}" for s in sizes]
-    try:
-        load = os.getloadavg()
-    except OSError:
-        load = (float("nan"),) * 3
-    print(f"# machine: {os.cpu_count()} CPUs, load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    load = os.getloadavg()
+    aff = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    print(f"# machine: {os.cpu_count()} CPUs (this process pinned to {aff}), jax {jax.__version__}, "
+          f"load average at start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
+    hdr = (f"{'case':>10s} {'N':>8s} {'optimizer':>17s} {'compile s':>9s} {'1st iter s':>10s} {'iters':>6s} "
+           f"{'wall s':>8s} {'s/iter':>7s} {'ELBO':>16s} {'conv':>5s} {'peak GiB':>8s} {'(before)':>8s}")
+    print(hdr, flush=True)
     rows = []
-    hdr = (f"{'case':>10s} {'N':>8s} {'optimizer':>17s} {'1st iter s':>10s} {'iters':>6s} {'wall s':>8s} "
-           f"{'ELBO':>16s} {'conv':>5s} {'peak GiB':>8s}")
-    print(hdr)
     for case in cases:
-        n = None
+        model, records = load_case(case)
         res = {}
-        for opt in ("trust-constr", "structured-newton"):
+        for opt in OPTIMIZERS:
             if opt == "trust-constr" and case.startswith("syn") and float(case[3:]) > a.reference_max_n:
-                print(f"{case:>10s} {'':>8s} {opt:>17s}  skipped: N > --reference-max-n {a.reference_max_n:g} "
-                      "(see docs/performance.md for the measured scaling of trust-constr)")
+                print(f"{case:>10s} {'':>8s} {opt:>17s}  skipped: N > --reference-max-n {a.reference_max_n:g}")
                 continue
-            d = child(case, opt, a.max_iter, a.timeout)
+            budget = a.reference_budget if (opt == "trust-constr" and a.reference_budget > 0) else None
+            d = run_fit(model, records, opt, max_iter=a.max_iter, budget=budget, clock=clock)
+            d["case"] = case
             res[opt] = d
             rows.append(d)
-            if "error" in d:
-                print(f"{case:>10s} {'':>8s} {opt:>17s}  error: {d['error']}")
-                continue
-            n = d["n"]
-            print(f"{case:>10s} {n:8d} {opt:>17s} {d['first_iterate_s']:10.2f} {d['iterations']:6d} "
-                  f"{d['wall_s']:8.2f} {d['elbo']:16.6f} {str(d['converged']):>5s} {d['maxrss_gib']:8.2f}"
+            print(f"{case:>10s} {d['n']:8d} {opt:>17s} {d['compile_s']:9.2f} {d['first_iterate_s']:10.2f} "
+                  f"{d['iterations']:6d} {d['wall_s']:8.2f} {per_iteration(d):7.3f} {d['elbo']:16.6f} "
+                  f"{str(d['converged']):>5s} {d['peak_gib']:8.2f} {d['rss_before_gib']:8.2f}"
+                  + (" (budget)" if d["budget_stop"] else "")
                   + (f"  warnings: {','.join(d['warnings'])}" if d["warnings"] else ""), flush=True)
-        ref, vs = res.get("trust-constr"), res.get("structured-newton")
-        if ref and vs and "error" not in ref and "error" not in vs:
-            t = time_to_reach(vs["history"], ref["elbo"])
-            if t is None:
-                print(f"{'':>10s} vsidgen did not reach the reference ELBO {ref['elbo']:.6f} "
-                      f"(final {vs['elbo']:.6f}, difference {vs['elbo'] - ref['elbo']:.3g})")
-            else:
-                print(f"{'':>10s} vsidgen reached the reference ELBO {ref['elbo']:.6f} after {t:.2f} s "
-                      f"(compile included): speed-up {ref['wall_s'] / t:.1f}x "
-                      f"(to convergence: {ref['wall_s'] / vs['wall_s']:.1f}x)", flush=True)
-    syn = [d for d in rows if d.get("optimizer") == "structured-newton" and d["case"].startswith("syn")
-           and "error" not in d and d["iterations"] > 0]
+        if len(res) == 2:
+            print(f"{'':>10s} {compare(res['structured-newton'], res['trust-constr'])}", flush=True)
+        del model, records
+    syn = [d for d in rows if d["optimizer"] == "structured-newton" and d["case"].startswith("syn")
+           and d["iterations"] > 0]
     if len(syn) >= 2:
-        import math
-        per = [(d["n"], (d["wall_s"] - d["first_iterate_s"]) / max(d["iterations"], 1)) for d in syn]
+        per = [(d["n"], per_iteration(d)) for d in syn]
         print("# time per iteration (after the first iterate): "
               + ", ".join(f"N={n}: {t * 1e3:.1f} ms" for n, t in per))
         lo = [p for p in per if p[0] >= 1e4] or per
         if len(lo) >= 2:
             slope = math.log(lo[-1][1] / lo[0][1]) / math.log(lo[-1][0] / lo[0][0])
             print(f"# log-log slope of time per iteration vs N between N={lo[0][0]} and N={lo[-1][0]}: {slope:.2f}")
-    try:
-        load = os.getloadavg()
-        print(f"# load average at end {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    except OSError:
-        pass
+    load = os.getloadavg()
+    print(f"# load average at end {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if a.json:
         pathlib.Path(a.json).write_text(json.dumps(rows, indent=1))
     return 0
