@@ -153,7 +153,16 @@ class _Problem:
             raise FitError("warm_start result does not match this problem's shape")
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
         pairs = measured_states(self.model)
-        recs = [(_initial_mu(self.model, r, pairs, options.init_states), np.zeros(self.obj.nq)) for r in self.records]
+        r0 = np.zeros(self.obj.nq)  # Σ_cond = Σ_marg = I
+        if self.nm.fixed_G is not None and self.tm.n_free == 0:
+            # smoothing with known noise (validation mode): start the assumed density at the
+            # prior's conditional covariance, Σ_cond = diag(T G Gᵀ), C = 0. With Σ = I the
+            # sigma points of a nonlinear model lie ±√(2n) state units away (radians for an
+            # angle), and the smoother can stop in a far, non-physical stationary point.
+            T = float(np.mean([float(r.dt) for r in self.records]))
+            G = np.asarray(self.nm.fixed_G, float)
+            r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
+        recs = [(_initial_mu(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
         return s, recs
 
     def floor_active(self, s, gs):
