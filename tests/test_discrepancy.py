@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import pathlib
+import sys
 
 import numpy as np
 import pytest
@@ -412,3 +413,82 @@ def test_stage0_start_embeds_base_path_and_starts_lag_at_the_input(tmp_path):
     assert r1[:2] == pytest.approx(r0[:2]) and r1[3 + 0] == pytest.approx(r0[2])
     C1 = r1[3 + 3:].reshape(3, 3)
     np.testing.assert_allclose(C1[:2, :2], r0[3:].reshape(2, 2))
+
+
+# ---------------------------------------------------------------------------
+# score pre-screen, ambiguity, benchmark outcome
+# ---------------------------------------------------------------------------
+
+def test_score_batch_renames_colliding_names_and_nests_the_base(tmp_path):
+    """Candidates sharing a parameter name (hinges at two break points) get unique names in one
+    batch spec; terms added to one equation are summed; at the nesting values the batch model
+    is the base model."""
+    import jax.numpy as jnp
+
+    from vsidgen.discrepancy.score import batch_spec_dict, batches
+    from vsidgen.model import load_model
+
+    info = dataclasses.replace(model_info(ATTAS, dt=DT),
+                               breaks={"alpha": (("hinge", 0.01), ("hinge", 0.03))})
+    cands = [c for c in propose(info) if c.screenable and not c.states]
+    hinges = [c for c in cands if c.key.startswith("nonlinear_aero:q:hinge:alpha")]
+    assert len(hinges) == 2 and {p.name for p in hinges[0].parameters} & \
+        {p.name for p in hinges[1].parameters}
+    groups = batches([c for c in propose(info) if c.screenable])
+    assert groups[0] == cands and all(c.states for g in groups[1:] for c in g)
+    d, names = batch_spec_dict(cands, ATTAS, name="batch", path=tmp_path / "b.yaml", info=info)
+    new = [n for c in cands for n in names[c.key].values()]
+    assert len(new) == len(set(new))                      # every name unique in the batch
+    assert names[hinges[0].key] != names[hinges[1].key]
+    q_terms = d["add_terms"]["drift"]["q"]
+    for c in cands:
+        if c.target == "drift:q":
+            for n in names[c.key].values():
+                if n in d["parameters"]:
+                    assert n in q_terms
+    (tmp_path / "b.yaml").write_text(yaml.safe_dump(d, sort_keys=False))
+    mb = load_model(tmp_path / "b.yaml", generated_dir=tmp_path / "gen")
+    m0 = load_model(ATTAS, generated_dir=tmp_path / "gen")
+    th0 = np.array([0.01, -0.5, 0.02, -0.1, -0.03, -4.9, -2.0, -7.2])
+    thb = np.array([float(p.initial) for p in mb.parameters])
+    thb[[mb.parameter_names.index(n) for n in m0.parameter_names]] = th0
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        x, u = rng.normal(size=2) * 0.05, rng.normal(size=1) * 0.03
+        np.testing.assert_allclose(mb.drift(jnp.asarray(x), jnp.asarray(u), jnp.asarray(thb)),
+                                   m0.drift(jnp.asarray(x), jnp.asarray(u), jnp.asarray(th0)),
+                                   atol=1e-12)
+        np.testing.assert_allclose(mb.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(thb)),
+                                   m0.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(th0)),
+                                   atol=1e-12)
+
+
+def test_ambiguity_alternatives_and_benchmark_outcome():
+    import importlib.util
+    import types
+
+    from vsidgen.discrepancy.search import AMBIGUITY_NATS, alternatives_of
+
+    def trial(key, stat):
+        return types.SimpleNamespace(candidate=types.SimpleNamespace(key=key), statistic=stat)
+
+    best = trial("time_skew:alpha", 507.0)
+    near = trial("sensor_position:alpha:q", 507.0 - 2 * AMBIGUITY_NATS + 0.5)
+    far = trial("sensor_bias:alpha", 480.0)
+    assert alternatives_of(best, [best, far, near]) == (near,)
+    assert alternatives_of(best, [best, far]) == ()
+
+    spec = importlib.util.spec_from_file_location("diagnose_benchmark",
+                                                  ROOT / "benchmarks" / "diagnose_benchmark.py")
+    b = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = b            # dataclasses look their module up there
+    spec.loader.exec_module(b)
+    f = {"effect": "time_skew", "alternatives": [{"effect": "sensor_position"}]}
+    assert b.outcome("sensor_position:alpha:q", [f]) == "ambiguous"
+    assert b.outcome("time_skew:alpha", [f]) == "ambiguous"
+    assert b.outcome("sensor_bias:alpha", [f]) == "wrong"
+    assert b.outcome("time_skew:alpha", [dict(f, alternatives=[])]) == "ok"
+    assert b.outcome("nonlinear_aero:q:sq:alpha",
+                     [{"effect": "nonlinear_aero", "alternatives": [{"effect": "nonlinear_aero"}]}]) == "ok"
+    assert b.outcome(None, []) == "ok" and b.outcome(None, [f]) == "false positive"
+    assert b.outcome("time_skew:alpha", []) == "missed"

@@ -430,6 +430,12 @@ class Candidate:
             "definitions": {name: text}}`` terms added to existing equations.
         evidence_keys: which locate statistics the score came from (for the report).
         info: free-form details (regressor, break point, ...).
+        screenable: the candidate reproduces the current model *exactly* at its
+            initial parameter values, with an informative gradient there, so the score
+            pre-screen (:mod:`.score`) applies. False for lags/delays (their smallest
+            time constant is a sample shift, not the current model) and for gust states
+            (their intensity starts on the boundary, zero): those are ranked by their
+            locate score.
     """
 
     effect: str
@@ -441,6 +447,7 @@ class Candidate:
     definitions: Mapping[str, str] = dataclasses.field(default_factory=dict)
     add_terms: Mapping[str, Mapping[str, str]] = dataclasses.field(default_factory=dict)
     info: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    screenable: bool = True
 
     @property
     def n_free(self) -> int:

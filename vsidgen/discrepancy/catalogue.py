@@ -224,7 +224,8 @@ class _InputDynamics(Effect):
                 parameters=(NewParameter(tau, "s", pc["param_doc"], initial=lo,
                                          lower=lo, upper=self.upper),),
                 states=(NewState(z, pc["drift"], info.unit(u), pc["state_doc"]),),
-                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)}))
+                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)},
+                screenable=False))
         return out
 
     def score(self, c, ev):
@@ -503,7 +504,7 @@ class UnmodelledWind(Effect):
                                          initial=1.0, lower=lo, upper=50.0),),
                 states=(NewState(w, f"-{w}/{tau}", info.unit(a), f"gust component of {a}",
                                  process_noise=True),),
-                add_terms=adds, info={"angle": a, "states": tuple(gains)}))
+                add_terms=adds, info={"angle": a, "states": tuple(gains)}, screenable=False))
         return out
 
     def score(self, c, ev):

@@ -119,16 +119,28 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "n_candidates": next((r["n_candidates"] for r in rounds
                                       if r["round"] == rank), None),
                 "locate_score": _f(trial.score),
+                "score_test": None if trial.screen is None else trial.screen.to_json(),
                 "validation_elbo_before": _f(before.val_elbo),
                 "validation_elbo_after": _f(after.val_elbo),
                 "metrics_before": _target_metrics(mb, c.target),
                 "metrics_after": _target_metrics(ma, c.target),
                 "locate": locate_part},
+            "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
+            "alternatives": [a.alternative_json() for a in trial.alternatives],
             "spec": str(trial.spec_path)})
     if findings:
         conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
                       f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
                       + f". Final augmented spec: {final.spec_path}.")
+        for f in findings:
+            if f["alternatives"]:
+                conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
+                               f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "
+                               "clearly better than " + ", ".join(
+                                   f"{a['key']} ({a['statistic']:.4g})" for a in f["alternatives"])
+                               + " — the data do not separate these explanations; an engineer "
+                                 "must judge the label (or a maneuver that separates them is "
+                                 "needed).")
     else:
         conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
                       f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
@@ -293,6 +305,11 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({ev['dof']}) threshold "
                      f"{ev['threshold']:.4g} (α = {ev['alpha']}, {ev['n_candidates']} candidates, "
                      f"Holm)</p>")
+        if f.get("alternatives"):
+            parts.append("<p><b>" + ("Ambiguous" if f.get("ambiguous") else "Form uncertain")
+                         + ":</b> nearly as good: " + e(", ".join(
+                             f"{a['key']} (2ΔELBO = {a['statistic']:.4g})"
+                             for a in f["alternatives"])) + "</p>")
         if base is not None and final is not None:
             img = plot_finding(f, base, final)
             if img:

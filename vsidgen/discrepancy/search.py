@@ -5,15 +5,21 @@ One round:
 1. fit the current model (base spec first) with the variational estimator and
    evaluate the four signals; :func:`~.locate.locate` the mismatch;
 2. every registered effect proposes candidates for the model
-   (:func:`~.base.propose`); each is scored against the locate evidence and the
-   ``max_candidates`` best with score ≥ ``min_score`` are written as specs that
-   ``extend`` the current spec (``DIR/candidates/r<round>_<i>_<key>.yaml``; the
-   current parameter estimates become their initial values — warm start) and
-   refitted;
+   (:func:`~.base.propose`); each is scored against the locate evidence, and every
+   screenable candidate also gets a score (Lagrange-multiplier) statistic at the
+   current optimum (:mod:`.score`, no refit). The screening priority is the score
+   test's −log10 p where it applies, else the locate score; the ``max_candidates``
+   best with priority ≥ ``min_score`` are written as specs that ``extend`` the
+   current spec (``DIR/candidates/r<round>_<i>_<key>.yaml``; the current parameter
+   estimates become their initial values — warm start) and refitted;
 3. significance: the likelihood-ratio-type statistic
    :math:`Λ = 2(\\mathrm{ELBO}_1 − \\mathrm{ELBO}_0)` against :math:`χ^2_k` (``k`` = new
-   free parameters), Holm step-down over the ``m`` candidates tried in the round
-   (the best candidate must reach :math:`p < α/m`). The ELBO is a lower bound of
+   free parameters), Holm step-down over the ``m`` candidates *examined* in the
+   round (all proposed candidates, since the screen selected the refitted ones from
+   them; those not refitted enter with p = 1): the best must reach :math:`p < α/m`.
+   Another significant refit within ``AMBIGUITY_NATS`` of the best (non-nested,
+   same round) is reported as an alternative explanation: the finding is then
+   marked ambiguous. The ELBO is a lower bound of
    the log-likelihood; both fits maximise it over the same assumed-density family,
    so Λ is an approximation of the likelihood ratio, not an exact one;
 4. when validation records are given the accepted candidate must also raise the
@@ -58,6 +64,8 @@ class DiagnoseOptions:
         min_score: minimum locate score (−log10 p) for a candidate to be refitted.
         effects: restrict the catalogue to these effect ids (None: all registered).
         max_iter: optimizer iteration limit of each fit.
+        screen: score-test pre-screen of the candidates that add no state (default off: see
+            :mod:`.score` for its cost and its failure on degenerate base optima).
     """
 
     max_rounds: int = 3
@@ -66,6 +74,13 @@ class DiagnoseOptions:
     min_score: float = 1.0
     effects: tuple[str, ...] | None = None
     max_iter: int = 200
+    screen: bool = False
+
+
+#: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
+#: two explanations below e³ ≈ 20, "not strong" on the Kass–Raftery scale) is reported as an
+#: alternative explanation and the finding is marked ambiguous
+AMBIGUITY_NATS = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +123,8 @@ class Trial:
     refit: Any = None                # RefitOutcome of the staged refit
     statistic_vs_base: float = math.nan   # 2(ELBO_candidate − ELBO_base), for reference
     converged: bool = False          # the final (stage-2) refit met the gradient criterion
+    screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
+    alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -120,7 +137,25 @@ class Trial:
                 "converged": None if self.state is None else bool(self.state.fit.converged),
                 "status": None if self.state is None else self.state.fit.status,
                 "statistic_vs_base": _f(self.statistic_vs_base),
+                "score_test": None if self.screen is None else self.screen.to_json(),
                 "refit": None if self.refit is None else self.refit.to_json()}
+
+    def alternative_json(self, st_model=None) -> dict:
+        """Summary of this trial as an alternative explanation of a finding."""
+        params = {}
+        if self.state is not None:
+            names = list(self.state.model.parameter_names)
+            for p in self.candidate.parameters:
+                if p.name in names:
+                    i = names.index(p.name)
+                    params[p.name] = {"estimate": _f(self.state.fit.theta[i]),
+                                      "std_error": _f(self.state.fit.std_errors[i]),
+                                      "unit": p.unit}
+        return {"key": self.candidate.key, "effect": self.candidate.effect,
+                "target": self.candidate.target, "statistic": _f(self.statistic),
+                "dof": self.dof, "p_value": _f(self.p_value), "threshold": _f(self.threshold),
+                "elbo": None if self.state is None else _f(self.state.elbo),
+                "parameters": params, "spec": str(self.spec_path)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -423,7 +458,7 @@ def holm(p_values: Sequence[float], alpha: float) -> list[tuple[bool, float]]:
 
 def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effect], *,
                     max_candidates: int, min_score: float) -> list[tuple[float, Candidate]]:
-    """Score every candidate of every effect, best first; keep those worth a refit."""
+    """Locate score of every candidate of every effect, best first; keep those worth a refit."""
     scored = []
     for eff in effects:
         for c in propose(info, [eff]):
@@ -438,13 +473,62 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
     return scored[:max_candidates]
 
 
+def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
+    """Accepted-quality refits (significant, converged, validated) of the same round whose
+    statistic is within ``2·nats`` of the best one's: explanations the data do not separate
+    from it. Candidates of one round each extend the current model by different terms, so
+    none nests another; their ELBOs are compared through their statistics (each against its
+    own nested reference)."""
+    return tuple(sorted((t for t in good if t is not best
+                         and t.statistic >= best.statistic - 2.0 * nats),
+                        key=lambda t: -t.statistic))
+
+
+def screen_priority(loc_score: float, sr) -> float:
+    """Screening priority: the score test's −log10 p where it applies, else the locate score."""
+    if sr is not None and sr.statistic is not None and sr.dof >= 1:
+        return float(sr.log10p)
+    return float(loc_score)
+
+
+def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effect],
+                      current: FitState | None, *, max_candidates: int, min_score: float,
+                      screen: bool, workdir: pathlib.Path | None = None, generated_dir=None,
+                      progress=None):
+    """(selected [(priority, locate score, Candidate, ScoreResult|None)], n examined, table).
+
+    Every candidate gets its locate score; with ``screen`` every screenable one also
+    gets its score statistic at the current fit (:func:`.score.screen`).
+    """
+    from .refit import REFIT_DETERMINISTIC_STD
+    from .score import screen as score_screen
+
+    every = rank_candidates(info, evidence, effects, max_candidates=10 ** 9,
+                            min_score=-math.inf)
+    scores = {}
+    if screen and current is not None and current.fit.decision is not None and every:
+        scores = score_screen([c for _, c in every], current, info, workdir,
+                              f"{_safe(current.model.name)[:30]}_sc",
+                              generated_dir=generated_dir, det_std=REFIT_DETERMINISTIC_STD,
+                              progress=progress)
+    rows = []
+    for loc, c in every:
+        sr = scores.get(c.key)
+        rows.append((screen_priority(loc, sr), loc, c, sr))
+    rows.sort(key=lambda r: -r[0] if math.isfinite(r[0]) else math.inf)
+    table = [{"key": c.key, "priority": _f(pr), "locate_score": _f(loc),
+              "score_test": None if sr is None else sr.to_json()} for pr, loc, c, sr in rows]
+    chosen = [r for r in rows if math.isfinite(r[0]) and r[0] >= min_score][:max_candidates]
+    return chosen, len(every), table
+
+
 # ---------------------------------------------------------------------------
 # the job
 # ---------------------------------------------------------------------------
 
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
-                 effects_module=None, max_iter: int = 200,
+                 effects_module=None, max_iter: int = 200, screen: bool = False,
                  progress: Callable[[str], None] | None = None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
@@ -492,15 +576,22 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     accepted: list[tuple[Trial, FitState, Evidence]] = []
     for rnd in range(1, max_rounds + 1):
         info = model_info_of(current)
-        ranked = rank_candidates(info, evidence, catalogue, max_candidates=max_candidates,
-                                 min_score=min_score)
+        ranked, n_examined, table = select_candidates(
+            info, evidence, catalogue, current, max_candidates=max_candidates,
+            min_score=min_score, screen=screen, workdir=out / "screen" / f"r{rnd}",
+            generated_dir=gen, progress=progress)
         if not ranked:
             rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                           "base_elbo": current.elbo, "trials": [],
-                           "note": "no candidate is supported by the locate evidence"})
+                           "base_elbo": current.elbo, "trials": [], "n_examined": n_examined,
+                           "screen": table,
+                           "note": "no candidate is supported by the locate evidence or the "
+                                   "score test"})
             break
+        _say(progress, "screen (priority = -log10 p of the score test, else locate score): "
+             + ", ".join(f"{r['key']} {r['priority']:.3g}" for r in table[:max_candidates + 4]
+                         if r['priority'] is not None))
         trials: list[Trial] = []
-        for i, (score, c) in enumerate(ranked):
+        for i, (score, loc_score, c, sr) in enumerate(ranked):
             path = out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
             name = f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}"
             _say(progress, f"round {rnd}: refitting {c.key} (score {score:.3g})")
@@ -509,7 +600,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                                   max_iter=max_iter, progress=progress)
             except (SpecError, FitError, VsidgenError) as err:
                 trials.append(Trial(c, score, path, None, math.nan, c.n_free, 1.0,
-                                    error=str(err).splitlines()[0]))
+                                    error=str(err).splitlines()[0], screen=sr))
                 continue
             st = ro.state
             lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
@@ -519,9 +610,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                            f"({ro.wall_s:.0f} s)")
             trials.append(Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
                                 statistic_vs_base=2.0 * (st.elbo - current.elbo),
-                                converged=conv))
-        # an unconverged refit is never accepted: it enters the Holm family with p = 1
-        decisions = holm([t.p_value if t.converged else 1.0 for t in trials], alpha)
+                                converged=conv, screen=sr))
+        # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
+        # the candidates examined (screened) but not refitted
+        n_family = max(n_examined, len(trials))
+        decisions = holm([t.p_value if t.converged else 1.0 for t in trials]
+                         + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
         final_trials = []
         for t, (sig, level) in zip(trials, decisions):
             thr = float(stats.chi2.isf(level, max(t.dof, 1)))
@@ -538,21 +632,26 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
             # refit merely finishing the base fit (a false positive), so nothing is accepted
             rounds.append({"round": rnd, "base_spec": str(current.spec_path),
                            "base_elbo": current.elbo, "alpha": alpha,
-                           "n_candidates": len(trials),
-                           "trials": [t.to_json() for t in final_trials],
+                           "n_candidates": n_family, "n_refitted": len(trials),
+                           "trials": [t.to_json() for t in final_trials], "screen": table,
                            "note": "not accepted: the base fit did not converge "
                                    f"({current.fit.status})"})
             break
         rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                       "base_elbo": current.elbo, "alpha": alpha, "n_candidates": len(trials),
-                       "trials": [t.to_json() for t in final_trials]})
+                       "base_elbo": current.elbo, "alpha": alpha, "n_candidates": n_family,
+                       "n_refitted": len(trials),
+                       "trials": [t.to_json() for t in final_trials], "screen": table})
         if not good:
             break
         # most significant = smallest p (log scale: no underflow); fewer parameters win ties
         best = min(good, key=lambda t: (float(stats.chi2.logsf(max(t.statistic, 0.0), max(t.dof, 1))),
                                         t.dof))
+        alts = alternatives_of(best, good)
+        best = dataclasses.replace(best, alternatives=alts)
         _say(progress, f"round {rnd}: accepted {best.candidate.key} "
-                       f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})")
+                       f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
+                       + (f"; AMBIGUOUS with {', '.join(t.candidate.key for t in alts)}"
+                          if alts else ""))
         accepted.append((best, current, evidence))
         current = best.state
         evidence = locate_state(current)
@@ -562,6 +661,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                          out=out, options={"max_rounds": max_rounds,
                                            "max_candidates": max_candidates,
                                            "alpha": alpha, "min_score": min_score,
+                                           "screen": screen,
                                            "effects": [e.id for e in catalogue]})
     write_findings(out, doc, base=base, final=current, accepted=accepted)
     return DiagnoseResult(out, tuple(doc["findings"]), pathlib.Path(doc["final_spec"]), doc,
@@ -600,6 +700,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--effects-module", action="append", default=None, metavar="PATH.py",
                    help="Python file defining extra Effect subclasses (repeatable)")
     p.add_argument("--max-iter", type=int, default=200, help="optimizer iterations per fit")
+    p.add_argument("--screen", action="store_true",
+                   help="experimental: rank the candidates that add no state by a score "
+                        "(Lagrange-multiplier) test at the current fit before refitting")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(handler=diagnose_command)
     return p
@@ -612,7 +715,7 @@ def diagnose_command(args) -> int:
                        max_rounds=args.max_rounds, max_candidates=args.max_candidates,
                        alpha=args.alpha, min_score=args.min_score, effects=args.effects,
                        effects_module=args.effects_module, max_iter=args.max_iter,
-                       progress=progress)
+                       screen=args.screen, progress=progress)
     if not res.findings:
         print(f"no significant discrepancy found; findings in {res.out_dir / 'findings.json'}")
     else:
@@ -621,5 +724,8 @@ def diagnose_command(args) -> int:
             print(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
                   f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
             print(f"   {f['explanation']}")
+            for a in f.get("alternatives") or []:
+                print(f"   AMBIGUOUS: {a['effect']} on {a['target']} explains it nearly as well "
+                      f"(2ΔELBO = {a['statistic']:.4g})")
         print(f"final spec: {res.final_spec}; findings in {res.out_dir / 'findings.json'}")
     return 0
