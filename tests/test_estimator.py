@@ -467,3 +467,20 @@ def test_structured_hessian_exact_with_branching_model():
                   process_noise=ProcessNoiseSpec(states=("x1", "x2")),
                   measurement_noise=tuple(MeasurementNoiseSpec(o) for o in ("y1", "y2")))
     _dense_vs_structured(model, [rec], seed=2)
+
+
+def test_stall_test_spares_a_std_sliding_onto_its_floor():
+    """_stalled: flat ELBO + a noise std that reaches its floor in time → not stalled; far floor → stalled."""
+    from vsidgen.estimator.fit import _stalled
+
+    nm = types.SimpleNamespace(proc_est_idx=np.array([0]), proc_floor=np.array([0.0]), n_proc=1,
+                               meas_est_idx=np.array([0]), meas_floor=np.array([1e-6]))
+    P = types.SimpleNamespace(nm=nm)
+    hist = [{"elbo": 1000.0 + 1e-9 * k} for k in range(12)]
+    w_fast = [np.array([0.0, math.log(1e-6) - 0.5 * k]) for k in range(12)]  # floor active in ~4 it.
+    w_slow = [np.array([0.0, math.log(1e-5) - 0.001 * k]) for k in range(12)]  # ~7000 it. to go
+    assert not _stalled(P, hist, w_fast, 10, 1e-8, remaining=50)
+    assert _stalled(P, hist, w_slow, 10, 1e-8, remaining=50)
+    rising = [{"elbo": 1000.0 + 1e-3 * k} for k in range(12)]
+    assert not _stalled(P, rising, w_slow, 10, 1e-8, remaining=50)
+    assert not _stalled(P, hist, w_slow, 0, 1e-8, remaining=50)  # window 0: disabled
