@@ -587,7 +587,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                            "note": "no candidate is supported by the locate evidence or the "
                                    "score test"})
             break
-        _say(progress, "screen (priority = -log10 p of the score test, else locate score): "
+        _say(progress, ("screen (priority = -log10 p of the score test, else locate score): "
+                        if screen else "locate scores: ")
              + ", ".join(f"{r['key']} {r['priority']:.3g}" for r in table[:max_candidates + 4]
                          if r['priority'] is not None))
         trials: list[Trial] = []
