@@ -492,3 +492,21 @@ def test_ambiguity_alternatives_and_benchmark_outcome():
                      [{"effect": "nonlinear_aero", "alternatives": [{"effect": "nonlinear_aero"}]}]) == "ok"
     assert b.outcome(None, []) == "ok" and b.outcome(None, [f]) == "false positive"
     assert b.outcome("time_skew:alpha", []) == "missed"
+
+
+def test_refit_convergence_rule():
+    """Converged = the gradient criterion, or a stall at numerical precision just above it."""
+    import types
+
+    from vsidgen.discrepancy.search import refit_converged
+
+    def res(conv, status):
+        return types.SimpleNamespace(converged=conv, status=status)
+
+    assert refit_converged(res(True, "converged: relative gradient 1e-9 < gtol 1e-06"))
+    stall = ("stopped: no further progress possible (relative step 8.3e-12, predicted reduction "
+             "6.2e-14) with relative gradient {} >= gtol 1e-06")
+    assert refit_converged(res(False, stall.format("6.51e-06")))
+    assert not refit_converged(res(False, stall.format("0.00876")))
+    assert not refit_converged(res(False, "stopped: iteration limit 400 reached (relative "
+                                          "gradient 3.5e-06)"))

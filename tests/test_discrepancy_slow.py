@@ -48,10 +48,15 @@ def test_diagnose_clean_model_gives_empty_findings(tmp_path):
 
 @pytest.mark.slow
 def test_diagnose_names_actuator_lag_after_staged_refit(tmp_path):
-    """The lag candidate adds a state; the staged refit must converge and win (it used to lose)."""
+    """The lag candidate adds a state; the staged refit must converge and win (it used to lose).
+
+    With ``--max-iter 200`` (stage 2: 400 iterations) the lag refit stopped at the iteration
+    limit in this session (Λ = 238, relative gradient 2.4: not accepted); with 400 it reaches
+    a point stationary at numerical precision (relative gradient ~6e-6, no step can lower
+    the objective), which counts as converged."""
     b = _bench()
     case = next(c for c in b.CASES if c.name == "de_lag")
-    row = b.run_case(case, tmp_path / "lag", max_rounds=1, max_candidates=3, max_iter=200)
+    row = b.run_case(case, tmp_path / "lag", max_rounds=1, max_candidates=3, max_iter=400)
     assert row["named_key"] == "actuator_lag:de", row
     doc = json.loads((tmp_path / "lag" / "diagnose" / "findings.json").read_text())
     f = doc["findings"][0]
