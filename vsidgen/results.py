@@ -21,6 +21,15 @@ from .atomic import atomic_directory, write_text_atomic  # noqa: F401  (re-expor
 from .errors import VsidgenError
 
 
+def finite_or_none(v: Any) -> float | None:
+    """``float(v)`` when it is a finite number, else None (JSON has no NaN)."""
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
 def _clean(obj: Any) -> Any:
     """Convert numpy scalars/arrays to JSON types; NaN/inf become None."""
     if isinstance(obj, Mapping):

@@ -27,17 +27,7 @@ import io
 import pathlib
 from collections.abc import Sequence
 
-import numpy as np
-
-from ..results import dumps, write_text_atomic
-
-
-def _f(v):
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if np.isfinite(v) else None
+from ..results import dumps, finite_or_none as _f, write_text_atomic
 
 
 def metrics_summary(st) -> dict:

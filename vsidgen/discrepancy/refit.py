@@ -44,6 +44,8 @@ from typing import Any
 
 import numpy as np
 
+from ..results import finite_or_none as _f
+
 #: process-noise std (state unit/√s) of the states the candidates add without process
 #: noise (lags, delays, modes). Small against any physical signal, large enough to keep
 #: the assumed density well conditioned. Used in every stage and in the reference.
@@ -73,14 +75,6 @@ class RefitOutcome:
                 "converged_stage1": self.converged_stage1, "x0_entropy": f(self.x0_entropy),
                 "val_x0_entropy": f(self.val_x0_entropy), "warm_start": self.warm,
                 "notes": list(self.notes), "wall_s": round(self.wall_s, 2)}
-
-
-def _f(v):
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 def _ns(decision):

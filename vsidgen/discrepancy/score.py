@@ -53,6 +53,8 @@ import pathlib
 import numpy as np
 from scipy import stats
 
+from ..results import finite_or_none
+
 
 @dataclasses.dataclass(frozen=True)
 class ScoreResult:
@@ -77,12 +79,7 @@ class ScoreResult:
         return -lp / math.log(10.0)
 
     def to_json(self) -> dict:
-        def f(v):
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                return None
-            return v if math.isfinite(v) else None
+        f = finite_or_none
         return {"statistic": f(self.statistic), "dof": self.dof, "p_value": f(self.p_value),
                 "minus_log10_p": f(self.log10p), "tested": list(self.tested),
                 "held": list(self.held), "gain_full": f(self.gain_full),
