@@ -98,17 +98,15 @@ def main(argv=None) -> int:
             ("FEM F and R fixed, Euler", s_fem, "euler"),
             ("FEM F and R fixed, RK4", s_fem, "rk4"),
             ("FEM F, implied R_m fixed, RK4", s_imp, "rk4")]
-    rows, free = [], None
-    for label, spec, integ in runs:
-        job = run_fit(spec, [csv], out=work / f"{len(rows)}", integrator=integ, generated_dir=work / "gen")
-        res = json.loads((work / f"{len(rows)}" / "results.json").read_text())
-        rows.append((label, res))
+    free = None
+    for k, (label, spec, integ) in enumerate(runs):
+        run_fit(spec, [csv], out=work / str(k), integrator=integ, generated_dir=work / "gen")
+        res = json.loads((work / str(k) / "results.json").read_text())
         if free is None:
             free = res
         print(f"{label:32s} converged={res['converged']!s:5s} ELBO {res['elbo']:.2f}  "
               + "  ".join(f"{p} {res['parameters'][p]['estimate']:.4g} ± {res['parameters'][p]['std_error']:.2g}"
                           for p in SHOW), flush=True)
-        del job
     print(f"{'FEM (reference)':32s} " + "  ".join(
         f"{p} {fem['parameters'][p]['value']:.4g} ± {fem['parameters'][p]['std']:.2g}" for p in SHOW))
     print("\noutput   vsidgen σ (Euler)   FEM √R (innovations)   implied measurement σ   floor")
