@@ -510,3 +510,44 @@ def test_refit_convergence_rule():
     assert not refit_converged(res(False, stall.format("0.00876")))
     assert not refit_converged(res(False, "stopped: iteration limit 400 reached (relative "
                                           "gradient 3.5e-06)"))
+
+
+def test_locate_partial_correlation_finds_collinear_alphadot_term():
+    """An α̇ (downwash-lag) term in the q equation is nearly collinear with M_α α + M_q q +
+    M_δ δ (α̇ ≈ Z_α α + q + Z_δ δ): after an equation-error refit of those derivatives only
+    the turbulence-driven, lagged part of α̇ is left in e_q. Given the refitted terms'
+    sensitivities (here the regressors α, q, δ) locate must test the added variable for that
+    part and rank the unsteady-aerodynamics candidate first."""
+    from vsidgen.discrepancy.locate import downwash_tau
+
+    rng = np.random.default_rng(3)
+    n, tl = 700, downwash_tau(DT)
+    u = np.zeros(n)
+    u[50:60], u[60:75], u[75:85], u[85:90] = 0.03, -0.03, 0.03, -0.03
+    u[300:330], u[330:360] = 0.02, -0.02
+    X = np.zeros((n, 3))                              # alpha, q, alpha_lag
+    for k in range(n - 1):
+        a, q, al = X[k]
+        da = -0.5 * a + q - 0.1 * u[k]
+        dq = -4.9 * a - 2.0 * q - 7.2 * u[k] - 1.5 * (a - al) / tl
+        w = rng.standard_normal(2) * np.array([0.002, 0.005]) * np.sqrt(DT)
+        X[k + 1] = X[k] + DT * np.array([da, dq, (a - al) / tl]) + np.r_[w, 0.0]
+    Xs = X[:, :2]
+    Xdot = np.diff(Xs, axis=0) / DT
+    Z = np.column_stack([Xs[:-1], u[:-1]])            # sensitivities of M_alpha, M_q, M_de
+    A = np.column_stack([np.ones(n - 1), Z])
+    F = np.column_stack([-0.5 * Xs[:-1, 0] + Xs[:-1, 1] - 0.1 * u[:-1],
+                         A @ np.linalg.lstsq(A, Xdot[:, 1], rcond=None)[0]])
+    rec = LocateRecord(name="hand", t=np.arange(n) * DT, u=u[:, None], y_meas=Xs, y_smooth=Xs,
+                       y_pred=Xs, y_sim=Xs, x_smooth=Xs, xdot_fd=Xdot, f_smooth=F)
+    plain = _locate(rec)
+    part = _locate(rec, nuisance={"alpha": Z, "q": Z})
+    assert part.states["q"].best().name == "xdot:alpha", part.summary()
+    p_plain = plain.states["q"].regressor("xdot:alpha").p
+    p_part = part.states["q"].regressor("xdot:alpha").p
+    assert p_part < 1e-6 and p_part < 1e-3 * p_plain
+    # regressors the refitted terms absorb completely are not tested at all
+    assert part.states["q"].regressor("x:alpha") is None
+    info = model_info(ATTAS, dt=DT)
+    ranked = rank_candidates(info, part, registered_effects(), max_candidates=3, min_score=1.0)
+    assert ranked[0][1].key == "unsteady_aero:q:alpha"

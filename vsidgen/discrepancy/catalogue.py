@@ -151,12 +151,13 @@ class UnsteadyAero(Effect):
     doc = "alpha-dot / beta-dot derivatives through a downwash-lag state."
 
     def applies_to(self, info):
+        from .locate import downwash_tau
         out = []
         for kind in ("alpha", "beta"):
             a = info.flow_angle(kind)
             if a is None:
                 continue
-            tau = max(0.1, 4 * (info.dt or 0.025))
+            tau = downwash_tau(info.dt)
             lag = info.fresh(f"D_{a}_lag")
             for s in info.state_names:
                 if s == a:

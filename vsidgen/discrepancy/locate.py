@@ -472,7 +472,8 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
     ``prod:<a>*<b>``: flow angle × other state/input; ``hinge:<v>:<b>``:
     ``max(v − b, 0)`` at the 70th/85th percentile (and ``max(b − v, 0)`` at the
     15th/30th as ``hingelo``); ``udot:<i>``: input rate (time delay / actuator lag);
-    ``xdot:<a>``: flow-angle rate (unsteady aerodynamics); ``lp:<v>``: ``v`` through a
+    ``xdot:<a>``: flow-angle rate (unsteady aerodynamics; through the downwash-lag filter of
+    :func:`downwash_tau` when ``dt`` and ``seg`` are given); ``lp:<v>``: ``v`` through a
     first-order low-pass of time constant :data:`LOWPASS_TAU` (a missing slow mode).
     """
     reg: dict[str, np.ndarray] = {}
@@ -502,7 +503,13 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
             reg[f"udot:{i}"] = Udot[:, j]
     for j, s in enumerate(state_names):
         if _is_flow_angle(s):
-            reg[f"xdot:{s}"] = Xdot[:, j]
+            if seg is not None and dt:
+                # what the unsteady-aerodynamics candidate adds: the flow-angle rate through
+                # the downwash lag, (a − a_l)/τ_l with a_l = a low-passed by τ_l
+                tl = downwash_tau(dt)
+                reg[f"xdot:{s}"] = (X[:, j] - lowpass(X[:, j], dt, tl, seg, from_first=True)) / tl
+            else:
+                reg[f"xdot:{s}"] = Xdot[:, j]
     if seg is not None and dt:
         for j, s in enumerate(state_names):
             reg[f"lp:{s}"] = lowpass(X[:, j], dt, LOWPASS_TAU, seg)
@@ -518,15 +525,24 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
 LOWPASS_TAU = 2.0
 
 
-def lowpass(x: np.ndarray, dt: float, tau: float, seg: Sequence[slice]) -> np.ndarray:
-    """First-order low-pass ``z' = (x − z)/τ`` (exact discretisation), restarted per segment."""
+def downwash_tau(dt: float | None) -> float:
+    """Time constant (s) of the downwash-lag filter of the unsteady-aerodynamics candidate
+    (and of its locate regressor ``xdot:<angle>``): four samples, at least 0.1 s."""
+    return max(0.1, 4 * (dt or 0.025))
+
+
+def lowpass(x: np.ndarray, dt: float, tau: float, seg: Sequence[slice], *,
+            from_first: bool = False) -> np.ndarray:
+    """First-order low-pass ``z' = (x − z)/τ`` (exact discretisation), restarted per segment
+    at 0 (a mode excited from rest) or, with ``from_first``, at the segment's first value
+    (a lag of the signal itself)."""
     a = math.exp(-dt / tau)
     out = np.empty_like(x)
     for s in seg:
         xs = x[s]
         if len(xs) == 0:
             continue
-        z = 0.0
+        z = float(xs[0]) if from_first and np.isfinite(xs[0]) else 0.0
         o = np.empty_like(xs)
         for k, v in enumerate(xs):
             o[k] = z
@@ -609,12 +625,58 @@ def _rate(y: np.ndarray, dt: float, seg) -> np.ndarray:
     return out
 
 
+class _Partial:
+    """Projection onto the orthogonal complement of ``[1, Z]`` (NaN rows ignored).
+
+    ``r ↦ r − P r`` with ``P`` the least-squares projection on the constant and the
+    columns of ``Z`` (an orthonormal basis from the SVD, rank-truncated), so that a
+    regressor is tested only for what the existing terms of the equation cannot
+    absorb (the added-variable / partial-correlation test of stepwise regression).
+    """
+
+    def __init__(self, Z: np.ndarray | None, n: int):
+        cols = [np.ones(n)]
+        if Z is not None and np.size(Z):
+            Z = np.asarray(Z, float).reshape(n, -1)
+            cols += [Z[:, j] for j in range(Z.shape[1])]
+        A = np.column_stack(cols)
+        self.ok = np.all(np.isfinite(A), axis=1)
+        A = A[self.ok]
+        scale = np.sqrt(np.mean(A ** 2, axis=0))
+        A = A[:, scale > 0] / scale[scale > 0]
+        u, sv, _ = np.linalg.svd(A, full_matrices=False)
+        keep = sv > 1e-9 * sv[0] if len(sv) else np.zeros(0, bool)
+        self.Q = u[:, keep]
+
+    def __call__(self, r: np.ndarray) -> np.ndarray | None:
+        """``r`` with its projection removed; ``None`` when (almost) nothing is left."""
+        r = np.asarray(r, float)
+        ok = self.ok & np.isfinite(r)
+        if ok.sum() < 5:
+            return None
+        out = np.full_like(r, np.nan)
+        rr = np.where(self.ok & np.isfinite(r), r, 0.0)[self.ok]
+        res = rr - self.Q @ (self.Q.T @ rr)
+        v0 = np.var(r[ok])
+        if v0 <= 0 or np.var(res) <= PARTIAL_TOL * v0:
+            return None
+        out[self.ok] = res
+        out[~np.isfinite(r)] = np.nan
+        return out
+
+
+#: a regressor whose variance left after partialling is below this share of its own
+#: variance is absorbed by the existing terms of the equation (not testable there)
+PARTIAL_TOL = 1e-6
+
+
 def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
            input_names: Sequence[str], output_names: Sequence[str],
            process_std: Mapping[str, float] | None = None,
            measurement_std: Mapping[str, float] | None = None,
            alpha: float = ALPHA_LOCATE, min_share: float = 0.02,
-           window_s: float = 1.0) -> Evidence:
+           window_s: float = 1.0,
+           nuisance: Mapping[str, np.ndarray] | None = None) -> Evidence:
     """Locate mismatches; see the module docstring for the statistics.
 
     Args:
@@ -625,6 +687,15 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         alpha: significance for flagging (after Bonferroni within each target).
         min_share: minimum share of residual variance a structure must explain to be flagged.
         window_s: width of the moving-RMS window.
+        nuisance: per state, the directions its existing terms can already move the
+            drift, an ``(n, k)`` array aligned with the equation errors (records
+            concatenated, last sample of each dropped), e.g. the sensitivities
+            ``∂f_s/∂θ_j`` of the free parameters along the smoothed path. Every
+            regressor and the equation error are then tested as *partial*
+            correlations given them (added-variable test): a term collinear with
+            the model's own terms (``α̇ ≈ Z_α α + q + Z_δ δ`` against ``M_α, M_q,
+            M_δ``) is tested for the part the refit could not absorb. ``None``:
+            plain correlations.
     """
     process_std = dict(process_std or {})
     measurement_std = dict(measurement_std or {})
@@ -652,13 +723,20 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         g = process_std.get(s)
         level = g / math.sqrt(dt) if g is not None and g > 0 else _robust_level(e)
         own = {k: v for k, v in reg.items() if k != f"xdot:{s}"}
-        tests = sorted((corr_test(e, v, seg_s, name=k) for k, v in own.items()),
+        e_t = e
+        if nuisance is not None and nuisance.get(s) is not None:
+            part = _Partial(nuisance[s], len(e))
+            e_t = part(e)
+            if e_t is None:
+                e_t = e
+            own = {k: r for k, r in ((k, part(v)) for k, v in own.items()) if r is not None}
+        tests = sorted((corr_test(e_t, v, seg_s, name=k) for k, v in own.items()),
                        key=lambda r: r.p)
         lb = ljung_box(e, seg_s)
         lf = lowfreq_ratio(e, seg_s)
         sx = float(np.nanstd(X[:, j]))
         intensity = (g * math.sqrt(max(total_time, dt)) / sx) if (g and sx > 0) else float("nan")
-        selected, share = _stepwise(e, own, seg_s, alpha)
+        selected, share = _stepwise(e_t, own, seg_s, alpha)
         flagged = bool(selected) and share >= min_share
         wins = []
         for rec, sg in zip(records, seg_s):

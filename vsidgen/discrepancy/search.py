@@ -382,13 +382,47 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     return out
 
 
+def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
+    """Per state, ``∂f_s/∂θ_j`` of the free parameters along the smoothed path.
+
+    Rows align with locate's equation errors (records concatenated, the last sample of
+    each dropped); columns that are zero everywhere (parameters absent from ``f_s``) are
+    dropped. These are the directions in which a refit of the existing parameters can
+    move the drift, i.e. what a new term must *not* be collinear with to be identifiable.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from ..simulate import theta_vector
+
+    m = st.model
+    free = [i for i, p in enumerate(m.parameters) if not p.fixed]
+    if not free:
+        return {}
+    p = jnp.asarray(theta_vector(m, st.fit.theta))
+    jac = jax.jit(jax.vmap(jax.jacfwd(m.drift, argnums=2), in_axes=(0, 0, None)))
+    blocks = []
+    for sig, rec in zip(st.signals, st.records):
+        X = jnp.asarray(np.asarray(sig.x_smooth, float)[:-1])
+        U = jnp.asarray(np.asarray(rec.u, float).reshape(len(sig.t), -1)[:-1])
+        blocks.append(np.asarray(jac(X, U, p))[:, :, free])
+    J = np.concatenate(blocks, axis=0)            # (n, nx, n_free)
+    out = {}
+    for j, s in enumerate(m.state_names):
+        cols = J[:, j, :]
+        nz = np.any(np.abs(cols) > 0, axis=0) & np.all(np.isfinite(cols), axis=0)
+        out[s] = cols[:, nz]
+    return out
+
+
 def locate_state(st: FitState) -> Evidence:
-    """Run :func:`~.locate.locate` on a fitted model's estimation signals."""
+    """Run :func:`~.locate.locate` on a fitted model's estimation signals, testing every
+    equation-error regressor for what the model's own free terms cannot absorb."""
     m = st.model
     recs = [LocateRecord.from_signals(s, r.u) for s, r in zip(st.signals, st.records)]
     return locate(recs, state_names=m.state_names, input_names=m.input_names,
                   output_names=m.output_names, process_std=st.fit.process_std,
-                  measurement_std=st.fit.measurement_std)
+                  measurement_std=st.fit.measurement_std, nuisance=drift_sensitivities(st))
 
 
 def model_info_of(st: FitState) -> ModelInfo:
