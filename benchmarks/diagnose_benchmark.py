@@ -15,7 +15,8 @@ truth, 2ΔELBO of the first finding, false positives, outcome. Outcomes: ``ok``
 (true effect named first, nothing else found; a no-effect case: nothing found),
 ``ambiguous`` (a different effect explains the data within the ambiguity margin of
 the first finding — reported by diagnose as ``alternatives`` — and the true effect
-is the first or one of the alternatives), ``wrong`` (another effect named),
+is the first or one of the alternatives), ``spurious`` (true effect named first, but a later
+round accepted another effect as well), ``wrong`` (another effect named),
 ``missed`` (nothing found), ``false positive`` (a no-effect case with a finding).
 """
 
@@ -219,6 +220,8 @@ def outcome(case_key: str | None, findings) -> str:
     alts = {a["effect"] for a in first.get("alternatives") or []}
     other = alts - {first["effect"]}
     if first["effect"] == true_effect:
+        if any(f["effect"] != true_effect for f in findings[1:]):
+            return "spurious"
         return "ambiguous" if other else "ok"
     return "ambiguous" if true_effect in alts else "wrong"
 
