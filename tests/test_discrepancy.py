@@ -551,3 +551,21 @@ def test_locate_partial_correlation_finds_collinear_alphadot_term():
     info = model_info(ATTAS, dt=DT)
     ranked = rank_candidates(info, part, registered_effects(), max_candidates=3, min_score=1.0)
     assert ranked[0][1].key == "unsteady_aero:q:alpha"
+
+
+def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
+    """An unconverged refit far above its threshold is neither accepted nor ruled out: the
+    conclusion must say INCONCLUSIVE (it used to say the mismatch was turbulence)."""
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    weak = {"key": "time_skew:q", "statistic": 3.0, "threshold": 13.6, "converged": True}
+    strong = {"key": "unmodelled_wind:alpha", "statistic": 6627.4, "threshold": 13.6,
+              "converged": False, "status": "stopped: iteration limit 400 reached"}
+    text = conclusion_text([], [{"round": 1, "trials": [weak, strong]}], alpha=0.01,
+                           validated=False, final_spec="x.yaml")
+    assert text.startswith("INCONCLUSIVE") and "unmodelled_wind:alpha" in text
+    assert "turbulence" not in text and "--max-iter" in text
+    quiet = conclusion_text([], [{"round": 1, "trials": [weak, dict(strong, statistic=5.0)]}],
+                            alpha=0.01, validated=True, final_spec="x.yaml")
+    assert quiet.startswith("No significant discrepancy") and "validation" in quiet
+    assert "did not converge" in quiet            # the weak unconverged refit is still named

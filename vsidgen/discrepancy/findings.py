@@ -73,6 +73,59 @@ def _records(st) -> dict:
             "validation": [info(r) for r in st.vrecords]}
 
 
+def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
+                    final_spec, base_converged: bool = True, base_status: str = "") -> str:
+    """The plain-words conclusion of findings.json (pure: findings and round records only)."""
+    if findings:
+        conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
+                      f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
+                      + f". Final augmented spec: {final_spec}.")
+        for f in findings:
+            if f["alternatives"]:
+                conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
+                               f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "
+                               "clearly better than " + ", ".join(
+                                   f"{a['key']} ({a['statistic']:.4g})" for a in f["alternatives"])
+                               + " — the data do not separate these explanations; an engineer "
+                                 "must judge the label (or a maneuver that separates them is "
+                                 "needed).")
+    else:
+        conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
+                      f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
+                      + (" and on the validation records" if validated else "")
+                      + ". The model is kept as it is; the residual mismatch is consistent with "
+                        "the estimated turbulence (process noise) and sensor noise.")
+    tried = [t for r in rounds for t in r.get("trials", [])]
+    val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
+    unconv = [t["key"] for t in tried if t.get("converged") is False]
+    strong = [t for t in tried if t.get("converged") is False
+              and isinstance(t.get("statistic"), (int, float))
+              and isinstance(t.get("threshold"), (int, float))
+              and t["statistic"] > t["threshold"]]
+    if not findings and strong:
+        # an unconverged refit above its threshold is neither accepted nor ruled out: do not
+        # call the mismatch turbulence
+        conclusion = ("INCONCLUSIVE: no effect was accepted, but the refit of "
+                      + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g} > threshold "
+                                  f"{t['threshold']:.4g}, {t.get('status') or 'not converged'})"
+                                  for t in strong)
+                      + " raised the ELBO beyond its threshold without converging, so that effect "
+                        "can be neither accepted nor ruled out; rerun with a larger --max-iter "
+                        "(e.g. 500), restricted to it with --effects.")
+        unconv = [k for k in unconv if k not in {t["key"] for t in strong}]
+    if val_rej:
+        conclusion += (" Significant on the estimation records but rejected because the validation "
+                       "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
+    if unconv:
+        conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
+                       "candidates): " + ", ".join(unconv) + ".")
+    if not base_converged:
+        conclusion = ("INCONCLUSIVE: the base fit did not converge "
+                      f"({base_status}); candidates are not accepted against an "
+                      "unconverged base ELBO. " + conclusion)
+    return conclusion
+
+
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options) -> dict:
     """The findings.json mapping (see the module docstring)."""
@@ -118,38 +171,10 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
             "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
             "alternatives": [a.alternative_json() for a in trial.alternatives],
             "spec": str(trial.spec_path)})
-    if findings:
-        conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
-                      f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
-                      + f". Final augmented spec: {final.spec_path}.")
-        for f in findings:
-            if f["alternatives"]:
-                conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
-                               f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "
-                               "clearly better than " + ", ".join(
-                                   f"{a['key']} ({a['statistic']:.4g})" for a in f["alternatives"])
-                               + " — the data do not separate these explanations; an engineer "
-                                 "must judge the label (or a maneuver that separates them is "
-                                 "needed).")
-    else:
-        conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
-                      f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
-                      + (" and on the validation records" if base.vrecords else "")
-                      + ". The model is kept as it is; the residual mismatch is consistent with "
-                        "the estimated turbulence (process noise) and sensor noise.")
-    tried = [t for r in rounds for t in r.get("trials", [])]
-    val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
-    unconv = [t["key"] for t in tried if t.get("converged") is False]
-    if val_rej:
-        conclusion += (" Significant on the estimation records but rejected because the validation "
-                       "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
-    if unconv:
-        conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
-                       "candidates): " + ", ".join(unconv) + ".")
-    if not base.fit.converged:
-        conclusion = ("INCONCLUSIVE: the base fit did not converge "
-                      f"({base.fit.status}); candidates are not accepted against an "
-                      "unconverged base ELBO. " + conclusion)
+    conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
+                                 final_spec=final.spec_path,
+                                 base_converged=bool(base.fit.converged),
+                                 base_status=base.fit.status)
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
