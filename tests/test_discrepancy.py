@@ -569,3 +569,6 @@ def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
                             alpha=0.01, validated=True, final_spec="x.yaml")
     assert quiet.startswith("No significant discrepancy") and "validation" in quiet
     assert "did not converge" in quiet            # the weak unconverged refit is still named
+    both = conclusion_text([], [{"round": 1, "trials": [strong]}], alpha=0.01, validated=False,
+                           final_spec="x.yaml", base_converged=False, base_status="stalled")
+    assert both.count("INCONCLUSIVE") == 1 and "base fit did not converge (stalled)" in both

@@ -122,7 +122,7 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     if not base_converged:
         conclusion = ("INCONCLUSIVE: the base fit did not converge "
                       f"({base_status}); candidates are not accepted against an "
-                      "unconverged base ELBO. " + conclusion)
+                      "unconverged base ELBO. " + conclusion.removeprefix("INCONCLUSIVE: "))
     return conclusion
 
 
