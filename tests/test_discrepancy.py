@@ -572,3 +572,4 @@ def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
     both = conclusion_text([], [{"round": 1, "trials": [strong]}], alpha=0.01, validated=False,
                            final_spec="x.yaml", base_converged=False, base_status="stalled")
     assert both.count("INCONCLUSIVE") == 1 and "base fit did not converge (stalled)" in both
+    assert "ELBO. No effect was accepted" in both

@@ -73,6 +73,10 @@ def _records(st) -> dict:
             "validation": [info(r) for r in st.vrecords]}
 
 
+def _capital(text: str) -> str:
+    return text[:1].upper() + text[1:]
+
+
 def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
                     final_spec, base_converged: bool = True, base_status: str = "") -> str:
     """The plain-words conclusion of findings.json (pure: findings and round records only)."""
@@ -122,7 +126,7 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     if not base_converged:
         conclusion = ("INCONCLUSIVE: the base fit did not converge "
                       f"({base_status}); candidates are not accepted against an "
-                      "unconverged base ELBO. " + conclusion.removeprefix("INCONCLUSIVE: "))
+                      "unconverged base ELBO. " + _capital(conclusion.removeprefix("INCONCLUSIVE: ")))
     return conclusion
 
 
