@@ -187,22 +187,18 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
                  det_std: float) -> dict:
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
     import jax.numpy as jnp
-    import yaml
 
     from ..estimator.core import NoiseMap, ThetaMap, get_objective, get_transition, make_cfg
     from ..estimator.core import record_data
     from ..model import load_model
     from .refit import _noise_of, _noise_w, stage0_start
-    from .search import _warm_parameters
+    from .search import _warm_parameters, write_spec
 
     d, bnames = batch_spec_dict(cands, current.spec_path, name=name, path=path, info=info)
     params = _warm_parameters(current)
     params.update(d.get("parameters") or {})
     d["parameters"] = params
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("# vsidgen diagnose score-test batch\n"
-                    + yaml.safe_dump(d, sort_keys=False, width=100, allow_unicode=True),
-                    encoding="utf-8")
+    write_spec(path, "vsidgen diagnose score-test batch", d)
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
     base_fit = current.fit

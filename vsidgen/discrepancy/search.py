@@ -425,6 +425,40 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
 PROJECTED_TOL = 0.05
 
 
+def write_spec(path: pathlib.Path, header: str, d: dict) -> pathlib.Path:
+    """Write a generated spec mapping ``d`` as YAML under a ``# header`` comment line."""
+    import yaml
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f"# {header}\n" + yaml.safe_dump(d, sort_keys=False, width=100,
+                                                     allow_unicode=True), encoding="utf-8")
+    return path
+
+
+def _extends(spec_path, path: pathlib.Path) -> str:
+    """``extends:`` text of a spec written at ``path`` that extends ``spec_path``."""
+    import os
+    return os.path.relpath(pathlib.Path(spec_path).resolve(), path.resolve().parent)
+
+
+def _refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
+                iterations: int, max_iter: int) -> FitState:
+    """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
+    and assumed density (the same state layout) and the spec's parameter initial values."""
+    from ..estimator import fit
+    from ..model import load_model
+    from .refit import REFIT_DETERMINISTIC_STD as DET, _noise_of, _noise_w, _ns, _z0
+
+    m = load_model(path, generated_dir=generated_dir)
+    records = list(current.records)
+    z, _ = _z0(m)
+    ps, od, ms = _noise_of(source.fit, source.model)
+    s0 = np.concatenate([z, _noise_w(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
+    res = fit(m, records, options=_diag_options(iterations, warm_start=_ns(
+        {"s": s0, "records": source.fit.decision["records"]})))
+    return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
+
+
 def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str, *,
                     generated_dir, max_iter: int) -> FitState:
     """The *current* model refitted from a candidate's optimum, its new terms removed.
@@ -440,36 +474,16 @@ def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str
     start. When it ends above the current ELBO, the current model has a better optimum,
     which becomes the reference of every candidate of the round.
     """
-    import os
-
-    import yaml
-
-    from ..estimator import fit
-    from ..model import load_model
-    from .refit import REFIT_DETERMINISTIC_STD as DET, _noise_of, _noise_w, _ns, _z0
-
-    st = t.state
-    params = _warm_parameters(st)
+    params = _warm_parameters(t.state)
     for q in t.candidate.parameters:
         params[q.name].update(initial=float(q.initial), fixed=True)
-    d = {"name": name,
-         "description": f"{t.candidate.key} with its new terms at their nesting values "
-                        "(the current model), started at the candidate's optimum",
-         "extends": os.path.relpath(pathlib.Path(t.spec_path).resolve(), path.resolve().parent),
-         "parameters": params}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"# vsidgen diagnose: projected refit of {t.candidate.key}\n"
-                    + yaml.safe_dump(d, sort_keys=False, width=100, allow_unicode=True),
-                    encoding="utf-8")
-    m = load_model(path, generated_dir=generated_dir)
-    records = list(current.records)
-    z, _ = _z0(m)
-    ps, od, ms = _noise_of(st.fit, st.model)
-    s0 = np.concatenate([z, _noise_w(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=_diag_options(2 * max_iter,
-                                                warm_start=_ns({"s": s0,
-                                                                "records": st.fit.decision["records"]})))
-    return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
+    write_spec(path, f"vsidgen diagnose: projected refit of {t.candidate.key}",
+               {"name": name,
+                "description": f"{t.candidate.key} with its new terms at their nesting values "
+                               "(the current model), started at the candidate's optimum",
+                "extends": _extends(t.spec_path, path), "parameters": params})
+    return _refit_warm(path, t.state, current, generated_dir=generated_dir,
+                       iterations=2 * max_iter, max_iter=max_iter)
 
 
 def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *,
@@ -481,14 +495,6 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
     stops at once): the next round's candidates extend a spec without the removed
     candidate's zeroed terms.
     """
-    import os
-
-    import yaml
-
-    from ..estimator import fit
-    from ..model import load_model
-    from .refit import REFIT_DETERMINISTIC_STD as DET, _noise_of, _noise_w, _ns, _z0
-
     est = dict(zip(better.model.parameter_names, map(float, better.fit.theta)))
     params = _warm_parameters(current)
     for k, v in params.items():
@@ -496,22 +502,13 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
             lo, hi = (v.get("bounds") or [None, None])
             x = est[k] if lo is None else max(est[k], lo)
             v["initial"] = x if hi is None else min(x, hi)
-    d = {"name": name,
-         "description": "the current model at a better optimum of its own parameters and noise",
-         "extends": os.path.relpath(pathlib.Path(current.spec_path).resolve(), path.resolve().parent),
-         "parameters": params}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("# vsidgen diagnose: the current model re-estimated (better optimum)\n"
-                    + yaml.safe_dump(d, sort_keys=False, width=100, allow_unicode=True),
-                    encoding="utf-8")
-    m = load_model(path, generated_dir=generated_dir)
-    records = list(current.records)
-    z, _ = _z0(m)
-    ps, od, ms = _noise_of(better.fit, better.model)
-    s0 = np.concatenate([z, _noise_w(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=_diag_options(max_iter, warm_start=_ns(
-        {"s": s0, "records": better.fit.decision["records"]})))
-    return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
+    write_spec(path, "vsidgen diagnose: the current model re-estimated (better optimum)",
+               {"name": name,
+                "description": "the current model at a better optimum of its own parameters "
+                               "and noise",
+                "extends": _extends(current.spec_path, path), "parameters": params})
+    return _refit_warm(path, better, current, generated_dir=generated_dir,
+                       iterations=max_iter, max_iter=max_iter)
 
 
 def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> list["Trial"]:
@@ -587,7 +584,6 @@ def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.P
     they are fixed (stage 1 of the refit); ``new_initial``: initial values of the
     new parameters (stage 2 starts from stage 1's estimates).
     """
-    import yaml
 
     d = c.spec_dict(st.spec_path, name=name, candidate_path=path, info=info)
     if warm:
@@ -607,11 +603,8 @@ def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.P
                 v["initial"] = x
         params.update(new)
         d["parameters"] = params
-    text = (f"# vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; target: {c.target}\n"
-            + yaml.safe_dump(d, sort_keys=False, width=100, allow_unicode=True))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
-    return path
+    return write_spec(path, f"vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; "
+                            f"target: {c.target}", d)
 
 
 def lr_test(elbo0: float, elbo1: float, dof: int) -> tuple[float, float]:
