@@ -655,7 +655,7 @@ class _Partial:
         if ok.sum() < 5:
             return None
         out = np.full_like(r, np.nan)
-        rr = np.where(self.ok & np.isfinite(r), r, 0.0)[self.ok]
+        rr = np.where(ok, r, 0.0)[self.ok]
         res = rr - self.Q @ (self.Q.T @ rr)
         v0 = np.var(r[ok])
         if v0 <= 0 or np.var(res) <= PARTIAL_TOL * v0:

@@ -499,9 +499,7 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
     params = _warm_parameters(current)
     for k, v in params.items():
         if not v.get("fixed") and k in est and math.isfinite(est[k]):
-            lo, hi = (v.get("bounds") or [None, None])
-            x = est[k] if lo is None else max(est[k], lo)
-            v["initial"] = x if hi is None else min(x, hi)
+            v["initial"] = _clip(est[k], v.get("bounds"))
     write_spec(path, "vsidgen diagnose: the current model re-estimated (better optimum)",
                {"name": name,
                 "description": "the current model at a better optimum of its own parameters "
@@ -518,11 +516,10 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         if t.state is None or t.refit is None:
             out.append(t)
             continue
-        ro = t.refit
-        h0 = ro.x0_entropy if t.candidate.states else 0.0
-        ro.elbo_ref = max(ro.elbo_ref, better.elbo + h0)
+        h0 = t.refit.x0_entropy if t.candidate.states else 0.0
+        ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
-        out.append(dataclasses.replace(t, statistic=lam, p_value=p,
+        out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
                                        statistic_vs_base=2.0 * (t.state.elbo - better.elbo)))
     return out
 
@@ -553,6 +550,13 @@ def model_info_of(st: FitState) -> ModelInfo:
     return dataclasses.replace(info, breaks=breaks)
 
 
+def _clip(x: float, bounds) -> float:
+    """``x`` clipped to a parameter's ``[lower, upper]`` bounds (``None`` = unbounded)."""
+    lo, hi = bounds or (None, None)
+    x = float(x) if lo is None else max(float(x), lo)
+    return x if hi is None else min(x, hi)
+
+
 def _warm_parameters(st: FitState) -> dict:
     """Parameter entries of the current model with the estimates as initial values."""
     out = {}
@@ -562,9 +566,7 @@ def _warm_parameters(st: FitState) -> dict:
                              "initial": float(p.initial if p.fixed else v)}
         if p.lower is not None or p.upper is not None:
             d["bounds"] = [p.lower, p.upper]
-            lo = -np.inf if p.lower is None else p.lower
-            hi = np.inf if p.upper is None else p.upper
-            d["initial"] = float(min(max(d["initial"], lo), hi))
+            d["initial"] = _clip(d["initial"], d["bounds"])
         if p.fixed:
             d["fixed"] = True
         out[p.name] = d
@@ -594,13 +596,7 @@ def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.P
         new = d.get("parameters") or {}
         for k, v in new.items():
             if new_initial and k in new_initial and math.isfinite(new_initial[k]) and not v.get("fixed"):
-                x = float(new_initial[k])
-                lo, hi = (v.get("bounds") or [None, None])
-                if lo is not None:
-                    x = max(x, lo)
-                if hi is not None:
-                    x = min(x, hi)
-                v["initial"] = x
+                v["initial"] = _clip(new_initial[k], v.get("bounds"))
         params.update(new)
         d["parameters"] = params
     return write_spec(path, f"vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; "
