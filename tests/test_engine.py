@@ -80,3 +80,18 @@ def test_local_cluster_results_failures_and_dead_workers(tmp_path):
         slow = eng.run(_sleep, [("s1", (30.0,)), ("s2", (0.0,))], deadline=t0 + 3.0)
         assert time.monotonic() - t0 < 20.0
         assert slow[0].status is TaskStatus.CANCELLED and slow[1].status is TaskStatus.DONE
+
+
+def test_worker_env_single_thread_and_shared_compilation_cache(monkeypatch, tmp_path):
+    import jax
+
+    from vsidgen.engine import worker_env
+
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    try:
+        env = worker_env()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+    assert env["OMP_NUM_THREADS"] == "1" and "intra_op_parallelism_threads=1" in env["XLA_FLAGS"]
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path)

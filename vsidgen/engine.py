@@ -65,6 +65,30 @@ class TaskOutcome:
     wall_s: float = 0.0        # submission (or start, serially) to completion, seconds
 
 
+def worker_env() -> dict[str, str]:
+    """Environment of local worker processes: :data:`WORKER_ENV`, this process's
+    ``PYTHONPATH``, and its persistent JAX compilation cache (the ``jax`` config when jax is
+    imported, else ``$JAX_COMPILATION_CACHE_DIR``), so workers share compiled code."""
+    import sys
+
+    env = dict(WORKER_ENV)
+    for k in ("PYTHONPATH", "JAX_COMPILATION_CACHE_DIR",
+              "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "JAX_ENABLE_X64"):
+        if k in os.environ:
+            env[k] = os.environ[k]
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        try:
+            cache = jax.config.jax_compilation_cache_dir
+            if cache:
+                env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
+                env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(
+                    jax.config.jax_persistent_cache_min_compile_time_secs)
+        except AttributeError:  # pragma: no cover - older jax
+            pass
+    return env
+
+
 def default_workers() -> int:
     """Cores this process may use (``os.sched_getaffinity`` where available)."""
     try:
@@ -130,11 +154,7 @@ class Engine:
             if self.scheduler is not None:
                 self.client = Client(self.scheduler, timeout="20s")
             else:
-                env = dict(WORKER_ENV)
-                for k in ("PYTHONPATH", "JAX_COMPILATION_CACHE_DIR",
-                          "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "JAX_ENABLE_X64"):
-                    if k in os.environ:
-                        env[k] = os.environ[k]
+                env = worker_env()
                 # one task at a time per worker process (saturation 1): a dying worker
                 # takes only the task it was running with it
                 with dask.config.set({"distributed.scheduler.allowed-failures":
