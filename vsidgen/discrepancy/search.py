@@ -708,10 +708,13 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
 
 def _refit_task(c, current, info, path, name, generated_dir, max_iter):
     """One candidate's staged refit (runs on an engine worker); (RefitOutcome, messages)."""
+    from .refit import compile_seconds
+
     msgs: list[str] = []
+    c0 = compile_seconds()
     ro = staged_refit(c, current, info, path, name, generated_dir=generated_dir,
                       max_iter=max_iter, progress=msgs.append)
-    return ro, msgs
+    return dataclasses.replace(ro, compile_s=compile_seconds() - c0), msgs
 
 
 def _projected_task(t, current, path, name, generated_dir, max_iter):
@@ -804,13 +807,22 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     unfinished: dict | None = None
     current = evidence0 = evidence = None
 
+    from .refit import compile_seconds
+
+    compile0 = compile_seconds()
+
     def document(stop: StopReason) -> dict:
-        return build_document(base=base, final=current, accepted=accepted, rounds=rounds,
+        doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
                               evidence=evidence0, final_evidence=evidence, alpha=alpha,
                               version=__version__, wall_time_s=time.perf_counter() - t_start,
                               out=out, options=options,
                               stop={"reason": stop.value, "time_limit_s": time_limit},
                               unfinished_round=unfinished)
+        refit_c = [t["refit"].get("compile_s") for r in rounds for t in r.get("trials", ())
+                   if t.get("refit")]
+        doc["compile_s"] = {"this_process": round(compile_seconds() - compile0, 2),
+                            "refits": round(sum(c for c in refit_c if c is not None), 2)}
+        return doc
 
     def checkpoint(stop: StopReason, *, report: bool = True) -> dict:
         doc = document(stop)
@@ -876,7 +888,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                             _say(progress, f"    [{c.key}] {m.strip()}")
                         _say(progress, f"round {rnd}: {c.key}: ELBO {t.state.elbo:.6g}, 2ΔELBO "
                                        f"vs nested reference {t.statistic:.4g}, "
-                                       f"{conv_label(t.state.fit)} ({oc.wall_s:.0f} s)")
+                                       f"{conv_label(t.state.fit)} ({oc.wall_s:.0f} s, "
+                                       f"compile {t.refit.compile_s:.0f} s)")
                     else:
                         _say(progress, f"round {rnd}: {c.key}: {oc.status.value.upper()} "
                                        f"({oc.error})")
