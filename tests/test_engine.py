@@ -95,3 +95,14 @@ def test_worker_env_single_thread_and_shared_compilation_cache(monkeypatch, tmp_
         jax.config.update("jax_compilation_cache_dir", old)
     assert env["OMP_NUM_THREADS"] == "1" and "intra_op_parallelism_threads=1" in env["XLA_FLAGS"]
     assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path)
+
+
+def test_existing_cluster_by_scheduler_address():
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as lc:
+        with Engine(scheduler=lc.scheduler_address) as eng:
+            assert not eng.serial and lc.scheduler_address in eng.describe()
+            out = eng.run(_square, [("a", (5,)), ("b", (6,))])
+            assert [o.value for o in out] == [25, 36]
