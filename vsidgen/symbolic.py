@@ -33,7 +33,24 @@ from . import units as _units
 
 GENERATOR_VERSION = "0.1.1"
 
-_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+#: longest name (model, state, input, output, parameter, constant, definition) accepted
+MAX_NAME_LENGTH = 64
+
+#: names the generated module defines or imports (no spec name may equal one of them;
+#: every other name the module uses itself starts with ``_``, which spec names cannot)
+GENERATED_MODULE_NAMES = frozenset({
+    "jnp", "drift", "output", "drift_jac_x", "drift_jac_u", "drift_jac_p", "output_jac_x",
+    "output_jac_u", "output_jac_p", "STATES", "INPUTS", "OUTPUTS", "PARAMETERS", "SPEC_PATH",
+    "SPEC_HASH", "GENERATOR_VERSION",
+})
+
+
+def valid_name(name: str) -> bool:
+    """True for an ASCII letter followed by letters, digits and ``_``, at most
+    :data:`MAX_NAME_LENGTH` characters (the whole string: no trailing line break)."""
+    return (isinstance(name, str) and len(name) <= MAX_NAME_LENGTH
+            and _NAME_RE.fullmatch(name) is not None)
 
 __all__ = ["GENERATOR_VERSION", "SymbolicModel", "Variable", "Constant", "Parameter",
            "ProcessNoiseSpec", "MeasurementNoiseSpec", "ChannelMap", "DataSpec",
@@ -113,13 +130,25 @@ def _sym(name: str) -> sympy.Symbol:
 
 
 def _check_name(name: str, node: YNode, what: str) -> None:
-    if not _NAME_RE.match(name):
-        raise SpecError(f"invalid {what} name `{name}`", **node.key_loc,
+    if not valid_name(name):
+        raise SpecError(f"invalid {what} name {_show_name(name)}", **node.key_loc,
                         text=_key_text(node),
-                        hint="names start with a letter and contain only letters, digits and _")
+                        hint="names start with an ASCII letter and contain only letters, digits "
+                             f"and _ (at most {MAX_NAME_LENGTH} characters)")
+    if name in GENERATED_MODULE_NAMES:
+        raise SpecError(f"{what} name `{name}` is reserved by the generated module",
+                        **node.key_loc, text=_key_text(node),
+                        hint="choose another name (reserved: "
+                             + ", ".join(sorted(GENERATED_MODULE_NAMES)) + ")")
     if name in FUNCTIONS:
         raise SpecError(f"{what} name `{name}` is the name of a built-in function", **node.key_loc,
                         text=_key_text(node), hint="choose another name")
+
+
+def _show_name(name) -> str:
+    """A name for a message: repr-escaped (no line breaks), cut at 40 characters."""
+    shown = repr(str(name))[1:-1]
+    return "`" + (shown[:40] + "..." if len(shown) > 40 else shown) + "`"
 
 
 def _key_text(node: YNode) -> str:
@@ -171,9 +200,9 @@ def _unit_of(fields: dict, what: str):
 
 def _desc(fields: dict, what: str) -> str:
     node = fields.get("description")
-    if node is None or node.value is None:
+    if node is None or (node.kind == "scalar" and node.value is None):
         return ""
-    return str(node.value) if node.kind == "scalar" else node.string(f"description of {what}")
+    return node.string(f"description of {what}")
 
 
 def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
@@ -246,13 +275,14 @@ def _compile(path) -> SymbolicModel:
         raise SpecError("the spec has no `name`", **root_loc,
                         hint="add `name: mymodel` (the generated module is generated/<name>.py)")
     name = top["name"].string("`name`")
-    if not _NAME_RE.match(name):
-        raise SpecError(f"invalid model name `{name}`", **top["name"].loc,
+    if not valid_name(name):
+        raise SpecError(f"invalid model name {_show_name(name)}", **top["name"].loc,
                         text=top["name"].source_line(),
-                        hint="use letters, digits and _ (it becomes a Python module name)")
+                        hint="use an ASCII letter, then letters, digits and _, at most "
+                             f"{MAX_NAME_LENGTH} characters (it becomes a Python module name)")
     description = ""
     if "description" in top and top["description"].value is not None:
-        description = str(top["description"].value)
+        description = top["description"].string("`description`")
     method, substeps = "euler", 1
     if "integrator" in top:
         integ = keys_check(top["integrator"], ("method", "substeps"), "`integrator`")
@@ -320,7 +350,7 @@ def _compile(path) -> SymbolicModel:
         dims[_sym(nm)] = dim
         source = ""
         if "source" in fields and fields["source"].value is not None:
-            source = str(fields["source"].value)
+            source = fields["source"].string(f"source of constant `{nm}`")
         constants.append(Constant(nm, value, unit, source, _sym(nm)))
         const_nodes[nm] = node
 
