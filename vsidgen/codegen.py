@@ -144,7 +144,13 @@ class _Printer(JaxPrinter):
     def _print_Float(self, expr):
         return repr(float(expr))
 
+    def _print_Integer(self, expr):
+        # a Python int beyond 2**53 would overflow JAX's integer conversion
+        return str(int(expr)) if abs(int(expr)) <= 2**53 else repr(float(expr))
+
     def _print_Rational(self, expr):
+        if max(abs(expr.p), expr.q) > 2**53:
+            return repr(float(expr))
         return f"{expr.p}/{expr.q}"
 
     def _print_Half(self, expr):
