@@ -284,7 +284,10 @@ def _convert(node, path, src, parent_key, constructor, depth=0, budget=None) -> 
     try:
         value = constructor.construct_object(node, deep=True)
     except yaml.YAMLError as exc:
-        raise SpecError(f"invalid YAML value: {exc}", path=path, line=line, column=col) from None
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise SpecError(f"invalid YAML value: {problem}", path=path, line=line, column=col,
+                        text=_line_text(src, line),
+                        hint="vsidgen reads plain YAML: no language-specific tags") from None
     except Exception:
         value = node.value
     if not isinstance(value, (str, int, float, bool, type(None))):
