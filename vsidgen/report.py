@@ -128,6 +128,8 @@ def contained_file(results_dir: pathlib.Path, name: object, *, what: str) -> pat
         raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} leaves the "
                            "results directory ('..' is not allowed)")
     path = results_dir / text
+    if not os.path.lexists(path):
+        raise VsidgenError(f"{path}: error: {what} listed in results.json is missing")
     root = results_dir.resolve()
     try:
         real = path.resolve()
