@@ -227,6 +227,12 @@ def _cmd_simulate(args) -> int:
     if args.substeps is not None and args.substeps < 1:
         raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
 
+    rec = None
+    if args.inputs_from:
+        from .symbolic import compile_spec
+
+        rec = load_record(compile_spec(args.spec), args.inputs_from)
+
     _enable_compilation_cache()
 
     model = load_model(args.spec)
@@ -251,7 +257,6 @@ def _cmd_simulate(args) -> int:
     if args.inputs_from:
         if args.input:
             raise VsidgenError("give either --input generators or --inputs-from, not both")
-        rec = load_record(model, args.inputs_from)
         # the record's uniform grid (fit reads the same time column the same way): stamps
         # with an epoch offset carry rounding jitter that t_raw - t_raw[0] would keep
         t, u = np.arange(rec.n) * rec.dt, rec.u

@@ -143,11 +143,14 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     plan = plan_output_dir(out, overwrite=overwrite,
                            reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
     print_recovered(plan)
+    from .symbolic import compile_spec
+
+    symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
+    records = _unique_names([load_record(symbolic, p) for p in data])
+    vrecords = _unique_names([load_record(symbolic, p) for p in validate])
     model = load_model(spec, generated_dir=generated_dir)
     integrator = integrator or model.integrator
     substeps = int(substeps or model.substeps)
-    records = _unique_names([load_record(model, p) for p in data])
-    vrecords = _unique_names([load_record(model, p) for p in validate])
     t0 = time.perf_counter()
     options = FitOptions(integrator=integrator, substeps=substeps, max_iter=max_iter,
                          init_states=init_states, noise_start=noise_start, optimizer=optimizer,

@@ -740,6 +740,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         check_input_file(p, what="data file")
     plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
     print_recovered(plan)
+    from ..data import load_record
+    from ..symbolic import compile_spec
+
+    symbolic = compile_spec(spec)  # bad records are refused before any fit
+    for p in list(data) + list(validate):
+        load_record(symbolic, p)
     with results_in_place(plan, command="diagnose") as out:
         return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
                              max_candidates=max_candidates, alpha=alpha, min_score=min_score,
