@@ -775,7 +775,9 @@ def _finite_value(expr: sympy.Expr, values: Mapping) -> float | None:
 
 def read_first_row(csv_path) -> dict[str, float]:
     """Header and first data row of a CSV file as {column: value} (DataError on problems)."""
-    csv_path = pathlib.Path(csv_path)
+    from .limits import check_input_file
+
+    csv_path = check_input_file(csv_path, what="data file")
     try:
         with csv_path.open(newline="", encoding="utf-8") as fh:
             reader = csv.reader(fh)
