@@ -216,8 +216,6 @@ def _cmd_simulate(args) -> int:
     from .atomic import check_output_file
     from .data import load_record
     from .limits import check_input_file
-    from .model import load_model
-    from .simulate import parse_input_spec, simulate_to_csv
 
     reads = [args.spec] + [p for p in (args.inputs_from, args.params_from) if p]
     if args.inputs_from:
@@ -235,6 +233,8 @@ def _cmd_simulate(args) -> int:
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
     _enable_compilation_cache()
+    from .model import load_model
+    from .simulate import parse_input_spec, simulate_to_csv
 
     model = load_model(args.spec)
     theta = {}
