@@ -90,7 +90,8 @@ def test_module_api_and_renamed_locals(nonlinear):
     assert mod.SPEC_HASH == nonlinear.symbolic.source_hash
     assert mod.G0 == 9.80665
     src = pathlib.Path(mod.__file__).read_text()
-    assert "lambda_ = x[2]" in src and "p_ = u[1]" in src and "x_ = p[4]" in src
+    # spec names stay as written (p, x are not taken by the module); a keyword gets `_kw_`
+    assert "_kw_lambda = _x[2]" in src and "    p = _u[1]" in src and "    x = _p[4]" in src
     imports = [line for line in src.splitlines() if line.startswith(("import", "from"))]
     assert imports == ["import jax.numpy as jnp"]
     assert "spring = " in src  # definitions are readable named locals
