@@ -436,7 +436,8 @@ def _commit_in_place(tmp: pathlib.Path, plan: OutputPlan, command: str) -> None:
     for rel in sorted(plan.previous - set(new)):
         if rel not in plan.kept:
             _remove_entry(target / rel)
-    write_text_atomic(target / MANIFEST, _manifest_text(new, command=command, kept=plan.kept))
+    write_text_atomic(target / MANIFEST, _manifest_text(new, command=command,
+                                                        kept=plan.kept - set(new)))
 
 
 @contextlib.contextmanager

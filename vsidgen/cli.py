@@ -13,9 +13,8 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import os
 import sys
-
-import sympy
 
 from .errors import VsidgenError
 
@@ -102,6 +101,8 @@ def _unit(u) -> str:
 
 
 def _cmd_show(args) -> int:
+    import sympy
+
     from .symbolic import compile_spec
 
     m = compile_spec(args.spec)
@@ -215,8 +216,6 @@ def _cmd_simulate(args) -> int:
     from .atomic import check_output_file
     from .data import load_record
     from .limits import check_input_file
-    from .model import load_model
-    from .simulate import parse_input_spec, simulate_to_csv
 
     reads = [args.spec] + [p for p in (args.inputs_from, args.params_from) if p]
     if args.inputs_from:
@@ -234,6 +233,8 @@ def _cmd_simulate(args) -> int:
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
     _enable_compilation_cache()
+    from .model import load_model
+    from .simulate import parse_input_spec, simulate_to_csv
 
     model = load_model(args.spec)
     theta = {}
@@ -361,9 +362,13 @@ def _enable_compilation_cache() -> None:
     if not cache:
         return
     try:
+        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
+        if "jax" not in sys.modules:  # read by jax when it is imported (not before it is needed)
+            os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
+            os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+            return
         import jax
 
-        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     except (OSError, AttributeError, ValueError):  # read-only home, older jax: run uncached
@@ -462,7 +467,13 @@ COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_rep
             _add_diagnose]
 
 
-def make_parser() -> argparse.ArgumentParser:
+#: commands whose arguments parse without the diagnose parser (which imports scipy.stats)
+_LIGHT_COMMANDS = frozenset({"build", "check", "show", "simulate", "fit", "report"})
+
+
+def make_parser(*, light: bool = False) -> argparse.ArgumentParser:
+    """The argument parser; ``light`` lists ``diagnose`` without building its options
+    (for argv naming another command: it starts about a second faster)."""
     parser = argparse.ArgumentParser(
         prog="vsidgen",
         description="Aircraft system identification from YAML model specs: compile specs to JAX, "
@@ -470,13 +481,17 @@ def make_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in COMMANDS:
+        if light and add is _add_diagnose:
+            sub.add_parser("diagnose", help="find, explain and add physics the model leaves out")
+            continue
         add(sub)
     return parser
 
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 error, 130 interrupted)."""
-    parser = make_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = make_parser(light=bool(argv) and argv[0] in _LIGHT_COMMANDS)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)

@@ -18,7 +18,6 @@ from . import __version__
 from .codegen import display_path
 from .data import Record, load_record, write_csv
 from .errors import VsidgenError
-from .evaluation import evaluate
 from .model import Model, load_model
 from .atomic import plan_output_dir, print_recovered
 from .limits import check_input_file
@@ -79,6 +78,8 @@ def _unique_names(records: Sequence[Record]) -> list[Record]:
 
 
 def _evaluate_all(model, records, fit, *, integrator, substeps):
+    from .evaluation import evaluate  # imports jax: not needed to refuse bad arguments
+
     signals = []
     for rec, sm in zip(records, fit.smoothers):
         signals.append(evaluate(model, rec, fit.theta, mu=np.asarray(sm.mu), G=fit.G, R=fit.R,
@@ -130,8 +131,6 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     directory that is not a vsidgen results directory needs ``overwrite``, and
     even then only vsidgen's files in it are replaced).
     """
-    from .estimator import FitOptions, fit, smooth
-
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
     for p in list(data) + list(validate):
@@ -148,6 +147,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     records = _unique_names([load_record(symbolic, p) for p in data])
     vrecords = _unique_names([load_record(symbolic, p) for p in validate])
+    from .estimator import FitOptions, fit, smooth
+
     model = load_model(spec, generated_dir=generated_dir)
     integrator = integrator or model.integrator
     substeps = int(substeps or model.substeps)
