@@ -193,3 +193,15 @@ def test_parallel_refits_give_the_serial_findings(tmp_path):
         assert b["statistic"] == pytest.approx(a["statistic"], rel=1e-6, abs=1e-6)
         assert b["elbo"] == pytest.approx(a["elbo"], rel=1e-9)
     assert [f["key"] for f in s["findings"]] == [f["key"] for f in p["findings"]]
+
+
+def test_conclusion_when_every_refit_failed():
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    rounds = [{"trials": [{"key": "a", "error": "lost: worker died", "converged": None},
+                          {"key": "b", "error": "failed: ValueError: x", "converged": None}]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="s.yaml")
+    assert text.startswith("INCONCLUSIVE: no refit produced a result") and "a: lost" in text
+    rounds[0]["trials"].append({"key": "c", "error": None, "converged": True})
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="s.yaml")
+    assert text.startswith("No significant") and "failed (neither accepted nor ruled out): a, b" in text

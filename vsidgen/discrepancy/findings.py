@@ -121,6 +121,14 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                         "can be neither accepted nor ruled out; rerun with a larger --max-iter "
                         "(e.g. 500), restricted to it with --effects.")
         unconv = [k for k in unconv if k not in {t["key"] for t in strong}]
+    failed = [t["key"] for t in tried if t.get("error")]
+    if failed and not findings and len(failed) == len(tried):
+        conclusion = ("INCONCLUSIVE: no refit produced a result (" + ", ".join(
+            f"{t['key']}: {t['error']}" for t in tried if t.get("error"))
+            + "), so nothing was tested.")
+    elif failed:
+        conclusion += (" Refits that failed (neither accepted nor ruled out): "
+                       + ", ".join(failed) + ".")
     if val_rej:
         conclusion += (" Significant on the estimation records but rejected because the validation "
                        "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
@@ -349,7 +357,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         parts.append("</table>")
     for f in doc["findings"]:
         ev = f["evidence"]
-        parts.append(f"<h3>{f['rank']}. {e(f['title'])} — {e(f['target'])}</h3>"
+        parts.append(f"<h3>{e(str(f['rank']))}. {e(f['title'])} — {e(f['target'])}</h3>"
                      f"<p>{e(f['explanation'])}</p>")
         terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
                           for sect, d in f["added_terms"].items() for k, v in d.items())
@@ -360,8 +368,9 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                          for k, p in f["parameters"].items() if p.get("estimate") is not None)
         parts.append(f"<p><b>Estimates:</b> {e(ptxt)}</p>")
         parts.append(f"<p><b>Evidence:</b> ELBO {ev['elbo_before']:.6g} → {ev['elbo_after']:.6g}; "
-                     f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({ev['dof']}) threshold "
-                     f"{ev['threshold']:.4g} (α = {ev['alpha']}, {ev['n_candidates']} candidates, "
+                     f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({e(str(ev['dof']))}) threshold "
+                     f"{ev['threshold']:.4g} (α = {e(str(ev['alpha']))}, "
+                     f"{e(str(ev['n_candidates']))} candidates, "
                      f"Holm)</p>")
         if f.get("alternatives"):
             parts.append("<p><b>" + ("Ambiguous" if f.get("ambiguous") else "Form uncertain")

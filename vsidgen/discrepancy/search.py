@@ -53,7 +53,9 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
+from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
@@ -742,12 +744,16 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  effects_module=None, max_iter: int = 200, screen: bool = False,
                  time_limit: float | None = None, workers: int | None = 1,
                  scheduler: str | None = None,
-                 progress: Callable[[str], None] | None = None) -> DiagnoseResult:
+                 progress: Callable[[str], None] | None = None,
+                 overwrite: bool = False) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
     Writes ``out/findings.json``, ``out/diagnose.html`` (report section, also
     returned in the document), ``out/candidates/*.yaml`` (every refitted
-    candidate spec) and ``out/generated/`` (their compiled modules).
+    candidate spec) and ``out/generated/`` (their compiled modules), directly into
+    ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
+    checked before any computation, and a non-empty directory that is not a
+    vsidgen results directory needs ``overwrite`` (its other files are kept).
 
     Nothing found is lost: ``findings.json`` is rewritten (atomically) after every
     refit and ``diagnose.html`` after every round, with the accepted findings, the
@@ -788,9 +794,34 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         if bad:
             raise VsidgenError(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(sorted(known))}")
         catalogue = [e for e in catalogue if e.id in set(effects)]
+    if max_iter < 1:
+        raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
     engine = Engine(workers=workers, scheduler=scheduler)
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    for p in list(data) + list(validate):
+        check_input_file(p, what="data file")
+    plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
+    print_recovered(plan)
+    from ..data import load_record
+    from ..symbolic import compile_spec
+
+    symbolic = compile_spec(spec)  # bad records are refused before any fit
+    for p in list(data) + list(validate):
+        load_record(symbolic, p)
+    with results_in_place(plan, command="diagnose") as out:
+        return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
+                             max_candidates=max_candidates, alpha=alpha, min_score=min_score,
+                             catalogue=catalogue, max_iter=max_iter, screen=screen,
+                             progress=progress, version=__version__,
+                             build_document=build_document, write_findings=write_findings,
+                             time_limit=time_limit, engine=engine)
+
+
+def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
+                  catalogue, max_iter, screen, progress, version, build_document,
+                  write_findings, time_limit, engine) -> DiagnoseResult:
+    from ..engine import TaskStatus
+    from .findings import write_findings_json
+
     gen = out / "generated"
     t_start = time.perf_counter()
     deadline = None if time_limit is None else time.monotonic() + float(time_limit)
@@ -814,7 +845,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     def document(stop: StopReason) -> dict:
         doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
                               evidence=evidence0, final_evidence=evidence, alpha=alpha,
-                              version=__version__, wall_time_s=time.perf_counter() - t_start,
+                              version=version, wall_time_s=time.perf_counter() - t_start,
                               out=out, options=options,
                               stop={"reason": stop.value, "time_limit_s": time_limit},
                               unfinished_round=unfinished)
@@ -1079,6 +1110,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
                    help="refit on an existing dask cluster (e.g. tcp://host:8786; DIR must be "
                         "on a file system its workers share)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty DIR that is not a vsidgen results directory "
+                        "(only vsidgen's files are replaced; other files are kept)")
     p.set_defaults(handler=diagnose_command)
     return p
 
@@ -1121,7 +1155,8 @@ def diagnose_command(args) -> int:
                            alpha=args.alpha, min_score=args.min_score, effects=args.effects,
                            effects_module=args.effects_module, max_iter=args.max_iter,
                            screen=args.screen, time_limit=args.time_limit,
-                           workers=args.workers, scheduler=args.scheduler, progress=progress)
+                           workers=args.workers, scheduler=args.scheduler, progress=progress,
+                           overwrite=args.overwrite)
     if res.stop is not StopReason.COMPLETED:
         from .findings import stop_text
         print(stop_text(res.document["stop"], res.document["unfinished_round"],
