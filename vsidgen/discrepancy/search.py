@@ -1006,7 +1006,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 evidence = locate_state(current)
                 checkpoint(StopReason.RUNNING)
     except KeyboardInterrupt:
-        if base is not None:
+        if evidence0 is not None:          # the base fit and its locate step are done
             checkpoint(StopReason.INTERRUPTED)
             _say(progress, f"interrupted: {len(accepted)} accepted finding(s) and the unfinished "
                            f"round written to {out / 'findings.json'}")
