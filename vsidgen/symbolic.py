@@ -29,9 +29,11 @@ from .expr import FUNCTIONS, did_you_mean
 from .metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Parameter,
                        ProcessNoiseSpec, Variable)
 from .spec import RawSpec, YNode, keys_check, load_spec
+from . import __version__
 from . import units as _units
 
-GENERATOR_VERSION = "0.1.1"
+#: the generated modules record it; a new vsidgen version rebuilds them
+GENERATOR_VERSION = __version__
 
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 #: most nodes of one drift/observation equation with its definitions substituted (the
