@@ -103,6 +103,7 @@ def _unit(u) -> str:
 def _cmd_show(args) -> int:
     import sympy
 
+    from .errors import printable
     from .symbolic import compile_spec
 
     m = compile_spec(args.spec)
@@ -118,16 +119,18 @@ def _cmd_show(args) -> int:
             print(f"  {sym(o.name)}_{{\\mathrm{{meas}}}} &= {sympy.latex(e)}{end}")
         print(r"\end{align}")
         return 0
-    print(f"model {m.name}: {m.description}".rstrip(": "))
+    # spec text is shown with non-printable characters escaped (no terminal control sequences)
+    print(f"model {m.name}: {printable(m.description)}".rstrip(": "))
     print(f"integrator: {m.integrator}, substeps {m.substeps}")
     for title, items in (("states", m.states), ("inputs", m.inputs), ("outputs", m.outputs)):
         print(f"{title}:")
         for v in items:
-            print(f"  {v.name}{_unit(v.unit)}{'  ' + v.description if v.description else ''}")
+            print(f"  {v.name}{_unit(v.unit)}{'  ' + printable(v.description) if v.description else ''}")
     if m.constants:
         print("constants:")
         for c in m.constants:
-            print(f"  {c.name} = {c.value:g}{_unit(c.unit)}{'  (' + c.source + ')' if c.source else ''}")
+            print(f"  {c.name} = {c.value:g}{_unit(c.unit)}"
+                  f"{'  (' + printable(c.source) + ')' if c.source else ''}")
     if m.parameters:
         print("parameters:")
         for p in m.parameters:
