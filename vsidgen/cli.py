@@ -12,8 +12,8 @@ stderr without a traceback and give exit status 2; Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
-import pathlib
 import os
+import pathlib
 import sys
 
 from .errors import VsidgenError

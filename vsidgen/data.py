@@ -144,6 +144,9 @@ def _read_header(path: pathlib.Path) -> list[str]:
     except UnicodeDecodeError:
         raise DataError("not a text (UTF-8) CSV file", path=path,
                         hint="export the record as comma-separated text with one header row") from None
+    except csv.Error as exc:
+        raise DataError(f"the header row cannot be read as CSV ({exc})", path=path,
+                        hint="export the record as comma-separated text with one header row") from None
     except OSError as exc:
         raise DataError(f"cannot read file: {exc.strerror or exc}", path=path) from None
 
@@ -170,6 +173,23 @@ def _fill_empty_cells(body: str) -> str:
     return body[1:]
 
 
+def _checked_rows(reader, path, sample):
+    """Rows of a csv reader; a CSV syntax error (an over-long field, a stray quote, a NUL)
+    becomes a DataError naming the sample and the file line."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise DataError(f"the row cannot be read as CSV ({exc})", path=path, sample=sample(),
+                            hint=f"file line {reader.line_num}; use plain comma-separated numbers") from None
+        except UnicodeDecodeError:
+            raise DataError("not a text (UTF-8) CSV file", path=path, sample=sample(),
+                            hint="export the record as comma-separated text") from None
+        yield row
+
+
 def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.ndarray:
     """Cell-by-cell parse (handles empty cells and quotes; locates bad cells)."""
     need = max(idx) + 1
@@ -178,7 +198,7 @@ def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         reader = csv.reader(fh)
         started = False
         sample = 0
-        for row in reader:
+        for row in _checked_rows(reader, path, lambda: sample):
             if not started:
                 if any(c.strip() for c in row):
                     started = True  # the header
