@@ -60,25 +60,29 @@ def _cmd_build(args) -> int:
 
 def _add_check(subparsers) -> None:
     p = subparsers.add_parser(
-        "check", help="validate a spec (and its first data sample)",
+        "check", help="validate a spec (and a data record)",
         description="Validate a spec: syntax, declarations, equations, definition cycles, "
                     "bounds, noise and data mapping, units. Warnings go to stderr. With --data, "
-                    "also evaluate drift and outputs at the first sample of a CSV record. "
+                    "also check the whole record (CSV or MATLAB .mat) through the data map: time "
+                    "increasing and uniform, inputs present, value ranges plausible for their "
+                    "units, drift and outputs finite at every sample. "
                     "Exit status 0 if valid, 2 otherwise.")
     p.add_argument("spec", metavar="SPEC", help="spec file (YAML)")
-    p.add_argument("--data", metavar="CSV", default=None,
-                   help="a flight record to check the first sample against")
+    p.add_argument("--data", metavar="DATA", default=None,
+                   help="a flight record (CSV or .mat) to check against the spec")
     p.set_defaults(handler=_cmd_check)
 
 
 def _cmd_check(args) -> int:
-    from .symbolic import check_first_sample, compile_spec
+    from .symbolic import check_record, compile_spec
 
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
+    data_warnings = []
     if args.data is not None:
-        _print_warnings(check_first_sample(symbolic, args.data))
-    n = len(symbolic.warnings)
+        data_warnings = check_record(symbolic, args.data)
+        _print_warnings(data_warnings)
+    n = len(symbolic.warnings) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
           f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
           f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")

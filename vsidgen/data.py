@@ -1,4 +1,7 @@
-"""Flight records: CSV files -> :class:`Record` (t, u, y) through the spec's data map.
+"""Flight records: CSV or MATLAB files -> :class:`Record` (t, u, y) through the spec's data map.
+
+File formats and how a MAT file's variables are named in the data map:
+:mod:`vsidgen.formats`; units declared in the data map: :mod:`vsidgen.dataunits`.
 
 A record is one contiguous, uniformly sampled time history. Each model input
 and output is read through a :class:`vsidgen.metadata.ChannelMap`:
@@ -48,7 +51,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .dataunits import plausibility_warnings
 from .errors import DataError, VsidgenError
+from .formats import DataFormat, detect_format, read_mat_columns
 
 MIN_SAMPLES = 10
 JITTER = 0.05
@@ -68,6 +73,8 @@ class Record:
         y: (N, ny) outputs, float64; NaN = missing sample.
         input_names, output_names: channel (model input/output) names.
         t_raw: (N,) the original time stamps.
+        warnings: :class:`vsidgen.dataunits.DataWarning` records (value ranges
+            implausible for a channel's unit), empty when none.
     """
 
     name: str
@@ -79,6 +86,7 @@ class Record:
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     t_raw: np.ndarray
+    warnings: tuple = ()
 
     @property
     def n(self) -> int:
@@ -230,11 +238,7 @@ def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
         val = np.broadcast_to(val, (n,)).copy()
     else:
         val = cols[_columns_of(cmap)[0]].copy()
-    if cmap.scale != 1.0:
-        val = val * float(cmap.scale)
-    if cmap.offset != 0.0:
-        val = val + float(cmap.offset)
-    return val
+    return np.asarray(cmap.apply(val), dtype=np.float64)
 
 
 def _first(mask: np.ndarray) -> int:
@@ -288,12 +292,13 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
 # --------------------------------------------------------------------------- public API
 
 def load_record(model, path, *, name: str | None = None) -> Record:
-    """Read one CSV flight record through ``model.data`` (a DataSpec).
+    """Read one flight record (CSV or MATLAB .mat) through ``model.data`` (a DataSpec).
 
     Args:
         model: a :class:`vsidgen.model.Model` or a SymbolicModel (uses
             ``data``, input and output names).
-        path: CSV file with one header row, comma separated.
+        path: CSV file with one header row, comma separated, or a MATLAB .mat
+            file (:mod:`vsidgen.formats`).
         name: record name; default the file stem.
 
     Returns:
@@ -314,6 +319,28 @@ def load_record(model, path, *, name: str | None = None) -> Record:
                 raise DataError(f"model {kind} '{nm}' has no data mapping", path=path,
                                 hint=f"add `{nm}: <column>` under data.{kind}s in the spec")
 
+    # columns needed, in a stable order: time first
+    needed: list[str] = [spec.time]
+    for nm in in_names:
+        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
+    for nm in out_names:
+        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
+
+    fmt = detect_format(path)
+    if fmt is DataFormat.CSV:
+        cols = _read_csv_columns(path, needed, spec.time)
+    else:
+        cols = read_mat_columns(path, needed, fmt)
+    n = cols[spec.time].shape[0]
+    if n == 0:
+        raise DataError("no data rows (header only)" if fmt is DataFormat.CSV else
+                        "the record is empty", path=path,
+                        hint="the file must hold at least "
+                             f"{MIN_SAMPLES} samples")
+    return _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps)
+
+
+def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str) -> dict[str, np.ndarray]:
     header = _read_header(path)
     if not header:
         raise DataError("empty file", path=path,
@@ -321,16 +348,9 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         seen.setdefault(h, j)
-
-    # columns needed, in a stable order: time first
-    needed: list[str] = [spec.time]
-    for nm in in_names:
-        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
-    for nm in out_names:
-        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
     for c in needed:
         if c not in seen:
-            what = "time column" if c == spec.time else "column"
+            what = "time column" if c == time_column else "column"
             raise DataError(f"{what} '{c}' not found", path=path, column=c,
                             hint=_suggest(c, header))
         if header.count(c) > 1:
@@ -339,13 +359,12 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     idx = [seen[c] for c in needed]
 
     block = _read_block(path, header, idx)
-    n = block.shape[0]
-    if n == 0:
-        raise DataError("no data rows (header only)", path=path,
-                        hint="the file must hold at least "
-                             f"{MIN_SAMPLES} samples below the header")
-    cols = {c: block[:, j] for j, c in enumerate(needed)}
-    for c in needed:
+    return {c: block[:, j] for j, c in enumerate(needed)}
+
+
+def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps) -> Record:
+    spec = model.data
+    for c in cols:
         inf = np.isinf(cols[c])
         if inf.any():
             k = _first(inf)
@@ -393,8 +412,10 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     t = t_raw - t_raw[0]
     for a in (t, u, y, t_raw):
         a.setflags(write=False)
+    found = plausibility_warnings(model, u, y, path=path)
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
-                  u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw)
+                  u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw,
+                  warnings=found)
 
 
 def resolution(values) -> float:
