@@ -140,7 +140,8 @@ def _cmd_show(args) -> int:
             if p.fixed:
                 extra.append("fixed")
             print(f"  {p.name}{_unit(p.unit)} initial {p.initial:g}"
-                  + (", " + ", ".join(extra) if extra else ""))
+                  + (", " + ", ".join(extra) if extra else "")
+                  + (f"  {p.description}" if p.description else ""))
     if m.definitions:
         print("definitions:")
         for n, e in m.definitions:
@@ -170,12 +171,15 @@ def _name_values(items, what):
     return out
 
 
-def _check_names(given, known, what):
-    import difflib
+def _check_names(given, known, what, model=None, option=None):
+    from .suggest import suggest, unknown_name_error
+
     for name in given:
         if name not in known:
-            close = difflib.get_close_matches(name, list(known), n=1)
-            hint = f" — did you mean `{close[0]}`?" if close else f" (known: {', '.join(known)})"
+            if model is not None:
+                raise unknown_name_error(name, what, model, option=option or f"--{what}")
+            hint = suggest(name, known, role=what)
+            hint = f" — {hint}" if hint else f" (known: {', '.join(known)})"
             raise VsidgenError(f"unknown {what} `{name}`{hint}")
 
 
@@ -231,15 +235,15 @@ def _cmd_simulate(args) -> int:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise VsidgenError(f"{args.params_from}: cannot read parameter estimates ({exc})") from None
     theta.update(_name_values(args.param, "param"))
-    _check_names(theta, model.parameter_names, "parameter")
+    _check_names(theta, model.parameter_names, "parameter", model, "--param")
     x0 = _name_values(args.x0, "x0")
-    _check_names(x0, model.state_names, "state")
+    _check_names(x0, model.state_names, "state", model, "--x0")
     pstd = _name_values(args.process_std, "process-std")
-    _check_names(pstd, model.state_names, "state")
+    _check_names(pstd, model.state_names, "state", model, "--process-std")
     mstd = _name_values(args.measurement_std, "measurement-std")
-    _check_names(mstd, model.output_names, "output")
+    _check_names(mstd, model.output_names, "output", model, "--measurement-std")
     quant = _name_values(args.quantize, "quantize")
-    _check_names(quant, model.output_names, "output")
+    _check_names(quant, model.output_names, "output", model, "--quantize")
     if args.inputs_from:
         if args.input:
             raise VsidgenError("give either --input generators or --inputs-from, not both")
@@ -257,7 +261,7 @@ def _cmd_simulate(args) -> int:
         for item in args.input or ():
             spec = parse_input_spec(item)
             gens[spec.name] = spec.evaluate
-        _check_names(gens, model.input_names, "input")
+        _check_names(gens, model.input_names, "input", model, "--input")
         u = np.zeros((n, model.nu))
         for j, name in enumerate(model.input_names):
             if name in gens:
@@ -301,8 +305,34 @@ def _add_fit(sub):
     p.add_argument("--report", action="store_true", help="also write DIR/report.html")
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates to compare in the report")
+    add_override_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=_cmd_fit)
+
+
+def add_override_arguments(p) -> None:
+    """``--fix/--free/--init/--init-from/--method`` (shared by fit and diagnose)."""
+    g = p.add_argument_group("parameters and method (override the spec for this run; "
+                             "recorded in the results)")
+    g.add_argument("--fix", action="append", metavar="NAME=VALUE", default=None,
+                   help="fix a parameter at VALUE (as `fixed: true, initial: VALUE` in the spec)")
+    g.add_argument("--free", action="append", metavar="NAME", default=None,
+                   help="estimate a parameter the spec fixes")
+    g.add_argument("--init", action="append", metavar="NAME=VALUE", default=None,
+                   help="initial value of a parameter")
+    g.add_argument("--init-from", metavar="RESULTS_JSON", default=None,
+                   help="initial values from an earlier fit's results.json (--init and --fix win)")
+    g.add_argument("--method", choices=("filter-error", "output-error"), default="filter-error",
+                   help="filter-error (default): process and measurement noise; output-error: "
+                        "no process noise (deterministic state path)")
+
+
+def overrides_of(args):
+    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
+    from .overrides import parse_overrides
+
+    return parse_overrides(fix=args.fix, free=args.free, init=args.init,
+                           init_from=args.init_from, method=args.method)
 
 
 class _Progress:
@@ -354,9 +384,11 @@ def _cmd_fit(args) -> int:
 
     _enable_compilation_cache()
 
+    overrides = overrides_of(args)
     progress = None if args.quiet else _Progress(sys.stderr)
     try:
         job = run_fit(args.spec, args.data, out=args.out, validate=args.validate,
+                      overrides=overrides,
                       integrator=args.integrator, substeps=args.substeps,
                       optimizer=args.optimizer, max_iter=args.max_iter,
                       init_states=args.init_states, noise_start=args.noise_start,

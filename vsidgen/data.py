@@ -214,14 +214,51 @@ def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         return _slow_parse(path, header, idx)
 
 
-def _suggest(name: str, header: list[str]) -> str:
-    close = difflib.get_close_matches(name, header, n=3, cutoff=0.5)
+def _same_quantity(name: str, cand: str) -> bool:
+    """Whether two column names can name the same quantity: names like ``dr_deg`` are
+    ``<quantity>_<unit>``, so a shared unit suffix alone (``p_deg``) is no likeness — the
+    leading parts must be alike (or the whole names nearly equal)."""
+    import difflib
+
+    from .suggest import closest
+
+    a, b = name.split("_", 1)[0], cand.split("_", 1)[0]
+    if a == b or difflib.SequenceMatcher(None, name, cand).ratio() >= 0.8:
+        return True
+    return bool(closest(a, [b])) and len(a) > 2
+
+
+def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str | None:
+    """Role-aware suggestion for a missing column ``name``.
+
+    Columns that the data map already reads for another channel (``taken``:
+    {column: "input `da`"}) are not offered as the missing one (a missing
+    rudder column ``dr_deg`` must not suggest the aileron's ``da_deg``); when
+    only such a column is similar, the hint says whose column it is.
+    """
+    from .suggest import closest
+
+    taken = {c: who for c, who in (taken or {}).items() if c != name}
+    free = [h for h in header if h not in taken]
+    close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
     if close:
         return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    used = [c for c in closest(name, [h for h in header if h in taken], n=1)
+            if _same_quantity(name, c) or c[:1] == name[:1]]
+    if used:
+        return (f"no similar unused column ('{used[0]}' is already the column of "
+                f"{taken[used[0]]})")
+    return None
+
+
+def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str:
+    hint = column_hint(name, header, taken)
+    if hint and hint.startswith("did you mean"):
+        return hint
     shown = ", ".join(header[:12]) + (", ..." if len(header) > 12 else "")
     if len(header) == 1 and any(d in header[0] for d in ";\t|"):
         return "the header has a single field: vsidgen reads comma-separated files"
-    return f"columns in the file: {shown}"
+    return (hint + "; " if hint else "") + f"columns in the file: {shown}"
 
 
 def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
@@ -326,11 +363,16 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     for nm in out_names:
         needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
 
+    taken = {spec.time: "the time"}
+    for kind, names, maps in (("input", in_names, in_maps), ("output", out_names, out_maps)):
+        for nm in names:
+            for c in _columns_of(maps[nm]):
+                taken.setdefault(c, f"{kind} `{nm}`")
     fmt = detect_format(path)
     if fmt is DataFormat.CSV:
-        cols = _read_csv_columns(path, needed, spec.time)
+        cols = _read_csv_columns(path, needed, spec.time, taken)
     else:
-        cols = read_mat_columns(path, needed, fmt)
+        cols = read_mat_columns(path, needed, fmt, taken=taken)
     n = cols[spec.time].shape[0]
     if n == 0:
         raise DataError("no data rows (header only)" if fmt is DataFormat.CSV else
@@ -340,7 +382,8 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     return _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps)
 
 
-def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str) -> dict[str, np.ndarray]:
+def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
+                      taken: Mapping[str, str]) -> dict[str, np.ndarray]:
     header = _read_header(path)
     if not header:
         raise DataError("empty file", path=path,
@@ -352,7 +395,7 @@ def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str) -
         if c not in seen:
             what = "time column" if c == time_column else "column"
             raise DataError(f"{what} '{c}' not found", path=path, column=c,
-                            hint=_suggest(c, header))
+                            hint=_suggest(c, header, taken))
         if header.count(c) > 1:
             raise DataError(f"column '{c}' appears {header.count(c)} times in the header",
                             path=path, column=c, hint="rename the duplicated columns")

@@ -22,7 +22,6 @@ formats (never a decoding error).
 
 from __future__ import annotations
 
-import difflib
 import enum
 import pathlib
 import re
@@ -238,7 +237,7 @@ def _named_columns(variables) -> dict[str, tuple[str, int]]:
     return out
 
 
-def _resolve(variables, ref: str, path, named) -> np.ndarray:
+def _resolve(variables, ref: str, path, named, taken=None) -> np.ndarray:
     m = _SELECT_RE.match(ref)
     col = None
     base = ref.strip()
@@ -254,9 +253,12 @@ def _resolve(variables, ref: str, path, named) -> np.ndarray:
                             column=ref, hint="give one name per column of the matrix")
         return matrix[:, j]
     if v is None:
-        close = difflib.get_close_matches(ref, _names_of(variables), n=3, cutoff=0.5)
-        hint = ("did you mean " + " or ".join(f"'{c}'" for c in close) + "?") if close else \
-            "variables in the file: " + ", ".join(_names_of(variables)[:15])
+        from .data import column_hint
+
+        hint = column_hint(ref, _names_of(variables), taken)
+        if not (hint and hint.startswith("did you mean")):
+            hint = (hint + "; " if hint else "") + "variables in the file: " + \
+                ", ".join(_names_of(variables)[:15])
         raise DataError(f"variable '{ref}' not found", path=path, column=ref, hint=hint)
     arr = _numeric(v, base, path)
     if arr is None:
@@ -281,7 +283,8 @@ def _resolve(variables, ref: str, path, named) -> np.ndarray:
     return arr
 
 
-def read_mat_columns(path: pathlib.Path, refs: Sequence[str], fmt: DataFormat) -> dict[str, np.ndarray]:
+def read_mat_columns(path: pathlib.Path, refs: Sequence[str], fmt: DataFormat, *,
+                     taken=None) -> dict[str, np.ndarray]:
     """Columns ``refs`` (see the module docstring) of a MAT file as float64 vectors.
 
     Raises:
@@ -299,11 +302,11 @@ def read_mat_columns(path: pathlib.Path, refs: Sequence[str], fmt: DataFormat) -
         with f:
             variables = _H5Vars(f)
             named = _named_columns(variables)
-            cols = {r: _resolve(variables, r, path, named) for r in refs}
+            cols = {r: _resolve(variables, r, path, named, taken) for r in refs}
     else:
         variables = _load_v5(path)
         named = _named_columns(variables)
-        cols = {r: _resolve(variables, r, path, named) for r in refs}
+        cols = {r: _resolve(variables, r, path, named, taken) for r in refs}
     lengths = {r: c.shape[0] for r, c in cols.items()}
     if len(set(lengths.values())) > 1:
         first = refs[0]

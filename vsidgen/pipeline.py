@@ -20,6 +20,7 @@ from .data import Record, load_record, write_csv
 from .errors import VsidgenError
 from .evaluation import evaluate
 from .model import Model, load_model
+from .overrides import Overrides, apply_overrides
 from .results import atomic_directory, dumps, signals_table, write_text_atomic
 
 
@@ -91,17 +92,21 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             init_states: str = "measured", noise_start: str = "auto",
             generated_dir: str | os.PathLike | None = None,
             progress: Callable | None = None, report: bool = False,
-            reference: str | None = None) -> FitJob:
+            reference: str | None = None, overrides: Overrides | None = None) -> FitJob:
     """Fit ``spec`` to the ``data`` records and write the results directory ``out``.
 
     Validation records (``validate``) are smoothed with θ and the noise fixed at
     the estimates (the paper's validation mode) and evaluated separately.
+    ``overrides`` (:mod:`vsidgen.overrides`: fixed, freed and initial parameter
+    values, output-error method) change the spec's parameter records for this
+    fit and are recorded in ``results.json``.
     """
     from .estimator import FitOptions, fit, smooth
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
-    model = load_model(spec, generated_dir=generated_dir)
+    overrides = overrides if overrides is not None else Overrides()
+    model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
     integrator = integrator or model.integrator
     substeps = int(substeps or model.substeps)
     records = _unique_names([load_record(model, p) for p in data])
@@ -141,7 +146,9 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "outputs": _variables(model.outputs),
                   "equations_latex": _latex_equations(model)},
         "method": {"estimator": "variational (ELBO)", "integrator": integrator,
-                   "substeps": substeps, "optimizer": optimizer, "noise_start": noise_start},
+                   "substeps": substeps, "optimizer": optimizer, "noise_start": noise_start,
+                   "method": overrides.method.value},
+        "overrides": overrides.to_json(),
         "records": {"estimation": [_record_info(r) for r in records],
                     "validation": [_record_info(r) for r in vrecords]},
         "parameters": params,
@@ -156,7 +163,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         "metrics": {"estimation": {s.record: s.metrics for s in signals},
                     "validation": {s.record: s.metrics for s in vsignals}},
         "validation": {"elbo": None if vresult is None else float(vresult.elbo)},
-        "warnings": list(result.warnings) + [
+        "warnings": [dict(w.to_json(), code="data") for r in records + vrecords
+                     for w in r.warnings] + list(result.warnings) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())],
         "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),

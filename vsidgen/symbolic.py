@@ -736,11 +736,17 @@ def read_first_row(csv_path) -> dict[str, float]:
     return out
 
 
-def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns) -> float:
+def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns,
+                   taken: Mapping[str, str] | None = None) -> float:
+    from .data import column_hint
+
     for c in ch.columns:
         if c not in row:
+            hint = column_hint(c, columns, taken)
+            if hint and hint.startswith("did you mean"):
+                hint = did_you_mean(c, [h for h in columns if h not in (taken or {}) or h == c])
             raise DataError(f"column `{c}` (for `{ch.name}`) is not in the file", path=csv_path,
-                            column=c, hint=did_you_mean(c, columns) or
+                            column=c, hint=(hint + "; " if hint else "") +
                             "columns: " + ", ".join(columns))
     if ch.expr is None:
         base = row[ch.column]
@@ -767,8 +773,13 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     values: dict = dict(symbolic.constant_values())
     for p in symbolic.parameters:
         values[p.symbol] = p.initial
+    taken = {symbolic.data.time: "the time"}
+    for kind, chans in (("input", symbolic.data.inputs), ("output", symbolic.data.outputs)):
+        for ch in chans:
+            for c in ch.columns:
+                taken.setdefault(c, f"{kind} `{ch.name}`")
     for v, ch in zip(symbolic.inputs, symbolic.data.inputs):
-        val = _channel_value(ch, row, csv_path, columns)
+        val = _channel_value(ch, row, csv_path, columns, taken)
         if not math.isfinite(val):
             warnings.append(SpecWarning(f"input `{v.name}` is not finite at the first sample",
                                         path=csv_path, code="nonfinite_input"))
@@ -776,7 +787,7 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     x0 = {s.symbol: 0.0 for s in symbolic.states}
     for o, ch, h in zip(symbolic.outputs, symbolic.data.outputs, symbolic.observations):
         if h in x0:
-            val = _channel_value(ch, row, csv_path, columns)
+            val = _channel_value(ch, row, csv_path, columns, taken)
             if math.isfinite(val):
                 x0[h] = val
     values.update(x0)

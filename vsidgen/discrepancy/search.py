@@ -913,6 +913,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
+    from ..cli import add_override_arguments
+
+    add_override_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(handler=diagnose_command)
     return p
@@ -920,8 +923,13 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
 
 def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; returns the exit status (0)."""
+    from ..cli import overrides_of
+    from ..overrides import write_override_spec
+
     progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
+    ov = overrides_of(args)
+    spec = args.spec if ov.empty else write_override_spec(args.spec, ov, args.out)
+    res = run_diagnose(spec, args.data, validate=args.validate, out=args.out,
                        max_rounds=args.max_rounds, max_candidates=args.max_candidates,
                        alpha=args.alpha, min_score=args.min_score, effects=args.effects,
                        effects_module=args.effects_module, max_iter=args.max_iter,
