@@ -335,28 +335,6 @@ def overrides_of(args):
                            init_from=args.init_from, method=args.method)
 
 
-class _Progress:
-    """Live one-line progress display on a terminal, a line per iteration otherwise."""
-
-    def __init__(self, stream):
-        self.stream = stream
-        self.tty = stream.isatty()
-
-    def __call__(self, iteration, elbo, grad_norm, elapsed):
-        line = (f"iter {iteration:4d}  ELBO {elbo: .6e}  |grad| {grad_norm:.3e}  "
-                f"{elapsed:7.1f} s")
-        if self.tty:
-            self.stream.write("\r" + line)
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
-
-    def close(self):
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
-
-
 def _enable_compilation_cache() -> None:
     """Persist JAX compilations across runs (``$VSIDGEN_CACHE_DIR``, default ~/.cache/vsidgen/jax).
 
@@ -385,7 +363,9 @@ def _cmd_fit(args) -> int:
     _enable_compilation_cache()
 
     overrides = overrides_of(args)
-    progress = None if args.quiet else _Progress(sys.stderr)
+    from .progress import FitProgress
+
+    progress = None if args.quiet else FitProgress(sys.stderr)
     try:
         job = run_fit(args.spec, args.data, out=args.out, validate=args.validate,
                       overrides=overrides,
@@ -406,10 +386,37 @@ def _cmd_fit(args) -> int:
         for name, p in res["parameters"].items():
             se = "fixed" if p["fixed"] else (f"{p['std_error']:.4g}" if p["std_error"] is not None else "n/a")
             print(f"{name:<{width}}  {p['estimate']:>13.6g}  {se:>11}")
+    if not args.quiet:
+        _print_fit_quality(res)
     state = "" if res["converged"] else "NOT CONVERGED — "
     print(f"{state}{res['status']} ({res['iterations']} iterations, "
           f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
     return 0 if res["converged"] else 1
+
+
+def _print_fit_quality(res) -> None:
+    """Per record and output: NRMSE fit % (MATLAB ``compare``) of the free simulation and the
+    one-step prediction, and RMS, Theil U and R² of the free simulation."""
+    rows = []
+    for kind in ("estimation", "validation"):
+        for rec, m in ((res.get("metrics") or {}).get(kind) or {}).items():
+            for o, sim in (m.get("simulation") or {}).items():
+                pred = (m.get("prediction") or {}).get(o) or {}
+                rows.append((f"{rec}{' (val.)' if kind == 'validation' else ''}", o, sim, pred))
+    if not rows:
+        return
+
+    def f(x, fmt):
+        return "n/a" if x is None or x != x else format(x, fmt)
+
+    w = max(len(r[0]) for r in rows)
+    wo = max(6, max(len(r[1]) for r in rows))
+    print(f"{'record':<{w}}  {'output':<{wo}}  {'fit sim':>8}  {'fit pred':>8}  "
+          f"{'RMS sim':>10}  {'Theil U':>7}  {'R2':>7}")
+    for rec, o, sim, pred in rows:
+        print(f"{rec:<{w}}  {o:<{wo}}  {f(sim.get('fit_percent'), '7.1f') + '%':>8}  "
+              f"{f(pred.get('fit_percent'), '7.1f') + '%':>8}  {f(sim.get('rms'), '10.4g'):>10}  "
+              f"{f(sim.get('theil'), '7.3f'):>7}  {f(sim.get('r2'), '7.4f'):>7}")
 
 
 def _add_report(sub):

@@ -764,7 +764,9 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         for i, (score, loc_score, c, sr) in enumerate(ranked):
             path = out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
             name = f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}"
-            _say(progress, f"round {rnd}: refitting {c.key} (score {score:.3g})")
+            status = getattr(progress, "refitting", None)
+            _say(progress, (status(rnd, i + 1, len(ranked), c.key) if status is not None
+                            else f"round {rnd}: refitting {c.key}") + f" (score {score:.3g})")
             try:
                 ro = staged_refit(c, current, info, path, name, generated_dir=gen,
                                   max_iter=max_iter, progress=progress)
@@ -926,14 +928,20 @@ def diagnose_command(args) -> int:
     from ..cli import overrides_of
     from ..overrides import write_override_spec
 
-    progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    from ..progress import DiagnoseProgress
+
     ov = overrides_of(args)
     spec = args.spec if ov.empty else write_override_spec(args.spec, ov, args.out)
-    res = run_diagnose(spec, args.data, validate=args.validate, out=args.out,
-                       max_rounds=args.max_rounds, max_candidates=args.max_candidates,
-                       alpha=args.alpha, min_score=args.min_score, effects=args.effects,
-                       effects_module=args.effects_module, max_iter=args.max_iter,
-                       screen=args.screen, progress=progress)
+    progress = None if args.quiet else DiagnoseProgress(sys.stderr)
+    try:
+        res = run_diagnose(spec, args.data, validate=args.validate, out=args.out,
+                           max_rounds=args.max_rounds, max_candidates=args.max_candidates,
+                           alpha=args.alpha, min_score=args.min_score, effects=args.effects,
+                           effects_module=args.effects_module, max_iter=args.max_iter,
+                           screen=args.screen, progress=progress)
+    finally:
+        if progress is not None:
+            progress.close()
     if not res.findings:
         print(f"no significant discrepancy found; findings in {res.out_dir / 'findings.json'}")
     else:
