@@ -132,3 +132,17 @@ def test_show_prints_parameter_descriptions(capsys):
     assert main(["show", str(SPEC)]) == 0
     out = capsys.readouterr().out
     assert "M_q: pitch damping" in out
+
+
+def test_diagnose_override_spec_equals_the_overrides(tmp_path):
+    from vsidgen.overrides import write_override_spec
+
+    ov = parse_overrides(fix=["MQ=-2.5"], init=["ZAL=-0.5"], method="output-error")
+    path = write_override_spec(SPEC, ov, tmp_path)
+    sym = compile_spec(path)
+    want = apply_overrides(compile_spec(SPEC), ov)
+    assert sym.parameters == want.parameters
+    assert sym.process_noise.estimate is False
+    assert sym.drift == want.drift and sym.name == "attas_sp_cli"
+    with pytest.raises(VsidgenError, match="did you mean `MQ`"):
+        write_override_spec(SPEC, parse_overrides(fix=["MQQ=1"]), tmp_path / "x")
