@@ -929,7 +929,9 @@ def check_record(symbolic: SymbolicModel, path) -> list:
     from .data import load_record
     from .formats import DataFormat, detect_format
 
-    path = pathlib.Path(path)
+    from .limits import check_input_file
+
+    path = check_input_file(path, what="data file")
     warnings: list = []
     if detect_format(path) is DataFormat.CSV:
         warnings += check_first_sample(symbolic, path)
