@@ -211,7 +211,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         "metrics": {"estimation": {s.record: s.metrics for s in signals},
                     "validation": {s.record: s.metrics for s in vsignals}},
         "validation": {"elbo": None if vresult is None else float(vresult.elbo)},
-        "warnings": [dict(w.to_json(), code="data") for r in records + vrecords
+        "warnings": [w.to_json() for r in records + vrecords
                      for w in r.warnings] + list(result.warnings) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())],
