@@ -47,6 +47,8 @@ def test_fit_with_fix_equals_fit_of_the_fixed_spec(tmp_path):
                                        "std_error": None, "unit": "1/s"}
     assert res["overrides"] == {"fix": {"MQ": -2.5}, "free": [], "init": {"ZAL": -0.5},
                                 "init_from": None, "method": "filter-error"}
+    sim = res["metrics"]["estimation"]["attas_sp_synthetic"]["simulation"]["alpha"]
+    assert sim["fit_percent"] == pytest.approx(100 * (1 - (1 - sim["r2"]) ** 0.5), rel=1e-9)
     # the spec with `fixed: true` changes no equation: its parameters on the same module
     base = load_model(SPEC)
     model = dataclasses.replace(base, parameters=compile_spec(_fixed_child(tmp_path)).parameters)
