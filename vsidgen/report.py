@@ -632,8 +632,11 @@ def _metrics_table(m: Mapping, names: Iterable[str]) -> list[dict]:
         row = {"name": o, "cells": []}
         for crit, _ in _CRITERIA:
             d = (m.get(crit) or {}).get(o) or {}
+            fp = d.get("fit_percent")
             row["cells"].append({"rms": _fmt(d.get("rms")), "theil": _fmt(d.get("theil"), 3),
-                                 "r2": _fmt(d.get("r2"), 4)})
+                                 "r2": _fmt(d.get("r2"), 4),
+                                 "fit": "—" if fp is None or not math.isfinite(_num(fp))
+                                 else f"{_num(fp):.1f} %"})
         rows.append(row)
     return rows
 

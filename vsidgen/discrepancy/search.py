@@ -701,7 +701,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
                  progress: Callable[[str], None] | None = None,
-                 overwrite: bool = False) -> DiagnoseResult:
+                 overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
     Writes ``out/findings.json``, ``out/diagnose.html`` (report section, also
@@ -710,6 +710,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
     checked before any computation, and a non-empty directory that is not a
     vsidgen results directory needs ``overwrite`` (its other files are kept).
+    ``overrides`` (:class:`vsidgen.overrides.Overrides`, from ``--fix`` etc.):
+    the fits use ``out/overrides.yaml``, a spec that extends ``spec`` with them.
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -744,9 +746,17 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     from ..symbolic import compile_spec
 
     symbolic = compile_spec(spec)  # bad records are refused before any fit
+    if overrides is not None and not overrides.empty:
+        from ..overrides import apply_overrides
+
+        apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
     with results_in_place(plan, command="diagnose") as out:
+        if overrides is not None and not overrides.empty:
+            from ..overrides import write_override_spec
+
+            spec = write_override_spec(spec, overrides, out)
         return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
                              max_candidates=max_candidates, alpha=alpha, min_score=min_score,
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
@@ -791,7 +801,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
         for i, (score, loc_score, c, sr) in enumerate(ranked):
             path = out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
             name = f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}"
-            _say(progress, f"round {rnd}: refitting {c.key} (score {score:.3g})")
+            status = getattr(progress, "refitting", None)
+            _say(progress, (status(rnd, i + 1, len(ranked), c.key) if status is not None
+                            else f"round {rnd}: refitting {c.key}") + f" (score {score:.3g})")
             try:
                 ro = staged_refit(c, current, info, path, name, generated_dir=gen,
                                   max_iter=max_iter, progress=progress)
@@ -940,6 +952,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
+    from ..cli import add_override_arguments
+
+    add_override_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty DIR that is not a vsidgen results directory "
@@ -950,12 +965,21 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
 
 def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; returns the exit status (0)."""
-    progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
-                       max_rounds=args.max_rounds, max_candidates=args.max_candidates,
-                       alpha=args.alpha, min_score=args.min_score, effects=args.effects,
-                       effects_module=args.effects_module, max_iter=args.max_iter,
-                       screen=args.screen, progress=progress, overwrite=args.overwrite)
+    from ..cli import overrides_of
+    from ..progress import DiagnoseProgress
+
+    ov = overrides_of(args)
+    progress = None if args.quiet else DiagnoseProgress(sys.stderr)
+    try:
+        res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
+                           max_rounds=args.max_rounds, max_candidates=args.max_candidates,
+                           alpha=args.alpha, min_score=args.min_score, effects=args.effects,
+                           effects_module=args.effects_module, max_iter=args.max_iter,
+                           screen=args.screen, progress=progress, overwrite=args.overwrite,
+                           overrides=ov)
+    finally:
+        if progress is not None:
+            progress.close()
     if not res.findings:
         print(f"no significant discrepancy found; findings in {res.out_dir / 'findings.json'}")
     else:
