@@ -508,9 +508,16 @@ def _add_diagnose(sub):
     add_diagnose_parser(sub)
 
 
+def _add_fleet(sub):
+    from .fleet import add_fleet_parser
+
+    add_fleet_parser(sub)
+
+
 #: subcommand registrars, in --help order (the coordinator appends simulate, fit, report, diagnose)
 COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_report,
             _add_diagnose]
+COMMANDS.append(_add_fleet)
 
 
 #: commands whose arguments parse without the diagnose parser (which imports scipy.stats)
