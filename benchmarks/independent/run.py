@@ -284,6 +284,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "independent" / "work"),
                     help="records and diagnose output (default benchmarks/independent/work)")
     ap.add_argument("--json", help="write the per-case results here")
+    ap.add_argument("--report-only", action="store_true",
+                    help="print the tables from the results already in --work (no runs)")
     args = ap.parse_args(argv)
     full = all_cases(tuple(range(args.seeds)))
     if args.list:
@@ -299,6 +301,12 @@ def main(argv=None) -> int:
         cases = [by_name[n] for n in args.cases]
     else:
         cases = full if args.all else QUICK
+    if args.report_only:
+        work = pathlib.Path(args.work)
+        rows = [json.loads(p.read_text()) for c in cases
+                if (p := work / f"{c.name}.result.json").exists()]
+        print(report(rows))
+        return 0
     rows: list[dict] = []
     with cf.ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
         futs = {ex.submit(run_case, c, args): c for c in cases}
