@@ -73,3 +73,88 @@ def test_accelerometer_ahead_of_the_cg_reads_minus_x_qdot(tmp_path):
 def test_vane_without_an_airspeed_keeps_seconds():
     _, c = _candidate(ATTAS, "sensor_position:alpha:q")
     assert c.parameters[0].unit == "s"
+
+
+# ---------------------------------------------------------------------------
+# decisions: optimizer failures and non-causal estimates are not test results
+# ---------------------------------------------------------------------------
+
+def test_refit_verdicts():
+    from vsidgen.discrepancy.refit import RefitVerdict, refit_verdict
+
+    # the refit ended 286 nats below its nesting point: an optimizer failure, not a rejection
+    assert refit_verdict(-572.0, {"D": 0.1}, {}) is RefitVerdict.BELOW_NESTING_POINT
+    assert refit_verdict(-0.01, {"D": 0.1}, {}) is RefitVerdict.ORDINARY   # at the start
+    # a β channel "early" by 0.035 s is non-causal under the time-skew label
+    assert refit_verdict(11.3, {"D_SKEW_beta": -0.035}, {"D_SKEW_beta": 1}) \
+        is RefitVerdict.NON_CAUSAL
+    assert refit_verdict(11.3, {"D_SKEW_beta": 0.035}, {"D_SKEW_beta": 1}) \
+        is RefitVerdict.ORDINARY
+
+
+def test_time_skew_is_causal_and_its_explanation_has_no_unfilled_number():
+    _, c = _candidate(HFB, "time_skew:alpha")
+    (p,) = c.parameters
+    assert c.info["causal_sign"] == {p.name: 1}
+    assert "lag of 0 s" not in c.explanation and "peaks at" not in c.explanation
+
+
+def test_trial_verdict_reads_the_refitted_estimates():
+    import types
+
+    import numpy as np
+
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.search import trial_verdict
+
+    _, c = _candidate(LAT, "time_skew:beta")
+    (p,) = c.parameters
+    st = types.SimpleNamespace(model=types.SimpleNamespace(parameter_names=("YB", p.name)),
+                               fit=types.SimpleNamespace(theta=np.array([-0.1, -0.035])))
+    assert trial_verdict(c, st, 11.3) is RefitVerdict.NON_CAUSAL
+    st.fit.theta[1] = 0.02
+    assert trial_verdict(c, st, 11.3) is RefitVerdict.ORDINARY
+    assert trial_verdict(c, st, -40.0) is RefitVerdict.BELOW_NESTING_POINT
+
+
+def _trial(key, stat, thr, *, converged=True, verdict="ordinary", significant=False):
+    return {"key": key, "statistic": stat, "threshold": thr, "converged": converged,
+            "verdict": verdict, "significant": significant, "validation_ok": None,
+            "status": "converged" if converged else "iteration limit"}
+
+
+def test_conclusion_flags_failures_and_the_cli_prints_it_last(tmp_path):
+    from vsidgen.discrepancy.findings import conclusion_text, summary_lines
+
+    rounds = [{"round": 1, "trials": [
+        _trial("control_delay:de", -1017.0, 15.8, verdict="below_nesting_point"),
+        _trial("time_skew:beta", 11.3, 10.9, verdict="non_causal"),
+        _trial("sensor_position:beta:r", 6.1, 11.0)]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    assert "optimizer failure" in text and "control_delay:de" in text
+    assert "non-causal" in text and "time_skew:beta" in text
+    doc = {"conclusion": text, "findings": []}
+    lines = summary_lines(doc, tmp_path / "findings.json")
+    assert lines[-1].startswith(text)
+    # an inconclusive run says so on the CLI's last line, exactly as findings.json does
+    rounds = [{"round": 1, "trials": [_trial("unmodelled_wind:alpha", 6627.0, 13.6,
+                                             converged=False)]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    lines = summary_lines({"conclusion": text, "findings": []}, tmp_path / "findings.json")
+    assert text.startswith("INCONCLUSIVE") and lines[-1].startswith("INCONCLUSIVE")
+
+
+def test_cli_lines_show_estimates_with_units(tmp_path):
+    from vsidgen.discrepancy.findings import summary_lines
+
+    f = {"rank": 1, "effect": "sensor_position", "target": "output:beta",
+         "explanation": "The beta sensor is not at the centre of gravity.",
+         "parameters": {"D_POS_beta_r": {"estimate": 7.93, "std_error": 0.21, "unit": "m",
+                                         "fixed": False}},
+         "evidence": {"statistic": 52.0, "threshold": 11.0}, "alternatives": [],
+         "ambiguous": False}
+    doc = {"findings": [f], "conclusion": "1 significant discrepancy found: sensor_position on "
+                                          "output:beta. Final augmented spec: c.yaml."}
+    lines = summary_lines(doc, tmp_path / "findings.json")
+    assert any("D_POS_beta_r = 7.93 ± 0.21 m" in ln for ln in lines)
+    assert lines[-1].startswith(doc["conclusion"])

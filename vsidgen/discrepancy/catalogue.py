@@ -441,9 +441,9 @@ class TimeSkew(Effect):
     title = "time skew between channels"
     explanation = ("The {output} channel is shifted in time against the other channels by "
                    "{param} seconds (sensor or data-acquisition latency, unsynchronised "
-                   "recorders): its residual follows the rate of {output}, and the "
-                   "cross-correlation of measured and modelled {output} peaks at a lag of "
-                   "{lag:.3g} s.")
+                   "recorders): its residual follows the rate of {output}. A positive "
+                   "{param} means the channel is late; an early channel is non-causal and is "
+                   "not accepted under this label (a vane ahead of the CG reads early).")
     doc = "A time shift of one output channel, first order: h(t−τ) ≈ h − τ dh/dt."
 
     def applies_to(self, info):
@@ -469,11 +469,11 @@ class TimeSkew(Effect):
             p = info.fresh(f"D_SKEW_{o}")
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
-                explanation=self.explain(output=o, param=p, lag=0.0),
+                explanation=self.explain(output=o, param=p),
                 parameters=(NewParameter(p, "s", f"time skew of the {o} channel (positive: late)",
                                          lower=-1.0, upper=1.0),),
                 add_terms={"observations": {o: f"-{p}*({' + '.join(pieces)})"}},
-                info={"output": o}))
+                info={"output": o, "causal_sign": {p: 1}}))
         return out
 
     def score(self, c, ev):

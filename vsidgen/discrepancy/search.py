@@ -56,6 +56,7 @@ from ..errors import FitError, SpecError, VsidgenError
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
+from .refit import RefitVerdict, refit_verdict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,6 +131,7 @@ class Trial:
     converged: bool = False          # the final (stage-2) refit met the gradient criterion
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
+    verdict: Any = None              # refit.RefitVerdict (None: no refit)
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -139,6 +141,7 @@ class Trial:
                 "statistic": _f(self.statistic), "dof": self.dof, "p_value": _f(self.p_value),
                 "threshold": _f(self.threshold), "significant": self.significant,
                 "validation_ok": self.validation_ok, "error": self.error,
+                "verdict": None if self.verdict is None else self.verdict.value,
                 "converged": None if self.state is None else bool(self.converged),
                 "convergence": None if self.state is None else conv_label(self.state.fit),
                 "status": None if self.state is None else self.state.fit.status,
@@ -520,7 +523,8 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
-                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo)))
+                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
+                                       verdict=trial_verdict(t.candidate, t.state, lam)))
     return out
 
 
@@ -640,6 +644,14 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
                 scored.append((s, c))
     scored.sort(key=lambda sc: -sc[0])
     return scored[:max_candidates]
+
+
+def trial_verdict(c: Candidate, st: FitState, statistic: float):
+    """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates)."""
+    names = list(st.model.parameter_names)
+    est = {p.name: float(st.fit.theta[names.index(p.name)]) for p in c.parameters
+           if p.name in names}
+    return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
 
 
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
@@ -780,7 +792,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                            f"({ro.wall_s:.0f} s)")
             trials.append(Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
                                 statistic_vs_base=2.0 * (st.elbo - current.elbo),
-                                converged=conv, screen=sr))
+                                converged=conv, screen=sr, verdict=trial_verdict(c, st, lam)))
         # a candidate's gain may be a better optimum of the current model itself: refit the
         # current model from each nominally significant candidate's optimum (new terms removed)
         projected = []
@@ -821,7 +833,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
         # the candidates examined (screened) but not refitted
         n_family = max(n_examined, len(trials))
-        decisions = holm([t.p_value if t.converged else 1.0 for t in trials]
+        decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
+                          else 1.0 for t in trials]
                          + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
         final_trials = []
         for t, (sig, level) in zip(trials, decisions):
@@ -926,16 +939,7 @@ def diagnose_command(args) -> int:
                        alpha=args.alpha, min_score=args.min_score, effects=args.effects,
                        effects_module=args.effects_module, max_iter=args.max_iter,
                        screen=args.screen, progress=progress)
-    if not res.findings:
-        print(f"no significant discrepancy found; findings in {res.out_dir / 'findings.json'}")
-    else:
-        for f in res.findings:
-            ev = f["evidence"]
-            print(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
-                  f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
-            print(f"   {f['explanation']}")
-            for a in f.get("alternatives") or []:
-                print(f"   AMBIGUOUS: {a['effect']} on {a['target']} explains it nearly as well "
-                      f"(2ΔELBO = {a['statistic']:.4g})")
-        print(f"final spec: {res.final_spec}; findings in {res.out_dir / 'findings.json'}")
+    from .findings import summary_lines
+    for line in summary_lines(res.document, res.out_dir / "findings.json"):
+        print(line)
     return 0
