@@ -158,3 +158,51 @@ def test_cli_lines_show_estimates_with_units(tmp_path):
     lines = summary_lines(doc, tmp_path / "findings.json")
     assert any("D_POS_beta_r = 7.93 ± 0.21 m" in ln for ln in lines)
     assert lines[-1].startswith(doc["conclusion"])
+
+
+# ---------------------------------------------------------------------------
+# locate scores: exact −log10 p, no saturation
+# ---------------------------------------------------------------------------
+
+def test_locate_scores_do_not_saturate_and_keep_their_order():
+    import math
+
+    import numpy as np
+    from scipy import stats
+
+    from vsidgen.discrepancy.locate import _score, corr_test
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    seg = [slice(0, n)]
+    r = rng.standard_normal(n)
+    strong = corr_test(r + 0.05 * rng.standard_normal(n), r, seg, name="strong")
+    weaker = corr_test(r + 0.3 * rng.standard_normal(n), r, seg, name="weaker")
+    moderate = corr_test(0.05 * r + rng.standard_normal(n), r, seg, name="moderate")
+    assert strong.p == 0.0 and weaker.p == 0.0            # both underflow in double precision
+    assert _score(strong.log10_p(), 10) > _score(weaker.log10_p(), 10) > 30.0
+    # where p does not underflow, the log is the textbook two-sided t-test p-value
+    c2 = moderate.corr ** 2
+    t = math.sqrt(c2 * (moderate.n_eff - 2) / (1 - c2))
+    ref = math.log10(2 * stats.t.sf(t, moderate.n_eff - 2))
+    assert moderate.log10_p() == pytest.approx(ref, rel=1e-9)
+    assert _score(moderate.log10_p(), 10) == pytest.approx(max(0.0, -ref - 1.0), rel=1e-9)
+
+
+def test_t_tail_in_logs_matches_scipy_where_scipy_is_finite():
+    import math
+
+    from scipy import special, stats
+
+    from vsidgen.discrepancy.locate import _t_log10p
+
+    for t, df in ((5.0, 30.0), (30.0, 400.0), (37.0, 3000.0)):
+        ref = math.log10(2.0) + stats.t.logsf(t, df) / math.log(10.0)
+        assert math.isfinite(ref)
+        # DLMF 8.17.8, the form used beyond scipy's range, agrees with scipy inside it
+        a, b, x = 0.5 * df, 0.5, df / (df + t * t)
+        series = (a * math.log(x) + b * math.log1p(-x) - math.log(a) - special.betaln(a, b)
+                  + math.log(special.hyp2f1(a + b, 1.0, a + 1.0, x))) / math.log(10.0)
+        assert series == pytest.approx(ref, rel=1e-9)
+        assert _t_log10p(t, df) == pytest.approx(ref, rel=1e-12)
+    assert math.isfinite(_t_log10p(60.0, 3000.0)) and _t_log10p(60.0, 3000.0) < -240
