@@ -303,8 +303,14 @@ def main(argv=None) -> int:
         cases = full if args.all else QUICK
     if args.report_only:
         work = pathlib.Path(args.work)
-        rows = [json.loads(p.read_text()) for c in cases
-                if (p := work / f"{c.name}.result.json").exists()]
+        rows = []
+        for c in cases:
+            if (p := work / f"{c.name}.result.json").exists():
+                rows.append(json.loads(p.read_text()))
+            elif (fj := work / c.name / "findings.json").exists():
+                doc = json.loads(fj.read_text())   # a run whose driver was stopped
+                rows.append(classify(c, {"doc": doc, "rc": 0, "wall_s": doc["wall_time_s"],
+                                         "cli_last_line": "", "error": ""}))
         print(report(rows))
         return 0
     rows: list[dict] = []
