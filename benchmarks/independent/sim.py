@@ -437,8 +437,8 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
     ``ṗ = L_β β_a + L_p p + L_r r + L_δa δa + L_δr δr``,
     ``ṙ = N_β β_a + N_p p + N_r r + N_δa δa + N_δr δr``, ``φ̇ = p``,
     ``a_y = V0 (Y_β β_a + Y_p p + Y_r r + Y_δr δr)``, ``β_a = β − v_g/V0`` (lateral gust).
-    The β vane ``x`` m ahead of the CG sees ``v + r x``: ``β_vane = atan2(V0 sin β + r x,
-    V0 cos β)`` ≈ ``β + x r/V0``.
+    The β vane ``x`` m ahead of the CG sees the air-relative ``v − v_g + r x``:
+    ``β_vane = atan2(V0 sin β − v_g + r x, V0 cos β)`` ≈ ``β_a + x r/V0``.
     """
     rng = np.random.default_rng(seed)
     c = LAT
@@ -472,7 +472,9 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
                    for k in range(n_rec)])
     b, p_, r, ph = (xs[::stride][:n_rec, j] for j in range(4))
     x_vane = magnitude if effect == "beta_vane" else 0.0
-    beta_m = np.arctan2(V0 * np.sin(b) + r * x_vane, V0 * np.cos(b))
+    v_gust = vg[2 * stride * np.arange(n_rec)]
+    # the vane sees the air-relative velocity: v − v_g + r x
+    beta_m = np.arctan2(V0 * np.sin(b) - v_gust + r * x_vane, V0 * np.cos(b))
     res = 0.0 if clean else 1e-4
     cols = {"t_s": t, "da_rad": quantise(da(t), res), "dr_rad": quantise(dr(t), res)}
     for name, y, s in (("beta_rad", beta_m, 0.001), ("p_radps", p_, 0.001),
