@@ -59,6 +59,7 @@ from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
+from .refit import RefitVerdict, refit_verdict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,6 +134,7 @@ class Trial:
     converged: bool = False          # the final (stage-2) refit met the gradient criterion
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
+    verdict: Any = None              # refit.RefitVerdict (None: no refit)
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -142,6 +144,7 @@ class Trial:
                 "statistic": _f(self.statistic), "dof": self.dof, "p_value": _f(self.p_value),
                 "threshold": _f(self.threshold), "significant": self.significant,
                 "validation_ok": self.validation_ok, "error": self.error,
+                "verdict": None if self.verdict is None else self.verdict.value,
                 "converged": None if self.state is None else bool(self.converged),
                 "convergence": None if self.state is None else conv_label(self.state.fit),
                 "status": None if self.state is None else self.state.fit.status,
@@ -533,7 +536,8 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
-                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo)))
+                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
+                                       verdict=trial_verdict(t.candidate, t.state, lam)))
     return out
 
 
@@ -655,6 +659,14 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
     return scored[:max_candidates]
 
 
+def trial_verdict(c: Candidate, st: FitState, statistic: float):
+    """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates)."""
+    names = list(st.model.parameter_names)
+    est = {p.name: float(st.fit.theta[names.index(p.name)]) for p in c.parameters
+           if p.name in names}
+    return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round whose
     statistic is within ``2·nats`` of the best one's: explanations the data do not separate
@@ -736,7 +748,8 @@ def _trial_of(oc, c, score, sr, path, current) -> Trial:
     lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
     return Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
                  statistic_vs_base=2.0 * (st.elbo - current.elbo),
-                 converged=refit_converged(st.fit), screen=sr)
+                 converged=refit_converged(st.fit), screen=sr,
+                 verdict=trial_verdict(c, st, lam))
 
 
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
@@ -774,8 +787,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         VsidgenError: bad spec, data, options or effect plugin.
     """
     from .. import __version__
-    from ..engine import Engine, TaskStatus
-    from .findings import build_document, write_findings, write_findings_json
+    from ..engine import Engine
+    from .findings import build_document, write_findings
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen diagnose SPEC DATA [DATA...] --out DIR`")
@@ -1051,7 +1064,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
     # the candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if t.converged else 1.0 for t in trials]
+    decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
+                      else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
     for t, (sig, level) in zip(trials, decisions):
@@ -1184,23 +1198,7 @@ def diagnose_command(args) -> int:
     finally:
         if progress is not None:
             progress.close()
-    if res.stop is not StopReason.COMPLETED:
-        from .findings import stop_text
-        print(stop_text(res.document["stop"], res.document["unfinished_round"],
-                        len(res.findings))
-              + f"Findings in {res.out_dir / 'findings.json'}")
-    if not res.findings:
-        if res.stop is StopReason.COMPLETED:
-            print(f"no significant discrepancy found; findings in "
-                  f"{res.out_dir / 'findings.json'}")
-    else:
-        for f in res.findings:
-            ev = f["evidence"]
-            print(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
-                  f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
-            print(f"   {f['explanation']}")
-            for a in f.get("alternatives") or []:
-                print(f"   AMBIGUOUS: {a['effect']} on {a['target']} explains it nearly as well "
-                      f"(2ΔELBO = {a['statistic']:.4g})")
-        print(f"final spec: {res.final_spec}; findings in {res.out_dir / 'findings.json'}")
+    from .findings import summary_lines  # the conclusion says when the run stopped early
+    for line in summary_lines(res.document, res.out_dir / "findings.json"):
+        print(line)
     return 0 if res.stop is StopReason.COMPLETED else 1
