@@ -81,8 +81,8 @@ CASES = [
          "alpha vane bias 0.57 deg"),
     Case("hfb_alpha_scale", "hfb320", "sensor_scale:alpha", {"D_SCALE_alpha": 0.1},
          "alpha vane upwash / scale factor +10 %"),
-    Case("hfb_alpha_vane", "hfb320", "sensor_position:alpha:q", {"D_POS_alpha_q": -0.08},
-         "alpha vane ~8 m ahead of the CG at 105 m/s"),
+    Case("hfb_alpha_vane", "hfb320", "sensor_position:alpha:q", {"D_POS_alpha_q": 8.4},
+         "alpha vane 8.4 m ahead of the CG (alpha - 8.4 q/V, about -0.08 s q at 105 m/s)"),
     Case("hfb_alpha_skew", "hfb320", "time_skew:alpha", {"D_SKEW_alpha": 0.1},
          "alpha channel 100 ms late"),
     # attas_sp sensor cases: expected NOT identifiable there (absorbed by Z0/M0 or a state scaling)

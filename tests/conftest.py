@@ -29,6 +29,20 @@ def flight_data_dir() -> pathlib.Path:
     return path
 
 
+def _hypothesis_without_deadline() -> None:
+    """Property tests are judged on their examples, not their speed: a shared 2-core CI
+    machine makes per-example wall time meaningless, so hypothesis's deadline is off."""
+    try:
+        from hypothesis import settings
+    except ImportError:  # the test extra is not installed; property tests are skipped
+        return
+    settings.register_profile("vsidgen", deadline=None)
+    settings.load_profile("vsidgen")
+
+
+_hypothesis_without_deadline()
+
+
 def pytest_configure(config):
     """Persistent JAX compilation cache for the test session, under pytest's cache directory
     (``.pytest_cache/d/jax-compilation-cache``): a second run of the suite skips most XLA

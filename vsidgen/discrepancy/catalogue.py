@@ -21,8 +21,9 @@ actuator_lag           :math:`\\dot z = (u-z)/τ`; :math:`f_s \\mathrel{+}= ∂f
                        (engine/thrust lag when ``u`` is a thrust or throttle input)
 sensor_bias            :math:`h_o \\mathrel{+}= b`
 sensor_scale           :math:`h_o \\mathrel{+}= k\\,h_o`
-sensor_position        vane: :math:`h_o \\mathrel{+}= c\\,ω` (``c = −x/V`` s);
-                       accelerometer: :math:`h_o \\mathrel{+}= l\\,\\dot ω` (lever arm)
+sensor_position        vane x m ahead of the CG: :math:`α_m = α - x q/V`, :math:`β_m = β + x r/V`
+                       (``V`` the model's airspeed; in s, ``c ω``, when it has none);
+                       accelerometer x m ahead: :math:`a_z - x\\,\\dot q` (``ω̇ × r`` per axis)
 time_skew              :math:`h_o(t-τ) ≈ h_o - τ\\,\\dot h_o`, :math:`\\dot h_o = ∑_i ∂h_o/∂x_i f_i`
 missing_dynamics       a first-order mode :math:`\\dot m = -m/τ + K v`, :math:`f_s \\mathrel{+}= m`
 unmodelled_wind        a Gauss–Markov gust angle :math:`\\dot w = -w/τ_w + σ_w \\dot W` added to
@@ -322,6 +323,23 @@ class SensorScale(Effect):
 
 
 _ACCEL = ("ax", "ay", "az", "an", "a_x", "a_y", "a_z", "nx", "ny", "nz")
+_SPEED_STATES = ("v", "vt", "vtas", "tas", "va", "airspeed", "v_tas", "vel")
+_SPEED_CONSTANTS = ("v0", "vt0", "vtas0", "vo", "u0", "vtrim", "v_0", "vref", "v", "vt")
+
+
+def airspeed_name(info: ModelInfo) -> str | None:
+    """The model's own true airspeed: a state named like V/VT/TAS with a speed unit, else a
+    constant named like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
+    for v in info.states:
+        if v.name.lower() in _SPEED_STATES and (v.unit or "").replace(" ", "") in (
+                "m/s", "ft/s", "kt", "km/h"):
+            return v.name
+    by_lower = {c.lower(): c for c in info.constants}
+    for name in _SPEED_CONSTANTS:
+        if name in by_lower:
+            return by_lower[name]
+    return None
+
 
 
 @register_effect
@@ -332,9 +350,48 @@ class SensorPosition(Effect):
                    "{output} follows {signal}.")
     doc = "Flow-angle vanes and accelerometers away from the centre of gravity."
 
+    #: vane lever arms: (angle, rate) -> (sign of the term, what the distance is). Local air
+    #: velocity at r from the CG is v + ω × r: a vane x ahead sees w − q x (α − x q/V) and
+    #: v + r x (β + x r/V); a vane h above the CG (z = −h) sees v + p h (β + h p/V).
+    _VANE = {("alpha", "q"): ("-", "ahead of the CG (body x)"),
+             ("beta", "r"): ("", "ahead of the CG (body x)"),
+             ("beta", "p"): ("", "above the CG (−body z)")}
+
+    #: accelerometer lever arms: (axis, rate) -> (sign, distance); specific force at r from
+    #: the CG is a + ω̇ × r (+ ω × (ω × r), second order): az − x q̇, ax + z q̇, ay + x ṙ,
+    #: ay − z ṗ, az + y ṗ (x ahead, y right, z below the CG)
+    _ARM = {("z", "q"): ("-", "ahead of the CG (body x)"),
+            ("x", "q"): ("", "below the CG (body z)"),
+            ("y", "r"): ("", "ahead of the CG (body x)"),
+            ("y", "p"): ("-", "below the CG (body z)"),
+            ("z", "p"): ("", "right of the CG (body y)")}
+
+    def _vane(self, info, o, r, p, kind, speed):
+        sign, where = self._VANE[(kind, r.lower())]
+        if speed is not None:
+            what = (f"a flow vane {p} m {where} sees the induced angle "
+                    f"{sign or '+'}{p}·{r}/{speed} of the rotation {r} (local air velocity v + ω × r, "
+                    f"with the model's airspeed {speed})")
+            return Candidate(
+                effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
+                explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
+                parameters=(NewParameter(p, "m", f"{o} vane distance {where}"),),
+                add_terms={"observations": {o: f"{sign}{p}*{r}/{speed}"}},
+                info={"output": o, "regressor": f"rate:{r}", "airspeed": speed})
+        what = (f"a flow vane ahead of/above the CG sees an induced angle proportional to the "
+                f"{r} rate ({p} = {'−' if sign == '-' else ''}distance {where} / airspeed, in s; "
+                f"the model has no airspeed state or constant to express it in metres)")
+        return Candidate(
+            effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
+            explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
+            parameters=(NewParameter(p, "s", f"{o} vane position / airspeed ({r})"),),
+            add_terms={"observations": {o: f"{p}*{r}"}},
+            info={"output": o, "regressor": f"rate:{r}", "airspeed": None})
+
     def applies_to(self, info):
         out = []
         rates = info.rate_states()
+        speed = airspeed_name(info)
         for o in info.output_names:
             ms = info.measured_state(o)
             kind = None
@@ -352,27 +409,25 @@ class SensorPosition(Effect):
                     if (kind == "alpha" and rl != "q") or (kind == "beta" and rl not in ("p", "r")):
                         continue
                     p = info.fresh(f"D_POS_{o}_{r}")
-                    what = (f"a flow vane ahead of/above the CG sees an induced angle "
-                            f"proportional to the {r} rate ({p} = −lever arm / airspeed, in s)")
-                    out.append(Candidate(
-                        effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
-                        explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
-                        parameters=(NewParameter(p, "s", f"{o} vane position / airspeed ({r})"),),
-                        add_terms={"observations": {o: f"{p}*{r}"}},
-                        info={"output": o, "regressor": f"rate:{r}"}))
+                    out.append(self._vane(info, o, r, p, kind, speed))
                 else:
                     rdot = info.drift.get(r)
                     if not rdot:
                         continue
                     p = info.fresh(f"D_ARM_{o}_{r}")
-                    what = (f"an accelerometer at a lever arm {p} (m) from the CG measures the "
-                            f"tangential acceleration of the angular acceleration d{r}/dt")
+                    axis = o.lower()[-1] if o.lower().startswith("a") else None
+                    sign, where = self._ARM.get((axis, rl), ("", "lever arm from the CG"))
+                    g_unit = (info.unit(o) or "").strip() == "g"
+                    term = f"{sign}{p}*{_paren(rdot)}" + ("/9.80665" if g_unit else "")
+                    what = (f"an accelerometer {p} m {where} measures the tangential "
+                            f"acceleration {sign}{p}·d{r}/dt{'/g' if g_unit else ''} of the "
+                            f"angular acceleration (ω̇ × r)")
                     out.append(Candidate(
                         effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
                         explanation=self.explain(output=o, what=what,
                                                  signal=f"the angular acceleration d{r}/dt"),
-                        parameters=(NewParameter(p, "m", f"{o} accelerometer lever arm ({r}-dot)"),),
-                        add_terms={"observations": {o: f"{p}*{_paren(rdot)}"}},
+                        parameters=(NewParameter(p, "m", f"{o} accelerometer distance {where}"),),
+                        add_terms={"observations": {o: term}},
                         info={"output": o, "regressor": f"accel:{r}"}))
         return out
 
@@ -386,9 +441,9 @@ class TimeSkew(Effect):
     title = "time skew between channels"
     explanation = ("The {output} channel is shifted in time against the other channels by "
                    "{param} seconds (sensor or data-acquisition latency, unsynchronised "
-                   "recorders): its residual follows the rate of {output}, and the "
-                   "cross-correlation of measured and modelled {output} peaks at a lag of "
-                   "{lag:.3g} s.")
+                   "recorders): its residual follows the rate of {output}. A positive "
+                   "{param} means the channel is late; an early channel is non-causal and is "
+                   "not accepted under this label (a vane ahead of the CG reads early).")
     doc = "A time shift of one output channel, first order: h(t−τ) ≈ h − τ dh/dt."
 
     def applies_to(self, info):
@@ -414,11 +469,11 @@ class TimeSkew(Effect):
             p = info.fresh(f"D_SKEW_{o}")
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
-                explanation=self.explain(output=o, param=p, lag=0.0),
+                explanation=self.explain(output=o, param=p),
                 parameters=(NewParameter(p, "s", f"time skew of the {o} channel (positive: late)",
                                          lower=-1.0, upper=1.0),),
                 add_terms={"observations": {o: f"-{p}*({' + '.join(pieces)})"}},
-                info={"output": o}))
+                info={"output": o, "causal_sign": {p: 1}}))
         return out
 
     def score(self, c, ev):

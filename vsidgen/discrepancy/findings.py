@@ -129,6 +129,18 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     elif failed:
         conclusion += (" Refits that failed (neither accepted nor ruled out): "
                        + ", ".join(failed) + ".")
+    below = [t for t in tried if t.get("verdict") == "below_nesting_point"]
+    if below:
+        conclusion += (" Not tested (optimizer failure: the refit ended below the ELBO of its "
+                       "nesting point, so it is neither evidence for nor against the effect): "
+                       + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})" for t in below)
+                       + ".")
+    noncausal = [t for t in tried if t.get("verdict") == "non_causal"]
+    if noncausal:
+        conclusion += (" Not accepted because the estimate is non-causal (the channel would read "
+                       "before the motion; a sensor ahead of the CG reads early): "
+                       + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})"
+                                   for t in noncausal) + ".")
     if val_rej:
         conclusion += (" Significant on the estimation records but rejected because the validation "
                        "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
@@ -158,6 +170,36 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int) -> st
                  + "; an unfinished round accepts nothing)")
     return (what + f". {n_findings} effect{'s' if n_findings != 1 else ''} accepted in the "
             "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
+
+
+def _estimate_text(name: str, ent: dict) -> str:
+    est, se, unit = ent.get("estimate"), ent.get("std_error"), ent.get("unit")
+    if est is None:
+        return f"{name} = n/a"
+    text = f"{name} = {est:.4g}" + (f" ± {se:.2g}" if se is not None else "")
+    return text + (f" {unit}" if unit and unit != "1" else "")
+
+
+def summary_lines(document: dict, findings_path) -> list[str]:
+    """The lines ``vsidgen diagnose`` prints, built only from the findings.json ``document``
+    (one source of truth): per finding its test, estimates with units, explanation and
+    alternatives; the last line is the document's ``conclusion`` and where it is written."""
+    lines = []
+    for f in document.get("findings") or []:
+        ev = f["evidence"]
+        lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
+                     f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
+        est = [_estimate_text(k, v) for k, v in (f.get("parameters") or {}).items()
+               if not v.get("fixed")]
+        if est:
+            lines.append("   " + "; ".join(est))
+        lines.append(f"   {f['explanation']}")
+        for a in f.get("alternatives") or []:
+            word = "AMBIGUOUS" if f.get("ambiguous") else "form uncertain"
+            lines.append(f"   {word}: {a['effect']} on {a['target']} explains it nearly as well "
+                         f"(2ΔELBO = {a['statistic']:.4g})")
+    lines.append(f"{document['conclusion']} Findings in {findings_path}.")
+    return lines
 
 
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
@@ -387,7 +429,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         parts.append("<h3>Every candidate refitted</h3><table border='1' cellpadding='3'>"
                      "<tr><th>round</th><th>candidate</th><th>locate score</th>"
                      "<th>2ΔELBO vs nested reference</th><th>threshold</th><th>converged</th>"
-                     "<th>significant</th><th>validation</th></tr>")
+                     "<th>significant</th><th>validation</th><th>verdict</th></tr>")
         for rnd, t in rows:
             def num(v, fmt=".4g"):
                 return "–" if v is None else format(v, fmt)
@@ -396,8 +438,10 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             parts.append(f"<tr><td>{rnd}</td><td>{e(t['key'])}</td><td>{num(t.get('score'), '.3g')}</td>"
                          f"<td>{num(t.get('statistic'))}</td><td>{num(t.get('threshold'))}</td>"
                          f"<td>{conv}</td><td>{'yes' if t.get('significant') else 'no'}</td>"
-                         f"<td>{val}</td></tr>")
+                         f"<td>{val}</td><td>{e(t.get('verdict') or '–')}</td></tr>")
         parts.append("</table><p>An unconverged refit is never accepted (it enters the Holm "
-                     "family with p = 1).</p>")
+                     "family with p = 1); nor is one with the verdict <i>below_nesting_point</i> "
+                     "(an optimizer failure, not a rejection) or <i>non_causal</i> (an estimate "
+                     "impossible under its label).</p>")
     parts.append("</section>")
     return "\n".join(parts)

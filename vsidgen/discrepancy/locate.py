@@ -46,7 +46,7 @@ from .base import FLOW_ANGLE_NAMES, RATE_NAMES
 
 #: locate significance level (Bonferroni-corrected within a target) for "flagged"
 ALPHA_LOCATE = 1e-3
-MAX_SCORE = 30.0
+_LN10 = math.log(10.0)
 
 
 # ---------------------------------------------------------------------------
@@ -92,6 +92,18 @@ class RegressorStat:
     p: float               # two-sided p-value with the effective sample size
     n_eff: float
     share: float           # share of residual variance explained (corr²)
+    log10p: float = math.nan   # log10 p computed without underflow (t.logsf); nan: log10(p)
+
+    def log10_p(self) -> float:
+        """log10 of the p-value, exact also where ``p`` underflows to 0 (ranks strong effects)."""
+        if math.isfinite(self.log10p):
+            return float(self.log10p)
+        return math.log10(min(1.0, max(float(self.p), 1e-300))) if math.isfinite(self.p) else 0.0
+
+    def with_factor(self, k: float) -> "RegressorStat":
+        """The same test with its p-value multiplied by ``k`` (capped at 1), exactly in logs."""
+        lg = min(0.0, self.log10_p() + math.log10(k))
+        return dataclasses.replace(self, p=min(1.0, k * self.p), log10p=lg)
 
     def to_json(self) -> dict:
         return {k: _num(v) for k, v in dataclasses.asdict(self).items()}
@@ -171,6 +183,7 @@ class OutputEvidence:
     flagged: bool
     windows: tuple[Window, ...]
     whiteness_p: float = 1.0        # Ljung–Box p of the one-step prediction residual (innovation)
+    whiteness_log10p: float = 0.0   # its log10, exact where the p-value underflows
 
     def regressor(self, name: str) -> RegressorStat | None:
         for r in (self.bias, self.scale, self.rate, *self.offsets):
@@ -187,6 +200,7 @@ class OutputEvidence:
                 "lag_s": _num(self.lag_s), "offsets": [r.to_json() for r in self.offsets],
                 "systematic_share": _num(self.systematic_share), "flagged": self.flagged,
                 "whiteness_p": _num(self.whiteness_p),
+                "whiteness_log10p": _num(self.whiteness_log10p),
                 "windows": [w.to_json() for w in self.windows]}
 
 
@@ -213,7 +227,7 @@ class Evidence:
         r = ev.regressor(regressor)
         if r is None:
             return 0.0
-        return _score(r.p * len(ev.regressors))
+        return _score(r.log10_p(), len(ev.regressors))
 
     def output_score(self, output: str, regressor: str) -> float:
         ev = self.outputs.get(output)
@@ -222,7 +236,7 @@ class Evidence:
         r = ev.regressor(regressor)
         if r is None:
             return 0.0
-        return _score(r.p * (3 + len(ev.offsets)))
+        return _score(r.log10_p(), 3 + len(ev.offsets))
 
     def colored_score(self, state: str | None = None) -> float:
         """Support for unexplained coloured structure (missing dynamics, wind).
@@ -234,7 +248,7 @@ class Evidence:
         """
         if not self.outputs:
             return 0.0
-        p = min(ev.whiteness_p for ev in self.outputs.values()) * len(self.outputs)
+        lg = min(ev.whiteness_log10p for ev in self.outputs.values())
         explained = 0.0
         for s, ev in self.states.items():
             if state is None or s == state:
@@ -245,7 +259,7 @@ class Evidence:
             if ev.flagged:
                 explained = max(explained, ev.systematic_share)
         # a fallback explanation: half weight against a specific deterministic one
-        return float(0.5 * _score(p) * (1.0 - explained) ** 2)
+        return float(0.5 * _score(lg, len(self.outputs)) * (1.0 - explained) ** 2)
 
     def summary(self) -> str:
         lines = []
@@ -292,9 +306,31 @@ def _jsonable(obj):
     return obj
 
 
-def _score(p: float) -> float:
-    p = min(1.0, max(float(p), 1e-300)) if np.isfinite(p) else 1.0
-    return float(min(MAX_SCORE, -math.log10(p)))
+def _score(log10p: float, m: int | float = 1) -> float:
+    """−log10 of the Bonferroni-corrected p-value ``min(1, m·p)``, computed from log10 p so
+    that it does not saturate where p underflows: strong effects keep their order."""
+    if not math.isfinite(log10p):
+        return 0.0
+    return float(max(0.0, -(log10p + math.log10(max(m, 1)))))
+
+
+def _t_log10p(tstat: float, df: float) -> float:
+    """log10 of the two-sided Student-t p-value ``2·sf(|t|)``, without underflow.
+
+    ``2·sf(|t|) = I_x(ν/2, 1/2)`` with ``x = ν/(ν + t²)`` (regularised incomplete beta), and
+    ``I_x(a, b) = x^a (1−x)^b ₂F₁(a+b, 1; a+1; x) / (a B(a, b))`` (DLMF 8.17.8), evaluated in
+    logs where scipy's ``logsf`` underflows to −∞.
+    """
+    from scipy import special
+
+    lg = stats.t.logsf(abs(tstat), df)
+    if math.isfinite(lg):
+        return float((math.log(2.0) + lg) / _LN10)
+    a, b = 0.5 * df, 0.5
+    x = df / (df + tstat * tstat)
+    ln = (a * math.log(x) + b * math.log1p(-x) - math.log(a) - special.betaln(a, b)
+          + math.log(special.hyp2f1(a + b, 1.0, a + 1.0, x)))
+    return float(ln / _LN10)
 
 
 def _acf(x: np.ndarray, nlags: int) -> np.ndarray:
@@ -348,7 +384,8 @@ def corr_test(e: np.ndarray, r: np.ndarray, seg: Sequence[slice] | None = None, 
         p = 2 * stats.t.sf(abs(tstat), df=max(1.0, n_eff - 1))
         share = m * m / (m * m + sd * sd) if sd > 0 or m != 0 else 0.0
         return RegressorStat(name, float(np.sign(m) * math.sqrt(share)), float(m), float(p),
-                             n_eff, float(share))
+                             n_eff, float(share),
+                             min(0.0, _t_log10p(tstat, max(1.0, n_eff - 1))))
     ec = np.where(ok, e0 - e0[ok].mean(), 0.0)
     rc = np.where(ok, r0 - r0[ok].mean(), 0.0)
     se, sr = math.sqrt(ec @ ec), math.sqrt(rc @ rc)
@@ -363,18 +400,25 @@ def corr_test(e: np.ndarray, r: np.ndarray, seg: Sequence[slice] | None = None, 
     c2 = min(c * c, 1 - 1e-15)
     tstat = math.sqrt(c2 * (n_eff - 2) / (1 - c2))
     p = 2 * stats.t.sf(tstat, df=n_eff - 2)
-    return RegressorStat(name, c, coef, float(p), n_eff, float(c * c))
+    return RegressorStat(name, c, coef, float(p), n_eff, float(c * c),
+                         min(0.0, _t_log10p(tstat, n_eff - 2)))
 
 
 def ljung_box(e: np.ndarray, seg: Sequence[slice], nlags: int = 20) -> float:
+    """Ljung–Box p-value of ``e`` (see :func:`ljung_box_log10p`)."""
+    return float(10.0 ** ljung_box_log10p(e, seg, nlags))
+
+
+def ljung_box_log10p(e: np.ndarray, seg: Sequence[slice], nlags: int = 20) -> float:
+    """log10 of the Ljung–Box p-value ``Q = n(n+2) Σ_k ρ_k²/(n−k) ~ χ²(nlags)``, exact in logs."""
     n = int(np.isfinite(e).sum())
     if n < nlags + 5:
-        return 1.0
+        return 0.0
     e = np.where(np.isfinite(e), e - np.nanmean(e), 0.0)
     rho = _segments_acf(e, seg, nlags)
     k = np.arange(1, nlags + 1)
     q = n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k))
-    return float(stats.chi2.sf(q, nlags))
+    return float(min(0.0, stats.chi2.logsf(q, nlags) / _LN10))
 
 
 def lowfreq_ratio(e: np.ndarray, seg: Sequence[slice], frac: float = 0.1) -> float:
@@ -583,7 +627,7 @@ def _stepwise(e, reg: Mapping[str, np.ndarray], seg, alpha: float, max_terms: in
             if k in chosen:
                 continue
             st = corr_test(resid, r, seg, name=k)
-            if best is None or st.p < best.p:
+            if best is None or st.log10_p() < best.log10_p():
                 best = st
         if best is None or best.p * len(reg) >= alpha:
             break
@@ -731,7 +775,7 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
                 e_t = e
             own = {k: r for k, r in ((k, part(v)) for k, v in own.items()) if r is not None}
         tests = sorted((corr_test(e_t, v, seg_s, name=k) for k, v in own.items()),
-                       key=lambda r: r.p)
+                       key=lambda r: r.log10_p())
         lb = ljung_box(e, seg_s)
         lf = lowfreq_ratio(e, seg_s)
         sx = float(np.nanstd(X[:, j]))
@@ -772,8 +816,8 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         def test(name, r):
             a = corr_test(res_s, r, seg_o, name=name)
             b = corr_test(res_p, r, seg_o, name=name)
-            st = a if a.p <= b.p else b
-            best[name] = dataclasses.replace(st, p=min(1.0, 2 * st.p))
+            st = a if a.log10_p() <= b.log10_p() else b
+            best[name] = st.with_factor(2.0)
             return best[name]
 
         regs = {"bias": np.ones_like(ys), "scale": ys, "rate": Ys_dot[:, j]}
@@ -802,7 +846,8 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
             o, int(np.isfinite(res_s).sum()), _rms(res_s), _rms(res_p), _rms(Ym[:, j] - Yi[:, j]),
             sigma, bias, scale, rate, lag, tuple(offs), float(share),
             bool(sig) and share >= min_share, tuple(wins[:5]),
-            ljung_box(_remove(res_p, [regs[t_.name] for t_ in sig if t_.name in regs]), seg_o))
+            10.0 ** (wl := ljung_box_log10p(
+                _remove(res_p, [regs[t_.name] for t_ in sig if t_.name in regs]), seg_o)), wl)
     return Evidence(states, outputs, dt, alpha)
 
 

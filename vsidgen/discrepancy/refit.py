@@ -38,6 +38,7 @@ it is compared with the base's.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import types
 from typing import Any
@@ -53,6 +54,44 @@ from ..results import finite_or_none as _f
 #: Levenberg–Marquardt iterations, with 1e-3 it converges in ~55. Used in every stage and
 #: in the reference.
 REFIT_DETERMINISTIC_STD = 1e-3
+
+
+class RefitVerdict(str, enum.Enum):
+    """What a converged refit's result may be used for (typed; findings.json stores the value).
+
+    ``ordinary``: a test result (significant or not). ``below_nesting_point``: the refit ended
+    below its nested reference ELBO. Every stage starts where the previous one ended and the
+    optimiser only ascends, so this is an optimiser failure (or a candidate family that does
+    not contain the current model exactly, such as a lag whose smallest time constant is a
+    one-sample shift): neither a rejection nor evidence; it is flagged, never reported as
+    "not significant". ``non_causal``: the estimate is physically impossible as labelled
+    (a channel that reads *before* the motion, a negative delay or time constant); it is not
+    accepted under that label.
+    """
+
+    ORDINARY = "ordinary"
+    BELOW_NESTING_POINT = "below_nesting_point"
+    NON_CAUSAL = "non_causal"
+
+
+#: Λ below −BELOW_TOL (2ΔELBO, i.e. 0.05 nats) counts as ending below the nested reference
+BELOW_TOL = 0.1
+
+
+def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: dict[str, int]
+                  ) -> RefitVerdict:
+    """Verdict of a refit from its statistic ``Λ = 2(ELBO − ELBO_ref)`` and its estimates.
+
+    ``causal_sign`` maps parameters whose sign is physical (a time skew: +1, late) to the
+    admissible sign; an estimate of the other sign is non-causal.
+    """
+    if math.isfinite(statistic) and statistic < -BELOW_TOL:
+        return RefitVerdict.BELOW_NESTING_POINT
+    for name, sign in causal_sign.items():
+        v = estimates.get(name)
+        if v is not None and math.isfinite(v) and v * sign < 0:
+            return RefitVerdict.NON_CAUSAL
+    return RefitVerdict.ORDINARY
 
 
 @dataclasses.dataclass

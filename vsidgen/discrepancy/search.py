@@ -59,6 +59,7 @@ from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
+from .refit import RefitVerdict, refit_verdict
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,6 +134,7 @@ class Trial:
     converged: bool = False          # the final (stage-2) refit met the gradient criterion
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
+    verdict: Any = None              # refit.RefitVerdict (None: no refit)
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -142,6 +144,7 @@ class Trial:
                 "statistic": _f(self.statistic), "dof": self.dof, "p_value": _f(self.p_value),
                 "threshold": _f(self.threshold), "significant": self.significant,
                 "validation_ok": self.validation_ok, "error": self.error,
+                "verdict": None if self.verdict is None else self.verdict.value,
                 "converged": None if self.state is None else bool(self.converged),
                 "convergence": None if self.state is None else conv_label(self.state.fit),
                 "status": None if self.state is None else self.state.fit.status,
@@ -533,7 +536,8 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
-                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo)))
+                                       statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
+                                       verdict=trial_verdict(t.candidate, t.state, lam)))
     return out
 
 
@@ -655,6 +659,14 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
     return scored[:max_candidates]
 
 
+def trial_verdict(c: Candidate, st: FitState, statistic: float):
+    """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates)."""
+    names = list(st.model.parameter_names)
+    est = {p.name: float(st.fit.theta[names.index(p.name)]) for p in c.parameters
+           if p.name in names}
+    return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round whose
     statistic is within ``2·nats`` of the best one's: explanations the data do not separate
@@ -736,7 +748,8 @@ def _trial_of(oc, c, score, sr, path, current) -> Trial:
     lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
     return Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
                  statistic_vs_base=2.0 * (st.elbo - current.elbo),
-                 converged=refit_converged(st.fit), screen=sr)
+                 converged=refit_converged(st.fit), screen=sr,
+                 verdict=trial_verdict(c, st, lam))
 
 
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
@@ -745,7 +758,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  time_limit: float | None = None, workers: int | None = 1,
                  scheduler: str | None = None,
                  progress: Callable[[str], None] | None = None,
-                 overwrite: bool = False) -> DiagnoseResult:
+                 overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
     Writes ``out/findings.json``, ``out/diagnose.html`` (report section, also
@@ -754,6 +767,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
     checked before any computation, and a non-empty directory that is not a
     vsidgen results directory needs ``overwrite`` (its other files are kept).
+    ``overrides`` (:class:`vsidgen.overrides.Overrides`, from ``--fix`` etc.):
+    the fits use ``out/overrides.yaml``, a spec that extends ``spec`` with them.
 
     Nothing found is lost: ``findings.json`` is rewritten (atomically) after every
     refit and ``diagnose.html`` after every round, with the accepted findings, the
@@ -772,8 +787,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         VsidgenError: bad spec, data, options or effect plugin.
     """
     from .. import __version__
-    from ..engine import Engine, TaskStatus
-    from .findings import build_document, write_findings, write_findings_json
+    from ..engine import Engine
+    from .findings import build_document, write_findings
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen diagnose SPEC DATA [DATA...] --out DIR`")
@@ -805,9 +820,17 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     from ..symbolic import compile_spec
 
     symbolic = compile_spec(spec)  # bad records are refused before any fit
+    if overrides is not None and not overrides.empty:
+        from ..overrides import apply_overrides
+
+        apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
     with results_in_place(plan, command="diagnose") as out:
+        if overrides is not None and not overrides.empty:
+            from ..overrides import write_override_spec
+
+            spec = write_override_spec(spec, overrides, out)
         return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
                              max_candidates=max_candidates, alpha=alpha, min_score=min_score,
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
@@ -910,6 +933,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 checkpoint(StopReason.RUNNING, report=False)
                 _say(progress, f"round {rnd}: refitting {len(tasks)} candidates "
                                f"({engine.describe()}): " + ", ".join(k for k, _ in tasks))
+                status = getattr(progress, "refitting", None)  # live status line with time left
+                if status is not None and tasks:
+                    _say(progress, status(rnd, 1, len(tasks), tasks[0][0]))
 
                 def refit_done(oc, rnd=rnd, current=current, by_key=by_key, paths=paths):
                     i, score, c, sr = by_key[oc.key]
@@ -928,6 +954,11 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                         unfinished["pending"].remove(c.key)
                         unfinished["refitted"].append(t.to_json())
                         checkpoint(StopReason.RUNNING, report=False)
+                        status = getattr(progress, "refitting", None)
+                        if status is not None and unfinished["pending"]:
+                            n_done = len(unfinished["refitted"])
+                            _say(progress, status(rnd, n_done + 1, n_done + len(unfinished["pending"]),
+                                                  unfinished["pending"][0]))
 
                 outcomes = engine.run(_refit_task, tasks, deadline=deadline, on_done=refit_done)
                 if any(o.status is TaskStatus.CANCELLED for o in outcomes):
@@ -1033,7 +1064,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
     # the candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if t.converged else 1.0 for t in trials]
+    decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
+                      else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
     for t, (sig, level) in zip(trials, decisions):
@@ -1100,6 +1132,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
+    from ..cli import add_override_arguments
+
+    add_override_arguments(p)
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="stop cleanly between refits after this many seconds; the effects "
                         "accepted so far and the unfinished round are written (exit status 1)")
@@ -1145,35 +1180,25 @@ def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; exit status 0 (completed) or 1 (stopped at the time
     limit; what was found is written). An interrupt (Ctrl-C, SIGTERM) writes the findings
     and propagates (status 130)."""
-    from ..cli import _enable_compilation_cache
+    from ..cli import _enable_compilation_cache, overrides_of
+    from ..progress import DiagnoseProgress
 
+    ov = overrides_of(args)
     _enable_compilation_cache()
-    progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    with terminate_as_interrupt():
-        res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
-                           max_rounds=args.max_rounds, max_candidates=args.max_candidates,
-                           alpha=args.alpha, min_score=args.min_score, effects=args.effects,
-                           effects_module=args.effects_module, max_iter=args.max_iter,
-                           screen=args.screen, time_limit=args.time_limit,
-                           workers=args.workers, scheduler=args.scheduler, progress=progress,
-                           overwrite=args.overwrite)
-    if res.stop is not StopReason.COMPLETED:
-        from .findings import stop_text
-        print(stop_text(res.document["stop"], res.document["unfinished_round"],
-                        len(res.findings))
-              + f"Findings in {res.out_dir / 'findings.json'}")
-    if not res.findings:
-        if res.stop is StopReason.COMPLETED:
-            print(f"no significant discrepancy found; findings in "
-                  f"{res.out_dir / 'findings.json'}")
-    else:
-        for f in res.findings:
-            ev = f["evidence"]
-            print(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
-                  f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
-            print(f"   {f['explanation']}")
-            for a in f.get("alternatives") or []:
-                print(f"   AMBIGUOUS: {a['effect']} on {a['target']} explains it nearly as well "
-                      f"(2ΔELBO = {a['statistic']:.4g})")
-        print(f"final spec: {res.final_spec}; findings in {res.out_dir / 'findings.json'}")
+    progress = None if args.quiet else DiagnoseProgress(sys.stderr)
+    try:
+        with terminate_as_interrupt():
+            res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
+                               max_rounds=args.max_rounds, max_candidates=args.max_candidates,
+                               alpha=args.alpha, min_score=args.min_score, effects=args.effects,
+                               effects_module=args.effects_module, max_iter=args.max_iter,
+                               screen=args.screen, time_limit=args.time_limit,
+                               workers=args.workers, scheduler=args.scheduler, progress=progress,
+                               overwrite=args.overwrite, overrides=ov)
+    finally:
+        if progress is not None:
+            progress.close()
+    from .findings import summary_lines  # the conclusion says when the run stopped early
+    for line in summary_lines(res.document, res.out_dir / "findings.json"):
+        print(line)
     return 0 if res.stop is StopReason.COMPLETED else 1

@@ -1,0 +1,208 @@
+"""Physical parameterisations of the diagnose catalogue: sensor positions in metres with the
+model's own airspeed (local air velocity v + ω × r; specific force a + ω̇ × r)."""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+import sympy
+
+from vsidgen.discrepancy.base import model_info, propose
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+HFB = ROOT / "specs" / "hfb320.yaml"
+ATTAS = ROOT / "specs" / "attas_sp.yaml"
+LAT = ROOT / "benchmarks" / "independent" / "specs" / "lat_beta.yaml"
+
+
+def _candidate(spec, key):
+    info = model_info(spec, dt=0.05)
+    return info, next(c for c in propose(info) if c.key == key)
+
+
+def _observation(spec, cand, output, tmp_path):
+    from vsidgen.symbolic import compile_spec
+
+    p = tmp_path / "cand.yaml"
+    p.write_text(cand.spec_yaml(spec, name="cand_pos", candidate_path=p))
+    sym = compile_spec(p)
+    i = [v.name for v in sym.outputs].index(output)
+    return sym, sym.observations_expanded()[i]
+
+
+def _subs(sym, values):
+    names = {s.name: s for s in sym.observations_expanded()[0].free_symbols}
+    for e in sym.observations_expanded() + sym.drift_expanded():
+        names.update({s.name: s for s in e.free_symbols})
+    return {names[k]: v for k, v in values.items() if k in names}
+
+
+def test_alpha_vane_lever_arm_in_metres_with_the_model_airspeed(tmp_path):
+    _, c = _candidate(HFB, "sensor_position:alpha:q")
+    (p,) = c.parameters
+    assert p.unit == "m" and "ahead of the CG" in p.description
+    sym, h = _observation(HFB, c, "alpha", tmp_path)
+    vals = {"alpha": 0.1, "q": 0.05, "V": 100.0, "theta": 0.0, p.name: 8.0}
+    got = float(h.xreplace(_subs(sym, vals)))
+    # a vane 8 m ahead of the CG pitching up at 0.05 rad/s at 100 m/s reads 0.004 rad less
+    assert got == pytest.approx(0.1 - 8.0 * 0.05 / 100.0, abs=1e-15)
+
+
+def test_beta_vane_on_a_nose_boom_uses_the_trim_speed_constant(tmp_path):
+    _, c = _candidate(LAT, "sensor_position:beta:r")
+    (p,) = c.parameters
+    assert p.unit == "m"
+    sym, h = _observation(LAT, c, "beta", tmp_path)
+    vals = {"beta": 0.02, "r": 0.1, "V0": 100.0, p.name: 6.0}
+    got = float(h.xreplace(_subs(sym, vals)))
+    # v + r x: a yaw rate to the right raises the sideslip seen ahead of the CG
+    assert got == pytest.approx(0.02 + 6.0 * 0.1 / 100.0, abs=1e-15)
+
+
+def test_accelerometer_ahead_of_the_cg_reads_minus_x_qdot(tmp_path):
+    _, c = _candidate(HFB, "sensor_position:az:q")
+    (p,) = c.parameters
+    assert p.unit == "m" and "ahead of the CG" in p.description
+    sym, h = _observation(HFB, c, "az", tmp_path)
+    slope = sympy.diff(h, [s for s in h.free_symbols if s.name == p.name][0])
+    i_q = [v.name for v in sym.states].index("q")
+    assert sympy.simplify(slope + sym.drift_expanded()[i_q]) == 0   # ∂az/∂x = −q̇
+
+
+def test_vane_without_an_airspeed_keeps_seconds():
+    _, c = _candidate(ATTAS, "sensor_position:alpha:q")
+    assert c.parameters[0].unit == "s"
+
+
+# ---------------------------------------------------------------------------
+# decisions: optimizer failures and non-causal estimates are not test results
+# ---------------------------------------------------------------------------
+
+def test_refit_verdicts():
+    from vsidgen.discrepancy.refit import RefitVerdict, refit_verdict
+
+    # the refit ended 286 nats below its nesting point: an optimizer failure, not a rejection
+    assert refit_verdict(-572.0, {"D": 0.1}, {}) is RefitVerdict.BELOW_NESTING_POINT
+    assert refit_verdict(-0.01, {"D": 0.1}, {}) is RefitVerdict.ORDINARY   # at the start
+    # a β channel "early" by 0.035 s is non-causal under the time-skew label
+    assert refit_verdict(11.3, {"D_SKEW_beta": -0.035}, {"D_SKEW_beta": 1}) \
+        is RefitVerdict.NON_CAUSAL
+    assert refit_verdict(11.3, {"D_SKEW_beta": 0.035}, {"D_SKEW_beta": 1}) \
+        is RefitVerdict.ORDINARY
+
+
+def test_time_skew_is_causal_and_its_explanation_has_no_unfilled_number():
+    _, c = _candidate(HFB, "time_skew:alpha")
+    (p,) = c.parameters
+    assert c.info["causal_sign"] == {p.name: 1}
+    assert "lag of 0 s" not in c.explanation and "peaks at" not in c.explanation
+
+
+def test_trial_verdict_reads_the_refitted_estimates():
+    import types
+
+    import numpy as np
+
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.search import trial_verdict
+
+    _, c = _candidate(LAT, "time_skew:beta")
+    (p,) = c.parameters
+    st = types.SimpleNamespace(model=types.SimpleNamespace(parameter_names=("YB", p.name)),
+                               fit=types.SimpleNamespace(theta=np.array([-0.1, -0.035])))
+    assert trial_verdict(c, st, 11.3) is RefitVerdict.NON_CAUSAL
+    st.fit.theta[1] = 0.02
+    assert trial_verdict(c, st, 11.3) is RefitVerdict.ORDINARY
+    assert trial_verdict(c, st, -40.0) is RefitVerdict.BELOW_NESTING_POINT
+
+
+def _trial(key, stat, thr, *, converged=True, verdict="ordinary", significant=False):
+    return {"key": key, "statistic": stat, "threshold": thr, "converged": converged,
+            "verdict": verdict, "significant": significant, "validation_ok": None,
+            "status": "converged" if converged else "iteration limit"}
+
+
+def test_conclusion_flags_failures_and_the_cli_prints_it_last(tmp_path):
+    from vsidgen.discrepancy.findings import conclusion_text, summary_lines
+
+    rounds = [{"round": 1, "trials": [
+        _trial("control_delay:de", -1017.0, 15.8, verdict="below_nesting_point"),
+        _trial("time_skew:beta", 11.3, 10.9, verdict="non_causal"),
+        _trial("sensor_position:beta:r", 6.1, 11.0)]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    assert "optimizer failure" in text and "control_delay:de" in text
+    assert "non-causal" in text and "time_skew:beta" in text
+    doc = {"conclusion": text, "findings": []}
+    lines = summary_lines(doc, tmp_path / "findings.json")
+    assert lines[-1].startswith(text)
+    # an inconclusive run says so on the CLI's last line, exactly as findings.json does
+    rounds = [{"round": 1, "trials": [_trial("unmodelled_wind:alpha", 6627.0, 13.6,
+                                             converged=False)]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    lines = summary_lines({"conclusion": text, "findings": []}, tmp_path / "findings.json")
+    assert text.startswith("INCONCLUSIVE") and lines[-1].startswith("INCONCLUSIVE")
+
+
+def test_cli_lines_show_estimates_with_units(tmp_path):
+    from vsidgen.discrepancy.findings import summary_lines
+
+    f = {"rank": 1, "effect": "sensor_position", "target": "output:beta",
+         "explanation": "The beta sensor is not at the centre of gravity.",
+         "parameters": {"D_POS_beta_r": {"estimate": 7.93, "std_error": 0.21, "unit": "m",
+                                         "fixed": False}},
+         "evidence": {"statistic": 52.0, "threshold": 11.0}, "alternatives": [],
+         "ambiguous": False}
+    doc = {"findings": [f], "conclusion": "1 significant discrepancy found: sensor_position on "
+                                          "output:beta. Final augmented spec: c.yaml."}
+    lines = summary_lines(doc, tmp_path / "findings.json")
+    assert any("D_POS_beta_r = 7.93 ± 0.21 m" in ln for ln in lines)
+    assert lines[-1].startswith(doc["conclusion"])
+
+
+# ---------------------------------------------------------------------------
+# locate scores: exact −log10 p, no saturation
+# ---------------------------------------------------------------------------
+
+def test_locate_scores_do_not_saturate_and_keep_their_order():
+    import math
+
+    import numpy as np
+    from scipy import stats
+
+    from vsidgen.discrepancy.locate import _score, corr_test
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    seg = [slice(0, n)]
+    r = rng.standard_normal(n)
+    strong = corr_test(r + 0.05 * rng.standard_normal(n), r, seg, name="strong")
+    weaker = corr_test(r + 0.3 * rng.standard_normal(n), r, seg, name="weaker")
+    moderate = corr_test(0.05 * r + rng.standard_normal(n), r, seg, name="moderate")
+    assert strong.p == 0.0 and weaker.p == 0.0            # both underflow in double precision
+    assert _score(strong.log10_p(), 10) > _score(weaker.log10_p(), 10) > 30.0
+    # where p does not underflow, the log is the textbook two-sided t-test p-value
+    c2 = moderate.corr ** 2
+    t = math.sqrt(c2 * (moderate.n_eff - 2) / (1 - c2))
+    ref = math.log10(2 * stats.t.sf(t, moderate.n_eff - 2))
+    assert moderate.log10_p() == pytest.approx(ref, rel=1e-9)
+    assert _score(moderate.log10_p(), 10) == pytest.approx(max(0.0, -ref - 1.0), rel=1e-9)
+
+
+def test_t_tail_in_logs_matches_scipy_where_scipy_is_finite():
+    import math
+
+    from scipy import special, stats
+
+    from vsidgen.discrepancy.locate import _t_log10p
+
+    for t, df in ((5.0, 30.0), (30.0, 400.0), (37.0, 3000.0)):
+        ref = math.log10(2.0) + stats.t.logsf(t, df) / math.log(10.0)
+        assert math.isfinite(ref)
+        # DLMF 8.17.8, the form used beyond scipy's range, agrees with scipy inside it
+        a, b, x = 0.5 * df, 0.5, df / (df + t * t)
+        series = (a * math.log(x) + b * math.log1p(-x) - math.log(a) - special.betaln(a, b)
+                  + math.log(special.hyp2f1(a + b, 1.0, a + 1.0, x))) / math.log(10.0)
+        assert series == pytest.approx(ref, rel=1e-9)
+        assert _t_log10p(t, df) == pytest.approx(ref, rel=1e-12)
+    assert math.isfinite(_t_log10p(60.0, 3000.0)) and _t_log10p(60.0, 3000.0) < -240
