@@ -41,3 +41,23 @@ def _hypothesis_without_deadline() -> None:
 
 
 _hypothesis_without_deadline()
+
+
+def pytest_configure(config):
+    """Persistent JAX compilation cache for the test session, under pytest's cache directory
+    (``.pytest_cache/d/jax-compilation-cache``): a second run of the suite skips most XLA
+    compile time. Tracing still happens, so tests that count traces are unaffected.
+    ``VSIDGEN_TEST_JAX_CACHE=0`` disables it. Subprocesses (CLI tests, dask workers) get it
+    through ``JAX_COMPILATION_CACHE_DIR``."""
+    if os.environ.get("VSIDGEN_TEST_JAX_CACHE", "1") == "0" or getattr(config, "cache", None) is None:
+        return
+    try:
+        cache = config.cache.mkdir("jax-compilation-cache")
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", str(cache))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    except (OSError, AttributeError, ValueError):  # read-only checkout, older jax: uncached
+        return
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(cache))
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")

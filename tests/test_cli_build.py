@@ -59,11 +59,48 @@ def test_show_plain_and_latex(capsys):
     assert latex.startswith("\\begin{align}") and "\\dot{V}" in latex
 
 
+def _record(n=20, *, dt=0.1):
+    """A CSV record of n samples for tests/specs/base.yaml."""
+    rows = [f"{k * dt:.3f},0.01,{100 + 0.1 * k:.2f},{3 + 0.01 * k:.3f},-9.7" for k in range(n)]
+    return "t_s,de_rad,v_mps,alpha_deg,az_mps2\n" + "\n".join(rows) + "\n"
+
+
 def test_check_with_data(tmp_path, capsys):
     csv = tmp_path / "rec.csv"
     csv.write_text(CSV)
-    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 0
     assert check_first_sample(compile_spec(SPECS / "base.yaml"), csv) == []
+    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 2  # 2 samples
+    assert "too few samples" in capsys.readouterr().err
+    csv.write_text(_record())
+    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 0
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda rows: rows[:8] + [rows[8].replace("0.01,", ",", 1)] + rows[9:],
+     "missing value in input 'de'"),
+    (lambda rows: rows[:12] + rows[13:], "non-uniform sampling"),
+    (lambda rows: rows[:5] + [rows[6], rows[5]] + rows[7:], "time is not increasing"),
+])
+def test_check_data_reads_the_whole_record(tmp_path, capsys, edit, message):
+    lines = _record().splitlines()
+    csv = tmp_path / "rec.csv"
+    csv.write_text("\n".join([lines[0]] + edit(lines[1:])) + "\n")
+    assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_check_data_nonfinite_drift_later_in_the_record(tmp_path, capsys):
+    (tmp_path / "base.yaml").write_text((SPECS / "base.yaml").read_text())
+    kid = tmp_path / "kid.yaml"
+    kid.write_text("name: kid\nextends: base.yaml\nadd_terms:\n  drift: {alpha: 0.01*log(V)}\n")
+    lines = _record().splitlines()
+    lines[15] = lines[15].replace(",101.40,", ",0.00,")  # V = 0 at sample 14 -> log(V) = -inf
+    csv = tmp_path / "rec.csv"
+    csv.write_text("\n".join(lines) + "\n")
+    assert main(["check", str(kid), "--data", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert "sample 14 (t = 1.4 s)" in err and "drift of `alpha`" in err
 
 
 def test_check_data_nonfinite_drift(tmp_path):

@@ -136,6 +136,8 @@ def _defined(tree) -> set:
     return out
 
 
+@settings(max_examples=60, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(st.text(max_size=80))
 @example("q\n")
 @example("p")
@@ -169,6 +171,7 @@ def test_names_are_identifiers_or_refused(tmp_path_factory, name):
     assert local.isidentifier() and not keyword.iskeyword(local)
 
 
+@settings(deadline=None)
 @given(hostile_text)
 def test_escapers_round_trip(s):
     assert ast.literal_eval(py_literal(s)) == s

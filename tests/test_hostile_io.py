@@ -135,6 +135,23 @@ def test_fit_refuses_bad_record(user_dir, name, texts):
     assert "np.float64" not in proc.stderr
 
 
+def test_fit_refuses_csv_syntax_beyond_the_parser_limits(user_dir):
+    """Fields longer than the csv module's limit, in the header and in a data row."""
+    header = "t_s,de_rad,alpha_rad,q_radps"
+    rows = [f"{k * 0.04:.2f},0.01,0.03,0.002" for k in range(20)]
+    (user_dir / "long_header.csv").write_text(header + ",x" * 3 + "," + "a" * 300_000 + "\n"
+                                              + "\n".join(rows) + "\n")
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "long_header.csv", "--out", "res", "--quiet"],
+          "long_header.csv", "header row cannot be read")
+    bad = list(rows)
+    bad[6] = '0.24,0.01,"' + "7" * 300_000 + '",0.002'
+    (user_dir / "long_quoted_cell.csv").write_text(header + "\n" + "\n".join(bad) + "\n")
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "long_quoted_cell.csv", "--out", "res",
+                     "--quiet"], "long_quoted_cell.csv", "sample 6", "file line 8")
+    _case(user_dir, ["check", "user/attas_sp.yaml", "--data", "long_header.csv"],
+          "long_header.csv")
+
+
 def test_fit_refuses_devices_pipes_directories(user_dir):
     os.mkfifo(user_dir / "pipe.csv")
     for data, text in (("/dev/zero", "character device"), ("pipe.csv", "named pipe"),

@@ -17,7 +17,7 @@ Pipeline (one module each, data flowing one way)::
 Names are imported lazily, so ``import vsidgen`` stays cheap (no jax until needed).
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 from .errors import DataError, SpecError, SpecWarning, VsidgenError  # noqa: E402
 

@@ -12,8 +12,8 @@ stderr without a traceback and give exit status 2; Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
-import pathlib
 import os
+import pathlib
 import sys
 
 from .errors import VsidgenError
@@ -59,25 +59,29 @@ def _cmd_build(args) -> int:
 
 def _add_check(subparsers) -> None:
     p = subparsers.add_parser(
-        "check", help="validate a spec (and its first data sample)",
+        "check", help="validate a spec (and a data record)",
         description="Validate a spec: syntax, declarations, equations, definition cycles, "
                     "bounds, noise and data mapping, units. Warnings go to stderr. With --data, "
-                    "also evaluate drift and outputs at the first sample of a CSV record. "
+                    "also check the whole record (CSV or MATLAB .mat) through the data map: time "
+                    "increasing and uniform, inputs present, value ranges plausible for their "
+                    "units, drift and outputs finite at every sample. "
                     "Exit status 0 if valid, 2 otherwise.")
     p.add_argument("spec", metavar="SPEC", help="spec file (YAML)")
-    p.add_argument("--data", metavar="CSV", default=None,
-                   help="a flight record to check the first sample against")
+    p.add_argument("--data", metavar="DATA", default=None,
+                   help="a flight record (CSV or .mat) to check against the spec")
     p.set_defaults(handler=_cmd_check)
 
 
 def _cmd_check(args) -> int:
-    from .symbolic import check_first_sample, compile_spec
+    from .symbolic import check_record, compile_spec
 
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
+    data_warnings = []
     if args.data is not None:
-        _print_warnings(check_first_sample(symbolic, args.data))
-    n = len(symbolic.warnings)
+        data_warnings = check_record(symbolic, args.data)
+        _print_warnings(data_warnings)
+    n = len(symbolic.warnings) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
           f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
           f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")
@@ -103,6 +107,7 @@ def _unit(u) -> str:
 def _cmd_show(args) -> int:
     import sympy
 
+    from .errors import printable
     from .symbolic import compile_spec
 
     m = compile_spec(args.spec)
@@ -118,16 +123,18 @@ def _cmd_show(args) -> int:
             print(f"  {sym(o.name)}_{{\\mathrm{{meas}}}} &= {sympy.latex(e)}{end}")
         print(r"\end{align}")
         return 0
-    print(f"model {m.name}: {m.description}".rstrip(": "))
+    # spec text is shown with non-printable characters escaped (no terminal control sequences)
+    print(f"model {m.name}: {printable(m.description)}".rstrip(": "))
     print(f"integrator: {m.integrator}, substeps {m.substeps}")
     for title, items in (("states", m.states), ("inputs", m.inputs), ("outputs", m.outputs)):
         print(f"{title}:")
         for v in items:
-            print(f"  {v.name}{_unit(v.unit)}{'  ' + v.description if v.description else ''}")
+            print(f"  {v.name}{_unit(v.unit)}{'  ' + printable(v.description) if v.description else ''}")
     if m.constants:
         print("constants:")
         for c in m.constants:
-            print(f"  {c.name} = {c.value:g}{_unit(c.unit)}{'  (' + c.source + ')' if c.source else ''}")
+            print(f"  {c.name} = {c.value:g}{_unit(c.unit)}"
+                  f"{'  (' + printable(c.source) + ')' if c.source else ''}")
     if m.parameters:
         print("parameters:")
         for p in m.parameters:
@@ -137,7 +144,8 @@ def _cmd_show(args) -> int:
             if p.fixed:
                 extra.append("fixed")
             print(f"  {p.name}{_unit(p.unit)} initial {p.initial:g}"
-                  + (", " + ", ".join(extra) if extra else ""))
+                  + (", " + ", ".join(extra) if extra else "")
+                  + (f"  {p.description}" if p.description else ""))
     if m.definitions:
         print("definitions:")
         for n, e in m.definitions:
@@ -167,12 +175,15 @@ def _name_values(items, what):
     return out
 
 
-def _check_names(given, known, what):
-    import difflib
+def _check_names(given, known, what, model=None, option=None):
+    from .suggest import suggest, unknown_name_error
+
     for name in given:
         if name not in known:
-            close = difflib.get_close_matches(name, list(known), n=1)
-            hint = f" — did you mean `{close[0]}`?" if close else f" (known: {', '.join(known)})"
+            if model is not None:
+                raise unknown_name_error(name, what, model, option=option or f"--{what}")
+            hint = suggest(name, known, role=what)
+            hint = f" — {hint}" if hint else f" (known: {', '.join(known)})"
             raise VsidgenError(f"unknown {what} `{name}`{hint}")
 
 
@@ -246,15 +257,15 @@ def _cmd_simulate(args) -> int:
             raise VsidgenError(f"{args.params_from}: cannot read parameter estimates "
                                f"({type(exc).__name__}: not a results.json of `vsidgen fit`?)") from None
     theta.update(_name_values(args.param, "param"))
-    _check_names(theta, model.parameter_names, "parameter")
+    _check_names(theta, model.parameter_names, "parameter", model, "--param")
     x0 = _name_values(args.x0, "x0")
-    _check_names(x0, model.state_names, "state")
+    _check_names(x0, model.state_names, "state", model, "--x0")
     pstd = _name_values(args.process_std, "process-std")
-    _check_names(pstd, model.state_names, "state")
+    _check_names(pstd, model.state_names, "state", model, "--process-std")
     mstd = _name_values(args.measurement_std, "measurement-std")
-    _check_names(mstd, model.output_names, "output")
+    _check_names(mstd, model.output_names, "output", model, "--measurement-std")
     quant = _name_values(args.quantize, "quantize")
-    _check_names(quant, model.output_names, "output")
+    _check_names(quant, model.output_names, "output", model, "--quantize")
     if args.inputs_from:
         if args.input:
             raise VsidgenError("give either --input generators or --inputs-from, not both")
@@ -276,7 +287,7 @@ def _cmd_simulate(args) -> int:
         for item in args.input or ():
             spec = parse_input_spec(item)
             gens[spec.name] = spec.evaluate
-        _check_names(gens, model.input_names, "input")
+        _check_names(gens, model.input_names, "input", model, "--input")
         u = np.zeros((n, model.nu))
         for j, name in enumerate(model.input_names):
             if name in gens:
@@ -323,30 +334,34 @@ def _add_fit(sub):
                         "(only vsidgen's files are replaced; other files are kept)")
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates to compare in the report")
+    add_override_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(handler=_cmd_fit)
 
 
-class _Progress:
-    """Live one-line progress display on a terminal, a line per iteration otherwise."""
+def add_override_arguments(p) -> None:
+    """``--fix/--free/--init/--init-from/--method`` (shared by fit and diagnose)."""
+    g = p.add_argument_group("parameters and method (override the spec for this run; "
+                             "recorded in the results)")
+    g.add_argument("--fix", action="append", metavar="NAME=VALUE", default=None,
+                   help="fix a parameter at VALUE (as `fixed: true, initial: VALUE` in the spec)")
+    g.add_argument("--free", action="append", metavar="NAME", default=None,
+                   help="estimate a parameter the spec fixes")
+    g.add_argument("--init", action="append", metavar="NAME=VALUE", default=None,
+                   help="initial value of a parameter")
+    g.add_argument("--init-from", metavar="RESULTS_JSON", default=None,
+                   help="initial values from an earlier fit's results.json (--init and --fix win)")
+    g.add_argument("--method", choices=("filter-error", "output-error"), default="filter-error",
+                   help="filter-error (default): process and measurement noise; output-error: "
+                        "no process noise (deterministic state path)")
 
-    def __init__(self, stream):
-        self.stream = stream
-        self.tty = stream.isatty()
 
-    def __call__(self, iteration, elbo, grad_norm, elapsed):
-        line = (f"iter {iteration:4d}  ELBO {elbo: .6e}  |grad| {grad_norm:.3e}  "
-                f"{elapsed:7.1f} s")
-        if self.tty:
-            self.stream.write("\r" + line)
-        else:
-            self.stream.write(line + "\n")
-        self.stream.flush()
+def overrides_of(args):
+    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
+    from .overrides import parse_overrides
 
-    def close(self):
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+    return parse_overrides(fix=args.fix, free=args.free, init=args.init,
+                           init_from=args.init_from, method=args.method)
 
 
 def _enable_compilation_cache() -> None:
@@ -384,9 +399,13 @@ def _cmd_fit(args) -> int:
         raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
     _enable_compilation_cache()
 
-    progress = None if args.quiet else _Progress(sys.stderr)
+    overrides = overrides_of(args)
+    from .progress import FitProgress
+
+    progress = None if args.quiet else FitProgress(sys.stderr)
     try:
         job = run_fit(args.spec, args.data, out=args.out, validate=args.validate,
+                      overrides=overrides,
                       integrator=args.integrator, substeps=args.substeps,
                       optimizer=args.optimizer, max_iter=args.max_iter,
                       init_states=args.init_states, noise_start=args.noise_start,
@@ -405,10 +424,37 @@ def _cmd_fit(args) -> int:
         for name, p in res["parameters"].items():
             se = "fixed" if p["fixed"] else (f"{p['std_error']:.4g}" if p["std_error"] is not None else "n/a")
             print(f"{name:<{width}}  {p['estimate']:>13.6g}  {se:>11}")
+    if not args.quiet:
+        _print_fit_quality(res)
     state = "" if res["converged"] else "NOT CONVERGED — "
     print(f"{state}{res['status']} ({res['iterations']} iterations, "
           f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
     return 0 if res["converged"] else 1
+
+
+def _print_fit_quality(res) -> None:
+    """Per record and output: NRMSE fit % (MATLAB ``compare``) of the free simulation and the
+    one-step prediction, and RMS, Theil U and R² of the free simulation."""
+    rows = []
+    for kind in ("estimation", "validation"):
+        for rec, m in ((res.get("metrics") or {}).get(kind) or {}).items():
+            for o, sim in (m.get("simulation") or {}).items():
+                pred = (m.get("prediction") or {}).get(o) or {}
+                rows.append((f"{rec}{' (val.)' if kind == 'validation' else ''}", o, sim, pred))
+    if not rows:
+        return
+
+    def f(x, fmt):
+        return "n/a" if x is None or x != x else format(x, fmt)
+
+    w = max(len(r[0]) for r in rows)
+    wo = max(6, max(len(r[1]) for r in rows))
+    print(f"{'record':<{w}}  {'output':<{wo}}  {'fit sim':>8}  {'fit pred':>8}  "
+          f"{'RMS sim':>10}  {'Theil U':>7}  {'R2':>7}")
+    for rec, o, sim, pred in rows:
+        print(f"{rec:<{w}}  {o:<{wo}}  {f(sim.get('fit_percent'), '7.1f') + '%':>8}  "
+              f"{f(pred.get('fit_percent'), '7.1f') + '%':>8}  {f(sim.get('rms'), '10.4g'):>10}  "
+              f"{f(sim.get('theil'), '7.3f'):>7}  {f(sim.get('r2'), '7.4f'):>7}")
 
 
 def _add_report(sub):
@@ -462,9 +508,16 @@ def _add_diagnose(sub):
     add_diagnose_parser(sub)
 
 
+def _add_fleet(sub):
+    from .fleet import add_fleet_parser
+
+    add_fleet_parser(sub)
+
+
 #: subcommand registrars, in --help order (the coordinator appends simulate, fit, report, diagnose)
 COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_report,
             _add_diagnose]
+COMMANDS.append(_add_fleet)
 
 
 #: commands whose arguments parse without the diagnose parser (which imports scipy.stats)

@@ -1,6 +1,6 @@
 """Code generation: SymbolicModel -> readable JAX module ``generated/<name>.py``.
 
-The module (template ``templates/model.py.j2``) defines ``drift(x, u, p)`` and
+The module (template ``vsidgen/templates/model.py.j2``) defines ``drift(x, u, p)`` and
 ``output(x, u, p)`` that unpack x, u, p into named locals and compute the
 spec's definitions in order, plus the Jacobians ``drift_jac_x/u/p`` and
 ``output_jac_x/u/p`` derived symbolically (sympy, on the definition-expanded
@@ -129,9 +129,9 @@ def _finalize(value):
 
 
 def template_dir() -> pathlib.Path:
-    """The repository's ``templates/`` folder."""
-    import vsidgen
-    return pathlib.Path(vsidgen.__file__).resolve().parent.parent / "templates"
+    """The templates shipped inside the package (``vsidgen/templates``; the repository's
+    top-level ``templates`` is a link to it), so an installed wheel can generate code."""
+    return pathlib.Path(__file__).resolve().parent / "templates"
 
 
 class _Printer(JaxPrinter):

@@ -1,4 +1,7 @@
-"""Flight records: CSV files -> :class:`Record` (t, u, y) through the spec's data map.
+"""Flight records: CSV or MATLAB files -> :class:`Record` (t, u, y) through the spec's data map.
+
+File formats and how a MAT file's variables are named in the data map:
+:mod:`vsidgen.formats`; units declared in the data map: :mod:`vsidgen.dataunits`.
 
 A record is one contiguous, uniformly sampled time history. Each model input
 and output is read through a :class:`vsidgen.metadata.ChannelMap`:
@@ -59,7 +62,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from .dataunits import plausibility_warnings
 from .errors import DataError, VsidgenError
+from .formats import DataFormat, detect_format, read_mat_columns
 from .limits import check_input_file
 
 MIN_SAMPLES = 10
@@ -87,6 +92,8 @@ class Record:
         y: (N, ny) outputs, float64; NaN = missing sample.
         input_names, output_names: channel (model input/output) names.
         t_raw: (N,) the original time stamps.
+        warnings: :class:`vsidgen.dataunits.DataWarning` records (value ranges
+            implausible for a channel's unit), empty when none.
     """
 
     name: str
@@ -98,6 +105,7 @@ class Record:
     input_names: tuple[str, ...]
     output_names: tuple[str, ...]
     t_raw: np.ndarray
+    warnings: tuple = ()
 
     @property
     def n(self) -> int:
@@ -144,6 +152,9 @@ def _read_header(path: pathlib.Path) -> list[str]:
     except UnicodeDecodeError:
         raise DataError("not a text (UTF-8) CSV file", path=path,
                         hint="export the record as comma-separated text with one header row") from None
+    except csv.Error as exc:
+        raise DataError(f"the header row cannot be read as CSV ({exc})", path=path,
+                        hint="export the record as comma-separated text with one header row") from None
     except OSError as exc:
         raise DataError(f"cannot read file: {exc.strerror or exc}", path=path) from None
 
@@ -170,6 +181,23 @@ def _fill_empty_cells(body: str) -> str:
     return body[1:]
 
 
+def _checked_rows(reader, path, sample):
+    """Rows of a csv reader; a CSV syntax error (an over-long field, a stray quote, a NUL)
+    becomes a DataError naming the sample and the file line."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise DataError(f"the row cannot be read as CSV ({exc})", path=path, sample=sample(),
+                            hint=f"file line {reader.line_num}; use plain comma-separated numbers") from None
+        except UnicodeDecodeError:
+            raise DataError("not a text (UTF-8) CSV file", path=path, sample=sample(),
+                            hint="export the record as comma-separated text") from None
+        yield row
+
+
 def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.ndarray:
     """Cell-by-cell parse (handles empty cells and quotes; locates bad cells)."""
     need = max(idx) + 1
@@ -178,7 +206,7 @@ def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         reader = csv.reader(fh)
         started = False
         sample = 0
-        for row in reader:
+        for row in _checked_rows(reader, path, lambda: sample):
             if not started:
                 if any(c.strip() for c in row):
                     started = True  # the header
@@ -225,14 +253,51 @@ def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         return _slow_parse(path, header, idx)
 
 
-def _suggest(name: str, header: list[str]) -> str:
-    close = difflib.get_close_matches(name, header, n=3, cutoff=0.5)
+def _same_quantity(name: str, cand: str) -> bool:
+    """Whether two column names can name the same quantity: names like ``dr_deg`` are
+    ``<quantity>_<unit>``, so a shared unit suffix alone (``p_deg``) is no likeness — the
+    leading parts must be alike (or the whole names nearly equal)."""
+    import difflib
+
+    from .suggest import closest
+
+    a, b = name.split("_", 1)[0], cand.split("_", 1)[0]
+    if a == b or difflib.SequenceMatcher(None, name, cand).ratio() >= 0.8:
+        return True
+    return bool(closest(a, [b])) and len(a) > 2
+
+
+def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str | None:
+    """Role-aware suggestion for a missing column ``name``.
+
+    Columns that the data map already reads for another channel (``taken``:
+    {column: "input `da`"}) are not offered as the missing one (a missing
+    rudder column ``dr_deg`` must not suggest the aileron's ``da_deg``); when
+    only such a column is similar, the hint says whose column it is.
+    """
+    from .suggest import closest
+
+    taken = {c: who for c, who in (taken or {}).items() if c != name}
+    free = [h for h in header if h not in taken]
+    close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
     if close:
         return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    used = [c for c in closest(name, [h for h in header if h in taken], n=1)
+            if _same_quantity(name, c) or c[:1] == name[:1]]
+    if used:
+        return (f"no similar unused column ('{used[0]}' is already the column of "
+                f"{taken[used[0]]})")
+    return None
+
+
+def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str:
+    hint = column_hint(name, header, taken)
+    if hint and hint.startswith("did you mean"):
+        return hint
     shown = ", ".join(header[:12]) + (", ..." if len(header) > 12 else "")
     if len(header) == 1 and any(d in header[0] for d in ";\t|"):
         return "the header has a single field: vsidgen reads comma-separated files"
-    return f"columns in the file: {shown}"
+    return (hint + "; " if hint else "") + f"columns in the file: {shown}"
 
 
 def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
@@ -249,11 +314,7 @@ def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
         val = np.broadcast_to(val, (n,)).copy()
     else:
         val = cols[_columns_of(cmap)[0]].copy()
-    if cmap.scale != 1.0:
-        val = val * float(cmap.scale)
-    if cmap.offset != 0.0:
-        val = val + float(cmap.offset)
-    return val
+    return np.asarray(cmap.apply(val), dtype=np.float64)
 
 
 def fmt_number(v) -> str:
@@ -335,12 +396,13 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
 # --------------------------------------------------------------------------- public API
 
 def load_record(model, path, *, name: str | None = None) -> Record:
-    """Read one CSV flight record through ``model.data`` (a DataSpec).
+    """Read one flight record (CSV or MATLAB .mat) through ``model.data`` (a DataSpec).
 
     Args:
         model: a :class:`vsidgen.model.Model` or a SymbolicModel (uses
             ``data``, input and output names).
-        path: CSV file with one header row, comma separated.
+        path: CSV file with one header row, comma separated, or a MATLAB .mat
+            file (:mod:`vsidgen.formats`).
         name: record name; default the file stem.
 
     Returns:
@@ -361,6 +423,34 @@ def load_record(model, path, *, name: str | None = None) -> Record:
                 raise DataError(f"model {kind} '{nm}' has no data mapping", path=path,
                                 hint=f"add `{nm}: <column>` under data.{kind}s in the spec")
 
+    # columns needed, in a stable order: time first
+    needed: list[str] = [spec.time]
+    for nm in in_names:
+        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
+    for nm in out_names:
+        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
+
+    taken = {spec.time: "the time"}
+    for kind, names, maps in (("input", in_names, in_maps), ("output", out_names, out_maps)):
+        for nm in names:
+            for c in _columns_of(maps[nm]):
+                taken.setdefault(c, f"{kind} `{nm}`")
+    fmt = detect_format(path)
+    if fmt is DataFormat.CSV:
+        cols = _read_csv_columns(path, needed, spec.time, taken)
+    else:
+        cols = read_mat_columns(path, needed, fmt, taken=taken)
+    n = cols[spec.time].shape[0]
+    if n == 0:
+        raise DataError("no data rows (header only)" if fmt is DataFormat.CSV else
+                        "the record is empty", path=path,
+                        hint="the file must hold at least "
+                             f"{MIN_SAMPLES} samples")
+    return _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps)
+
+
+def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
+                      taken: Mapping[str, str]) -> dict[str, np.ndarray]:
     header = _read_header(path)
     if not header:
         raise DataError("empty file", path=path,
@@ -368,31 +458,23 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         seen.setdefault(h, j)
-
-    # columns needed, in a stable order: time first
-    needed: list[str] = [spec.time]
-    for nm in in_names:
-        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
-    for nm in out_names:
-        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
     for c in needed:
         if c not in seen:
-            what = "time column" if c == spec.time else "column"
+            what = "time column" if c == time_column else "column"
             raise DataError(f"{what} '{c}' not found", path=path, column=c,
-                            hint=_suggest(c, header))
+                            hint=_suggest(c, header, taken))
         if header.count(c) > 1:
             raise DataError(f"column '{c}' appears {header.count(c)} times in the header",
                             path=path, column=c, hint="rename the duplicated columns")
     idx = [seen[c] for c in needed]
 
     block = _read_block(path, header, idx)
-    n = block.shape[0]
-    if n == 0:
-        raise DataError("no data rows (header only)", path=path,
-                        hint="the file must hold at least "
-                             f"{MIN_SAMPLES} samples below the header")
-    cols = {c: block[:, j] for j, c in enumerate(needed)}
-    for c in needed:
+    return {c: block[:, j] for j, c in enumerate(needed)}
+
+
+def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps) -> Record:
+    spec = model.data
+    for c in cols:
         inf = np.isinf(cols[c])
         if inf.any():
             k = _first(inf)
@@ -450,8 +532,10 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     t = t_raw - t_raw[0]
     for a in (t, u, y, t_raw):
         a.setflags(write=False)
+    found = plausibility_warnings(model, u, y, path=path)
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
-                  u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw)
+                  u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw,
+                  warnings=found)
 
 
 def most_extreme_sample(records) -> tuple[Record, str, int, float] | None:

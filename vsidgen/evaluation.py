@@ -95,7 +95,11 @@ class Signals:
 
 
 def fit_metrics(measured, predicted) -> dict:
-    """NaN-aware fit metrics ``{"rms", "theil", "r2", "n"}`` (formulas in the module docstring).
+    """NaN-aware fit metrics ``{"rms", "theil", "r2", "fit_percent", "n"}`` (formulas in the module docstring).
+
+    ``fit_percent`` is the normalised-RMSE fit of MATLAB's ``compare``,
+    ``100 (1 − ‖y − ŷ‖ / ‖y − ȳ‖)`` (100 = perfect, 0 = no better than the mean,
+    negative = worse), i.e. ``100 (1 − √(1 − R²))``.
 
     Undefined values (no samples, ``Σ(y − ȳ)² = 0``, ``rms(y) + rms(ŷ) = 0``)
     are NaN.
@@ -108,14 +112,15 @@ def fit_metrics(measured, predicted) -> dict:
     y, p = y[ok], p[ok]
     n = int(y.size)
     if n == 0:
-        return {"rms": math.nan, "theil": math.nan, "r2": math.nan, "n": 0}
+        return {"rms": math.nan, "theil": math.nan, "r2": math.nan, "fit_percent": math.nan, "n": 0}
     e = y - p
     rms = float(np.sqrt(np.mean(e ** 2)))
     den = float(np.sqrt(np.mean(y ** 2)) + np.sqrt(np.mean(p ** 2)))
     theil = rms / den if den > 0 else math.nan
     sst = float(np.sum((y - y.mean()) ** 2))
     r2 = 1.0 - float(np.sum(e ** 2)) / sst if sst > 0 else math.nan
-    return {"rms": rms, "theil": theil, "r2": r2, "n": n}
+    fit_percent = 100.0 * (1.0 - math.sqrt(float(np.sum(e ** 2)) / sst)) if sst > 0 else math.nan
+    return {"rms": rms, "theil": theil, "r2": r2, "fit_percent": fit_percent, "n": n}
 
 
 def steady_state_gain(A, H, Q, R) -> np.ndarray:

@@ -196,7 +196,9 @@ def _make_error(text, message, *, path, line, column, offset, length, hint=None)
 
 def did_you_mean(name: str, candidates) -> str | None:
     """A 'did you mean `x`?' hint for ``name`` among ``candidates`` (or None)."""
-    close = difflib.get_close_matches(name, sorted(candidates), n=1, cutoff=0.6)
+    from .suggest import closest
+
+    close = closest(name, sorted(candidates))
     if close:
         return f"did you mean `{close[0]}`?"
     return None

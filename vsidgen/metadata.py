@@ -104,9 +104,12 @@ class MeasurementNoiseSpec:
 class ChannelMap:
     """How one input or output is read from a CSV record.
 
-    Either ``column`` (value = scale * column + offset) or ``expr``, a sympy
-    expression in the column symbols listed in ``columns`` (then scale/offset
-    are applied to the expression's value too).
+    Either ``column`` (value = scale * (a * column + b) + offset) or ``expr``, a
+    sympy expression in the column symbols listed in ``columns`` (then the unit
+    conversion and scale/offset are applied to the expression's value).
+    ``unit`` is the unit the data map declares for the column (None: the
+    column is taken to be in the spec's unit) and ``(a, b) = unit_conversion``
+    converts it to the spec's unit (:mod:`vsidgen.dataunits`).
     """
 
     name: str
@@ -115,6 +118,21 @@ class ChannelMap:
     offset: float = 0.0
     expr: Any = None
     columns: tuple[str, ...] = ()
+    unit: str | None = None
+    unit_conversion: tuple[float, float] = (1.0, 0.0)
+
+    def apply(self, value):
+        """The channel's value in the spec's unit from the column (or expression) value."""
+        a, b = self.unit_conversion
+        if a != 1.0:
+            value = value * a
+        if b != 0.0:
+            value = value + b
+        if self.scale != 1.0:
+            value = value * float(self.scale)
+        if self.offset != 0.0:
+            value = value + float(self.offset)
+        return value
 
 
 @dataclasses.dataclass(frozen=True)

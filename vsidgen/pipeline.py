@@ -19,6 +19,7 @@ from .codegen import display_path
 from .data import Record, load_record, write_csv
 from .errors import VsidgenError
 from .model import Model, load_model
+from .overrides import Overrides, apply_overrides
 from .atomic import plan_output_dir, print_recovered
 from .limits import check_input_file
 from .results import atomic_directory, dumps, signals_table, write_text_atomic
@@ -119,11 +120,15 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             init_states: str = "measured", noise_start: str = "auto",
             generated_dir: str | os.PathLike | None = None,
             progress: Callable | None = None, report: bool = False,
-            reference: str | None = None, overwrite: bool = False) -> FitJob:
+            reference: str | None = None, overwrite: bool = False,
+            overrides: Overrides | None = None) -> FitJob:
     """Fit ``spec`` to the ``data`` records and write the results directory ``out``.
 
     Validation records (``validate``) are smoothed with θ and the noise fixed at
     the estimates (the paper's validation mode) and evaluated separately.
+    ``overrides`` (:mod:`vsidgen.overrides`: fixed, freed and initial parameter
+    values, output-error method) change the spec's parameter records for this
+    fit and are recorded in ``results.json``.
 
     Every argument is checked before any computation: the records are regular
     files within the size limit, the reference file exists and parses, and
@@ -133,6 +138,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     """
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
+    overrides = overrides if overrides is not None else Overrides()
     for p in list(data) + list(validate):
         check_input_file(p, what="data file")
     ref_path = None
@@ -145,11 +151,12 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     from .symbolic import compile_spec
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
+    apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
     records = _unique_names([load_record(symbolic, p) for p in data])
     vrecords = _unique_names([load_record(symbolic, p) for p in validate])
     from .estimator import FitOptions, fit, smooth
 
-    model = load_model(spec, generated_dir=generated_dir)
+    model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
     integrator = integrator or model.integrator
     substeps = int(substeps or model.substeps)
     t0 = time.perf_counter()
@@ -187,7 +194,9 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "outputs": _variables(model.outputs),
                   "equations_latex": _latex_equations(model)},
         "method": {"estimator": "variational (ELBO)", "integrator": integrator,
-                   "substeps": substeps, "optimizer": optimizer, "noise_start": noise_start},
+                   "substeps": substeps, "optimizer": optimizer, "noise_start": noise_start,
+                   "method": overrides.method.value},
+        "overrides": overrides.to_json(),
         "records": {"estimation": [_record_info(r) for r in records],
                     "validation": [_record_info(r) for r in vrecords]},
         "parameters": params,
@@ -202,7 +211,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         "metrics": {"estimation": {s.record: s.metrics for s in signals},
                     "validation": {s.record: s.metrics for s in vsignals}},
         "validation": {"elbo": None if vresult is None else float(vresult.elbo)},
-        "warnings": list(result.warnings) + [
+        "warnings": [w.to_json() for r in records + vrecords
+                     for w in r.warnings] + list(result.warnings) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())],
         "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),

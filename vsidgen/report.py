@@ -5,7 +5,7 @@ time histories (format: docs/architecture.md, "Results directory") and writes
 one self-contained ``DIR/report.html``: figures are PNG images embedded as
 ``data:`` URIs, equations are typeset with matplotlib's mathtext (no MathJax,
 no CDN), the page loads nothing from the network (a Content-Security-Policy
-forbids it). The page is rendered from ``templates/report.html.j2``.
+forbids it). The page is rendered from ``vsidgen/templates/report.html.j2``.
 
 Content: run summary and warnings; parameter table with standard errors,
 relative standard errors, bounds and reference values; correlation heat map
@@ -71,9 +71,8 @@ FIG_DPI = 100
 
 
 def _templates_dir() -> pathlib.Path:
-    import vsidgen
-
-    return pathlib.Path(vsidgen.__file__).resolve().parent.parent / "templates"
+    """The templates shipped inside the package (``vsidgen/templates``)."""
+    return pathlib.Path(__file__).resolve().parent / "templates"
 
 
 def _load_results(results_dir: pathlib.Path) -> dict:
@@ -633,8 +632,11 @@ def _metrics_table(m: Mapping, names: Iterable[str]) -> list[dict]:
         row = {"name": o, "cells": []}
         for crit, _ in _CRITERIA:
             d = (m.get(crit) or {}).get(o) or {}
+            fp = d.get("fit_percent")
             row["cells"].append({"rms": _fmt(d.get("rms")), "theil": _fmt(d.get("theil"), 3),
-                                 "r2": _fmt(d.get("r2"), 4)})
+                                 "r2": _fmt(d.get("r2"), 4),
+                                 "fit": "—" if fp is None or not math.isfinite(_num(fp))
+                                 else f"{_num(fp):.1f} %"})
         rows.append(row)
     return rows
 

@@ -370,13 +370,15 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
 def _inverse_columns(cmap, values: np.ndarray) -> dict[str, np.ndarray]:
     """Column values that make ``cmap`` read back ``values``.
 
-    ``column`` map: ``(value − offset)/scale``. ``expr`` map: if the
+    ``column`` map: ``((value − offset)/scale − b)/a`` with ``(a, b)`` the
+    unit conversion of the data map (identity without ``unit:``). ``expr`` map: if the
     expression can be solved for its first column with the other columns set
     to 0 (e.g. ``(da_right − da_left)/2`` → ``da_right = 2 da``), those
     columns are written; otherwise only a column named after the channel is
     written (and the record cannot be read back through this map).
     """
-    raw = (values - cmap.offset) / cmap.scale
+    a, b = getattr(cmap, "unit_conversion", (1.0, 0.0))
+    raw = ((values - cmap.offset) / cmap.scale - b) / a
     if cmap.expr is None:
         return {_columns_of(cmap)[0]: raw}
     import sympy

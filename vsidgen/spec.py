@@ -9,7 +9,11 @@ into the file that contains the offending text. No model semantics here (see
 Merge rules for ``extends`` (child onto parent): entries of ``states``,
 ``inputs``, ``outputs``, ``constants``, ``parameters``, ``definitions``,
 ``drift``, ``observations`` with new names are appended, existing names are
-replaced in place (a definition keeps its position); ``add_terms`` of parent
+replaced in place (a definition keeps its position), except that a
+declaration (state, input, output, constant, parameter) given as a mapping in
+both files is merged field by field — ``Lp: {bounds: [-5, 0]}`` in a child
+keeps the parent's unit, description and initial value (write ``fixed: false``
+to free a parameter the parent fixes); ``add_terms`` of parent
 and child are all applied (parent first); ``noise`` and ``data`` mappings are
 merged key by key (recursively); ``name``, ``description`` and ``integrator``
 come from the child when given.
@@ -36,6 +40,7 @@ TOP_LEVEL_KEYS = ("name", "description", "extends", "integrator", "states", "inp
 NAMED_SECTIONS = ("states", "inputs", "outputs", "constants", "parameters", "definitions",
                   "drift", "observations")
 MERGED_SECTIONS = ("noise", "data")
+FIELD_MERGED_SECTIONS = ("states", "inputs", "outputs", "constants", "parameters")
 ADD_TERM_SECTIONS = ("definitions", "drift", "observations")
 
 #: largest spec file read (bytes); the shipped specs are 1-4 KiB
@@ -441,6 +446,21 @@ def _merge_maps(parent: YNode, child: YNode, *, recursive: bool) -> YNode:
     return dataclasses.replace(child, value=merged)
 
 
+def _merge_entries(parent: YNode, child: YNode) -> YNode:
+    """Named entries of a declaration section: an entry given as a mapping in both files
+    is merged field by field (the child's fields win), anything else is replaced."""
+    if parent.kind != "map" or child.kind != "map":
+        return child
+    merged = dict(parent.value)
+    for key, value in child.value.items():
+        old = merged.get(key)
+        if old is not None and old.kind == "map" and value.kind == "map":
+            merged[key] = _merge_maps(old, value, recursive=False)
+        else:
+            merged[key] = value
+    return dataclasses.replace(child, value=merged)
+
+
 def _collect_add_terms(root: YNode) -> list[AddTerm]:
     node = root.value.get("add_terms")
     if node is None:
@@ -527,7 +547,9 @@ def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
     for key, node in top.items():
         if key in ("extends", "add_terms"):
             continue
-        if key in NAMED_SECTIONS and key in merged:
+        if key in FIELD_MERGED_SECTIONS and key in merged:
+            merged[key] = _merge_entries(merged[key], node)
+        elif key in NAMED_SECTIONS and key in merged:
             merged[key] = _merge_maps(merged[key], node, recursive=False)
         elif key in MERGED_SECTIONS and key in merged:
             merged[key] = _merge_maps(merged[key], node, recursive=True)

@@ -29,9 +29,11 @@ from .expr import FUNCTIONS, did_you_mean
 from .metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Parameter,
                        ProcessNoiseSpec, Variable)
 from .spec import RawSpec, YNode, keys_check, load_spec
+from . import __version__
 from . import units as _units
 
-GENERATOR_VERSION = "0.1.1"
+#: the generated modules record it; a new vsidgen version rebuilds them
+GENERATOR_VERSION = __version__
 
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 #: most nodes of one drift/observation equation with its definitions substituted (the
@@ -521,7 +523,9 @@ def _compile(path) -> SymbolicModel:
                 measurement[o] = _measurement_noise(o, node)
 
     # data -------------------------------------------------------------------------
-    data = _data_spec(top.get("data"), [v.name for v in inputs], output_names, root_loc)
+    var_units = {("input", v.name): v.unit for v in inputs}
+    var_units.update({("output", v.name): v.unit for v in outputs})
+    data = _data_spec(top.get("data"), [v.name for v in inputs], output_names, root_loc, var_units)
 
     # units ------------------------------------------------------------------------
     _check_dimensions(warnings, dims, definitions, def_nodes, drift, sections, states,
@@ -669,25 +673,57 @@ def _measurement_noise(o: str, node: YNode) -> MeasurementNoiseSpec:
     return MeasurementNoiseSpec(o, estimate, std, floor)
 
 
-def _channel(name: str, node: YNode) -> ChannelMap:
+def _unit_conversion(name: str, what: str, node: YNode, spec_unit: str | None):
+    """(declared data unit, (a, b)) of a data map's ``unit:`` entry, checked against the spec."""
+    from . import dataunits
+
+    data_unit = node.string(f"unit of the data column of `{name}`")
+    try:
+        dataunits.check_unit(data_unit)
+    except dataunits.UnitConversionError as exc:
+        raise SpecError(f"data map of {what} `{name}`: {exc}", **node.loc, text=node.source_line(),
+                        hint="units are read by pint: e.g. rad, deg, deg/s, m/s, ft, ft/s, kt, "
+                             "m/s^2, g (gravity), N, lbf, Pa, K, 1") from None
+    if spec_unit is None:
+        raise SpecError(f"data map of {what} `{name}` declares unit `{data_unit}` but the spec "
+                        f"declares no unit for `{name}`", **node.loc, text=node.source_line(),
+                        hint=f"add `unit:` to {what} `{name}` (the unit the model works in)")
+    try:
+        conv = dataunits.conversion(data_unit, spec_unit)
+    except dataunits.UnitConversionError as exc:
+        raise SpecError(f"data map of {what} `{name}`: unit {exc}", **node.loc,
+                        text=node.source_line(),
+                        hint=f"{what} `{name}` is declared in `{spec_unit}`: the column must have "
+                             "the same dimension (angles are dimensionless)") from None
+    return data_unit, conv
+
+
+def _channel(name: str, node: YNode, what: str = "input", spec_unit: str | None = None) -> ChannelMap:
     if node.kind == "scalar":
         col = node.string(f"data column of `{name}`")
         return ChannelMap(name, column=col, columns=(col,))
-    fields = keys_check(node, ("column", "expr", "scale", "offset"), f"data mapping of `{name}`")
+    fields = keys_check(node, ("column", "expr", "scale", "offset", "unit"),
+                        f"data mapping of `{name}`")
     scale = fields["scale"].number(f"scale of `{name}`") if "scale" in fields else 1.0
     offset = fields["offset"].number(f"offset of `{name}`") if "offset" in fields else 0.0
+    unit, conv = None, (1.0, 0.0)
+    if "unit" in fields:
+        unit, conv = _unit_conversion(name, what, fields["unit"], spec_unit)
     if ("column" in fields) == ("expr" in fields):
         raise SpecError(f"data mapping of `{name}` needs exactly one of `column` or `expr`",
                         **node.key_loc, text=_key_text(node),
                         hint="e.g. {column: de_rad} or {expr: \"(a_rad - b_rad)/2\"}")
     if "column" in fields:
         col = fields["column"].string(f"column of `{name}`")
-        return ChannelMap(name, column=col, scale=scale, offset=offset, columns=(col,))
+        return ChannelMap(name, column=col, scale=scale, offset=offset, columns=(col,),
+                          unit=unit, unit_conversion=conv)
     expr, cols = fields["expr"].expression({}, free_names=True)
-    return ChannelMap(name, column=None, scale=scale, offset=offset, expr=expr, columns=cols)
+    return ChannelMap(name, column=None, scale=scale, offset=offset, expr=expr, columns=cols,
+                      unit=unit, unit_conversion=conv)
 
 
-def _data_spec(node: YNode | None, input_names, output_names, root_loc) -> DataSpec:
+def _data_spec(node: YNode | None, input_names, output_names, root_loc,
+               units: Mapping[tuple[str, str], str | None] | None = None) -> DataSpec:
     if node is None:
         if input_names or output_names:
             raise SpecError("the spec has no `data` mapping", **root_loc,
@@ -712,7 +748,7 @@ def _data_spec(node: YNode | None, input_names, output_names, root_loc) -> DataS
                 raise SpecError(f"{what} `{nm}` is not mapped to a data column", **where.key_loc,
                                 text=_key_text(where),
                                 hint=f"add `{nm}: <column name>` under `data.{key}`")
-            chans.append(_channel(nm, sub[nm]))
+            chans.append(_channel(nm, sub[nm], what, (units or {}).get((what, nm))))
         result[key] = tuple(chans)
     return DataSpec(time, result["inputs"], result["outputs"])
 
@@ -802,18 +838,24 @@ def read_first_row(csv_path) -> dict[str, float]:
     return out
 
 
-def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns) -> float:
+def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns,
+                   taken: Mapping[str, str] | None = None) -> float:
+    from .data import column_hint
+
     for c in ch.columns:
         if c not in row:
+            hint = column_hint(c, columns, taken)
+            if hint and hint.startswith("did you mean"):
+                hint = did_you_mean(c, [h for h in columns if h not in (taken or {}) or h == c])
             raise DataError(f"column `{c}` (for `{ch.name}`) is not in the file", path=csv_path,
-                            column=c, hint=did_you_mean(c, columns) or
+                            column=c, hint=(hint + "; " if hint else "") +
                             "columns: " + ", ".join(columns))
     if ch.expr is None:
         base = row[ch.column]
     else:
         v = _finite_value(ch.expr, {sympy.Symbol(c, real=True): row[c] for c in ch.columns})
         base = float("nan") if v is None else v
-    return base * ch.scale + ch.offset
+    return float(ch.apply(base))
 
 
 def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
@@ -833,8 +875,13 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     values: dict = dict(symbolic.constant_values())
     for p in symbolic.parameters:
         values[p.symbol] = p.initial
+    taken = {symbolic.data.time: "the time"}
+    for kind, chans in (("input", symbolic.data.inputs), ("output", symbolic.data.outputs)):
+        for ch in chans:
+            for c in ch.columns:
+                taken.setdefault(c, f"{kind} `{ch.name}`")
     for v, ch in zip(symbolic.inputs, symbolic.data.inputs):
-        val = _channel_value(ch, row, csv_path, columns)
+        val = _channel_value(ch, row, csv_path, columns, taken)
         if not math.isfinite(val):
             warnings.append(SpecWarning(f"input `{v.name}` is not finite at the first sample",
                                         path=csv_path, code="nonfinite_input"))
@@ -842,7 +889,7 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     x0 = {s.symbol: 0.0 for s in symbolic.states}
     for o, ch, h in zip(symbolic.outputs, symbolic.data.outputs, symbolic.observations):
         if h in x0:
-            val = _channel_value(ch, row, csv_path, columns)
+            val = _channel_value(ch, row, csv_path, columns, taken)
             if math.isfinite(val):
                 x0[h] = val
     values.update(x0)
@@ -859,5 +906,74 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
         raise SpecError(f"non-finite value at the first sample of {pathlib.Path(csv_path).name}: "
                         f"{named}", path=loc.path, line=loc.line, column=loc.column,
                         hint="x0 comes from outputs that are a state (else 0), parameters at "
+                             "their initial values: check divisions, log and sqrt")
+    return warnings
+
+
+def check_record(symbolic: SymbolicModel, path) -> list:
+    """Check a whole record against the spec (``vsidgen check --data``).
+
+    1. CSV files: the first sample as :func:`check_first_sample` (column names,
+       a non-finite first drift).
+    2. Every sample, through :func:`vsidgen.data.load_record`: time finite,
+       strictly increasing and uniform (gaps), inputs present (no NaN), no
+       infinite value, enough samples; warnings for value ranges implausible
+       for a channel's unit.
+    3. Drift and outputs at every sample where the states measured directly
+       are present (x from outputs that are a state, 0 otherwise; parameters at
+       their initial values), evaluated with numpy: the first sample where an
+       equation is not finite raises SpecError naming it and the sample.
+
+    Returns the warnings (SpecWarning and DataWarning records).
+    """
+    import numpy as np
+
+    from .data import load_record
+    from .formats import DataFormat, detect_format
+
+    from .limits import check_input_file
+
+    path = check_input_file(path, what="data file")
+    warnings: list = []
+    if detect_format(path) is DataFormat.CSV:
+        warnings += check_first_sample(symbolic, path)
+    rec = load_record(symbolic, path)
+    warnings += list(rec.warnings)
+    n = rec.n
+    values: dict = {c.symbol: np.full(n, float(c.value)) for c in symbolic.constants}
+    for p in symbolic.parameters:
+        values[p.symbol] = np.full(n, float(p.initial))
+    for j, v in enumerate(symbolic.inputs):
+        values[v.symbol] = rec.u[:, j]
+    usable = np.ones(n, bool)
+    for s in symbolic.states:
+        values[s.symbol] = np.zeros(n)
+    for j, h in enumerate(symbolic.observations):
+        if h in values and h in {s.symbol for s in symbolic.states}:
+            col = rec.y[:, j]
+            usable &= np.isfinite(col)
+            values[h] = np.where(np.isfinite(col), col, 0.0)
+    syms = list(values)
+    bad: list[tuple[int, str]] = []
+    for kind, names, exprs in (("drift", symbolic.states, symbolic.drift_expanded()),
+                               ("observations", symbolic.outputs, symbolic.observations_expanded())):
+        for v, e in zip(names, exprs):
+            try:
+                fn = sympy.lambdify(syms, e, "numpy")
+                with np.errstate(all="ignore"):
+                    val = np.broadcast_to(np.asarray(fn(*[values[s] for s in syms]), float), (n,))
+            except (TypeError, ValueError, NameError, AttributeError):
+                continue  # a function numpy cannot evaluate (lookup tables): first sample only
+            nonfinite = ~np.isfinite(val) & usable
+            if nonfinite.any():
+                bad.append((int(np.flatnonzero(nonfinite)[0]), f"{kind}:{v.name}"))
+    if bad:
+        k, key = min(bad)
+        loc = symbolic.locations.get(key, Location(symbolic.source_path))
+        named = ", ".join(("drift of `" if b.startswith("drift") else "observation of `")
+                          + b.split(":", 1)[1] + "`" for kk, b in sorted(bad) if kk == k)
+        raise SpecError(f"non-finite value at sample {k} (t = {rec.t_raw[k]:g} s) of "
+                        f"{path.name}: {named}", path=loc.path, line=loc.line, column=loc.column,
+                        hint="x comes from outputs that are a state (else 0), parameters at "
                              "their initial values: check divisions, log and sqrt")
     return warnings

@@ -15,8 +15,12 @@ findings.json (keys in this order)::
                       "metrics_before", "metrics_after", "locate": {...}},
          "spec": "DIR/candidates/r1_...yaml"}],
      "final_spec": "path", "base": {"elbo", "metrics"}, "final": {"elbo", "metrics"},
-     "locate": {evidence of the base fit}, "rounds": [...], "report": "diagnose.html",
-     "wall_time_s": ...}
+     "locate": {evidence of the base fit}, "rounds": [...],
+     "unfinished_round": null | {"round", "base_spec", "base_elbo", "n_candidates",
+                                 "refitted": [trial...], "pending": [key...]},
+     "stop": {"reason": "completed" | "time_limit" | "interrupted" | "running",
+              "time_limit_s"},
+     "report": "diagnose.html", "wall_time_s": ...}
 """
 
 from __future__ import annotations
@@ -117,6 +121,14 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                         "can be neither accepted nor ruled out; rerun with a larger --max-iter "
                         "(e.g. 500), restricted to it with --effects.")
         unconv = [k for k in unconv if k not in {t["key"] for t in strong}]
+    failed = [t["key"] for t in tried if t.get("error")]
+    if failed and not findings and len(failed) == len(tried):
+        conclusion = ("INCONCLUSIVE: no refit produced a result (" + ", ".join(
+            f"{t['key']}: {t['error']}" for t in tried if t.get("error"))
+            + "), so nothing was tested.")
+    elif failed:
+        conclusion += (" Refits that failed (neither accepted nor ruled out): "
+                       + ", ".join(failed) + ".")
     below = [t for t in tried if t.get("verdict") == "below_nesting_point"]
     if below:
         conclusion += (" Not tested (optimizer failure: the refit ended below the ELBO of its "
@@ -140,6 +152,24 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                       f"({base_status}); candidates are not accepted against an "
                       "unconverged base ELBO. " + _capital(conclusion.removeprefix("INCONCLUSIVE: ")))
     return conclusion
+
+
+def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int) -> str:
+    """Sentence put before the conclusion when the run did not complete (else "")."""
+    reason = (stop or {}).get("reason", "completed")
+    if reason == "completed":
+        return ""
+    what = {"time_limit": f"STOPPED at the time limit ({(stop or {}).get('time_limit_s')} s)",
+            "interrupted": "INTERRUPTED",
+            "running": "RUNNING (checkpoint of a run in progress)"}.get(reason, reason.upper())
+    if unfinished is not None:
+        done = len(unfinished.get("refitted", ()))
+        pend = list(unfinished.get("pending", ()))
+        what += (f" during round {unfinished['round']} ({done} of {done + len(pend)} candidates "
+                 "refitted" + (f"; pending: {', '.join(pend)}" if pend else "")
+                 + "; an unfinished round accepts nothing)")
+    return (what + f". {n_findings} effect{'s' if n_findings != 1 else ''} accepted in the "
+            "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
 
 
 def _estimate_text(name: str, ent: dict) -> str:
@@ -173,8 +203,13 @@ def summary_lines(document: dict, findings_path) -> list[str]:
 
 
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
-                   wall_time_s, out, options) -> dict:
-    """The findings.json mapping (see the module docstring)."""
+                   wall_time_s, out, options, stop: dict | None = None,
+                   unfinished_round: dict | None = None) -> dict:
+    """The findings.json mapping (see the module docstring).
+
+    ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
+    ``unfinished_round``: the round that was in progress (refitted trials, pending keys).
+    """
     findings = []
     for rank, (trial, before, ev) in enumerate(accepted, start=1):
         c = trial.candidate
@@ -221,6 +256,11 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
                                  base_status=base.fit.status)
+    stopped = stop_text(stop, unfinished_round, len(findings))
+    if stopped and not findings:
+        conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
+                      "that the model is adequate.")
+    conclusion = stopped + conclusion
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
@@ -232,7 +272,9 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
         "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
                   "metrics": metrics_summary(final)},
         "locate": evidence.to_json(), "locate_final": final_evidence.to_json(),
-        "rounds": rounds, "report": "diagnose.html", "wall_time_s": _f(wall_time_s)}
+        "rounds": rounds, "unfinished_round": unfinished_round,
+        "stop": stop or {"reason": "completed", "time_limit_s": None},
+        "report": "diagnose.html", "wall_time_s": _f(wall_time_s)}
 
 
 def _title(effect_id: str) -> str:
@@ -241,6 +283,11 @@ def _title(effect_id: str) -> str:
         return get_effect(effect_id).title
     except Exception:  # noqa: BLE001
         return effect_id
+
+
+def write_findings_json(out, doc) -> pathlib.Path:
+    """Write ``out/findings.json`` only (atomically; the checkpoint after every refit)."""
+    return write_text_atomic(pathlib.Path(out) / "findings.json", dumps(doc))
 
 
 def write_findings(out, doc, *, base, final, accepted) -> pathlib.Path:

@@ -109,6 +109,7 @@ class RefitOutcome:
     warm: str = ""                    # how the stages were started
     notes: list = dataclasses.field(default_factory=list)
     wall_s: float = 0.0
+    compile_s: float | None = None    # JAX trace + lower + XLA compile time spent in the refit
 
     def to_json(self) -> dict:
         f = _f
@@ -116,7 +117,8 @@ class RefitOutcome:
                 "elbo_stage1": f(self.elbo_stage1), "converged_stage0": self.converged_stage0,
                 "converged_stage1": self.converged_stage1, "x0_entropy": f(self.x0_entropy),
                 "val_x0_entropy": f(self.val_x0_entropy), "warm_start": self.warm,
-                "notes": list(self.notes), "wall_s": round(self.wall_s, 2)}
+                "notes": list(self.notes), "wall_s": round(self.wall_s, 2),
+                "compile_s": None if self.compile_s is None else round(self.compile_s, 2)}
 
 
 def _ns(decision):
@@ -269,3 +271,24 @@ def x0_entropy(fit, names_new, model) -> float:
         for j in idx:
             tot += 0.5 * math.log(2 * math.pi * math.e * max(float(P[j, j]), 1e-300))
     return tot
+
+
+_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
+                   "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                   "/jax/core/compile/backend_compile_duration")
+_compile_total = [0.0]
+_listening = [False]
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent tracing, lowering and compiling JAX functions since the
+    first call (a ``jax.monitoring`` listener, registered once per process)."""
+    if not _listening[0]:
+        import jax
+
+        def listen(event, duration, **_):
+            if event in _COMPILE_EVENTS:
+                _compile_total[0] += float(duration)
+        jax.monitoring.register_event_duration_secs_listener(listen)
+        _listening[0] = True
+    return _compile_total[0]

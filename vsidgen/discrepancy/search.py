@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import enum
 import math
 import pathlib
 import re
@@ -169,6 +170,15 @@ class Trial:
                 "parameters": params, "spec": str(self.spec_path)}
 
 
+class StopReason(enum.Enum):
+    """Why a diagnose run ended (``findings.json`` → ``stop.reason``)."""
+
+    COMPLETED = "completed"        # no significant candidate left, or max_rounds reached
+    TIME_LIMIT = "time_limit"      # ``time_limit`` passed; unfinished round recorded
+    INTERRUPTED = "interrupted"    # KeyboardInterrupt / SIGTERM; unfinished round recorded
+    RUNNING = "running"            # a checkpoint written while the run goes on
+
+
 @dataclasses.dataclass(frozen=True)
 class DiagnoseResult:
     """What :func:`run_diagnose` produced (``findings`` as written to findings.json)."""
@@ -180,6 +190,7 @@ class DiagnoseResult:
     base: FitState
     final: FitState
     evidence: Evidence
+    stop: StopReason = StopReason.COMPLETED
 
 
 def _f(v):
@@ -709,11 +720,45 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
 # the job
 # ---------------------------------------------------------------------------
 
+def _refit_task(c, current, info, path, name, generated_dir, max_iter):
+    """One candidate's staged refit (runs on an engine worker); (RefitOutcome, messages)."""
+    from .refit import compile_seconds
+
+    msgs: list[str] = []
+    c0 = compile_seconds()
+    ro = staged_refit(c, current, info, path, name, generated_dir=generated_dir,
+                      max_iter=max_iter, progress=msgs.append)
+    return dataclasses.replace(ro, compile_s=compile_seconds() - c0), msgs
+
+
+def _projected_task(t, current, path, name, generated_dir, max_iter):
+    """One trial's projected refit (runs on an engine worker); a FitState."""
+    return projected_refit(t, current, path, name, generated_dir=generated_dir, max_iter=max_iter)
+
+
+def _trial_of(oc, c, score, sr, path, current) -> Trial:
+    """The Trial of a finished refit task (an error trial when it failed or was lost)."""
+    from ..engine import TaskStatus
+
+    if oc.status is not TaskStatus.DONE:
+        return Trial(c, score, path, None, math.nan, c.n_free, 1.0,
+                     error=f"{oc.status.value}: {oc.error}", screen=sr)
+    ro, _ = oc.value
+    st = ro.state
+    lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
+    return Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
+                 statistic_vs_base=2.0 * (st.elbo - current.elbo),
+                 converged=refit_converged(st.fit), screen=sr,
+                 verdict=trial_verdict(c, st, lam))
+
+
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
+                 time_limit: float | None = None, workers: int | None = 1,
+                 scheduler: str | None = None,
                  progress: Callable[[str], None] | None = None,
-                 overwrite: bool = False) -> DiagnoseResult:
+                 overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
     Writes ``out/findings.json``, ``out/diagnose.html`` (report section, also
@@ -722,11 +767,27 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
     checked before any computation, and a non-empty directory that is not a
     vsidgen results directory needs ``overwrite`` (its other files are kept).
+    ``overrides`` (:class:`vsidgen.overrides.Overrides`, from ``--fix`` etc.):
+    the fits use ``out/overrides.yaml``, a spec that extends ``spec`` with them.
+
+    Nothing found is lost: ``findings.json`` is rewritten (atomically) after every
+    refit and ``diagnose.html`` after every round, with the accepted findings, the
+    finished rounds and the state of the unfinished one (candidates refitted, pending);
+    ``stop.reason`` says whether the run completed, is still running, ran out of
+    ``time_limit`` seconds (no refit starts after it; running ones are abandoned) or was
+    interrupted (KeyboardInterrupt, re-raised after the files are written). An effect is
+    only accepted at the end of a round, so an unfinished round accepts nothing.
+
+    The candidates of a round are independent refits: ``workers`` > 1 (None: every local
+    core) runs them on a local ``dask.distributed`` cluster, ``scheduler`` on an existing
+    one (see :mod:`vsidgen.engine`); ``workers=1`` runs them in this process. Both give
+    the same findings.
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
     """
     from .. import __version__
+    from ..engine import Engine
     from .findings import build_document, write_findings
 
     if not data:
@@ -735,6 +796,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         raise VsidgenError(f"--alpha must be in (0, 1), got {alpha}")
     if max_rounds < 0 or max_candidates < 1:
         raise VsidgenError("--max-rounds must be >= 0 and --max-candidates >= 1")
+    if time_limit is not None and not (time_limit > 0 and math.isfinite(time_limit)):
+        raise VsidgenError(f"--time-limit must be a positive number of seconds, got {time_limit}")
     if effects_module is not None:
         mods = effects_module if isinstance(effects_module, (list, tuple)) else [effects_module]
         for m in mods:
@@ -748,6 +811,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         catalogue = [e for e in catalogue if e.id in set(effects)]
     if max_iter < 1:
         raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
+    engine = Engine(workers=workers, scheduler=scheduler)
     for p in list(data) + list(validate):
         check_input_file(p, what="data file")
     plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
@@ -756,166 +820,281 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     from ..symbolic import compile_spec
 
     symbolic = compile_spec(spec)  # bad records are refused before any fit
+    if overrides is not None and not overrides.empty:
+        from ..overrides import apply_overrides
+
+        apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
     with results_in_place(plan, command="diagnose") as out:
+        if overrides is not None and not overrides.empty:
+            from ..overrides import write_override_spec
+
+            spec = write_override_spec(spec, overrides, out)
         return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
                              max_candidates=max_candidates, alpha=alpha, min_score=min_score,
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
                              progress=progress, version=__version__,
-                             build_document=build_document, write_findings=write_findings)
+                             build_document=build_document, write_findings=write_findings,
+                             time_limit=time_limit, engine=engine)
 
 
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
-                  write_findings) -> DiagnoseResult:
+                  write_findings, time_limit, engine) -> DiagnoseResult:
+    from ..engine import TaskStatus
+    from .findings import write_findings_json
+
     gen = out / "generated"
     t_start = time.perf_counter()
+    deadline = None if time_limit is None else time.monotonic() + float(time_limit)
+    options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
+               "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
+               "time_limit_s": time_limit, "engine": engine.describe()}
 
-    _say(progress, f"fitting the base model {spec}")
-    base = fit_spec(spec, data, validate=validate, generated_dir=gen, max_iter=max_iter)
-    if not base.fit.converged:
-        base = polish(base, max_iter=max_iter, progress=progress)
-    current = base
-    evidence0 = locate_state(base)
-    evidence = evidence0
-    _say(progress, "locate:\n" + evidence0.summary())
+    def past_deadline() -> bool:
+        return deadline is not None and time.monotonic() >= deadline
+
+    base = None
     rounds: list[dict] = []
     accepted: list[tuple[Trial, FitState, Evidence]] = []
-    for rnd in range(1, max_rounds + 1):
-        info = model_info_of(current)
-        ranked, n_examined, table = select_candidates(
-            info, evidence, catalogue, current, max_candidates=max_candidates,
-            min_score=min_score, screen=screen, workdir=out / "screen" / f"r{rnd}",
-            generated_dir=gen, progress=progress)
-        if not ranked:
-            rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                           "base_elbo": current.elbo, "trials": [], "n_examined": n_examined,
-                           "screen": table,
-                           "note": "no candidate is supported by the locate evidence or the "
-                                   "score test"})
-            break
-        _say(progress, ("screen (priority = -log10 p of the score test, else locate score): "
-                        if screen else "locate scores: ")
-             + ", ".join(f"{r['key']} {r['priority']:.3g}" for r in table[:max_candidates + 4]
-                         if r['priority'] is not None))
-        trials: list[Trial] = []
-        for i, (score, loc_score, c, sr) in enumerate(ranked):
-            path = out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
-            name = f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}"
-            _say(progress, f"round {rnd}: refitting {c.key} (score {score:.3g})")
-            try:
-                ro = staged_refit(c, current, info, path, name, generated_dir=gen,
-                                  max_iter=max_iter, progress=progress)
-            except (SpecError, FitError, VsidgenError) as err:
-                trials.append(Trial(c, score, path, None, math.nan, c.n_free, 1.0,
-                                    error=str(err).splitlines()[0], screen=sr))
-                continue
-            st = ro.state
-            lam, p = lr_test(ro.elbo_ref, st.elbo, c.n_free)
-            conv = refit_converged(st.fit)
-            _say(progress, f"    stage 2: ELBO {st.elbo:.6g}, 2ΔELBO vs nested reference "
-                           f"{lam:.4g}, {conv_label(st.fit)} "
-                           f"({ro.wall_s:.0f} s)")
-            trials.append(Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
-                                statistic_vs_base=2.0 * (st.elbo - current.elbo),
-                                converged=conv, screen=sr, verdict=trial_verdict(c, st, lam)))
-        # a candidate's gain may be a better optimum of the current model itself: refit the
-        # current model from each nominally significant candidate's optimum (new terms removed)
-        projected = []
-        better = None
-        for i, t in enumerate(trials):
-            if (t.state is None or t.candidate.states or not t.candidate.screenable
-                    or not t.converged or not (t.p_value < alpha)):
-                continue
-            ppath = out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(t.candidate.key)}.projected.yaml"
-            try:
-                ps = projected_refit(t, current, ppath,
-                                     f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}p",
-                                     generated_dir=gen, max_iter=max_iter)
-            except (SpecError, FitError, VsidgenError, ValueError, KeyError) as err:
-                projected.append({"key": t.candidate.key, "error": str(err).splitlines()[0]})
-                continue
-            ok = refit_converged(ps.fit)
-            projected.append({"key": t.candidate.key, "spec": str(ppath), "elbo": _f(ps.elbo),
-                              "converged": ok, "gain_over_current": _f(ps.elbo - current.elbo)})
-            if ok and ps.elbo > current.elbo + PROJECTED_TOL and (better is None
-                                                                  or ps.elbo > better.elbo):
-                better = ps
-        if better is not None:
-            _say(progress, f"    the current model has a better optimum (ELBO {current.elbo:.6g} -> "
-                           f"{better.elbo:.6g}, reached from a candidate's optimum with its new "
-                           "terms removed): every statistic of the round is taken against it")
-            try:
-                rb = rebase(better, current, out / "candidates" / f"r{rnd}_00_current.yaml",
-                            f"{_safe(current.model.name)[:30]}_dg{rnd}_0", generated_dir=gen,
-                            max_iter=max_iter)
-                if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
-                    better = rb
-            except (SpecError, FitError, VsidgenError, ValueError, KeyError) as err:
-                _say(progress, f"    (re-basing on the current spec failed: {err}; the "
-                               "projected spec is kept)")
-            trials = _against_better_reference(trials, better)
-            current = better
-        # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
-        # the candidates examined (screened) but not refitted
-        n_family = max(n_examined, len(trials))
-        decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
-                          else 1.0 for t in trials]
-                         + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
-        final_trials = []
-        for t, (sig, level) in zip(trials, decisions):
-            thr = float(stats.chi2.isf(level, max(t.dof, 1)))
-            vok = None
-            if sig and t.state is not None and t.state.vfit is not None:
-                corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
-                vok = bool(t.state.val_elbo - corr > current.val_elbo)
-            final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
-                                                    validation_ok=vok))
-        good = [t for t in final_trials if t.significant and t.validation_ok is not False
-                and t.state is not None]
-        if good and not refit_converged(current.fit):
-            # an unconverged base ELBO is below its optimum: Λ would be inflated by the
-            # refit merely finishing the base fit (a false positive), so nothing is accepted
-            rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                           "base_elbo": current.elbo, "alpha": alpha,
-                           "n_candidates": n_family, "n_refitted": len(trials),
-                           "trials": [t.to_json() for t in final_trials], "screen": table,
-                           "projected_refits": projected,
-                           "note": "not accepted: the base fit did not converge "
-                                   f"({current.fit.status})"})
-            break
-        rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                       "base_elbo": current.elbo, "alpha": alpha, "n_candidates": n_family,
-                       "n_refitted": len(trials),
-                       "trials": [t.to_json() for t in final_trials], "screen": table,
-                       "projected_refits": projected,
-                       "reference_improved": better is not None})
-        if not good:
-            break
-        # most significant = smallest p (log scale: no underflow); fewer parameters win ties
-        best = min(good, key=lambda t: (float(stats.chi2.logsf(max(t.statistic, 0.0), max(t.dof, 1))),
-                                        t.dof))
-        alts = alternatives_of(best, good)
-        best = dataclasses.replace(best, alternatives=alts)
-        _say(progress, f"round {rnd}: accepted {best.candidate.key} "
-                       f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
-                       + (f"; AMBIGUOUS with {', '.join(t.candidate.key for t in alts)}"
-                          if alts else ""))
-        accepted.append((best, current, evidence))
-        current = best.state
-        evidence = locate_state(current)
-    doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
-                         evidence=evidence0, final_evidence=evidence, alpha=alpha,
-                         version=version, wall_time_s=time.perf_counter() - t_start,
-                         out=out, options={"max_rounds": max_rounds,
-                                           "max_candidates": max_candidates,
-                                           "alpha": alpha, "min_score": min_score,
-                                           "screen": screen,
-                                           "effects": [e.id for e in catalogue]})
-    write_findings(out, doc, base=base, final=current, accepted=accepted)
+    unfinished: dict | None = None
+    current = evidence0 = evidence = None
+
+    from .refit import compile_seconds
+
+    compile0 = compile_seconds()
+
+    def document(stop: StopReason) -> dict:
+        doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
+                              evidence=evidence0, final_evidence=evidence, alpha=alpha,
+                              version=version, wall_time_s=time.perf_counter() - t_start,
+                              out=out, options=options,
+                              stop={"reason": stop.value, "time_limit_s": time_limit},
+                              unfinished_round=unfinished)
+        refit_c = [t["refit"].get("compile_s") for r in rounds for t in r.get("trials", ())
+                   if t.get("refit")]
+        doc["compile_s"] = {"this_process": round(compile_seconds() - compile0, 2),
+                            "refits": round(sum(c for c in refit_c if c is not None), 2)}
+        return doc
+
+    def checkpoint(stop: StopReason, *, report: bool = True) -> dict:
+        doc = document(stop)
+        if report:
+            write_findings(out, doc, base=base, final=current, accepted=accepted)
+        else:
+            write_findings_json(out, doc)
+        return doc
+
+    stop = StopReason.COMPLETED
+    try:
+        _say(progress, f"fitting the base model {spec}")
+        base = fit_spec(spec, data, validate=validate, generated_dir=gen, max_iter=max_iter)
+        if not base.fit.converged and not past_deadline():
+            base = polish(base, max_iter=max_iter, progress=progress)
+        current = base
+        evidence0 = locate_state(base)
+        evidence = evidence0
+        _say(progress, "locate:\n" + evidence0.summary())
+        checkpoint(StopReason.RUNNING)
+        with engine:
+            if not engine.serial:
+                _say(progress, f"refits run on a {engine.describe()}")
+            for rnd in range(1, max_rounds + 1):
+                if past_deadline():
+                    stop = StopReason.TIME_LIMIT
+                    break
+                info = model_info_of(current)
+                ranked, n_examined, table = select_candidates(
+                    info, evidence, catalogue, current, max_candidates=max_candidates,
+                    min_score=min_score, screen=screen, workdir=out / "screen" / f"r{rnd}",
+                    generated_dir=gen, progress=progress)
+                if not ranked:
+                    rounds.append({"round": rnd, "base_spec": str(current.spec_path),
+                                   "base_elbo": current.elbo, "trials": [],
+                                   "n_examined": n_examined, "screen": table,
+                                   "note": "no candidate is supported by the locate evidence or "
+                                           "the score test"})
+                    break
+                _say(progress, ("screen (priority = -log10 p of the score test, else locate "
+                                "score): " if screen else "locate scores: ")
+                     + ", ".join(f"{r['key']} {r['priority']:.3g}"
+                                 for r in table[:max_candidates + 4] if r['priority'] is not None))
+                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
+                         for i, (_, _, c, _) in enumerate(ranked)]
+                tasks = [(c.key, (c, current, info, paths[i],
+                                  f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
+                                  max_iter))
+                         for i, (_, _, c, _) in enumerate(ranked)]
+                by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
+                unfinished = {"round": rnd, "base_spec": str(current.spec_path),
+                              "base_elbo": current.elbo, "n_candidates": n_examined,
+                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked]}
+                checkpoint(StopReason.RUNNING, report=False)
+                _say(progress, f"round {rnd}: refitting {len(tasks)} candidates "
+                               f"({engine.describe()}): " + ", ".join(k for k, _ in tasks))
+                status = getattr(progress, "refitting", None)  # live status line with time left
+                if status is not None and tasks:
+                    _say(progress, status(rnd, 1, len(tasks), tasks[0][0]))
+
+                def refit_done(oc, rnd=rnd, current=current, by_key=by_key, paths=paths):
+                    i, score, c, sr = by_key[oc.key]
+                    t = _trial_of(oc, c, score, sr, paths[i], current)
+                    if oc.status is TaskStatus.DONE:
+                        for m in oc.value[1]:
+                            _say(progress, f"    [{c.key}] {m.strip()}")
+                        _say(progress, f"round {rnd}: {c.key}: ELBO {t.state.elbo:.6g}, 2ΔELBO "
+                                       f"vs nested reference {t.statistic:.4g}, "
+                                       f"{conv_label(t.state.fit)} ({oc.wall_s:.0f} s, "
+                                       f"compile {t.refit.compile_s:.0f} s)")
+                    else:
+                        _say(progress, f"round {rnd}: {c.key}: {oc.status.value.upper()} "
+                                       f"({oc.error})")
+                    if oc.status is not TaskStatus.CANCELLED:
+                        unfinished["pending"].remove(c.key)
+                        unfinished["refitted"].append(t.to_json())
+                        checkpoint(StopReason.RUNNING, report=False)
+                        status = getattr(progress, "refitting", None)
+                        if status is not None and unfinished["pending"]:
+                            n_done = len(unfinished["refitted"])
+                            _say(progress, status(rnd, n_done + 1, n_done + len(unfinished["pending"]),
+                                                  unfinished["pending"][0]))
+
+                outcomes = engine.run(_refit_task, tasks, deadline=deadline, on_done=refit_done)
+                if any(o.status is TaskStatus.CANCELLED for o in outcomes):
+                    stop = StopReason.TIME_LIMIT
+                    break
+                trials = []
+                for o in outcomes:
+                    i, score, c, sr = by_key[o.key]
+                    trials.append(_trial_of(o, c, score, sr, paths[i], current))
+                # a candidate's gain may be a better optimum of the current model itself: refit
+                # the current model from each nominally significant candidate's optimum
+                # (new terms removed)
+                ptasks = []
+                for i, t in enumerate(trials):
+                    if (t.state is None or t.candidate.states or not t.candidate.screenable
+                            or not t.converged or not (t.p_value < alpha)):
+                        continue
+                    ppath = (out / "candidates"
+                             / f"r{rnd}_{i + 1:02d}_{_safe(t.candidate.key)}.projected.yaml")
+                    ptasks.append((t.candidate.key, (t, current, ppath,
+                                                     f"{_safe(current.model.name)[:30]}_dg{rnd}_"
+                                                     f"{i + 1}p", gen, max_iter)))
+                if ptasks:
+                    unfinished["projected_pending"] = [k for k, _ in ptasks]
+                    _say(progress, f"round {rnd}: projected refits of "
+                                   + ", ".join(k for k, _ in ptasks))
+                pouts = engine.run(_projected_task, ptasks, deadline=deadline)
+                if any(o.status is TaskStatus.CANCELLED for o in pouts):
+                    stop = StopReason.TIME_LIMIT
+                    break
+                projected = []
+                better = None
+                for (key, (_, _, ppath, _, _, _)), o in zip(ptasks, pouts):
+                    if o.status is not TaskStatus.DONE:
+                        projected.append({"key": key, "error": f"{o.status.value}: {o.error}"})
+                        continue
+                    ps = o.value
+                    ok = refit_converged(ps.fit)
+                    projected.append({"key": key, "spec": str(ppath), "elbo": _f(ps.elbo),
+                                      "converged": ok,
+                                      "gain_over_current": _f(ps.elbo - current.elbo)})
+                    if ok and ps.elbo > current.elbo + PROJECTED_TOL and (
+                            better is None or ps.elbo > better.elbo):
+                        better = ps
+                if better is not None:
+                    _say(progress, f"    the current model has a better optimum (ELBO "
+                                   f"{current.elbo:.6g} -> {better.elbo:.6g}, reached from a "
+                                   "candidate's optimum with its new terms removed): every "
+                                   "statistic of the round is taken against it")
+                    try:
+                        rb = rebase(better, current,
+                                    out / "candidates" / f"r{rnd}_00_current.yaml",
+                                    f"{_safe(current.model.name)[:30]}_dg{rnd}_0",
+                                    generated_dir=gen, max_iter=max_iter)
+                        if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
+                            better = rb
+                    except (SpecError, FitError, VsidgenError, ValueError, KeyError) as err:
+                        _say(progress, f"    (re-basing on the current spec failed: {err}; the "
+                                       "projected spec is kept)")
+                    trials = _against_better_reference(trials, better)
+                    current = better
+                unfinished = None
+                finished = _decide_round(rnd, trials, current, n_examined, alpha, table,
+                                         projected, better)
+                rounds.append(finished.record)
+                if finished.base_unconverged or finished.best is None:
+                    break
+                best = finished.best
+                _say(progress, f"round {rnd}: accepted {best.candidate.key} "
+                               f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
+                               + (f"; AMBIGUOUS with "
+                                  f"{', '.join(t.candidate.key for t in best.alternatives)}"
+                                  if best.alternatives else ""))
+                accepted.append((best, current, evidence))
+                current = best.state
+                evidence = locate_state(current)
+                checkpoint(StopReason.RUNNING)
+    except KeyboardInterrupt:
+        if evidence0 is not None:          # the base fit and its locate step are done
+            checkpoint(StopReason.INTERRUPTED)
+            _say(progress, f"interrupted: {len(accepted)} accepted finding(s) and the unfinished "
+                           f"round written to {out / 'findings.json'}")
+        raise
+    if stop is StopReason.TIME_LIMIT:
+        _say(progress, f"time limit of {time_limit:g} s reached: stopping between refits")
+    doc = checkpoint(stop)
     return DiagnoseResult(out, tuple(doc["findings"]), pathlib.Path(doc["final_spec"]), doc,
-                          base, current, evidence0)
+                          base, current, evidence0, stop)
+
+
+@dataclasses.dataclass(frozen=True)
+class RoundDecision:
+    """The decision at the end of a round: its record, the accepted trial (or None)."""
+
+    record: dict
+    best: Trial | None
+    base_unconverged: bool = False
+
+
+def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
+                  better) -> RoundDecision:
+    """Holm over the round's family, validation check, best and its alternatives."""
+    # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
+    # the candidates examined (screened) but not refitted
+    n_family = max(n_examined, len(trials))
+    decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
+                      else 1.0 for t in trials]
+                     + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
+    final_trials = []
+    for t, (sig, level) in zip(trials, decisions):
+        thr = float(stats.chi2.isf(level, max(t.dof, 1)))
+        vok = None
+        if sig and t.state is not None and t.state.vfit is not None:
+            corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
+            vok = bool(t.state.val_elbo - corr > current.val_elbo)
+        final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
+                                                validation_ok=vok))
+    good = [t for t in final_trials if t.significant and t.validation_ok is not False
+            and t.state is not None]
+    record = {"round": rnd, "base_spec": str(current.spec_path),
+              "base_elbo": current.elbo, "alpha": alpha, "n_candidates": n_family,
+              "n_refitted": len(trials),
+              "trials": [t.to_json() for t in final_trials], "screen": table,
+              "projected_refits": projected}
+    if good and not refit_converged(current.fit):
+        # an unconverged base ELBO is below its optimum: Λ would be inflated by the
+        # refit merely finishing the base fit (a false positive), so nothing is accepted
+        record["note"] = f"not accepted: the base fit did not converge ({current.fit.status})"
+        return RoundDecision(record, None, base_unconverged=True)
+    record["reference_improved"] = better is not None
+    if not good:
+        return RoundDecision(record, None)
+    # most significant = smallest p (log scale: no underflow); fewer parameters win ties
+    best = min(good, key=lambda t: (float(stats.chi2.logsf(max(t.statistic, 0.0), max(t.dof, 1))),
+                                    t.dof))
+    return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives_of(best, good)))
 
 
 # ---------------------------------------------------------------------------
@@ -953,6 +1132,18 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
+    from ..cli import add_override_arguments
+
+    add_override_arguments(p)
+    p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                   help="stop cleanly between refits after this many seconds; the effects "
+                        "accepted so far and the unfinished round are written (exit status 1)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="refit the candidates of a round on a local dask cluster of N worker "
+                        "processes (default: every local core; 1 = serially in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="refit on an existing dask cluster (e.g. tcp://host:8786; DIR must be "
+                        "on a file system its workers share)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty DIR that is not a vsidgen results directory "
@@ -961,15 +1152,53 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+def terminate_as_interrupt():
+    """Context manager: SIGTERM raises KeyboardInterrupt (so a terminated run writes what it
+    has, as on Ctrl-C); the previous handler is restored on exit. No-op off the main thread."""
+    import contextlib
+    import signal
+    import threading
+
+    @contextlib.contextmanager
+    def cm():
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def handler(signum, frame):
+            raise KeyboardInterrupt(f"signal {signum}")
+
+        old = signal.signal(signal.SIGTERM, handler)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGTERM, old)
+    return cm()
+
+
 def diagnose_command(args) -> int:
-    """Handler of ``vsidgen diagnose``; returns the exit status (0)."""
-    progress = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
-                       max_rounds=args.max_rounds, max_candidates=args.max_candidates,
-                       alpha=args.alpha, min_score=args.min_score, effects=args.effects,
-                       effects_module=args.effects_module, max_iter=args.max_iter,
-                       screen=args.screen, progress=progress, overwrite=args.overwrite)
-    from .findings import summary_lines
+    """Handler of ``vsidgen diagnose``; exit status 0 (completed) or 1 (stopped at the time
+    limit; what was found is written). An interrupt (Ctrl-C, SIGTERM) writes the findings
+    and propagates (status 130)."""
+    from ..cli import _enable_compilation_cache, overrides_of
+    from ..progress import DiagnoseProgress
+
+    ov = overrides_of(args)
+    _enable_compilation_cache()
+    progress = None if args.quiet else DiagnoseProgress(sys.stderr)
+    try:
+        with terminate_as_interrupt():
+            res = run_diagnose(args.spec, args.data, validate=args.validate, out=args.out,
+                               max_rounds=args.max_rounds, max_candidates=args.max_candidates,
+                               alpha=args.alpha, min_score=args.min_score, effects=args.effects,
+                               effects_module=args.effects_module, max_iter=args.max_iter,
+                               screen=args.screen, time_limit=args.time_limit,
+                               workers=args.workers, scheduler=args.scheduler, progress=progress,
+                               overwrite=args.overwrite, overrides=ov)
+    finally:
+        if progress is not None:
+            progress.close()
+    from .findings import summary_lines  # the conclusion says when the run stopped early
     for line in summary_lines(res.document, res.out_dir / "findings.json"):
         print(line)
-    return 0
+    return 0 if res.stop is StopReason.COMPLETED else 1

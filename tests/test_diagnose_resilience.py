@@ -1,0 +1,207 @@
+"""``vsidgen diagnose`` never loses what it found: time limit, interruption, SIGTERM.
+
+The base fit is real (ATTAS short period, synthetic record, fitted once per module); the
+candidate refits are replaced by stand-ins that return a known outcome instantly, raise an
+interrupt, or let a simulated clock run past the time limit, so the checkpoint logic is
+tested without the cost of real refits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+import signal
+import time
+
+import pytest
+
+from vsidgen.discrepancy import search
+from vsidgen.discrepancy.refit import RefitOutcome
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SPEC = ROOT / "specs" / "attas_sp.yaml"
+DATA = ROOT / "data" / "attas_sp_synthetic.csv"
+EFFECTS = ["sensor_bias", "time_skew", "missing_derivative"]
+
+
+@pytest.fixture(scope="module")
+def base_state(tmp_path_factory):
+    gen = tmp_path_factory.mktemp("gen")
+    st = search.fit_spec(SPEC, [DATA], generated_dir=gen, max_iter=200)
+    assert st.fit.converged
+    return st
+
+
+class _Refits:
+    """Stand-in for ``staged_refit``: the n-th call (0-based) does ``actions[n]``.
+
+    "same": the current model's own fit (Λ = 0); "gain": the same fit with the ELBO raised
+    by 50 nats (Λ = 100, significant); "interrupt": KeyboardInterrupt; "sigterm": SIGTERM to
+    this process; ("slow", s): advance the simulated clock by s seconds, then "same".
+    """
+
+    def __init__(self, actions, clock=None):
+        self.actions = list(actions)
+        self.calls = []
+        self.clock = clock
+
+    def __call__(self, c, current, info, path, name, *, generated_dir, max_iter, progress=None):
+        n = len(self.calls)
+        self.calls.append(c.key)
+        act = self.actions[n] if n < len(self.actions) else "same"
+        if act == "interrupt":
+            raise KeyboardInterrupt
+        if act == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)
+            raise AssertionError("SIGTERM did not interrupt")
+        if isinstance(act, tuple) and act[0] == "slow":
+            self.clock.offset += act[1]
+            act = "same"
+        st = current
+        if act == "gain":
+            st = dataclasses.replace(current, fit=dataclasses.replace(current.fit,
+                                                                       elbo=current.elbo + 50.0))
+        return RefitOutcome(state=st, elbo_ref=current.elbo, warm="stand-in")
+
+
+class _Clock:
+    def __init__(self, real):
+        self.real = real
+        self.offset = 0.0
+
+    def __call__(self):
+        return self.real() + self.offset
+
+
+@pytest.fixture
+def patched(monkeypatch, base_state):
+    monkeypatch.setattr(search, "fit_spec", lambda *a, **k: base_state)
+    monkeypatch.setattr(search, "projected_refit", lambda t, current, *a, **k: current)
+
+    def install(actions, clock=None):
+        r = _Refits(actions, clock)
+        monkeypatch.setattr(search, "staged_refit", r)
+        return r
+    return install
+
+
+def _doc(out):
+    return json.loads((out / "findings.json").read_text())
+
+
+def test_time_limit_stops_between_refits_and_keeps_the_accepted_effect(patched, monkeypatch,
+                                                                       tmp_path):
+    clock = _Clock(time.monotonic)
+    monkeypatch.setattr(time, "monotonic", clock)
+    # round 1: first candidate significant (accepted); round 2: the first refit "takes"
+    # 1000 s of the 600 s limit, so the second one does not start
+    refits = patched(["gain", "same", ("slow", 1000.0)], clock)
+    res = search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
+                              effects=EFFECTS, time_limit=600.0, workers=1)
+    assert res.stop is search.StopReason.TIME_LIMIT
+    assert len(refits.calls) == 3                  # 2 in round 1, 1 in round 2, none after
+    doc = _doc(tmp_path / "o")
+    assert doc["stop"]["reason"] == "time_limit" and doc["stop"]["time_limit_s"] == 600.0
+    assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
+    assert doc["findings"][0]["evidence"]["statistic"] == pytest.approx(100.0)
+    un = doc["unfinished_round"]
+    assert un["round"] == 2 and [t["key"] for t in un["refitted"]] == [refits.calls[2]]
+    assert len(un["pending"]) == 1 and refits.calls[2] not in un["pending"]
+    assert doc["conclusion"].startswith("STOPPED at the time limit")
+    assert "1 effect accepted" in doc["conclusion"]
+    assert (tmp_path / "o" / "diagnose.html").read_text().count("STOPPED") >= 1
+
+
+def test_interrupt_writes_the_accepted_effect_and_the_unfinished_round(patched, tmp_path):
+    refits = patched(["gain", "same", "interrupt"])
+    with pytest.raises(KeyboardInterrupt):
+        search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
+                            effects=EFFECTS, workers=1)
+    doc = _doc(tmp_path / "o")
+    assert doc["stop"]["reason"] == "interrupted"
+    assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
+    assert len(doc["rounds"]) == 1
+    un = doc["unfinished_round"]
+    assert un["round"] == 2 and un["refitted"] == [] and refits.calls[2] in un["pending"]
+    assert doc["conclusion"].startswith("INTERRUPTED during round 2")
+
+
+def test_checkpoint_after_every_refit_says_running(patched, tmp_path):
+    out = tmp_path / "o"
+    seen = []
+
+    def peek(*a, **k):
+        if (out / "findings.json").is_file():
+            seen.append(_doc(out))
+        return refits_impl(*a, **k)
+    refits_impl = patched(["same", "same"])
+    import vsidgen.discrepancy.search as s
+    s.staged_refit, orig = peek, s.staged_refit
+    try:
+        search.run_diagnose(SPEC, [DATA], out=out, max_rounds=1, max_candidates=2,
+                            effects=EFFECTS, workers=1)
+    finally:
+        s.staged_refit = orig
+    assert [d["stop"]["reason"] for d in seen] == ["running", "running"]
+    assert [len(d["unfinished_round"]["refitted"]) for d in seen] == [0, 1]
+    final = _doc(out)
+    assert final["stop"]["reason"] == "completed" and final["unfinished_round"] is None
+    assert final["findings"] == [] and final["conclusion"].startswith("No significant")
+
+
+def test_cli_sigterm_and_time_limit_exit_codes(patched, monkeypatch, tmp_path, capsys):
+    from vsidgen.cli import main
+
+    monkeypatch.setenv("VSIDGEN_CACHE_DIR", "")
+    patched(["gain", "sigterm"])
+    rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "t"), "--workers", "1",
+               "--max-candidates", "1", "--effects", *EFFECTS, "--quiet"])
+    assert rc == 130
+    doc = _doc(tmp_path / "t")
+    assert doc["stop"]["reason"] == "interrupted" and len(doc["findings"]) == 1
+    assert signal.getsignal(signal.SIGTERM) is not None
+    capsys.readouterr()
+    patched([])
+    rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "l"), "--workers", "1",
+               "--time-limit", "1e-6", "--effects", *EFFECTS, "--quiet"])
+    assert rc == 1
+    line = capsys.readouterr().out
+    assert line.startswith("STOPPED at the time limit") and "no significant" not in line
+    assert _doc(tmp_path / "l")["stop"]["reason"] == "time_limit"
+    assert main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "x"),
+                 "--time-limit", "-3"]) == 2
+
+
+@pytest.mark.slow
+def test_parallel_refits_give_the_serial_findings(tmp_path):
+    """Real refits: the round refitted serially and on a 2-worker local dask cluster gives
+    the same trials (statistics to 1e-6 relative) and the same findings."""
+    docs = []
+    for w in (1, 2):
+        search.run_diagnose(SPEC, [DATA], out=tmp_path / f"w{w}", max_rounds=1,
+                            max_candidates=2, workers=w)
+        docs.append(_doc(tmp_path / f"w{w}"))
+    s, p = docs
+    assert s["options"]["engine"].startswith("serial") and "2 worker" in p["options"]["engine"]
+    ts, tp = s["rounds"][0]["trials"], p["rounds"][0]["trials"]
+    assert [t["key"] for t in ts] == [t["key"] for t in tp] and len(ts) == 2
+    for a, b in zip(ts, tp):
+        assert a["error"] is None and b["error"] is None
+        assert b["statistic"] == pytest.approx(a["statistic"], rel=1e-6, abs=1e-6)
+        assert b["elbo"] == pytest.approx(a["elbo"], rel=1e-9)
+    assert [f["key"] for f in s["findings"]] == [f["key"] for f in p["findings"]]
+
+
+def test_conclusion_when_every_refit_failed():
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    rounds = [{"trials": [{"key": "a", "error": "lost: worker died", "converged": None},
+                          {"key": "b", "error": "failed: ValueError: x", "converged": None}]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="s.yaml")
+    assert text.startswith("INCONCLUSIVE: no refit produced a result") and "a: lost" in text
+    rounds[0]["trials"].append({"key": "c", "error": None, "converged": True})
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="s.yaml")
+    assert text.startswith("No significant") and "failed (neither accepted nor ruled out): a, b" in text

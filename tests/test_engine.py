@@ -1,0 +1,111 @@
+"""The task engine (:mod:`vsidgen.engine`): serial and on a small dask ``LocalCluster``."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import sys
+import time
+
+import pytest
+
+from vsidgen.engine import Engine, TaskStatus
+
+
+def _square(x):
+    return x * x
+
+
+def _fail(msg):
+    raise ValueError(msg)
+
+
+def _die_once(marker):
+    """Kill the worker process the first time (no marker yet), succeed on the retry."""
+    marker = pathlib.Path(marker)
+    if not marker.exists():
+        marker.write_text("died once")
+        os._exit(1)
+    return "second attempt"
+
+
+def _die_always():
+    os._exit(1)
+
+
+def _sleep(s):
+    time.sleep(s)
+    return s
+
+
+@pytest.fixture(autouse=True)
+def _by_value():
+    import cloudpickle
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield
+    cloudpickle.unregister_pickle_by_value(sys.modules[__name__])
+
+
+def test_serial_outcomes_failures_and_deadline():
+    seen = []
+    with Engine(workers=1) as eng:
+        assert eng.serial
+        out = eng.run(_square, [("a", (3,)), ("b", (4,))], on_done=seen.append)
+        assert [(o.key, o.status, o.value) for o in out] == [("a", TaskStatus.DONE, 9),
+                                                           ("b", TaskStatus.DONE, 16)]
+        bad = eng.run(_fail, [("x", ("boom",))])[0]
+        assert bad.status is TaskStatus.FAILED and "boom" in bad.error
+        late = eng.run(_square, [("c", (2,))], deadline=time.monotonic() - 1.0)[0]
+        assert late.status is TaskStatus.CANCELLED and late.value is None
+    assert [o.key for o in seen] == ["a", "b"]
+
+
+def test_local_cluster_results_failures_and_dead_workers(tmp_path):
+    """Two worker processes: values in submission order, an exception stays with its task,
+    a worker that dies once is retried (the task succeeds), one that dies every time loses
+    only its own task, and a deadline cancels what has not finished."""
+    with Engine(workers=2) as eng:
+        assert not eng.serial and len(eng.client.scheduler_info()["workers"]) == 2
+        out = eng.run(_square, [(f"k{i}", (i,)) for i in range(5)])
+        assert [o.value for o in out] == [0, 1, 4, 9, 16]
+        assert all(o.status is TaskStatus.DONE for o in out)
+        bad = eng.run(_fail, [("x", ("boom",))])[0]
+        assert bad.status is TaskStatus.FAILED and "boom" in bad.error
+        once = eng.run(_die_once, [("once", (str(tmp_path / "marker"),))])[0]
+        assert once.status is TaskStatus.DONE and once.value == "second attempt"
+        eng.client.wait_for_workers(2, timeout=300)
+        mixed = eng.run(lambda k: _die_always() if k == "dead" else k,
+                        [("dead", ("dead",)), ("alive", ("alive",))],
+                        deadline=time.monotonic() + 300.0)
+        assert mixed[0].status is TaskStatus.LOST and mixed[1].value == "alive"
+        eng.client.wait_for_workers(2, timeout=300)
+        t0 = time.monotonic()
+        slow = eng.run(_sleep, [("s2", (0.0,)), ("s1", (600.0,))], deadline=t0 + 30.0)
+        assert time.monotonic() - t0 < 120.0
+        assert slow[0].status is TaskStatus.DONE and slow[1].status is TaskStatus.CANCELLED
+
+
+def test_worker_env_single_thread_and_shared_compilation_cache(monkeypatch, tmp_path):
+    import jax
+
+    from vsidgen.engine import worker_env
+
+    old = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    try:
+        env = worker_env()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", old)
+    assert env["OMP_NUM_THREADS"] == "1" and "intra_op_parallelism_threads=1" in env["XLA_FLAGS"]
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path)
+
+
+def test_existing_cluster_by_scheduler_address():
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as lc:
+        with Engine(scheduler=lc.scheduler_address) as eng:
+            assert not eng.serial and lc.scheduler_address in eng.describe()
+            out = eng.run(_square, [("a", (5,)), ("b", (6,))])
+            assert [o.value for o in out] == [25, 36]

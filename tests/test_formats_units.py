@@ -1,0 +1,240 @@
+"""MATLAB .mat records and data-map units: same record, same estimates as the CSV in SI units."""
+
+from __future__ import annotations
+
+import math
+import pathlib
+
+import numpy as np
+import pytest
+
+from vsidgen.cli import main
+from vsidgen.data import load_record
+from vsidgen.errors import DataError, SpecError
+from vsidgen.symbolic import compile_spec
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+SPEC = ROOT / "specs" / "attas_sp.yaml"
+CSV = ROOT / "data" / "attas_sp_synthetic.csv"
+
+
+def _csv_columns(path):
+    """Independent reader: header + numpy block."""
+    head = path.read_text().splitlines()[0].split(",")
+    block = np.loadtxt(path, delimiter=",", skiprows=1)
+    return head, block
+
+
+def _write_mat73(path, variables):
+    """A MATLAB v7.3 file as MATLAB writes it: 512-byte text header, HDF5, arrays transposed,
+    `MATLAB_class` attributes, cell arrays as object references into `#refs#`."""
+    import h5py
+
+    with h5py.File(path, "w", userblock_size=512) as f:
+        refs = f.create_group("#refs#")
+        for name, value in variables.items():
+            if isinstance(value, list):  # cell array of char
+                dt = h5py.special_dtype(ref=h5py.Reference)
+                cell = np.empty((1, len(value)), dtype=dt)
+                for j, text in enumerate(value):
+                    d = refs.create_dataset(f"{name}_{j}", data=np.array(
+                        [[ord(c)] for c in text], dtype=np.uint16))
+                    d.attrs["MATLAB_class"] = np.bytes_("char")
+                    cell[0, j] = d.ref
+                ds = f.create_dataset(name, data=cell.T)
+                ds.attrs["MATLAB_class"] = np.bytes_("cell")
+            else:
+                arr = np.atleast_2d(np.asarray(value, dtype=np.float64))
+                if arr.shape[0] == 1:
+                    arr = arr.T  # a MATLAB column vector N x 1
+                ds = f.create_dataset(name, data=arr.T)  # column-major on disk
+                ds.attrs["MATLAB_class"] = np.bytes_("double")
+    with open(path, "r+b") as fh:
+        fh.write(b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: test HDF5 schema 1.00 .")
+
+
+@pytest.fixture(scope="module")
+def mat_files(tmp_path_factory):
+    import scipy.io
+
+    d = tmp_path_factory.mktemp("mat")
+    head, block = _csv_columns(CSV)
+    per_var = {h: block[:, j] for j, h in enumerate(head)}
+    scipy.io.savemat(d / "vars.mat", per_var)
+    scipy.io.savemat(d / "named.mat", {"X": block, "X_names": np.array(head, dtype=object)})
+    scipy.io.savemat(d / "fdata.mat", {"fdata": block})
+    _write_mat73(d / "v73.mat", per_var)
+    _write_mat73(d / "v73named.mat", {"X": block, "X_names": head})
+    return d
+
+
+def _selected_spec(tmp_path, head):
+    """attas_sp with the data map written as SIDPAC-style column selections fdata(:,k)."""
+    k = {h: j + 1 for j, h in enumerate(head)}
+    text = (f"extends: {SPEC}\nname: attas_sp_fdata\ndata:\n  time: 'fdata(:,{k['t_s']})'\n"
+            f"  inputs: {{de: 'fdata(:,{k['de_rad']})'}}\n"
+            f"  outputs: {{alpha: 'fdata(:,{k['alpha_rad']})', q: 'fdata(:,{k['q_radps']})'}}\n")
+    path = tmp_path / "fdata.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_mat_records_equal_the_csv(mat_files, tmp_path):
+    sym = compile_spec(SPEC)
+    ref = load_record(sym, CSV)
+    for name in ("vars.mat", "named.mat", "v73.mat", "v73named.mat"):
+        rec = load_record(sym, mat_files / name)
+        for a in ("t_raw", "u", "y"):
+            assert np.array_equal(getattr(rec, a), getattr(ref, a)), (name, a)
+        assert rec.dt == ref.dt and rec.name == pathlib.Path(name).stem
+    head, _ = _csv_columns(CSV)
+    rec = load_record(compile_spec(_selected_spec(tmp_path, head)), mat_files / "fdata.mat")
+    assert np.array_equal(rec.y, ref.y) and np.array_equal(rec.u, ref.u)
+
+
+def test_mat_errors_are_located(mat_files, tmp_path):
+    sym = compile_spec(SPEC)
+    with pytest.raises(DataError) as ei:  # no variable fdata in this file
+        load_record(compile_spec(_selected_spec(tmp_path, _csv_columns(CSV)[0])),
+                    mat_files / "vars.mat")
+    assert "'fdata(:,1)' not found" in str(ei.value)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"extends: {SPEC}\nname: bad\ndata: {{time: fdata, inputs: {{de: de_rad}}, "
+                   "outputs: {alpha: alpha_rad, q: q_radps}}\n")
+    with pytest.raises(DataError) as ei:
+        load_record(compile_spec(bad), mat_files / "fdata.mat")
+    assert "626x4 matrix" in str(ei.value) and "fdata(:,1)" in ei.value.hint
+    misspelt = tmp_path / "typo.yaml"
+    misspelt.write_text(f"extends: {SPEC}\nname: typo\ndata: {{time: t_s, inputs: {{de: de_rd}}, "
+                        "outputs: {alpha: alpha_rad, q: q_radps}}\n")
+    with pytest.raises(DataError) as ei:
+        load_record(compile_spec(misspelt), mat_files / "vars.mat")
+    assert ei.value.column == "de_rd" and "de_rad" in ei.value.hint
+    with pytest.raises(DataError) as ei:
+        load_record(sym, _binary(tmp_path))
+    assert "not a supported data file" in str(ei.value) and "MATLAB .mat" in ei.value.hint
+
+
+def _binary(tmp_path):
+    p = tmp_path / "rec.xlsx"
+    p.write_bytes(b"PK\x03\x04" + bytes(range(256)) * 4)
+    return p
+
+
+def test_check_data_on_binary_file_names_formats(tmp_path, capsys):
+    p = tmp_path / "rec.dat"
+    p.write_bytes(b"\xdd\xfe\x00\x01" * 100)
+    assert main(["check", str(SPEC), "--data", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "utf-8" not in err and "supported formats" in err and "Traceback" not in err
+
+
+@pytest.fixture(scope="module")
+def reference_fit():
+    """The attas_sp model and its fit to the CSV record (SI units)."""
+    from vsidgen.estimator import FitOptions, fit
+    from vsidgen.model import load_model
+
+    model = load_model(SPEC)
+    options = FitOptions(max_iter=60)
+    return model, options, fit(model, [load_record(model, CSV)], options=options)
+
+
+def test_mat_fit_equals_csv_fit(mat_files, reference_fit):
+    from vsidgen.estimator import fit
+
+    model, options, ref = reference_fit
+    res = fit(model, [load_record(model, mat_files / "v73named.mat")], options=options)
+    assert ref.converged and res.converged
+    assert res.elbo == ref.elbo
+    assert np.array_equal(res.theta, ref.theta) and np.array_equal(res.std_errors, ref.std_errors)
+
+
+# ---------------------------------------------------------------- units in the data map
+
+DEG = math.pi / 180.0
+
+
+def _degree_record(tmp_path):
+    head, block = _csv_columns(CSV)
+    scale = {"t_s": 1.0, "de_rad": 1 / DEG, "alpha_rad": 1 / DEG, "q_radps": 1 / DEG}
+    names = {"t_s": "t_s", "de_rad": "de_deg", "alpha_rad": "alpha_deg", "q_radps": "q_degps"}
+    path = tmp_path / "deg.csv"
+    with open(path, "w") as fh:
+        fh.write(",".join(names[h] for h in head) + "\n")
+        np.savetxt(fh, block * np.array([scale[h] for h in head]), fmt="%.17g", delimiter=",")
+    return path
+
+
+def _unit_spec(tmp_path, alpha_unit="deg", name="attas_sp_deg"):
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"extends: {SPEC}\nname: {name}\ndata:\n  time: t_s\n"
+                    "  inputs: {de: {column: de_deg, unit: deg}}\n"
+                    f"  outputs:\n    alpha: {{column: alpha_deg, unit: {alpha_unit}}}\n"
+                    "    q: {column: q_degps, unit: deg/s}\n")
+    return path
+
+
+def test_degree_columns_declared_in_degrees_give_the_radian_estimates(tmp_path, reference_fit):
+    from vsidgen.estimator import fit
+
+    model, options, ref = reference_fit
+    deg = _degree_record(tmp_path)
+    spec = _unit_spec(tmp_path)  # attas_sp with {column: .._deg, unit: deg} (deg/s for q)
+    rec, rad = load_record(compile_spec(spec), deg), load_record(model, CSV)
+    np.testing.assert_allclose(rec.y, rad.y, rtol=1e-14, atol=1e-17)
+    np.testing.assert_allclose(rec.u, rad.u, rtol=1e-14, atol=1e-17)
+    assert rec.warnings == ()
+    res = fit(model, [rec], options=options)  # the same equations: only the data map differs
+    assert ref.converged and res.converged
+    assert res.elbo == pytest.approx(ref.elbo, rel=1e-9)
+    np.testing.assert_allclose(res.theta, ref.theta, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(res.std_errors, ref.std_errors, rtol=1e-5)
+
+
+def test_unit_conversions_against_textbook_factors(tmp_path):
+    from vsidgen.dataunits import conversion
+
+    assert conversion("deg", "rad") == pytest.approx((DEG, 0.0), rel=1e-15)
+    assert conversion("ft", "m")[0] == pytest.approx(0.3048, rel=1e-15)
+    assert conversion("kt", "m/s")[0] == pytest.approx(1852 / 3600, rel=1e-15)
+    assert conversion("ft/s", "m/s")[0] == pytest.approx(0.3048, rel=1e-15)
+    assert conversion("g", "m/s^2")[0] == pytest.approx(9.80665, rel=1e-15)
+    assert conversion("deg/s", "rad/s")[0] == pytest.approx(DEG, rel=1e-15)
+    assert conversion("degC", "K") == pytest.approx((1.0, 273.15), rel=1e-15)
+    assert conversion("lbf", "N")[0] == pytest.approx(4.4482216152605, rel=1e-12)
+
+
+def test_incompatible_unit_is_a_located_spec_error(tmp_path, capsys):
+    spec = _unit_spec(tmp_path, alpha_unit="ft", name="bad_unit")
+    with pytest.raises(SpecError) as ei:
+        compile_spec(spec)
+    err = ei.value
+    assert err.path == spec and err.line == 7 and "alpha" in err.message
+    assert "[length]" in err.message and "rad" in err.message
+    spec2 = _unit_spec(tmp_path, alpha_unit="furlongs_per_blink", name="unknown_unit")
+    assert main(["check", str(spec2)]) == 2
+    assert "unknown unit" in capsys.readouterr().err
+
+
+def test_degrees_read_as_radians_warn(tmp_path, capsys):
+    """The 2π rule: an angle beyond one revolution (rate beyond one per second) read as rad."""
+    t = np.arange(200) * 0.04
+    de_deg = 8.0 * np.sin(t)                   # |de| <= 8 deg: read as rad, beyond 2π
+    alpha_deg = 3.0 + 2.0 * np.sin(2 * t)      # <= 5 deg: below 2π even as rad (not flagged)
+    q_degps = 20.0 * np.cos(2 * t)             # 20 deg/s: read as rad/s, beyond 2π rad/s
+    path = tmp_path / "deg.csv"
+    with open(path, "w") as fh:
+        fh.write("t_s,de_deg,alpha_deg,q_degps\n")
+        np.savetxt(fh, np.column_stack([t, de_deg, alpha_deg, q_degps]), fmt="%.17g", delimiter=",")
+    spec = tmp_path / "wrong.yaml"
+    spec.write_text(f"extends: {SPEC}\nname: wrong\ndata:\n  time: t_s\n  inputs: {{de: de_deg}}\n"
+                    "  outputs: {alpha: alpha_deg, q: q_degps}\n")
+    rec = load_record(compile_spec(spec), path)
+    assert {w.channel for w in rec.warnings} == {"de", "q"}
+    assert load_record(compile_spec(_unit_spec(tmp_path)), path.rename(tmp_path / "d2.csv")
+                       ).warnings == ()
+    assert main(["check", str(spec), "--data", str(tmp_path / "d2.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "{column: de_deg, unit: deg}" in err and "{column: q_degps, unit: deg/s}" in err
+    assert "alpha" not in err

@@ -1,0 +1,65 @@
+"""Progress display (live line / per-start summaries) and the NRMSE fit percentage."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+
+from vsidgen.evaluation import fit_metrics
+from vsidgen.progress import DiagnoseProgress, FitProgress
+
+
+def test_log_mode_writes_one_line_per_noise_start():
+    out = io.StringIO()
+    p = FitProgress(out, live=False)
+    for it in range(6):
+        p(it, 100.0 + it, 10.0 ** -it, 0.1 * it)
+    for it in range(4):  # the estimator restarts its count at the next noise start
+        p(it, 200.0 + it, 10.0 ** -(it + 3), 1.0 + 0.1 * it)
+    p.close()
+    lines = out.getvalue().splitlines()
+    assert lines == ["noise start 1: 5 iterations, ELBO 105, |grad| 1e-05, 0.5 s",
+                     "noise start 2: 3 iterations, ELBO 203, |grad| 1e-06, 1.3 s"]
+
+
+def test_live_mode_keeps_one_line():
+    out = io.StringIO()
+    p = FitProgress(out, live=True)
+    for it in range(50):
+        p(it, float(it), 1.0 / (it + 1), 0.01 * it)
+    p.close()
+    text = out.getvalue()
+    assert "iter   49" in text and "noise start" not in text
+    assert text.count("\n") <= 50  # redrawn in place, not appended (rich cursor control)
+
+
+def test_diagnose_time_left_from_finished_refits():
+    out = io.StringIO()
+    p = DiagnoseProgress(out, live=False)
+    first = p.refitting(1, 1, 3, "a")
+    assert "1/3" in first and "after the first refit" in first
+    second = p.refitting(1, 2, 3, "b")
+    assert "2/3" in second and "s left in this round" in second
+    assert "after the first" in p.refitting(2, 1, 2, "c")  # a new round starts over
+
+
+def test_fit_percent_matches_matlab_compare_definition():
+    rng = np.random.default_rng(0)
+    y = np.cumsum(rng.normal(size=500))
+    yhat = y + rng.normal(scale=0.3, size=500)
+    expected = 100.0 * (1.0 - np.linalg.norm(y - yhat) / np.linalg.norm(y - y.mean()))
+    m = fit_metrics(y, yhat)
+    assert m["fit_percent"] == pytest.approx(expected, rel=1e-12)
+    assert m["fit_percent"] == pytest.approx(100.0 * (1.0 - math.sqrt(1.0 - m["r2"])), rel=1e-12)
+    assert fit_metrics(y, y)["fit_percent"] == 100.0
+    assert fit_metrics(y, np.full_like(y, y.mean()))["fit_percent"] == pytest.approx(0.0, abs=1e-12)
+    y_nan = y.copy()
+    y_nan[3] = np.nan  # missing samples are left out, as for the other metrics
+    keep = np.isfinite(y_nan)
+    ref = 100.0 * (1.0 - np.linalg.norm(y[keep] - yhat[keep])
+                   / np.linalg.norm(y[keep] - y[keep].mean()))
+    assert fit_metrics(y_nan, yhat)["fit_percent"] == pytest.approx(ref, rel=1e-12)
+    assert math.isnan(fit_metrics(np.ones(5), np.ones(5))["fit_percent"])

@@ -1,0 +1,182 @@
+"""Units of data columns: conversion to the spec's units (pint) and range plausibility.
+
+A data map may declare the unit of a column, ``{column: da_deg, unit: deg}``;
+the loader then converts the column to the unit the spec declares for that
+input or output:
+
+    value_spec = scale * (a * column + b) + offset,   a = du/ds, b = conversion of 0
+
+where ``a`` and ``b`` come from :mod:`pint` (``b`` ≠ 0 only for affine units
+such as degC). The spec's ``scale``/``offset`` are applied after the
+conversion, in the spec's unit. Units are parsed by pint with two aviation
+conventions: ``g`` is the standard acceleration of gravity (9.80665 m/s², the
+unit of load factors; write ``gram`` for grams) and ``^`` is a power. Angles
+(``rad``, ``deg``) are dimensionless, as in SI and :mod:`vsidgen.units`, so
+``deg`` converts to ``rad`` and to ``1``; ``ft`` does not convert to ``rad``
+(a dimension error located at the ``unit:`` entry of the spec).
+
+:func:`plausibility_warnings` flags value ranges that do not fit the spec's
+unit: an angle channel in rad whose magnitude exceeds 2π (one revolution), or
+an angular rate beyond 2π rad/s — the signature of a column recorded in
+degrees but read as radians.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import math
+import pathlib
+import re
+
+import numpy as np
+
+
+class UnitConversionError(ValueError):
+    """A unit that pint cannot parse, or two units of different dimensions."""
+
+
+class DataWarningCode(enum.Enum):
+    """Kinds of data warnings."""
+
+    IMPLAUSIBLE_RANGE = "implausible_range"
+
+
+@dataclasses.dataclass(frozen=True)
+class DataWarning:
+    """A warning about the values of a record's channel (not an error: the fit still runs)."""
+
+    code: DataWarningCode
+    message: str
+    path: pathlib.Path | None = None
+    channel: str | None = None
+    hint: str = ""
+
+    def __str__(self) -> str:
+        where = f"{self.path}: " if self.path is not None else ""
+        out = f"{where}warning: {self.message}"
+        return out + (f"\n  hint: {self.hint}" if self.hint else "")
+
+    def to_json(self) -> dict:
+        return {"code": self.code.value, "message": self.message, "channel": self.channel,
+                "path": None if self.path is None else str(self.path), "hint": self.hint}
+
+
+_G_TOKEN = re.compile(r"(?<![\w.])g(?![\w])")
+
+
+@functools.lru_cache(maxsize=1)
+def _registry():
+    import pint
+
+    return pint.UnitRegistry()
+
+
+def _normalise(text: str) -> str:
+    s = str(text).strip().replace("^", "**")
+    if s in ("", "1", "-"):
+        return "dimensionless"
+    return _G_TOKEN.sub("standard_gravity", s)
+
+
+@functools.lru_cache(maxsize=256)
+def _quantity_unit(text: str):
+    ureg = _registry()
+    try:
+        return ureg.Unit(_normalise(text))
+    except Exception as exc:  # pint raises UndefinedUnitError, DefinitionSyntaxError, ...
+        raise UnitConversionError(f"unknown unit `{text}` ({type(exc).__name__})") from None
+
+
+def check_unit(text: str) -> None:
+    """Raise UnitConversionError when pint cannot parse ``text``."""
+    _quantity_unit(text)
+
+
+def dimensionality(text: str) -> str:
+    """Readable dimension of a unit, e.g. ``[length] / [time]``; ``dimensionless``."""
+    return str(_quantity_unit(text).dimensionality) or "dimensionless"
+
+
+@functools.lru_cache(maxsize=256)
+def conversion(data_unit: str, spec_unit: str) -> tuple[float, float]:
+    """``(a, b)`` with ``value[spec_unit] = a * value[data_unit] + b``.
+
+    Raises:
+        UnitConversionError: a unit pint does not know, or different dimensions.
+    """
+    ureg = _registry()
+    src, dst = _quantity_unit(data_unit), _quantity_unit(spec_unit)
+    if src.dimensionality != dst.dimensionality:
+        raise UnitConversionError(
+            f"`{data_unit}` ({dimensionality(data_unit)}) cannot be converted to "
+            f"`{spec_unit}` ({dimensionality(spec_unit)})")
+    b = float(ureg.Quantity(0.0, src).to(dst).magnitude)
+    a = float(ureg.Quantity(1.0, src).to(dst).magnitude) - b
+    return a, b
+
+
+def _angle_kind(spec_unit: str | None) -> tuple[str, float] | None:
+    """``("angle"|"rate", radians per spec unit)`` for angle and angular-rate units, else None."""
+    if not spec_unit:
+        return None
+    try:
+        u = _quantity_unit(spec_unit)
+    except UnitConversionError:
+        return None
+    names = set(u._units.keys())
+    if not names & {"radian", "degree", "arcminute", "arcsecond", "turn", "revolution"}:
+        return None
+    ureg = _registry()
+    if u.dimensionality == ureg.radian.dimensionality:
+        return "angle", float(ureg.Quantity(1.0, u).to("radian").magnitude)
+    if u.dimensionality == (ureg.radian / ureg.second).dimensionality:
+        return "rate", float(ureg.Quantity(1.0, u).to("radian/second").magnitude)
+    return None
+
+
+def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> tuple[DataWarning, ...]:
+    """Warnings for channels whose value range is implausible for the spec's unit.
+
+    An angle beyond one revolution (``max |x| > 2π rad``) and an angular rate
+    beyond one revolution per second (``2π rad/s``) are flagged: both are what
+    a column in degrees (deg/s) read as radians looks like.
+    """
+    out = []
+    maps = {("input", c.name): c for c in model.data.inputs}
+    maps.update({("output", c.name): c for c in model.data.outputs})
+    for kind, variables, values in (("input", model.inputs, u), ("output", model.outputs, y)):
+        for j, v in enumerate(variables):
+            ak = _angle_kind(v.unit)
+            if ak is None:
+                continue
+            col = values[:, j]
+            finite = col[np.isfinite(col)]
+            if finite.size == 0:
+                continue
+            peak = float(np.max(np.abs(finite))) * ak[1]
+            if peak <= 2.0 * math.pi:
+                continue
+            cmap = maps.get((kind, v.name))
+            source = getattr(cmap, "column", None) or v.name
+            declared = getattr(cmap, "unit", None)
+            what = "angle" if ak[0] == "angle" else "angular rate"
+            limit = "2π rad (360°)" if ak[0] == "angle" else "2π rad/s (360°/s)"
+            if declared:
+                hint = (f"the data map declares `{declared}` for `{source}`: check that unit "
+                        "and the column")
+            else:
+                deg = "deg" if ak[0] == "angle" else "deg/s"
+                hint = (f"if the column is in degrees, declare it in the data map: "
+                        f"`{v.name}: {{column: {source}, unit: {deg}}}`")
+            out.append(DataWarning(
+                DataWarningCode.IMPLAUSIBLE_RANGE,
+                f"{kind} `{v.name}` (column `{source}`) reaches {peak:.3g} rad"
+                f"{'/s' if ak[0] == 'rate' else ''}, beyond {limit}: implausible for an "
+                f"{what} in `{v.unit}`", path=path, channel=v.name, hint=hint))
+    return tuple(out)
+
+
+__all__ = ["DataWarning", "DataWarningCode", "UnitConversionError", "check_unit", "conversion",
+           "dimensionality", "plausibility_warnings"]

@@ -1,0 +1,279 @@
+"""Independent tasks (diagnose refits, fleet fits) run serially or on ``dask.distributed``.
+
+One :class:`Engine` runs a batch of independent tasks ``fn(*args)`` and gives back one
+:class:`TaskOutcome` per task, in the order submitted:
+
+* ``workers=1`` and no scheduler: the tasks run one after the other in this process (no
+  pickling, no extra processes; the reference behaviour);
+* otherwise a ``dask.distributed`` cluster: a :class:`~distributed.LocalCluster` of
+  ``workers`` processes (default: every local core) with one thread each, or the existing
+  cluster at ``scheduler`` (``tcp://host:8786``). The tasks and their arguments must
+  pickle (cloudpickle), and the files they read and write must be visible to every worker
+  (a local cluster shares this machine's file system).
+
+Each worker process runs one task at a time with JAX/XLA limited to one thread
+(:data:`WORKER_ENV`), so ``N`` workers use ``N`` cores without oversubscription.
+
+Failures stay per task: an exception inside a task gives :attr:`TaskStatus.FAILED` with the
+message; a worker process that dies while running a task (crash, out of memory, killed)
+loses only that task, which the scheduler runs once more on another worker
+(``distributed.scheduler.allowed-failures = 1`` on a local cluster; an existing cluster
+uses its own setting) and then reports as :attr:`TaskStatus.LOST`. Tasks that had not
+finished when the ``deadline`` passed are :attr:`TaskStatus.CANCELLED` (a running task is
+abandoned, not waited for). A KeyboardInterrupt cancels every pending task and propagates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+#: environment of local worker processes: one compute thread per worker process
+WORKER_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+}
+
+#: how often a task is retried after its worker process died (local clusters)
+WORKER_DEATH_RETRIES = 1
+
+
+class TaskStatus(enum.Enum):
+    """How a task ended."""
+
+    DONE = "done"              # returned a value
+    FAILED = "failed"          # raised an exception (message in ``error``)
+    LOST = "lost"              # its worker process died, also on the retry
+    CANCELLED = "cancelled"    # not finished when the deadline passed
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskOutcome:
+    """One task's result: ``value`` when DONE, ``error`` (one line) otherwise."""
+
+    key: str
+    status: TaskStatus
+    value: Any = None
+    error: str | None = None
+    wall_s: float = 0.0        # submission (or start, serially) to completion, seconds
+
+
+def worker_env() -> dict[str, str]:
+    """Environment of local worker processes: :data:`WORKER_ENV`, this process's
+    ``PYTHONPATH``, and its persistent JAX compilation cache (the ``jax`` config when jax is
+    imported, else ``$JAX_COMPILATION_CACHE_DIR``), so workers share compiled code."""
+    import sys
+
+    env = dict(WORKER_ENV)
+    for k in ("PYTHONPATH", "JAX_COMPILATION_CACHE_DIR",
+              "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "JAX_ENABLE_X64"):
+        if k in os.environ:
+            env[k] = os.environ[k]
+    jax = sys.modules.get("jax")
+    if jax is not None:
+        try:
+            cache = jax.config.jax_compilation_cache_dir
+            if cache:
+                env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
+                env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = str(
+                    jax.config.jax_persistent_cache_min_compile_time_secs)
+        except AttributeError:  # pragma: no cover - older jax
+            pass
+    return env
+
+
+def default_workers() -> int:
+    """Cores this process may use (``os.sched_getaffinity`` where available)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _timed(fn, args):
+    """Run ``fn(*args)`` on a worker; returns (value, seconds)."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
+
+
+class Engine:
+    """Serial or ``dask.distributed`` execution of independent tasks (see the module docstring).
+
+    Use as a context manager; a local cluster is started on entry and closed on exit::
+
+        with Engine(workers=4) as eng:
+            outcomes = eng.run(fn, [("a", (1,)), ("b", (2,))])
+
+    Args:
+        workers: worker processes of a local cluster (None: :func:`default_workers`);
+            1 without ``scheduler`` runs serially in this process.
+        scheduler: address of an existing dask scheduler (then ``workers`` is ignored).
+    """
+
+    def __init__(self, *, workers: int | None = None, scheduler: str | None = None):
+        if workers is not None and workers < 1:
+            from .errors import VsidgenError
+            raise VsidgenError(f"--workers must be >= 1, got {workers}")
+        self.workers = default_workers() if workers is None else int(workers)
+        self.scheduler = scheduler
+        self.client = None
+        self.cluster = None
+
+    @property
+    def serial(self) -> bool:
+        return self.scheduler is None and self.workers == 1
+
+    def describe(self) -> str:
+        if self.scheduler is not None:
+            return f"dask cluster at {self.scheduler}"
+        if self.serial:
+            return "serial (this process)"
+        return f"local dask cluster of {self.workers} worker processes"
+
+    def __enter__(self) -> Engine:
+        if self.serial:
+            return self
+        import dask
+        from distributed import Client, LocalCluster
+
+        from .errors import VsidgenError
+
+        try:
+            if self.scheduler is not None:
+                self.client = Client(self.scheduler, timeout="20s")
+            else:
+                env = worker_env()
+                # one task at a time per worker process (saturation 1): a dying worker
+                # takes only the task it was running with it
+                with dask.config.set({"distributed.scheduler.allowed-failures":
+                                      WORKER_DEATH_RETRIES,
+                                      "distributed.scheduler.worker-saturation": 1.0}):
+                    self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1,
+                                                processes=True, dashboard_address=None,
+                                                silence_logs=logging.ERROR, env=env)
+                    self.client = Client(self.cluster)
+        except (OSError, TimeoutError) as err:
+            self.close()
+            raise VsidgenError(f"cannot start or reach the dask cluster "
+                               f"({self.scheduler or 'local'}): {err}") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        if self.cluster is not None:
+            self.cluster.close()
+            self.cluster = None
+
+    def run(self, fn: Callable, tasks: Sequence[tuple[str, tuple]], *,
+            deadline: float | None = None,
+            on_done: Callable[[TaskOutcome], None] | None = None) -> list[TaskOutcome]:
+        """Run ``fn(*args)`` for every ``(key, args)``; outcomes in the order of ``tasks``.
+
+        ``deadline`` is a :func:`time.monotonic` instant: serially, no task starts after
+        it; on a cluster, tasks not finished by then are cancelled. ``on_done`` is called
+        in this process as each task ends (completion order).
+        """
+        if self.serial:
+            return self._run_serial(fn, tasks, deadline, on_done)
+        return self._run_dask(fn, tasks, deadline, on_done)
+
+    @staticmethod
+    def _emit(on_done, oc):
+        if on_done is not None:
+            on_done(oc)
+        return oc
+
+    def _run_serial(self, fn, tasks, deadline, on_done):
+        out = []
+        for key, args in tasks:
+            if deadline is not None and time.monotonic() >= deadline:
+                out.append(self._emit(on_done, TaskOutcome(key, TaskStatus.CANCELLED,
+                                                           error="time limit reached")))
+                continue
+            t0 = time.perf_counter()
+            try:
+                value = fn(*args)
+            except Exception as err:  # noqa: BLE001 - a task's failure is its own outcome
+                oc = TaskOutcome(key, TaskStatus.FAILED, error=_one_line(err),
+                                 wall_s=time.perf_counter() - t0)
+            else:
+                oc = TaskOutcome(key, TaskStatus.DONE, value=value,
+                                 wall_s=time.perf_counter() - t0)
+            out.append(self._emit(on_done, oc))
+        return out
+
+    def _run_dask(self, fn, tasks, deadline, on_done):
+        from distributed import as_completed
+        from distributed.client import FutureCancelledError
+        from distributed.scheduler import KilledWorker
+
+        t0 = time.perf_counter()
+        futures = {}
+        for i, (key, args) in enumerate(tasks):
+            f = self.client.submit(_timed, fn, args, pure=False,
+                                   key=f"vsidgen-{i}-{key}-{os.urandom(4).hex()}")
+            futures[f.key] = (i, key, f)
+        results: dict[int, TaskOutcome] = {}
+        ac = as_completed([f for _, _, f in futures.values()])
+        try:
+            while len(results) < len(tasks):
+                timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+                try:
+                    f = next(ac) if timeout is None else _next_within(ac, timeout)
+                except TimeoutError:
+                    break
+                i, key, _ = futures[f.key]
+                try:
+                    value, wall = f.result()
+                    oc = TaskOutcome(key, TaskStatus.DONE, value=value, wall_s=wall)
+                except KilledWorker as err:
+                    oc = TaskOutcome(key, TaskStatus.LOST, wall_s=time.perf_counter() - t0,
+                                     error=f"worker process died twice running this task ({err})"
+                                     .splitlines()[0])
+                except FutureCancelledError:
+                    oc = TaskOutcome(key, TaskStatus.CANCELLED, error="cancelled")
+                except Exception as err:  # noqa: BLE001 - the task's own exception
+                    oc = TaskOutcome(key, TaskStatus.FAILED, error=_one_line(err),
+                                     wall_s=time.perf_counter() - t0)
+                results[i] = self._emit(on_done, oc)
+        except BaseException:
+            self.client.cancel([f for _, _, f in futures.values()])
+            raise
+        pending = [f for i, _, f in futures.values() if i not in results]
+        if pending:
+            self.client.cancel(pending)
+        for i, key, _ in sorted(futures.values(), key=lambda v: v[0]):
+            if i not in results:
+                results[i] = self._emit(on_done, TaskOutcome(key, TaskStatus.CANCELLED,
+                                                             error="time limit reached"))
+        return [results[i] for i in range(len(tasks))]
+
+
+def _next_within(ac, timeout: float):
+    """Next completed future of an ``as_completed`` iterator, waiting at most ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while True:
+        if ac.has_ready():
+            return next(ac)
+        if ac.is_empty():
+            raise StopIteration
+        if time.monotonic() >= end:
+            raise TimeoutError
+        time.sleep(min(0.05, max(0.0, end - time.monotonic())))

@@ -1,0 +1,201 @@
+"""``vsidgen fleet``: one spec fitted to many records, each on its own, in parallel.
+
+Every record is an independent ``vsidgen fit`` (:func:`vsidgen.pipeline.run_fit`) writing
+its own results directory ``DIR/<record>/``; the fits run on the task engine
+(:mod:`vsidgen.engine`: serially, on a local ``dask.distributed`` cluster of all cores, or
+on an existing cluster). ``DIR/fleet.json`` lists every record with a typed
+:class:`FleetStatus` and is written atomically after each fit, so an interrupted fleet
+keeps the fits that finished. A record with bad data does not stop the others.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import pathlib
+import re
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+from .errors import VsidgenError
+
+
+class FleetStatus(enum.Enum):
+    """Outcome of one record's fit."""
+
+    CONVERGED = "converged"
+    NOT_CONVERGED = "not_converged"    # results written; the optimizer stopped early
+    BAD_INPUT = "bad_input"            # spec/data error for this record (message kept)
+    FAILED = "failed"                  # unexpected error in the fit
+    LOST = "lost"                      # its worker process died, also on the retry
+    CANCELLED = "cancelled"            # not run (interrupted)
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetEntry:
+    """One record of a fleet: where its results are and how its fit ended."""
+
+    record: str
+    out_dir: pathlib.Path
+    status: FleetStatus
+    elbo: float | None = None
+    iterations: int | None = None
+    wall_s: float = 0.0
+    error: str | None = None
+
+    def to_json(self) -> dict:
+        return {"record": self.record, "results": self.out_dir.as_posix(),
+                "status": self.status.value, "elbo": self.elbo, "iterations": self.iterations,
+                "wall_s": round(self.wall_s, 2), "error": self.error}
+
+
+@dataclasses.dataclass(frozen=True)
+class FleetResult:
+    out_dir: pathlib.Path
+    entries: tuple[FleetEntry, ...]
+    engine: str
+    wall_s: float
+
+
+def _dir_names(paths: Sequence[str]) -> list[str]:
+    """A results-directory name per record: the file stem, made unique (``_2``, ``_3``)."""
+    seen: dict[str, int] = {}
+    out = []
+    for p in paths:
+        stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", pathlib.Path(p).stem) or "record"
+        seen[stem] = seen.get(stem, 0) + 1
+        out.append(stem if seen[stem] == 1 else f"{stem}_{seen[stem]}")
+    return out
+
+
+def _fit_one(spec: str, data: str, out: str, generated_dir: str | None, kwargs: dict) -> dict:
+    """One record's fit (runs on an engine worker); a small summary, never the arrays."""
+    from .pipeline import run_fit
+
+    try:
+        job = run_fit(spec, [data], out=out, generated_dir=generated_dir, **kwargs)
+    except VsidgenError as err:
+        return {"status": FleetStatus.BAD_INPUT.value, "error": str(err).strip().splitlines()[0]}
+    r = job.results
+    return {"status": (FleetStatus.CONVERGED if r["converged"] else FleetStatus.NOT_CONVERGED).value,
+            "elbo": float(r["elbo"]), "iterations": int(r["iterations"])}
+
+
+def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
+              scheduler: str | None = None, generated_dir=None, max_iter: int = 200,
+              integrator: str | None = None, substeps: int | None = None,
+              report: bool = False,
+              progress: Callable[[str], None] | None = None) -> FleetResult:
+    """Fit ``spec`` to every record of ``data`` separately; results in ``out/<record>/``.
+
+    ``workers`` worker processes of a local dask cluster (1: serially in this process; None:
+    every local core) or the cluster at ``scheduler``. The spec is compiled once here
+    first (a bad spec is an error before any fit starts).
+    """
+    from .atomic import write_text_atomic
+    from .engine import Engine, TaskStatus
+    from .model import default_generated_dir, load_model
+    from .results import dumps
+
+    if not data:
+        raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")
+    engine = Engine(workers=workers, scheduler=scheduler)
+    load_model(spec, generated_dir=generated_dir)
+    gen = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec)
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = _dir_names(data)
+    kwargs = {"max_iter": max_iter, "integrator": integrator, "substeps": substeps,
+              "report": report}
+    tasks = [(n, (str(spec), str(d), str(out / n), str(gen.resolve()), kwargs))
+             for n, d in zip(names, data)]
+    done: dict[str, FleetEntry] = {}
+    t0 = time.perf_counter()
+
+    def entry(oc) -> FleetEntry:
+        if oc.status is TaskStatus.DONE:
+            v = oc.value
+            return FleetEntry(oc.key, out / oc.key, FleetStatus(v["status"]), v.get("elbo"),
+                              v.get("iterations"), oc.wall_s, v.get("error"))
+        st = {TaskStatus.FAILED: FleetStatus.FAILED, TaskStatus.LOST: FleetStatus.LOST,
+              TaskStatus.CANCELLED: FleetStatus.CANCELLED}[oc.status]
+        return FleetEntry(oc.key, out / oc.key, st, wall_s=oc.wall_s, error=oc.error)
+
+    def write(final: bool):
+        rows = [done[n].to_json() if n in done else
+                {"record": n, "results": (out / n).as_posix(),
+                 "status": "cancelled" if final else "pending"} for n in names]
+        write_text_atomic(out / "fleet.json", dumps({
+            "spec": str(spec), "engine": engine.describe(), "records": rows,
+            "complete": final, "wall_s": time.perf_counter() - t0}))
+
+    def on_done(oc):
+        e = entry(oc)
+        done[e.record] = e
+        if progress is not None:
+            what = e.status.value + (f", ELBO {e.elbo:.6g}, {e.iterations} iterations"
+                                     if e.elbo is not None else f": {e.error}")
+            progress(f"[{len(done)}/{len(names)}] {e.record}: {what} ({e.wall_s:.0f} s)")
+        write(False)
+
+    write(False)
+    if progress is not None:
+        progress(f"fitting {len(names)} records ({engine.describe()})")
+    try:
+        with engine:
+            engine.run(_fit_one, tasks, on_done=on_done)
+    finally:
+        write(True)
+    return FleetResult(out, tuple(done.get(n) or FleetEntry(n, out / n, FleetStatus.CANCELLED)
+                                  for n in names), engine.describe(), time.perf_counter() - t0)
+
+
+def add_fleet_parser(subparsers):
+    """Register ``vsidgen fleet`` (sets ``handler``)."""
+    p = subparsers.add_parser(
+        "fleet", help="fit one spec to many records, each separately, in parallel",
+        description="Fit SPEC to each record on its own (one `vsidgen fit` per record) on a "
+                    "local dask cluster of all cores (--workers) or an existing one "
+                    "(--scheduler). Writes DIR/<record>/ (results of each fit) and "
+                    "DIR/fleet.json (status of every record, updated after each fit). Exit "
+                    "status 0 when every fit converged, 1 when some did not or were lost, "
+                    "2 when a record had bad input (the others are still fitted).")
+    p.add_argument("spec", help="model spec (YAML)")
+    p.add_argument("data", nargs="+", help="records (CSV), one fit each")
+    p.add_argument("--out", required=True, help="output directory (one results folder per record)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of a local dask cluster (default: every local core; "
+                        "1 = serially in this process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="use an existing dask cluster (DIR must be on a file system its "
+                        "workers share)")
+    p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
+    p.add_argument("--substeps", type=int, default=None)
+    p.add_argument("--max-iter", type=int, default=200)
+    p.add_argument("--report", action="store_true", help="also write a report per record")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(handler=fleet_command)
+    return p
+
+
+def fleet_command(args) -> int:
+    from .cli import _enable_compilation_cache
+    from .discrepancy.search import terminate_as_interrupt
+
+    _enable_compilation_cache()
+    progress = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    with terminate_as_interrupt():
+        res = run_fleet(args.spec, args.data, out=args.out, workers=args.workers,
+                        scheduler=args.scheduler, max_iter=args.max_iter,
+                        integrator=args.integrator, substeps=args.substeps, report=args.report,
+                        progress=progress)
+    for e in res.entries:
+        extra = f"ELBO {e.elbo:.6g}" if e.elbo is not None else (e.error or "")
+        print(f"{e.record}: {e.status.value} {extra} -> {e.out_dir}")
+    counts = {s: sum(e.status is s for e in res.entries) for s in FleetStatus}
+    print(f"{len(res.entries)} records, {counts[FleetStatus.CONVERGED]} converged, "
+          f"{res.wall_s:.0f} s ({res.engine}); summary in {res.out_dir / 'fleet.json'}")
+    if counts[FleetStatus.BAD_INPUT]:
+        return 2
+    return 0 if counts[FleetStatus.CONVERGED] == len(res.entries) else 1

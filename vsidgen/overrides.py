@@ -1,0 +1,189 @@
+"""Command-line control of a fit: ``--fix``, ``--free``, ``--init``, ``--init-from``, ``--method``.
+
+Overrides change the spec's parameter records, never the equations, so the
+generated module is reused:
+
+* ``--init-from results.json``: ``initial = estimate`` for every parameter of
+  the results file that the model has (others keep the spec's value);
+* ``--init NAME=VALUE``: ``initial = VALUE``;
+* ``--fix NAME=VALUE``: ``initial = VALUE`` and ``fixed = true`` — exactly a
+  spec entry ``NAME: {initial: VALUE, fixed: true}``;
+* ``--free NAME``: ``fixed = false``;
+
+applied in that order. ``--method output-error`` removes the process noise
+(the state path is the deterministic simulation, G fixed at the estimator's
+deterministic floor: the output-error method); ``filter-error`` (default)
+keeps the spec's process noise. Unknown names raise a VsidgenError with a
+role-aware suggestion (:func:`vsidgen.suggest.suggest`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import math
+import pathlib
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from .errors import VsidgenError
+from .metadata import ProcessNoiseSpec
+
+
+class Method(enum.Enum):
+    """Estimation method: with process noise (filter error) or without (output error)."""
+
+    FILTER_ERROR = "filter-error"
+    OUTPUT_ERROR = "output-error"
+
+
+@dataclasses.dataclass(frozen=True)
+class Overrides:
+    """Parameter overrides and method of one fit (all empty: the spec as written)."""
+
+    fix: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    free: tuple[str, ...] = ()
+    init: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    init_from: str | None = None
+    init_from_values: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    method: Method = Method.FILTER_ERROR
+
+    @property
+    def empty(self) -> bool:
+        return (not self.fix and not self.free and not self.init and self.init_from is None
+                and self.method is Method.FILTER_ERROR)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"fix": dict(self.fix), "free": list(self.free), "init": dict(self.init),
+                "init_from": self.init_from, "method": self.method.value}
+
+
+def _name_value(item: str, option: str) -> tuple[str, float]:
+    name, sep, value = item.partition("=")
+    if not sep or not name.strip():
+        raise VsidgenError(f"--{option} {item!r}: expected NAME=VALUE")
+    try:
+        x = float(value)
+    except ValueError:
+        raise VsidgenError(f"--{option} {item!r}: {value!r} is not a number") from None
+    if not math.isfinite(x):
+        raise VsidgenError(f"--{option} {item!r}: the value must be finite")
+    return name.strip(), x
+
+
+def read_estimates(path) -> dict[str, float]:
+    """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit``."""
+    path = pathlib.Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        params = doc["parameters"]
+        return {str(k): float(v["estimate"]) for k, v in params.items()}
+    except FileNotFoundError:
+        raise VsidgenError(f"--init-from {path}: file not found") from None
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        raise VsidgenError(f"--init-from {path}: not a vsidgen results.json with parameter "
+                           f"estimates ({type(exc).__name__}: {exc})") from None
+
+
+def parse_overrides(*, fix: Sequence[str] | None = None, free: Sequence[str] | None = None,
+                    init: Sequence[str] | None = None, init_from: str | None = None,
+                    method: str = "filter-error") -> Overrides:
+    """Overrides from the CLI's option strings (VsidgenError on malformed ones)."""
+    fixd = dict(_name_value(i, "fix") for i in fix or ())
+    initd = dict(_name_value(i, "init") for i in init or ())
+    freed = tuple(n.strip() for n in free or ())
+    both = sorted(set(fixd) & set(freed))
+    if both:
+        raise VsidgenError(f"`{both[0]}` is given to both --fix and --free")
+    values = read_estimates(init_from) if init_from is not None else {}
+    try:
+        m = Method(method)
+    except ValueError:
+        raise VsidgenError(f"--method {method!r}: use filter-error or output-error") from None
+    return Overrides(fixd, freed, initd, None if init_from is None else str(init_from), values, m)
+
+
+def apply_overrides(model, ov: Overrides):
+    """``model`` (a Model or SymbolicModel) with its parameters and process noise overridden.
+
+    Raises:
+        VsidgenError: an unknown parameter name (with a role-aware suggestion) or
+            a value outside the parameter's bounds.
+    """
+    from .suggest import unknown_name_error
+
+    if ov.empty:
+        return model
+    names = [p.name for p in model.parameters]
+    for option, given in (("fix", ov.fix), ("free", ov.free), ("init", ov.init)):
+        for name in given:
+            if name not in names:
+                raise unknown_name_error(name, "parameter", model, option=f"--{option}")
+    params = []
+    for p in model.parameters:
+        initial, fixed = p.initial, p.fixed
+        if p.name in ov.init_from_values:
+            initial = ov.init_from_values[p.name]
+        if p.name in ov.init:
+            initial = ov.init[p.name]
+        if p.name in ov.fix:
+            initial, fixed = ov.fix[p.name], True
+        if p.name in ov.free:
+            fixed = False
+        if (p.lower is not None and initial < p.lower) or (p.upper is not None and initial > p.upper):
+            if p.name in ov.init_from_values and p.name not in ov.init and p.name not in ov.fix:
+                initial = min(max(initial, p.lower if p.lower is not None else initial),
+                              p.upper if p.upper is not None else initial)
+            else:
+                raise VsidgenError(f"value {initial:g} of parameter `{p.name}` is outside its "
+                                   f"bounds [{p.lower}, {p.upper}]")
+        params.append(dataclasses.replace(p, initial=float(initial), fixed=bool(fixed)))
+    changes: dict[str, Any] = {"parameters": tuple(params)}
+    if ov.method is Method.OUTPUT_ERROR:
+        changes["process_noise"] = ProcessNoiseSpec(states=tuple(s.name for s in model.states), estimate=False)
+    return dataclasses.replace(model, **changes)
+
+
+def override_spec_text(spec_path, ov: Overrides, *, name: str, model) -> str:
+    """A spec that ``extends`` ``spec_path`` with the overrides (for ``vsidgen diagnose``).
+
+    Parameter entries are merged field by field onto the parent's, so units,
+    bounds and descriptions are kept.
+    """
+    import yaml
+
+    applied = apply_overrides(model, ov)
+    params = {}
+    for old, new in zip(model.parameters, applied.parameters):
+        if (old.initial, old.fixed) != (new.initial, new.fixed):
+            params[new.name] = {"initial": float(new.initial), "fixed": bool(new.fixed)}
+    doc: dict[str, Any] = {"extends": str(pathlib.Path(spec_path).resolve()), "name": name}
+    if params:
+        doc["parameters"] = params
+    if ov.method is Method.OUTPUT_ERROR:
+        doc["noise"] = {"process": {"states": [s.name for s in model.states], "estimate": False}}
+    return ("# vsidgen: command-line overrides " + json.dumps(ov.to_json()) + "\n"
+            + yaml.safe_dump(doc, sort_keys=False))
+
+
+__all__ = ["Method", "Overrides", "apply_overrides", "override_spec_text", "parse_overrides",
+           "read_estimates"]
+
+
+def write_override_spec(spec_path, ov: Overrides, out_dir) -> pathlib.Path:
+    """Write ``out_dir/overrides.yaml`` (:func:`override_spec_text`) and return its path.
+
+    ``vsidgen diagnose`` fits this spec instead of ``spec_path``, so the base fit
+    and every candidate (which ``extends`` the base) carry the overrides.
+    """
+    from .atomic import write_text_atomic
+    from .symbolic import compile_spec
+
+    sym = compile_spec(spec_path)
+    apply_overrides(sym, ov)  # unknown names and bounds fail here, before any fit
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / "overrides.yaml"
+    write_text_atomic(path, override_spec_text(spec_path, ov, name=f"{sym.name}_cli"[:60], model=sym))
+    return path

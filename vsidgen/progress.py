@@ -1,0 +1,138 @@
+"""Progress display of a fit and of ``vsidgen diagnose``.
+
+:class:`FitProgress` is the estimator's ``progress(iteration, elbo,
+grad_norm, elapsed)`` callback. On a terminal it keeps one live line (rich)
+with the noise start, iteration, ELBO, relative gradient and elapsed time;
+otherwise (CI logs, pipes) it writes one summary line per noise start — the
+estimator restarts its iteration count at each start of ``--noise-start
+auto``, which is how a new start is recognised. :class:`DiagnoseProgress`
+prints diagnose's messages and, on a terminal, keeps a live line with the
+round, the candidate being refitted and an estimate of the time left in the
+round (mean refit time so far × candidates left).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import TextIO
+
+
+@dataclasses.dataclass
+class _Start:
+    index: int
+    iterations: int = 0
+    elbo: float = float("nan")
+    grad: float = float("nan")
+    elapsed: float = 0.0
+
+
+class FitProgress:
+    """Estimator progress callback: live line on a terminal, a line per noise start otherwise.
+
+    Args:
+        stream: where to write (stderr in the CLI).
+        live: force the terminal (True) or log (False) mode; default: ``stream.isatty()``.
+    """
+
+    def __init__(self, stream: TextIO, *, live: bool | None = None):
+        self.stream = stream
+        self.live = stream.isatty() if live is None else bool(live)
+        self._start: _Start | None = None
+        self._last_it = -1
+        self._console = None
+        self._live = None
+        if self.live:
+            from rich.console import Console
+            from rich.live import Live
+
+            self._console = Console(file=stream, highlight=False)
+            self._live = Live(console=self._console, auto_refresh=False, transient=False)
+            self._live.start()
+
+    def _summary(self, st: _Start) -> str:
+        return (f"noise start {st.index}: {st.iterations} iterations, ELBO {st.elbo:.8g}, "
+                f"|grad| {st.grad:.3g}, {st.elapsed:.1f} s")
+
+    def __call__(self, iteration: int, elbo: float, grad_norm: float, elapsed: float) -> None:
+        if self._start is None or iteration < self._last_it:
+            if self._start is not None and not self.live:
+                self.stream.write(self._summary(self._start) + "\n")
+                self.stream.flush()
+            self._start = _Start(1 if self._start is None else self._start.index + 1)
+        self._last_it = iteration
+        st = self._start
+        st.iterations, st.elbo, st.grad, st.elapsed = iteration, elbo, grad_norm, elapsed
+        if self._live is not None:
+            from rich.text import Text
+
+            line = Text.assemble(
+                ("fit ", "bold"), (f"start {st.index}  ", "dim"),
+                f"iter {iteration:4d}  ", ("ELBO ", "bold"), f"{elbo: .8e}  ",
+                ("|grad| ", "bold"), f"{grad_norm:.2e}  ", (f"{elapsed:7.1f} s", "cyan"))
+            self._live.update(line, refresh=True)
+
+    def close(self) -> None:
+        """End the live line (kept on screen) or write the last start's summary."""
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
+        elif self._start is not None and not self.live:
+            self.stream.write(self._summary(self._start) + "\n")
+            self.stream.flush()
+            self._start = None
+
+
+class DiagnoseProgress:
+    """Diagnose's ``progress(message)`` callback plus a live status line on a terminal.
+
+    ``refitting(round, index, total, key)`` is called before each candidate's
+    refit; the time left in the round is the mean duration of the round's
+    finished refits times the refits left (unknown before the first one ends).
+    """
+
+    def __init__(self, stream: TextIO, *, live: bool | None = None):
+        self.stream = stream
+        self.live = stream.isatty() if live is None else bool(live)
+        self._round: int | None = None
+        self._t_round = 0.0
+        self._t_cand: float | None = None
+        self._done: list[float] = []
+        self._status = None
+        if self.live:
+            from rich.console import Console
+
+            self._console = Console(file=stream, highlight=False)
+            self._status = self._console.status("diagnose: base fit")
+            self._status.start()
+
+    def __call__(self, message: str) -> None:
+        if self._status is not None:
+            self._console.print(message, markup=False, highlight=False)
+        else:
+            self.stream.write(message + "\n")
+            self.stream.flush()
+
+    def refitting(self, rnd: int, index: int, total: int, key: str) -> str:
+        """Note the start of refit ``index`` (1-based) of ``total``; returns the status text."""
+        now = time.perf_counter()
+        if self._round != rnd:
+            self._round, self._t_round, self._done = rnd, now, []
+        elif self._t_cand is not None:
+            self._done.append(now - self._t_cand)
+        self._t_cand = now
+        left = total - index + 1
+        eta = (f"about {sum(self._done) / len(self._done) * left:.0f} s left in this round"
+               if self._done else "time left: after the first refit")
+        text = f"round {rnd}: refitting {key} ({index}/{total}; {eta})"
+        if self._status is not None:
+            self._status.update(text)
+        return text
+
+    def close(self) -> None:
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
+
+
+__all__ = ["DiagnoseProgress", "FitProgress"]

@@ -1,0 +1,82 @@
+"""Role-aware "did you mean" suggestions.
+
+A name is compared with candidates of the role it must have first (a
+``--fix`` name with the parameters, a missing data column with the columns
+that no other channel uses) and only then with names of other roles, which
+are named with their role ("`beta` is a state, not a parameter"). Candidates
+are ranked by whether they share the first character — typos rarely hit it,
+and aircraft notation groups names by it (``L*``, ``M*``, ``C*``) — then by
+:class:`difflib.SequenceMatcher` ratio; a candidate that is a prefix of the
+name or the name a prefix of it (abbreviations: ``Lb`` for ``Lbeta``) counts as
+similar.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable, Mapping
+
+CUTOFF = 0.6
+CUTOFF_SAME_START = 0.55
+
+
+def _score(name: str, cand: str) -> tuple[int, float] | None:
+    ratio = difflib.SequenceMatcher(None, name, cand).ratio()
+    same_start = bool(name) and bool(cand) and name[0] == cand[0]
+    prefix = min(len(name), len(cand)) >= 2 and (name.startswith(cand) or cand.startswith(name))
+    if prefix or ratio >= CUTOFF or (same_start and ratio >= CUTOFF_SAME_START):
+        return (int(same_start or prefix), ratio)
+    return None
+
+
+def closest(name: str, candidates: Iterable[str], n: int = 1) -> list[str]:
+    """Up to ``n`` candidates similar to ``name``, best first (see the module docstring)."""
+    scored = [(s, c) for c in dict.fromkeys(candidates) if c != name
+              for s in [_score(name, c)] if s is not None]
+    scored.sort(key=lambda sc: (-sc[0][0], -sc[0][1], sc[1]))
+    return [c for _, c in scored[:n]]
+
+
+def suggest(name: str, same_role: Iterable[str], others: Mapping[str, str] | None = None, *,
+            role: str = "name") -> str | None:
+    """A hint for an unknown ``name`` that must be a ``role``.
+
+    ``same_role``: candidates of the right role; ``others``: {candidate: its
+    role} of names that exist but have another role.
+    """
+    others = dict(others or {})
+    if name in others:
+        return f"`{name}` is {others[name]}, not a {role}"
+    best = closest(name, same_role)
+    if best:
+        return f"did you mean `{best[0]}`?"
+    best = closest(name, others)
+    if best:
+        return f"`{best[0]}` is {others[best[0]]}, not a {role}"
+    return None
+
+
+def model_roles(model) -> dict[str, str]:
+    """{name: "a state" | "an input" | ...} of a Model or SymbolicModel."""
+    roles: dict[str, str] = {}
+    for attr, what in (("outputs", "an output"), ("inputs", "an input"), ("states", "a state"),
+                       ("constants", "a constant"), ("parameters", "a parameter")):
+        for v in getattr(model, attr, ()) or ():
+            roles[v.name] = what
+    return roles
+
+
+def unknown_name_error(name: str, role: str, model, *, option: str):
+    """VsidgenError for an unknown ``role`` name given to ``option`` (role-aware hint)."""
+    from .errors import VsidgenError
+
+    roles = model_roles(model)
+    same = [n for n, r in roles.items() if r.endswith(" " + role)]
+    others = {n: r for n, r in roles.items() if not r.endswith(" " + role)}
+    hint = suggest(name, same, others, role=role)
+    listing = ", ".join(same) if same else "none"
+    msg = f"{option} {name}: unknown {role} `{name}`"
+    return VsidgenError(msg + (f" — {hint}" if hint else "") + f"\n  hint: {role}s: {listing}")
+
+
+__all__ = ["closest", "model_roles", "suggest", "unknown_name_error"]
