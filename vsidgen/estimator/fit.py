@@ -590,6 +590,9 @@ def _uncertainty(P: _Problem, blks, s):
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
     info["cond"] = float(ev[-1] / ev[0])
+    w, V = np.linalg.eigh(Ss)
+    v = np.abs(V[P.theta_idx, 0])  # θ components of the least-determined direction
+    info["weak"] = [int(i) for i in np.nonzero(v >= 0.3 * v.max())[0]] if v.size and v.max() > 0.1 else []
     Sinv = np.linalg.inv(Ss) / np.sqrt(np.outer(d, d))
     cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
     J = P.tm.dtheta_dz(s[:nt])
@@ -623,9 +626,14 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
                              "message": "the Hessian of the negative ELBO is not positive definite at the "
                                         "solution: standard errors are not available"})
         elif info["cond"] > 1e12:
+            weak = [model.parameter_names[P.tm.free_idx[i]] for i in info.get("weak", [])]
+            named = (f"; the least-determined direction involves {', '.join(weak)}" if weak
+                     else "; the least-determined direction involves noise or assumed-density variables")
             warnings.append({"code": "ill_conditioned", "reliable": False, "condition_number": info["cond"],
+                             "parameters": weak,
                              "message": f"the curvature is badly conditioned (scaled condition number "
-                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"})
+                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"
+                                        f"{named} (fix one of them or add excitation)"})
         se = np.sqrt(np.abs(np.diag(cov)))
         std_errors[P.tm.free_idx] = se
         with np.errstate(all="ignore"):
