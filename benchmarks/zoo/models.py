@@ -167,6 +167,11 @@ SP_OE = ZooModel(
     description="short period, linear, 2 states, output error (no process noise), 25 Hz")
 
 
+SP_PN = dataclasses.replace(
+    SP_OE, name="sp_pn", spec="sp_pn.yaml", proc_std=(0.004, 0.02), n=400,
+    description="short period, linear, 2 states, process noise on both, 25 Hz")
+
+
 # ----------------------------------------------------------------------------- nonlinear longitudinal
 LON_C = dict(RHO=1.1, S=16.0, CBAR=1.5, MASS=1000.0, IY=1800.0)
 LON_TRUTH = {"CD0": 0.03, "CDa": 0.3, "CL0": 0.25, "CLa": 5.0, "Cm0": 0.02, "Cma": -0.8, "Cmq": -12.0,
@@ -210,4 +215,4 @@ LON4 = ZooModel(
     output_cols=(("V_fps", FT), ("alpha_deg", DEG), ("theta_deg", DEG), ("q_dps", DEG), ("az_g", G0)),
     description="longitudinal, nonlinear, 4 states, θ without process noise, accelerometer, ft/s and degrees, 20 Hz")
 
-MODELS = {m.name: m for m in (SP_OE, LAT4_NOBETA, LON4, LAT4)}
+MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4)}
