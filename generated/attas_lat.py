@@ -16,31 +16,31 @@ parameters in PARAMETERS order (fixed ones included); vmap for batches.
 
 import jax.numpy as jnp
 
-SPEC_PATH = "specs/attas_lat.yaml"
-SPEC_HASH = "187e90cf27dcf6aa5970b629e293f6a5016f49ca3c0495f4db578dfe997a1e39"
-GENERATOR_VERSION = "0.1.1"
+SPEC_PATH = 'specs/attas_lat.yaml'
+SPEC_HASH = '187e90cf27dcf6aa5970b629e293f6a5016f49ca3c0495f4db578dfe997a1e39'
+GENERATOR_VERSION = '0.1.1'
 
-STATES = ("p", "r", )
-INPUTS = ("da", "dr", "beta", )
-OUTPUTS = ("pdot", "rdot", "ay", "p", "r", )
-PARAMETERS = ("Lp", "Lr", "Lda", "Ldr", "Lbeta", "L0", "Np", "Nr", "Nda", "Ndr", "Nbeta", "N0", "Yp", "Yr", "Yda", "Ydr", "Ybeta", "Y0", )
+STATES = ('p', 'r', )
+INPUTS = ('da', 'dr', 'beta', )
+OUTPUTS = ('pdot', 'rdot', 'ay', 'p', 'r', )
+PARAMETERS = ('Lp', 'Lr', 'Lda', 'Ldr', 'Lbeta', 'L0', 'Np', 'Nr', 'Nda', 'Ndr', 'Nbeta', 'N0', 'Yp', 'Yr', 'Yda', 'Ydr', 'Ybeta', 'Y0', )
 
 # ---- constants ----
 
 
-def _vector(values, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    return jnp.stack([jnp.asarray(v, dtype=dtype) for v in values])
+def _vector(_values, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    return jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _values])
 
 
-def _matrix(rows, shape, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    if shape[0] * shape[1] == 0:
-        return jnp.zeros(shape, dtype=dtype)
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype=dtype) for v in row]) for row in rows])
+def _matrix(_rows, _shape, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    if _shape[0] * _shape[1] == 0:
+        return jnp.zeros(_shape, dtype=_dtype)
+    return jnp.stack([jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _row]) for _row in _rows])
 
 
-def drift(x, u, p):
+def drift(_x, _u, _p):
     """Drift f(x, u, p) = dx/dt, shape (nx,).
 
     pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p + Lr*r
@@ -48,33 +48,32 @@ def drift(x, u, p):
     dp/dt = pdot_model
     dr/dt = rdot_model
     """
-    p_ = x[0]  # state p [rad/s]
-    r = x[1]  # state r [rad/s]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-    beta = u[2]  # input beta [rad]
-    Lp = p[0]  # parameter Lp [1/s]
-    Lr = p[1]  # parameter Lr [1/s]
-    Lda = p[2]  # parameter Lda [1/s^2]
-    Ldr = p[3]  # parameter Ldr [1/s^2]
-    Lbeta = p[4]  # parameter Lbeta [1/s^2]
-    L0 = p[5]  # parameter L0 [rad/s^2]
-    Np = p[6]  # parameter Np [1/s]
-    Nr = p[7]  # parameter Nr [1/s]
-    Nda = p[8]  # parameter Nda [1/s^2]
-    Ndr = p[9]  # parameter Ndr [1/s^2]
-    Nbeta = p[10]  # parameter Nbeta [1/s^2]
-    N0 = p[11]  # parameter N0 [rad/s^2]
-
-    pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p_ + Lr*r
-    rdot_model = N0 + Nbeta*beta + Nda*da + Ndr*dr + Np*p_ + Nr*r
+    p = _x[0]  # state p [rad/s]
+    r = _x[1]  # state r [rad/s]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
+    beta = _u[2]  # input beta [rad]
+    Lp = _p[0]  # parameter Lp [1/s]
+    Lr = _p[1]  # parameter Lr [1/s]
+    Lda = _p[2]  # parameter Lda [1/s^2]
+    Ldr = _p[3]  # parameter Ldr [1/s^2]
+    Lbeta = _p[4]  # parameter Lbeta [1/s^2]
+    L0 = _p[5]  # parameter L0 [rad/s^2]
+    Np = _p[6]  # parameter Np [1/s]
+    Nr = _p[7]  # parameter Nr [1/s]
+    Nda = _p[8]  # parameter Nda [1/s^2]
+    Ndr = _p[9]  # parameter Ndr [1/s^2]
+    Nbeta = _p[10]  # parameter Nbeta [1/s^2]
+    N0 = _p[11]  # parameter N0 [rad/s^2]
+    pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p + Lr*r
+    rdot_model = N0 + Nbeta*beta + Nda*da + Ndr*dr + Np*p + Nr*r
     return _vector([
         pdot_model,  # dp/dt
         rdot_model,  # dr/dt
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def output(x, u, p):
+def output(_x, _u, _p):
     """Output h(x, u, p), shape (ny,).
 
     pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p + Lr*r
@@ -85,134 +84,127 @@ def output(x, u, p):
     p = p
     r = r
     """
-    p_ = x[0]  # state p [rad/s]
-    r = x[1]  # state r [rad/s]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-    beta = u[2]  # input beta [rad]
-    Lp = p[0]  # parameter Lp [1/s]
-    Lr = p[1]  # parameter Lr [1/s]
-    Lda = p[2]  # parameter Lda [1/s^2]
-    Ldr = p[3]  # parameter Ldr [1/s^2]
-    Lbeta = p[4]  # parameter Lbeta [1/s^2]
-    L0 = p[5]  # parameter L0 [rad/s^2]
-    Np = p[6]  # parameter Np [1/s]
-    Nr = p[7]  # parameter Nr [1/s]
-    Nda = p[8]  # parameter Nda [1/s^2]
-    Ndr = p[9]  # parameter Ndr [1/s^2]
-    Nbeta = p[10]  # parameter Nbeta [1/s^2]
-    N0 = p[11]  # parameter N0 [rad/s^2]
-    Yp = p[12]  # parameter Yp [m/s]
-    Yr = p[13]  # parameter Yr [m/s]
-    Yda = p[14]  # parameter Yda [m/s^2]
-    Ydr = p[15]  # parameter Ydr [m/s^2]
-    Ybeta = p[16]  # parameter Ybeta [m/s^2]
-    Y0 = p[17]  # parameter Y0 [m/s^2]
-
-    pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p_ + Lr*r
-    rdot_model = N0 + Nbeta*beta + Nda*da + Ndr*dr + Np*p_ + Nr*r
+    p = _x[0]  # state p [rad/s]
+    r = _x[1]  # state r [rad/s]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
+    beta = _u[2]  # input beta [rad]
+    Lp = _p[0]  # parameter Lp [1/s]
+    Lr = _p[1]  # parameter Lr [1/s]
+    Lda = _p[2]  # parameter Lda [1/s^2]
+    Ldr = _p[3]  # parameter Ldr [1/s^2]
+    Lbeta = _p[4]  # parameter Lbeta [1/s^2]
+    L0 = _p[5]  # parameter L0 [rad/s^2]
+    Np = _p[6]  # parameter Np [1/s]
+    Nr = _p[7]  # parameter Nr [1/s]
+    Nda = _p[8]  # parameter Nda [1/s^2]
+    Ndr = _p[9]  # parameter Ndr [1/s^2]
+    Nbeta = _p[10]  # parameter Nbeta [1/s^2]
+    N0 = _p[11]  # parameter N0 [rad/s^2]
+    Yp = _p[12]  # parameter Yp [m/s]
+    Yr = _p[13]  # parameter Yr [m/s]
+    Yda = _p[14]  # parameter Yda [m/s^2]
+    Ydr = _p[15]  # parameter Ydr [m/s^2]
+    Ybeta = _p[16]  # parameter Ybeta [m/s^2]
+    Y0 = _p[17]  # parameter Y0 [m/s^2]
+    pdot_model = L0 + Lbeta*beta + Lda*da + Ldr*dr + Lp*p + Lr*r
+    rdot_model = N0 + Nbeta*beta + Nda*da + Ndr*dr + Np*p + Nr*r
     return _vector([
         pdot_model,  # pdot
         rdot_model,  # rdot
-        Y0 + Ybeta*beta + Yda*da + Ydr*dr + Yp*p_ + Yr*r,  # ay
-        p_,  # p
+        Y0 + Ybeta*beta + Yda*da + Ydr*dr + Yp*p + Yr*r,  # ay
+        p,  # p
         r,  # r
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def drift_jac_x(x, u, p):
+def drift_jac_x(_x, _u, _p):
     """df/dx, shape (2, 2) (symbolic, definitions expanded)."""
-    Lp = p[0]  # parameter Lp [1/s]
-    Lr = p[1]  # parameter Lr [1/s]
-    Np = p[6]  # parameter Np [1/s]
-    Nr = p[7]  # parameter Nr [1/s]
-
+    Lp = _p[0]  # parameter Lp [1/s]
+    Lr = _p[1]  # parameter Lr [1/s]
+    Np = _p[6]  # parameter Np [1/s]
+    Nr = _p[7]  # parameter Nr [1/s]
     return _matrix([
         [Lp, Lr],
         [Np, Nr],
-    ], (2, 2), x, u, p)
+    ], (2, 2), _x, _u, _p)
 
 
-def drift_jac_u(x, u, p):
+def drift_jac_u(_x, _u, _p):
     """df/du, shape (2, 3) (symbolic, definitions expanded)."""
-    Lda = p[2]  # parameter Lda [1/s^2]
-    Ldr = p[3]  # parameter Ldr [1/s^2]
-    Lbeta = p[4]  # parameter Lbeta [1/s^2]
-    Nda = p[8]  # parameter Nda [1/s^2]
-    Ndr = p[9]  # parameter Ndr [1/s^2]
-    Nbeta = p[10]  # parameter Nbeta [1/s^2]
-
+    Lda = _p[2]  # parameter Lda [1/s^2]
+    Ldr = _p[3]  # parameter Ldr [1/s^2]
+    Lbeta = _p[4]  # parameter Lbeta [1/s^2]
+    Nda = _p[8]  # parameter Nda [1/s^2]
+    Ndr = _p[9]  # parameter Ndr [1/s^2]
+    Nbeta = _p[10]  # parameter Nbeta [1/s^2]
     return _matrix([
         [Lda, Ldr, Lbeta],
         [Nda, Ndr, Nbeta],
-    ], (2, 3), x, u, p)
+    ], (2, 3), _x, _u, _p)
 
 
-def drift_jac_p(x, u, p):
+def drift_jac_p(_x, _u, _p):
     """df/dp, shape (2, 18) (symbolic, definitions expanded)."""
-    p_ = x[0]  # state p [rad/s]
-    r = x[1]  # state r [rad/s]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-    beta = u[2]  # input beta [rad]
-
+    p = _x[0]  # state p [rad/s]
+    r = _x[1]  # state r [rad/s]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
+    beta = _u[2]  # input beta [rad]
     return _matrix([
-        [p_, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
-        [0, 0, 0, 0, 0, 0, p_, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0],
-    ], (2, 18), x, u, p)
+        [p, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, p, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0],
+    ], (2, 18), _x, _u, _p)
 
 
-def output_jac_x(x, u, p):
+def output_jac_x(_x, _u, _p):
     """dh/dx, shape (5, 2) (symbolic, definitions expanded)."""
-    Lp = p[0]  # parameter Lp [1/s]
-    Lr = p[1]  # parameter Lr [1/s]
-    Np = p[6]  # parameter Np [1/s]
-    Nr = p[7]  # parameter Nr [1/s]
-    Yp = p[12]  # parameter Yp [m/s]
-    Yr = p[13]  # parameter Yr [m/s]
-
+    Lp = _p[0]  # parameter Lp [1/s]
+    Lr = _p[1]  # parameter Lr [1/s]
+    Np = _p[6]  # parameter Np [1/s]
+    Nr = _p[7]  # parameter Nr [1/s]
+    Yp = _p[12]  # parameter Yp [m/s]
+    Yr = _p[13]  # parameter Yr [m/s]
     return _matrix([
         [Lp, Lr],
         [Np, Nr],
         [Yp, Yr],
         [1, 0],
         [0, 1],
-    ], (5, 2), x, u, p)
+    ], (5, 2), _x, _u, _p)
 
 
-def output_jac_u(x, u, p):
+def output_jac_u(_x, _u, _p):
     """dh/du, shape (5, 3) (symbolic, definitions expanded)."""
-    Lda = p[2]  # parameter Lda [1/s^2]
-    Ldr = p[3]  # parameter Ldr [1/s^2]
-    Lbeta = p[4]  # parameter Lbeta [1/s^2]
-    Nda = p[8]  # parameter Nda [1/s^2]
-    Ndr = p[9]  # parameter Ndr [1/s^2]
-    Nbeta = p[10]  # parameter Nbeta [1/s^2]
-    Yda = p[14]  # parameter Yda [m/s^2]
-    Ydr = p[15]  # parameter Ydr [m/s^2]
-    Ybeta = p[16]  # parameter Ybeta [m/s^2]
-
+    Lda = _p[2]  # parameter Lda [1/s^2]
+    Ldr = _p[3]  # parameter Ldr [1/s^2]
+    Lbeta = _p[4]  # parameter Lbeta [1/s^2]
+    Nda = _p[8]  # parameter Nda [1/s^2]
+    Ndr = _p[9]  # parameter Ndr [1/s^2]
+    Nbeta = _p[10]  # parameter Nbeta [1/s^2]
+    Yda = _p[14]  # parameter Yda [m/s^2]
+    Ydr = _p[15]  # parameter Ydr [m/s^2]
+    Ybeta = _p[16]  # parameter Ybeta [m/s^2]
     return _matrix([
         [Lda, Ldr, Lbeta],
         [Nda, Ndr, Nbeta],
         [Yda, Ydr, Ybeta],
         [0, 0, 0],
         [0, 0, 0],
-    ], (5, 3), x, u, p)
+    ], (5, 3), _x, _u, _p)
 
 
-def output_jac_p(x, u, p):
+def output_jac_p(_x, _u, _p):
     """dh/dp, shape (5, 18) (symbolic, definitions expanded)."""
-    p_ = x[0]  # state p [rad/s]
-    r = x[1]  # state r [rad/s]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-    beta = u[2]  # input beta [rad]
-
+    p = _x[0]  # state p [rad/s]
+    r = _x[1]  # state r [rad/s]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
+    beta = _u[2]  # input beta [rad]
     return _matrix([
-        [p_, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
-        [0, 0, 0, 0, 0, 0, p_, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0],
-        [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, p_, r, da, dr, beta, 1],
+        [p, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, p, r, da, dr, beta, 1, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, p, r, da, dr, beta, 1],
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
-    ], (5, 18), x, u, p)
+    ], (5, 18), _x, _u, _p)

@@ -16,127 +16,119 @@ parameters in PARAMETERS order (fixed ones included); vmap for batches.
 
 import jax.numpy as jnp
 
-SPEC_PATH = "specs/attas_sp.yaml"
-SPEC_HASH = "857e26e307d5941a6d32218571954ff7f96b9b8abdf6423494643a4f18d52751"
-GENERATOR_VERSION = "0.1.1"
+SPEC_PATH = 'specs/attas_sp.yaml'
+SPEC_HASH = '857e26e307d5941a6d32218571954ff7f96b9b8abdf6423494643a4f18d52751'
+GENERATOR_VERSION = '0.1.1'
 
-STATES = ("alpha", "q", )
-INPUTS = ("de", )
-OUTPUTS = ("alpha", "q", )
-PARAMETERS = ("Z0", "ZAL", "ZQ", "ZDE", "M0", "MAL", "MQ", "MDE", )
+STATES = ('alpha', 'q', )
+INPUTS = ('de', )
+OUTPUTS = ('alpha', 'q', )
+PARAMETERS = ('Z0', 'ZAL', 'ZQ', 'ZDE', 'M0', 'MAL', 'MQ', 'MDE', )
 
 # ---- constants ----
 
 
-def _vector(values, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    return jnp.stack([jnp.asarray(v, dtype=dtype) for v in values])
+def _vector(_values, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    return jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _values])
 
 
-def _matrix(rows, shape, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    if shape[0] * shape[1] == 0:
-        return jnp.zeros(shape, dtype=dtype)
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype=dtype) for v in row]) for row in rows])
+def _matrix(_rows, _shape, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    if _shape[0] * _shape[1] == 0:
+        return jnp.zeros(_shape, dtype=_dtype)
+    return jnp.stack([jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _row]) for _row in _rows])
 
 
-def drift(x, u, p):
+def drift(_x, _u, _p):
     """Drift f(x, u, p) = dx/dt, shape (nx,).
 
     dalpha/dt = Z0 + ZAL*alpha + ZDE*de + q*(ZQ + 1)
     dq/dt = M0 + MAL*alpha + MDE*de + MQ*q
     """
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    Z0 = p[0]  # parameter Z0 [rad/s]
-    ZAL = p[1]  # parameter ZAL [1/s]
-    ZQ = p[2]  # parameter ZQ [1]
-    ZDE = p[3]  # parameter ZDE [1/s]
-    M0 = p[4]  # parameter M0 [rad/s^2]
-    MAL = p[5]  # parameter MAL [1/s^2]
-    MQ = p[6]  # parameter MQ [1/s]
-    MDE = p[7]  # parameter MDE [1/s^2]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    Z0 = _p[0]  # parameter Z0 [rad/s]
+    ZAL = _p[1]  # parameter ZAL [1/s]
+    ZQ = _p[2]  # parameter ZQ [1]
+    ZDE = _p[3]  # parameter ZDE [1/s]
+    M0 = _p[4]  # parameter M0 [rad/s^2]
+    MAL = _p[5]  # parameter MAL [1/s^2]
+    MQ = _p[6]  # parameter MQ [1/s]
+    MDE = _p[7]  # parameter MDE [1/s^2]
     return _vector([
         Z0 + ZAL*alpha + ZDE*de + q*(ZQ + 1),  # dalpha/dt
         M0 + MAL*alpha + MDE*de + MQ*q,  # dq/dt
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def output(x, u, p):
+def output(_x, _u, _p):
     """Output h(x, u, p), shape (ny,).
 
     alpha = alpha
     q = q
     """
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
     return _vector([
         alpha,  # alpha
         q,  # q
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def drift_jac_x(x, u, p):
+def drift_jac_x(_x, _u, _p):
     """df/dx, shape (2, 2) (symbolic, definitions expanded)."""
-    ZAL = p[1]  # parameter ZAL [1/s]
-    ZQ = p[2]  # parameter ZQ [1]
-    MAL = p[5]  # parameter MAL [1/s^2]
-    MQ = p[6]  # parameter MQ [1/s]
-
+    ZAL = _p[1]  # parameter ZAL [1/s]
+    ZQ = _p[2]  # parameter ZQ [1]
+    MAL = _p[5]  # parameter MAL [1/s^2]
+    MQ = _p[6]  # parameter MQ [1/s]
     return _matrix([
         [ZAL, ZQ + 1],
         [MAL, MQ],
-    ], (2, 2), x, u, p)
+    ], (2, 2), _x, _u, _p)
 
 
-def drift_jac_u(x, u, p):
+def drift_jac_u(_x, _u, _p):
     """df/du, shape (2, 1) (symbolic, definitions expanded)."""
-    ZDE = p[3]  # parameter ZDE [1/s]
-    MDE = p[7]  # parameter MDE [1/s^2]
-
+    ZDE = _p[3]  # parameter ZDE [1/s]
+    MDE = _p[7]  # parameter MDE [1/s^2]
     return _matrix([
         [ZDE],
         [MDE],
-    ], (2, 1), x, u, p)
+    ], (2, 1), _x, _u, _p)
 
 
-def drift_jac_p(x, u, p):
+def drift_jac_p(_x, _u, _p):
     """df/dp, shape (2, 8) (symbolic, definitions expanded)."""
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
     return _matrix([
         [1, alpha, q, de, 0, 0, 0, 0],
         [0, 0, 0, 0, 1, alpha, q, de],
-    ], (2, 8), x, u, p)
+    ], (2, 8), _x, _u, _p)
 
 
-def output_jac_x(x, u, p):
+def output_jac_x(_x, _u, _p):
     """dh/dx, shape (2, 2) (symbolic, definitions expanded)."""
-
     return _matrix([
         [1, 0],
         [0, 1],
-    ], (2, 2), x, u, p)
+    ], (2, 2), _x, _u, _p)
 
 
-def output_jac_u(x, u, p):
+def output_jac_u(_x, _u, _p):
     """dh/du, shape (2, 1) (symbolic, definitions expanded)."""
-
     return _matrix([
         [0],
         [0],
-    ], (2, 1), x, u, p)
+    ], (2, 1), _x, _u, _p)
 
 
-def output_jac_p(x, u, p):
+def output_jac_p(_x, _u, _p):
     """dh/dp, shape (2, 8) (symbolic, definitions expanded)."""
-
     return _matrix([
         [0, 0, 0, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0],
-    ], (2, 8), x, u, p)
+    ], (2, 8), _x, _u, _p)

@@ -16,14 +16,14 @@ parameters in PARAMETERS order (fixed ones included); vmap for batches.
 
 import jax.numpy as jnp
 
-SPEC_PATH = "specs/hfb320.yaml"
-SPEC_HASH = "389a2fa02ae8377083fdc75e4a15f8e3d8c1b6f08467e6e53ea7f3a0a5f62054"
-GENERATOR_VERSION = "0.1.1"
+SPEC_PATH = 'specs/hfb320.yaml'
+SPEC_HASH = '389a2fa02ae8377083fdc75e4a15f8e3d8c1b6f08467e6e53ea7f3a0a5f62054'
+GENERATOR_VERSION = '0.1.1'
 
-STATES = ("V", "alpha", "theta", "q", )
-INPUTS = ("de", "thrust", )
-OUTPUTS = ("V", "alpha", "theta", "q", "qdot", "ax", "az", )
-PARAMETERS = ("CD0", "CDV", "CDAL", "CL0", "CLV", "CLAL", "CM0", "CMV", "CMAL", "CMQ", "CMDE", )
+STATES = ('V', 'alpha', 'theta', 'q', )
+INPUTS = ('de', 'thrust', )
+OUTPUTS = ('V', 'alpha', 'theta', 'q', 'qdot', 'ax', 'az', )
+PARAMETERS = ('CD0', 'CDV', 'CDAL', 'CL0', 'CLV', 'CLAL', 'CM0', 'CMV', 'CMAL', 'CMQ', 'CMDE', )
 
 # ---- constants ----
 G0 = 9.80665  # [m/s^2] Jategaonkar TC04 xdot_TC04_hfb_lon.m
@@ -37,19 +37,19 @@ RHO = 0.792  # [kg/m^3] Jategaonkar TC04: air density
 cbarH = 1.215  # [m] Jategaonkar TC04: half mean aerodynamic chord
 
 
-def _vector(values, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    return jnp.stack([jnp.asarray(v, dtype=dtype) for v in values])
+def _vector(_values, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    return jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _values])
 
 
-def _matrix(rows, shape, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    if shape[0] * shape[1] == 0:
-        return jnp.zeros(shape, dtype=dtype)
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype=dtype) for v in row]) for row in rows])
+def _matrix(_rows, _shape, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    if _shape[0] * _shape[1] == 0:
+        return jnp.zeros(_shape, dtype=_dtype)
+    return jnp.stack([jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _row]) for _row in _rows])
 
 
-def drift(x, u, p):
+def drift(_x, _u, _p):
     """Drift f(x, u, p) = dx/dt, shape (nx,).
 
     qbar = RHO*V**2/2
@@ -62,24 +62,23 @@ def drift(x, u, p):
     dtheta/dt = q
     dq/dt = qdot_model
     """
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    theta = x[2]  # state theta [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    thrust = u[1]  # input thrust [N]
-    CD0 = p[0]  # parameter CD0 [1]
-    CDV = p[1]  # parameter CDV [1]
-    CDAL = p[2]  # parameter CDAL [1/rad]
-    CL0 = p[3]  # parameter CL0 [1]
-    CLV = p[4]  # parameter CLV [1]
-    CLAL = p[5]  # parameter CLAL [1/rad]
-    CM0 = p[6]  # parameter CM0 [1]
-    CMV = p[7]  # parameter CMV [1]
-    CMAL = p[8]  # parameter CMAL [1/rad]
-    CMQ = p[9]  # parameter CMQ [1/rad]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    theta = _x[2]  # state theta [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    thrust = _u[1]  # input thrust [N]
+    CD0 = _p[0]  # parameter CD0 [1]
+    CDV = _p[1]  # parameter CDV [1]
+    CDAL = _p[2]  # parameter CDAL [1/rad]
+    CL0 = _p[3]  # parameter CL0 [1]
+    CLV = _p[4]  # parameter CLV [1]
+    CLAL = _p[5]  # parameter CLAL [1/rad]
+    CM0 = _p[6]  # parameter CM0 [1]
+    CMV = _p[7]  # parameter CMV [1]
+    CMAL = _p[8]  # parameter CMAL [1/rad]
+    CMQ = _p[9]  # parameter CMQ [1/rad]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     qbar = (0.5)*RHO*V**2
     CD = CD0 + CDAL*alpha + CDV*V/V0
     CL = CL0 + CLAL*alpha + CLV*V/V0
@@ -90,10 +89,10 @@ def drift(x, u, p):
         -CL*SBYM*qbar/V + G0*jnp.cos(alpha - theta)/V + q - thrust*jnp.sin(SIGMAT + alpha)/(RM*V),  # dalpha/dt
         q,  # dtheta/dt
         qdot_model,  # dq/dt
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def output(x, u, p):
+def output(_x, _u, _p):
     """Output h(x, u, p), shape (ny,).
 
     qbar = RHO*V**2/2
@@ -111,24 +110,23 @@ def output(x, u, p):
     ax = CX*SBYM*qbar + thrust*cos(SIGMAT)/RM
     az = CZ*SBYM*qbar - thrust*sin(SIGMAT)/RM
     """
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    theta = x[2]  # state theta [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    thrust = u[1]  # input thrust [N]
-    CD0 = p[0]  # parameter CD0 [1]
-    CDV = p[1]  # parameter CDV [1]
-    CDAL = p[2]  # parameter CDAL [1/rad]
-    CL0 = p[3]  # parameter CL0 [1]
-    CLV = p[4]  # parameter CLV [1]
-    CLAL = p[5]  # parameter CLAL [1/rad]
-    CM0 = p[6]  # parameter CM0 [1]
-    CMV = p[7]  # parameter CMV [1]
-    CMAL = p[8]  # parameter CMAL [1/rad]
-    CMQ = p[9]  # parameter CMQ [1/rad]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    theta = _x[2]  # state theta [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    thrust = _u[1]  # input thrust [N]
+    CD0 = _p[0]  # parameter CD0 [1]
+    CDV = _p[1]  # parameter CDV [1]
+    CDAL = _p[2]  # parameter CDAL [1/rad]
+    CL0 = _p[3]  # parameter CL0 [1]
+    CLV = _p[4]  # parameter CLV [1]
+    CLAL = _p[5]  # parameter CLAL [1/rad]
+    CM0 = _p[6]  # parameter CM0 [1]
+    CMV = _p[7]  # parameter CMV [1]
+    CMAL = _p[8]  # parameter CMAL [1/rad]
+    CMQ = _p[9]  # parameter CMQ [1/rad]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     qbar = (0.5)*RHO*V**2
     CD = CD0 + CDAL*alpha + CDV*V/V0
     CL = CL0 + CLAL*alpha + CLV*V/V0
@@ -144,29 +142,28 @@ def output(x, u, p):
         qdot_model,  # qdot
         CX*SBYM*qbar + thrust*jnp.cos(SIGMAT)/RM,  # ax
         CZ*SBYM*qbar - thrust*jnp.sin(SIGMAT)/RM,  # az
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def drift_jac_x(x, u, p):
+def drift_jac_x(_x, _u, _p):
     """df/dx, shape (4, 4) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    theta = x[2]  # state theta [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    thrust = u[1]  # input thrust [N]
-    CD0 = p[0]  # parameter CD0 [1]
-    CDV = p[1]  # parameter CDV [1]
-    CDAL = p[2]  # parameter CDAL [1/rad]
-    CL0 = p[3]  # parameter CL0 [1]
-    CLV = p[4]  # parameter CLV [1]
-    CLAL = p[5]  # parameter CLAL [1/rad]
-    CM0 = p[6]  # parameter CM0 [1]
-    CMV = p[7]  # parameter CMV [1]
-    CMAL = p[8]  # parameter CMAL [1/rad]
-    CMQ = p[9]  # parameter CMQ [1/rad]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    theta = _x[2]  # state theta [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    thrust = _u[1]  # input thrust [N]
+    CD0 = _p[0]  # parameter CD0 [1]
+    CDV = _p[1]  # parameter CDV [1]
+    CDAL = _p[2]  # parameter CDAL [1/rad]
+    CL0 = _p[3]  # parameter CL0 [1]
+    CLV = _p[4]  # parameter CLV [1]
+    CLAL = _p[5]  # parameter CLAL [1/rad]
+    CM0 = _p[6]  # parameter CM0 [1]
+    CMV = _p[7]  # parameter CMV [1]
+    CMAL = _p[8]  # parameter CMAL [1/rad]
+    CMQ = _p[9]  # parameter CMQ [1/rad]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     _c0 = (1/V0)
     _c1 = V**2
     _c2 = RHO*SBYM
@@ -193,15 +190,14 @@ def drift_jac_x(x, u, p):
         [_c11*_c12*_c15*thrust - _c14*_c3 - _c15*_c8 - _c3*(CL0 + CLAL*alpha + _c14), -0.5*CLAL*_c6 - _c13*_c16*jnp.cos(_c10) - _c17, _c17, 1],
         [0, 0, 0, 1],
         [CMV*_c0*_c19 + V*_c18*(CM0 + CMAL*alpha + CMDE*de + CMV*_c5 + _c20*q), CMAL*_c19, 0, _c19*_c20],
-    ], (4, 4), x, u, p)
+    ], (4, 4), _x, _u, _p)
 
 
-def drift_jac_u(x, u, p):
+def drift_jac_u(_x, _u, _p):
     """df/du, shape (4, 2) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     _c0 = (1/RM)
     _c1 = SIGMAT + alpha
     return _matrix([
@@ -209,16 +205,15 @@ def drift_jac_u(x, u, p):
         [0, -_c0*jnp.sin(_c1)/V],
         [0, 0],
         [(0.5)*CMDE*RHO*SCBYIY*V**2, FEIYLT],
-    ], (4, 2), x, u, p)
+    ], (4, 2), _x, _u, _p)
 
 
-def drift_jac_p(x, u, p):
+def drift_jac_p(_x, _u, _p):
     """df/dp, shape (4, 11) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
     _c0 = V**2
     _c1 = (0.5)*RHO
     _c2 = SBYM*_c1
@@ -233,27 +228,26 @@ def drift_jac_p(x, u, p):
         [0, 0, 0, -_c6, -_c3*_c4, -_c6*alpha, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, _c8, _c5*_c7, _c8*alpha, _c4*_c8*cbarH*q, _c8*de],
-    ], (4, 11), x, u, p)
+    ], (4, 11), _x, _u, _p)
 
 
-def output_jac_x(x, u, p):
+def output_jac_x(_x, _u, _p):
     """dh/dx, shape (7, 4) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    CD0 = p[0]  # parameter CD0 [1]
-    CDV = p[1]  # parameter CDV [1]
-    CDAL = p[2]  # parameter CDAL [1/rad]
-    CL0 = p[3]  # parameter CL0 [1]
-    CLV = p[4]  # parameter CLV [1]
-    CLAL = p[5]  # parameter CLAL [1/rad]
-    CM0 = p[6]  # parameter CM0 [1]
-    CMV = p[7]  # parameter CMV [1]
-    CMAL = p[8]  # parameter CMAL [1/rad]
-    CMQ = p[9]  # parameter CMQ [1/rad]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    CD0 = _p[0]  # parameter CD0 [1]
+    CDV = _p[1]  # parameter CDV [1]
+    CDAL = _p[2]  # parameter CDAL [1/rad]
+    CL0 = _p[3]  # parameter CL0 [1]
+    CLV = _p[4]  # parameter CLV [1]
+    CLAL = _p[5]  # parameter CLAL [1/rad]
+    CM0 = _p[6]  # parameter CM0 [1]
+    CMV = _p[7]  # parameter CMV [1]
+    CMAL = _p[8]  # parameter CMAL [1/rad]
+    CMQ = _p[9]  # parameter CMQ [1/rad]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     _c0 = (1/V0)
     _c1 = (0.5)*RHO*V**2
     _c2 = SCBYIY*_c1
@@ -277,14 +271,13 @@ def output_jac_x(x, u, p):
         [CMV*_c0*_c2 + SCBYIY*_c5*(CM0 + CMAL*alpha + CMDE*de + CMV*_c3 + _c4*q), CMAL*_c2, 0, _c2*_c4],
         [-_c12*_c13 + _c9*(-CDV*_c7 + CLV*_c0*_c8), _c9*(-CDAL*_c6 + CLAL*_c8 + _c14), 0, 0],
         [-_c13*_c14 + _c9*(-CDV*_c0*_c8 - CLV*_c7), _c9*(-CDAL*_c8 - CLAL*_c6 - _c12), 0, 0],
-    ], (7, 4), x, u, p)
+    ], (7, 4), _x, _u, _p)
 
 
-def output_jac_u(x, u, p):
+def output_jac_u(_x, _u, _p):
     """dh/du, shape (7, 2) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    CMDE = p[10]  # parameter CMDE [1/rad]
-
+    V = _x[0]  # state V [m/s]
+    CMDE = _p[10]  # parameter CMDE [1/rad]
     _c0 = (1/RM)
     return _matrix([
         [0, 0],
@@ -294,16 +287,15 @@ def output_jac_u(x, u, p):
         [(0.5)*CMDE*RHO*SCBYIY*V**2, FEIYLT],
         [0, _c0*jnp.cos(SIGMAT)],
         [0, -_c0*jnp.sin(SIGMAT)],
-    ], (7, 2), x, u, p)
+    ], (7, 2), _x, _u, _p)
 
 
-def output_jac_p(x, u, p):
+def output_jac_p(_x, _u, _p):
     """dh/dp, shape (7, 11) (symbolic, definitions expanded)."""
-    V = x[0]  # state V [m/s]
-    alpha = x[1]  # state alpha [rad]
-    q = x[3]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-
+    V = _x[0]  # state V [m/s]
+    alpha = _x[1]  # state alpha [rad]
+    q = _x[3]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
     _c0 = V**2
     _c1 = (0.5)*RHO
     _c2 = SCBYIY*_c1
@@ -330,4 +322,4 @@ def output_jac_p(x, u, p):
         [0, 0, 0, 0, 0, 0, _c3, _c2*_c5, _c3*alpha, _c3*_c4*cbarH*q, _c3*de],
         [_c10, _c12, _c13, _c15, _c16, _c17, 0, 0, 0, 0, 0],
         [-_c15, -_c16, -_c17, _c10, _c12, _c13, 0, 0, 0, 0, 0],
-    ], (7, 11), x, u, p)
+    ], (7, 11), _x, _u, _p)

@@ -16,14 +16,14 @@ parameters in PARAMETERS order (fixed ones included); vmap for batches.
 
 import jax.numpy as jnp
 
-SPEC_PATH = "specs/totter_lat.yaml"
-SPEC_HASH = "ddd9e5bed44db415ea6e84fffde817c2141202db4c62a4bdb69ddd7d1035d62a"
-GENERATOR_VERSION = "0.1.1"
+SPEC_PATH = 'specs/totter_lat.yaml'
+SPEC_HASH = 'ddd9e5bed44db415ea6e84fffde817c2141202db4c62a4bdb69ddd7d1035d62a'
+GENERATOR_VERSION = '0.1.1'
 
-STATES = ("beta", "p", "r", "phi", )
-INPUTS = ("da", "dr", )
-OUTPUTS = ("beta", "p", "r", "phi", "ay", )
-PARAMETERS = ("CYb", "CYr", "CYdr", "Clb", "Clp", "Clr", "Clda", "Cldr", "Cnb", "Cnp", "Cnr", "Cnda", "Cndr", "bias_bdot", "bias_pdot", "bias_rdot", "bias_phidot", "bias_ay", )
+STATES = ('beta', 'p', 'r', 'phi', )
+INPUTS = ('da', 'dr', )
+OUTPUTS = ('beta', 'p', 'r', 'phi', 'ay', )
+PARAMETERS = ('CYb', 'CYr', 'CYdr', 'Clb', 'Clp', 'Clr', 'Clda', 'Cldr', 'Cnb', 'Cnp', 'Cnr', 'Cnda', 'Cndr', 'bias_bdot', 'bias_pdot', 'bias_rdot', 'bias_phidot', 'bias_ay', )
 
 # ---- constants ----
 g = 9.80665  # [m/s^2] standard gravity (totter_lat.py g = 32.174 ft/s^2)
@@ -39,19 +39,19 @@ Iz = 52148.83  # [kg*m^2] totter_lat.py Iz = 38463 slug*ft^2
 Ixz = 1528.007  # [kg*m^2] totter_lat.py Ixz = 1127 slug*ft^2
 
 
-def _vector(values, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    return jnp.stack([jnp.asarray(v, dtype=dtype) for v in values])
+def _vector(_values, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    return jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _values])
 
 
-def _matrix(rows, shape, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    if shape[0] * shape[1] == 0:
-        return jnp.zeros(shape, dtype=dtype)
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype=dtype) for v in row]) for row in rows])
+def _matrix(_rows, _shape, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    if _shape[0] * _shape[1] == 0:
+        return jnp.zeros(_shape, dtype=_dtype)
+    return jnp.stack([jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _row]) for _row in _rows])
 
 
-def drift(x, u, p):
+def drift(_x, _u, _p):
     """Drift f(x, u, p) = dx/dt, shape (nx,).
 
     Gam = Ix*Iz - Ixz**2
@@ -67,32 +67,31 @@ def drift(x, u, p):
     dr/dt = bias_rdot + (Ix*Nmom + Ixz*Lmom)/Gam
     dphi/dt = bias_phidot + p + r*tan(theta0)
     """
-    beta = x[0]  # state beta [rad]
-    p_ = x[1]  # state p [rad/s]
-    r = x[2]  # state r [rad/s]
-    phi = x[3]  # state phi [rad]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-    CYb = p[0]  # parameter CYb [1/rad]
-    CYr = p[1]  # parameter CYr [1/rad]
-    CYdr = p[2]  # parameter CYdr [1/rad]
-    Clb = p[3]  # parameter Clb [1/rad]
-    Clp = p[4]  # parameter Clp [1/rad]
-    Clr = p[5]  # parameter Clr [1/rad]
-    Clda = p[6]  # parameter Clda [1/rad]
-    Cldr = p[7]  # parameter Cldr [1/rad]
-    Cnb = p[8]  # parameter Cnb [1/rad]
-    Cnp = p[9]  # parameter Cnp [1/rad]
-    Cnr = p[10]  # parameter Cnr [1/rad]
-    Cnda = p[11]  # parameter Cnda [1/rad]
-    Cndr = p[12]  # parameter Cndr [1/rad]
-    bias_bdot = p[13]  # parameter bias_bdot [rad/s]
-    bias_pdot = p[14]  # parameter bias_pdot [rad/s^2]
-    bias_rdot = p[15]  # parameter bias_rdot [rad/s^2]
-    bias_phidot = p[16]  # parameter bias_phidot [rad/s]
-
+    beta = _x[0]  # state beta [rad]
+    p = _x[1]  # state p [rad/s]
+    r = _x[2]  # state r [rad/s]
+    phi = _x[3]  # state phi [rad]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
+    CYb = _p[0]  # parameter CYb [1/rad]
+    CYr = _p[1]  # parameter CYr [1/rad]
+    CYdr = _p[2]  # parameter CYdr [1/rad]
+    Clb = _p[3]  # parameter Clb [1/rad]
+    Clp = _p[4]  # parameter Clp [1/rad]
+    Clr = _p[5]  # parameter Clr [1/rad]
+    Clda = _p[6]  # parameter Clda [1/rad]
+    Cldr = _p[7]  # parameter Cldr [1/rad]
+    Cnb = _p[8]  # parameter Cnb [1/rad]
+    Cnp = _p[9]  # parameter Cnp [1/rad]
+    Cnr = _p[10]  # parameter Cnr [1/rad]
+    Cnda = _p[11]  # parameter Cnda [1/rad]
+    Cndr = _p[12]  # parameter Cndr [1/rad]
+    bias_bdot = _p[13]  # parameter bias_bdot [rad/s]
+    bias_pdot = _p[14]  # parameter bias_pdot [rad/s^2]
+    bias_rdot = _p[15]  # parameter bias_rdot [rad/s^2]
+    bias_phidot = _p[16]  # parameter bias_phidot [rad/s]
     Gam = Ix*Iz - Ixz**2
-    phat = (0.5)*b*p_/Vo
+    phat = (0.5)*b*p/Vo
     rhat = (0.5)*b*r/Vo
     CY = CYb*beta + CYdr*dr + CYr*rhat
     Cl = Clb*beta + Clda*da + Cldr*dr + Clp*phat + Clr*rhat
@@ -100,14 +99,14 @@ def drift(x, u, p):
     Lmom = Cl*S*b*qbar
     Nmom = Cn*S*b*qbar
     return _vector([
-        CY*S*qbar/(Vo*mass) + bias_bdot + p_*jnp.sin(alpha0) - r*jnp.cos(alpha0) + g*phi*jnp.cos(theta0)/Vo,  # dbeta/dt
+        CY*S*qbar/(Vo*mass) + bias_bdot + p*jnp.sin(alpha0) - r*jnp.cos(alpha0) + g*phi*jnp.cos(theta0)/Vo,  # dbeta/dt
         bias_pdot + (Ixz*Nmom + Iz*Lmom)/Gam,  # dp/dt
         bias_rdot + (Ix*Nmom + Ixz*Lmom)/Gam,  # dr/dt
-        bias_phidot + p_ + r*jnp.tan(theta0),  # dphi/dt
-    ], x, u, p)
+        bias_phidot + p + r*jnp.tan(theta0),  # dphi/dt
+    ], _x, _u, _p)
 
 
-def output(x, u, p):
+def output(_x, _u, _p):
     """Output h(x, u, p), shape (ny,).
 
     rhat = b*r/(2*Vo)
@@ -118,38 +117,36 @@ def output(x, u, p):
     phi = phi
     ay = CY*S*qbar/mass + bias_ay
     """
-    beta = x[0]  # state beta [rad]
-    p_ = x[1]  # state p [rad/s]
-    r = x[2]  # state r [rad/s]
-    phi = x[3]  # state phi [rad]
-    dr = u[1]  # input dr [rad]
-    CYb = p[0]  # parameter CYb [1/rad]
-    CYr = p[1]  # parameter CYr [1/rad]
-    CYdr = p[2]  # parameter CYdr [1/rad]
-    bias_ay = p[17]  # parameter bias_ay [m/s^2]
-
+    beta = _x[0]  # state beta [rad]
+    p = _x[1]  # state p [rad/s]
+    r = _x[2]  # state r [rad/s]
+    phi = _x[3]  # state phi [rad]
+    dr = _u[1]  # input dr [rad]
+    CYb = _p[0]  # parameter CYb [1/rad]
+    CYr = _p[1]  # parameter CYr [1/rad]
+    CYdr = _p[2]  # parameter CYdr [1/rad]
+    bias_ay = _p[17]  # parameter bias_ay [m/s^2]
     rhat = (0.5)*b*r/Vo
     CY = CYb*beta + CYdr*dr + CYr*rhat
     return _vector([
         beta,  # beta
-        p_,  # p
+        p,  # p
         r,  # r
         phi,  # phi
         CY*S*qbar/mass + bias_ay,  # ay
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def drift_jac_x(x, u, p):
+def drift_jac_x(_x, _u, _p):
     """df/dx, shape (4, 4) (symbolic, definitions expanded)."""
-    CYb = p[0]  # parameter CYb [1/rad]
-    CYr = p[1]  # parameter CYr [1/rad]
-    Clb = p[3]  # parameter Clb [1/rad]
-    Clp = p[4]  # parameter Clp [1/rad]
-    Clr = p[5]  # parameter Clr [1/rad]
-    Cnb = p[8]  # parameter Cnb [1/rad]
-    Cnp = p[9]  # parameter Cnp [1/rad]
-    Cnr = p[10]  # parameter Cnr [1/rad]
-
+    CYb = _p[0]  # parameter CYb [1/rad]
+    CYr = _p[1]  # parameter CYr [1/rad]
+    Clb = _p[3]  # parameter Clb [1/rad]
+    Clp = _p[4]  # parameter Clp [1/rad]
+    Clr = _p[5]  # parameter Clr [1/rad]
+    Cnb = _p[8]  # parameter Cnb [1/rad]
+    Cnp = _p[9]  # parameter Cnp [1/rad]
+    Cnr = _p[10]  # parameter Cnr [1/rad]
     _c0 = (1/Vo)
     _c1 = S*qbar
     _c2 = _c1/mass
@@ -166,17 +163,16 @@ def drift_jac_x(x, u, p):
         [_c3*(Ixz*_c6 + Iz*_c5), _c3*(Clp*_c8 + Cnp*_c9), _c3*(Clr*_c8 + Cnr*_c9), 0],
         [_c3*(Ix*_c6 + Ixz*_c5), _c3*(Clp*_c9 + Cnp*_c10), _c3*(Clr*_c9 + Cnr*_c10), 0],
         [0, 1, jnp.tan(theta0), 0],
-    ], (4, 4), x, u, p)
+    ], (4, 4), _x, _u, _p)
 
 
-def drift_jac_u(x, u, p):
+def drift_jac_u(_x, _u, _p):
     """df/du, shape (4, 2) (symbolic, definitions expanded)."""
-    CYdr = p[2]  # parameter CYdr [1/rad]
-    Clda = p[6]  # parameter Clda [1/rad]
-    Cldr = p[7]  # parameter Cldr [1/rad]
-    Cnda = p[11]  # parameter Cnda [1/rad]
-    Cndr = p[12]  # parameter Cndr [1/rad]
-
+    CYdr = _p[2]  # parameter CYdr [1/rad]
+    Clda = _p[6]  # parameter Clda [1/rad]
+    Cldr = _p[7]  # parameter Cldr [1/rad]
+    Cnda = _p[11]  # parameter Cnda [1/rad]
+    Cndr = _p[12]  # parameter Cndr [1/rad]
     _c0 = S*qbar
     _c1 = (1/(Ix*Iz - Ixz**2))
     _c2 = _c0*b
@@ -188,17 +184,16 @@ def drift_jac_u(x, u, p):
         [_c1*(Clda*_c3 + Cnda*_c4), _c1*(Cldr*_c3 + Cndr*_c4)],
         [_c1*(Clda*_c4 + Cnda*_c5), _c1*(Cldr*_c4 + Cndr*_c5)],
         [0, 0],
-    ], (4, 2), x, u, p)
+    ], (4, 2), _x, _u, _p)
 
 
-def drift_jac_p(x, u, p):
+def drift_jac_p(_x, _u, _p):
     """df/dp, shape (4, 18) (symbolic, definitions expanded)."""
-    beta = x[0]  # state beta [rad]
-    p_ = x[1]  # state p [rad/s]
-    r = x[2]  # state r [rad/s]
-    da = u[0]  # input da [rad]
-    dr = u[1]  # input dr [rad]
-
+    beta = _x[0]  # state beta [rad]
+    p = _x[1]  # state p [rad/s]
+    r = _x[2]  # state r [rad/s]
+    da = _u[0]  # input da [rad]
+    dr = _u[1]  # input dr [rad]
     _c0 = S*qbar
     _c1 = _c0*beta
     _c2 = (1/Vo)
@@ -212,7 +207,7 @@ def drift_jac_p(x, u, p):
     _c10 = Iz*_c9
     _c11 = _c2*_c8*b**2
     _c12 = Iz*_c11
-    _c13 = _c5*p_
+    _c13 = _c5*p
     _c14 = _c0*da
     _c15 = Ixz*_c9
     _c16 = _c1*_c15
@@ -228,14 +223,13 @@ def drift_jac_p(x, u, p):
         [0, 0, 0, _c1*_c10, _c12*_c13, _c12*_c6, _c10*_c14, _c10*_c7, _c16, _c18, _c19, _c20, _c21, 0, 1, 0, 0, 0],
         [0, 0, 0, _c16, _c18, _c19, _c20, _c21, _c1*_c22, _c13*_c23, _c23*_c6, _c14*_c22, _c22*_c7, 0, 0, 1, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0],
-    ], (4, 18), x, u, p)
+    ], (4, 18), _x, _u, _p)
 
 
-def output_jac_x(x, u, p):
+def output_jac_x(_x, _u, _p):
     """dh/dx, shape (5, 4) (symbolic, definitions expanded)."""
-    CYb = p[0]  # parameter CYb [1/rad]
-    CYr = p[1]  # parameter CYr [1/rad]
-
+    CYb = _p[0]  # parameter CYb [1/rad]
+    CYr = _p[1]  # parameter CYr [1/rad]
     _c0 = S*qbar/mass
     return _matrix([
         [1, 0, 0, 0],
@@ -243,28 +237,26 @@ def output_jac_x(x, u, p):
         [0, 0, 1, 0],
         [0, 0, 0, 1],
         [CYb*_c0, 0, (0.5)*CYr*_c0*b/Vo, 0],
-    ], (5, 4), x, u, p)
+    ], (5, 4), _x, _u, _p)
 
 
-def output_jac_u(x, u, p):
+def output_jac_u(_x, _u, _p):
     """dh/du, shape (5, 2) (symbolic, definitions expanded)."""
-    CYdr = p[2]  # parameter CYdr [1/rad]
-
+    CYdr = _p[2]  # parameter CYdr [1/rad]
     return _matrix([
         [0, 0],
         [0, 0],
         [0, 0],
         [0, 0],
         [0, CYdr*S*qbar/mass],
-    ], (5, 2), x, u, p)
+    ], (5, 2), _x, _u, _p)
 
 
-def output_jac_p(x, u, p):
+def output_jac_p(_x, _u, _p):
     """dh/dp, shape (5, 18) (symbolic, definitions expanded)."""
-    beta = x[0]  # state beta [rad]
-    r = x[2]  # state r [rad/s]
-    dr = u[1]  # input dr [rad]
-
+    beta = _x[0]  # state beta [rad]
+    r = _x[2]  # state r [rad/s]
+    dr = _u[1]  # input dr [rad]
     _c0 = S*qbar/mass
     return _matrix([
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
@@ -272,4 +264,4 @@ def output_jac_p(x, u, p):
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0],
         [_c0*beta, (0.5)*_c0*b*r/Vo, _c0*dr, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1],
-    ], (5, 18), x, u, p)
+    ], (5, 18), _x, _u, _p)

@@ -16,139 +16,131 @@ parameters in PARAMETERS order (fixed ones included); vmap for batches.
 
 import jax.numpy as jnp
 
-SPEC_PATH = "specs/totter_sp_020213.yaml"
-SPEC_HASH = "dde93acc746a9d533b959eb6d3eb7b51ae015ad94fca2fecfc7204fc74fcbf1c"
-GENERATOR_VERSION = "0.1.1"
+SPEC_PATH = 'specs/totter_sp_020213.yaml'
+SPEC_HASH = 'dde93acc746a9d533b959eb6d3eb7b51ae015ad94fca2fecfc7204fc74fcbf1c'
+GENERATOR_VERSION = '0.1.1'
 
-STATES = ("alpha", "q", )
-INPUTS = ("de", )
-OUTPUTS = ("alpha", "q", "az", )
-PARAMETERS = ("Z0", "Za", "Zde", "M0", "Ma", "Mq", "Mde", "az0", )
+STATES = ('alpha', 'q', )
+INPUTS = ('de', )
+OUTPUTS = ('alpha', 'q', 'az', )
+PARAMETERS = ('Z0', 'Za', 'Zde', 'M0', 'Ma', 'Mq', 'Mde', 'az0', )
 
 # ---- constants ----
 Vo = 71.9203  # [m/s] mean airspeed of totter_lon_020213f1_018 (SIDPAC totter_demo modeling maneuver)
 
 
-def _vector(values, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    return jnp.stack([jnp.asarray(v, dtype=dtype) for v in values])
+def _vector(_values, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    return jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _values])
 
 
-def _matrix(rows, shape, x, u, p):
-    dtype = jnp.result_type(x, u, p, float)
-    if shape[0] * shape[1] == 0:
-        return jnp.zeros(shape, dtype=dtype)
-    return jnp.stack([jnp.stack([jnp.asarray(v, dtype=dtype) for v in row]) for row in rows])
+def _matrix(_rows, _shape, _x, _u, _p):
+    _dtype = jnp.result_type(_x, _u, _p, 0.0)
+    if _shape[0] * _shape[1] == 0:
+        return jnp.zeros(_shape, dtype=_dtype)
+    return jnp.stack([jnp.stack([jnp.asarray(_v, dtype=_dtype) for _v in _row]) for _row in _rows])
 
 
-def drift(x, u, p):
+def drift(_x, _u, _p):
     """Drift f(x, u, p) = dx/dt, shape (nx,).
 
     dalpha/dt = Z0 + Za*alpha + Zde*de + q
     dq/dt = M0 + Ma*alpha + Mde*de + Mq*q
     """
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    Z0 = p[0]  # parameter Z0 [rad/s]
-    Za = p[1]  # parameter Za [1/s]
-    Zde = p[2]  # parameter Zde [1/s]
-    M0 = p[3]  # parameter M0 [rad/s^2]
-    Ma = p[4]  # parameter Ma [1/s^2]
-    Mq = p[5]  # parameter Mq [1/s]
-    Mde = p[6]  # parameter Mde [1/s^2]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    Z0 = _p[0]  # parameter Z0 [rad/s]
+    Za = _p[1]  # parameter Za [1/s]
+    Zde = _p[2]  # parameter Zde [1/s]
+    M0 = _p[3]  # parameter M0 [rad/s^2]
+    Ma = _p[4]  # parameter Ma [1/s^2]
+    Mq = _p[5]  # parameter Mq [1/s]
+    Mde = _p[6]  # parameter Mde [1/s^2]
     return _vector([
         Z0 + Za*alpha + Zde*de + q,  # dalpha/dt
         M0 + Ma*alpha + Mde*de + Mq*q,  # dq/dt
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def output(x, u, p):
+def output(_x, _u, _p):
     """Output h(x, u, p), shape (ny,).
 
     alpha = alpha
     q = q
     az = Vo*(Za*alpha + Zde*de) + az0
     """
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-    Za = p[1]  # parameter Za [1/s]
-    Zde = p[2]  # parameter Zde [1/s]
-    az0 = p[7]  # parameter az0 [m/s^2]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
+    Za = _p[1]  # parameter Za [1/s]
+    Zde = _p[2]  # parameter Zde [1/s]
+    az0 = _p[7]  # parameter az0 [m/s^2]
     return _vector([
         alpha,  # alpha
         q,  # q
         Vo*(Za*alpha + Zde*de) + az0,  # az
-    ], x, u, p)
+    ], _x, _u, _p)
 
 
-def drift_jac_x(x, u, p):
+def drift_jac_x(_x, _u, _p):
     """df/dx, shape (2, 2) (symbolic, definitions expanded)."""
-    Za = p[1]  # parameter Za [1/s]
-    Ma = p[4]  # parameter Ma [1/s^2]
-    Mq = p[5]  # parameter Mq [1/s]
-
+    Za = _p[1]  # parameter Za [1/s]
+    Ma = _p[4]  # parameter Ma [1/s^2]
+    Mq = _p[5]  # parameter Mq [1/s]
     return _matrix([
         [Za, 1],
         [Ma, Mq],
-    ], (2, 2), x, u, p)
+    ], (2, 2), _x, _u, _p)
 
 
-def drift_jac_u(x, u, p):
+def drift_jac_u(_x, _u, _p):
     """df/du, shape (2, 1) (symbolic, definitions expanded)."""
-    Zde = p[2]  # parameter Zde [1/s]
-    Mde = p[6]  # parameter Mde [1/s^2]
-
+    Zde = _p[2]  # parameter Zde [1/s]
+    Mde = _p[6]  # parameter Mde [1/s^2]
     return _matrix([
         [Zde],
         [Mde],
-    ], (2, 1), x, u, p)
+    ], (2, 1), _x, _u, _p)
 
 
-def drift_jac_p(x, u, p):
+def drift_jac_p(_x, _u, _p):
     """df/dp, shape (2, 8) (symbolic, definitions expanded)."""
-    alpha = x[0]  # state alpha [rad]
-    q = x[1]  # state q [rad/s]
-    de = u[0]  # input de [rad]
-
+    alpha = _x[0]  # state alpha [rad]
+    q = _x[1]  # state q [rad/s]
+    de = _u[0]  # input de [rad]
     return _matrix([
         [1, alpha, de, 0, 0, 0, 0, 0],
         [0, 0, 0, 1, alpha, q, de, 0],
-    ], (2, 8), x, u, p)
+    ], (2, 8), _x, _u, _p)
 
 
-def output_jac_x(x, u, p):
+def output_jac_x(_x, _u, _p):
     """dh/dx, shape (3, 2) (symbolic, definitions expanded)."""
-    Za = p[1]  # parameter Za [1/s]
-
+    Za = _p[1]  # parameter Za [1/s]
     return _matrix([
         [1, 0],
         [0, 1],
         [Vo*Za, 0],
-    ], (3, 2), x, u, p)
+    ], (3, 2), _x, _u, _p)
 
 
-def output_jac_u(x, u, p):
+def output_jac_u(_x, _u, _p):
     """dh/du, shape (3, 1) (symbolic, definitions expanded)."""
-    Zde = p[2]  # parameter Zde [1/s]
-
+    Zde = _p[2]  # parameter Zde [1/s]
     return _matrix([
         [0],
         [0],
         [Vo*Zde],
-    ], (3, 1), x, u, p)
+    ], (3, 1), _x, _u, _p)
 
 
-def output_jac_p(x, u, p):
+def output_jac_p(_x, _u, _p):
     """dh/dp, shape (3, 8) (symbolic, definitions expanded)."""
-    alpha = x[0]  # state alpha [rad]
-    de = u[0]  # input de [rad]
-
+    alpha = _x[0]  # state alpha [rad]
+    de = _u[0]  # input de [rad]
     return _matrix([
         [0, 0, 0, 0, 0, 0, 0, 0],
         [0, 0, 0, 0, 0, 0, 0, 0],
         [0, Vo*alpha, Vo*de, 0, 0, 0, 0, 1],
-    ], (3, 8), x, u, p)
+    ], (3, 8), _x, _u, _p)

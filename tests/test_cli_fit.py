@@ -77,12 +77,19 @@ def test_simulate_command_round_trip(tmp_path):
     assert len(lines) == 1 + 126
 
 
+def _earlier_results(out):
+    """A results directory of an earlier run: results.json listed in vsidgen's manifest."""
+    out.mkdir(exist_ok=True)
+    (out / "results.json").write_text('{"earlier": true}')
+    (out / ".vsidgen-results.json").write_text(json.dumps(
+        {"format": "vsidgen-results", "version": 1, "files": ["results.json"]}))
+
+
 def _bad_fit(tmp_path, capsys, csv_text, expect):
     bad = tmp_path / "bad.csv"
     bad.write_text(csv_text)
     out = tmp_path / "res"
-    out.mkdir(exist_ok=True)
-    (out / "results.json").write_text('{"earlier": true}')
+    _earlier_results(out)
     rc = main(["fit", str(SPEC), str(bad), "--out", str(out), "--quiet"])
     err = capsys.readouterr().err
     assert rc == 2
@@ -129,8 +136,7 @@ def test_failed_run_leaves_earlier_results_intact(tmp_path, monkeypatch, capsys)
     """An exception while writing results (here: the report) leaves DIR as it was."""
     out = tmp_path / "res"
     shutil.copytree(ROOT / "data", tmp_path / "data")
-    out.mkdir()
-    (out / "results.json").write_text('{"earlier": true}')
+    _earlier_results(out)
     import vsidgen.report
 
     def broken(*args, **kwargs):

@@ -90,7 +90,8 @@ def test_module_api_and_renamed_locals(nonlinear):
     assert mod.SPEC_HASH == nonlinear.symbolic.source_hash
     assert mod.G0 == 9.80665
     src = pathlib.Path(mod.__file__).read_text()
-    assert "lambda_ = x[2]" in src and "p_ = u[1]" in src and "x_ = p[4]" in src
+    # spec names stay as written (p, x are not taken by the module); a keyword gets `_kw_`
+    assert "_kw_lambda = _x[2]" in src and "    p = _u[1]" in src and "    x = _p[4]" in src
     imports = [line for line in src.splitlines() if line.startswith(("import", "from"))]
     assert imports == ["import jax.numpy as jnp"]
     assert "spring = " in src  # definitions are readable named locals
@@ -109,6 +110,44 @@ def test_rebuild_byte_identical_and_skip(tmp_path):
     forced = build([spec], out_dir=tmp_path / "a", force=True)[0]
     assert forced.written
     assert embedded_hash(first.module_path) == compile_spec(spec).source_hash
+
+
+def test_recorded_spec_path_does_not_depend_on_the_working_directory(tmp_path, monkeypatch):
+    """SPEC_PATH is `specs/...` below a `specs` folder, else the file name, from any cwd."""
+    import ast
+
+    root = tmp_path / "repo"
+    (root / "specs" / "sub").mkdir(parents=True)
+    for f in ("base.yaml", "child.yaml"):
+        shutil.copy(SPECS / f, root / "specs" / "sub" / f)
+    texts = []
+    for cwd in (tmp_path, root, root / "specs" / "sub"):
+        monkeypatch.chdir(cwd)
+        texts.append(generate(compile_spec(root / "specs" / "sub" / "child.yaml")))
+    assert texts[0] == texts[1] == texts[2]
+    tree = ast.parse(texts[0])
+    path = [ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
+            and n.targets[0].id == "SPEC_PATH"]
+    assert path == ["specs/sub/child.yaml"]
+    assert "SPEC_PATH = 'specs/child.yaml'" in generate(compile_spec(SPECS / "child.yaml"))
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for f in ("base.yaml", "child.yaml"):
+        shutil.copy(SPECS / f, plain / f)
+    assert "SPEC_PATH = 'child.yaml'" in generate(compile_spec(plain / "child.yaml"))
+
+
+def test_build_rewrites_a_module_unless_its_text_is_exactly_the_new_one(tmp_path):
+    """A module with the right SPEC_HASH but other text (edited, older template) is rebuilt."""
+    spec = SPECS / "child.yaml"
+    first = build([spec], out_dir=tmp_path)[0]
+    text = first.module_path.read_text()
+    first.module_path.write_text(text.replace("# ---- constants ----",
+                                              "import os  # edited\n# ---- constants ----"))
+    assert embedded_hash(first.module_path) == compile_spec(spec).source_hash
+    again = build([spec], out_dir=tmp_path)[0]
+    assert again.written and again.module_path.read_text() == text
+    assert not build([spec], out_dir=tmp_path)[0].written
 
 
 def test_hash_changes_with_spec_content(tmp_path):

@@ -1,56 +1,500 @@
-"""Atomic writes: readers never see a partial file, and failures leave old files intact.
+"""Atomic writes and results directories that never destroy what the user had.
 
 Every file vsidgen writes for the user (generated modules, records, results, reports)
-goes through these two helpers: a temporary file or directory beside the target,
-then :func:`os.replace`.
+goes through these helpers: a temporary file or directory beside the target, then a
+rename.
+
+Results directories (``fit --out``, ``diagnose --out``, the report written into one)
+carry a manifest, :data:`MANIFEST` (``.vsidgen-results.json``), listing the files
+vsidgen wrote there. The rules (``docs/security.md``, "Results directories"):
+
+* an absent or empty directory, or one whose every file is listed in its manifest
+  (a *vsidgen results directory*), is replaced as a whole: the new results are built
+  in ``.DIR.tmp-<pid>-<token>`` beside it and swapped in with two renames
+  (``DIR -> .DIR.old-<pid>-<token>``, ``.DIR.tmp-... -> DIR``); the new directory
+  gets the old one's permission bits, and a new one the mode ``mkdir`` gives
+  (0777 less the umask);
+* a non-empty directory without a manifest, or a results directory that also holds
+  files vsidgen did not write, is refused (exit status 2, before any computation)
+  unless the user passes ``--overwrite``; even then only vsidgen's own files are
+  written into it one by one (each with :func:`os.replace`) and the files of the
+  previous run listed in its manifest are removed; every other file stays as it was;
+* a symbolic link, a file, or a directory whose parent is not writable is refused;
+* a run that was killed or crashed leaves ``.DIR.tmp-*`` / ``.DIR.old-*``; the next
+  run for ``DIR`` restores or completes the swap (a temporary directory holding a
+  manifest is complete, the manifest being its last file) and removes the leftovers,
+  and says so on stderr. Leftovers of a process that is still running are left alone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import enum
+import json
 import os
 import pathlib
+import re
+import secrets
 import shutil
+import stat
+import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 
 from .errors import VsidgenError
 
+#: name of the manifest file of a results directory
+MANIFEST = ".vsidgen-results.json"
+MANIFEST_FORMAT = "vsidgen-results"
+MANIFEST_VERSION = 1
 
-@contextlib.contextmanager
-def atomic_directory(target: str | os.PathLike) -> Iterator[pathlib.Path]:
-    """Yield a fresh temporary directory that replaces ``target`` on success.
+#: directories of this process that are being built or swapped (never "stale")
+_ACTIVE: set[str] = set()
 
-    On an exception (or KeyboardInterrupt) the temporary directory is removed
-    and ``target`` is left exactly as it was. Files of ``target`` that the new
-    run does not write are not carried over: the directory is the results of
-    one run.
+
+class DirState(enum.Enum):
+    """What an output directory holds before a run."""
+
+    ABSENT = "absent"
+    EMPTY = "empty"
+    OWNED = "owned"        # every file listed in its manifest
+    MIXED = "mixed"        # a manifest, and files vsidgen did not write
+    FOREIGN = "foreign"    # files and no (valid) manifest
+
+
+class WriteMode(enum.Enum):
+    """How new results reach the output directory."""
+
+    SWAP = "swap"          # built beside it, swapped in by two renames
+    IN_PLACE = "in-place"  # vsidgen's files moved in one by one; other files kept
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputPlan:
+    """A checked output directory (see :func:`plan_output_dir`).
+
+    Attributes:
+        target: the directory.
+        state: what it held when checked.
+        mode: how the results will be written.
+        previous: files (relative POSIX paths) vsidgen wrote there before.
+        kept: files that are not vsidgen's and stay untouched.
+        mode_bits: permission bits of the existing directory (None when absent).
+        recovered: what the leftover clean-up did (one line each, for stderr).
+        reads: resolved paths of the files the command reads.
+    """
+
+    target: pathlib.Path
+    state: DirState
+    mode: WriteMode
+    previous: frozenset[str] = frozenset()
+    kept: frozenset[str] = frozenset()
+    mode_bits: int | None = None
+    recovered: tuple[str, ...] = ()
+    reads: tuple[pathlib.Path, ...] = ()
+
+
+# --------------------------------------------------------------------------- manifest
+
+def _safe_relative(rel: object) -> bool:
+    """A manifest entry: a relative POSIX path without ``..``, ``.`` or empty parts."""
+    if not isinstance(rel, str) or not rel or "\x00" in rel or rel.startswith("/"):
+        return False
+    parts = rel.split("/")
+    return all(p not in ("", ".", "..") for p in parts) and "\\" not in rel
+
+
+def listing(directory: pathlib.Path) -> set[str]:
+    """Every entry under ``directory`` that is not a directory (relative POSIX paths).
+
+    Symbolic links are listed as entries and never followed; empty
+    subdirectories are not listed.
+    """
+    out: set[str] = set()
+    for root, dirs, files in os.walk(directory, followlinks=False):
+        rel_root = pathlib.Path(root).relative_to(directory)
+        for d in list(dirs):
+            if os.path.islink(os.path.join(root, d)):
+                out.add((rel_root / d).as_posix())
+        for f in files:
+            out.add((rel_root / f).as_posix())
+    return out
+
+
+def read_manifest(directory: str | os.PathLike) -> dict | None:
+    """The manifest of ``directory`` or None (absent, unreadable or malformed).
+
+    The returned mapping has ``files`` (a set of the files vsidgen wrote); for an
+    incomplete run (``complete`` false) these are all files except ``kept``.
+    """
+    directory = pathlib.Path(directory)
+    path = directory / MANIFEST
+    try:
+        if path.is_symlink() or not path.is_file() or path.stat().st_size > 1 << 20:
+            return None
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if not (isinstance(doc, dict) and doc.get("format") == MANIFEST_FORMAT
+            and isinstance(doc.get("files"), list) and isinstance(doc.get("kept", []), list)):
+        return None
+    if not all(_safe_relative(f) for f in doc["files"] + doc.get("kept", [])):
+        return None
+    files = set(doc["files"])
+    kept = set(doc.get("kept", []))
+    if not doc.get("complete", True):
+        files = listing(directory) - kept - {MANIFEST}
+    return {**doc, "files": files, "kept": kept}
+
+
+def _manifest_text(files: Iterable[str], *, command: str, complete: bool = True,
+                   kept: Iterable[str] = ()) -> str:
+    from . import __version__
+
+    doc = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION,
+           "vsidgen_version": __version__, "command": command, "complete": complete,
+           "files": sorted(set(files) - {MANIFEST}), "kept": sorted(set(kept))}
+    return json.dumps(doc, indent=1) + "\n"
+
+
+def add_to_manifest(directory: str | os.PathLike, names: Iterable[str]) -> None:
+    """List ``names`` (relative paths) as vsidgen's in the manifest of ``directory``, if any."""
+    directory = pathlib.Path(directory)
+    doc = read_manifest(directory)
+    if doc is None:
+        return
+    write_text_atomic(directory / MANIFEST, _manifest_text(
+        doc["files"] | set(names), command=str(doc.get("command", "")),
+        complete=bool(doc.get("complete", True)), kept=doc["kept"] - set(names)))
+
+
+# --------------------------------------------------------------------------- leftovers
+
+_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?:(?P<pid>\d+)-)?[A-Za-z0-9_]+$")
+
+
+def _pid_alive(pid: int | None) -> bool:
+    if pid is None:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True
+    return True
+
+
+def _stale(path: pathlib.Path, pid: int | None) -> bool:
+    if str(path) in _ACTIVE:
+        return False
+    if pid == os.getpid():
+        return True
+    return not _pid_alive(pid)
+
+
+def recover(target: str | os.PathLike) -> tuple[str, ...]:
+    """Finish or undo an interrupted swap of ``target`` and remove stale leftovers.
+
+    * ``target`` missing and a backup ``.target.old-*`` present (a crash between the
+      two renames): a complete ``.target.tmp-*`` (one holding its manifest) is moved
+      into place, else the backup is restored;
+    * every other stale ``.target.tmp-*`` / ``.target.old-*`` is removed.
+
+    Leftovers of a process that is still alive are not touched. Returns one line per
+    action (for stderr).
     """
     target = pathlib.Path(target)
     parent = target.parent if str(target.parent) else pathlib.Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    if target.exists() and not target.is_dir():
-        raise VsidgenError(f"{target}: exists and is not a directory; choose another --out")
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
+    msgs: list[str] = []
     try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = None
-    if target.exists():
-        old = pathlib.Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=parent))
-        old.rmdir()
-        os.replace(target, old)
+        entries = list(parent.iterdir())
+    except OSError:
+        return ()
+    tmps, olds = [], []
+    for p in entries:
+        m = _LEFTOVER.match(p.name)
+        if not m or m.group("name") != target.name or p.is_symlink() or not p.is_dir():
+            continue
+        pid = int(m.group("pid")) if m.group("pid") else None
+        if not _stale(p, pid):
+            continue
+        (tmps if m.group("kind") == "tmp" else olds).append(p)
+    tmps.sort(key=lambda p: p.stat().st_mtime)
+    olds.sort(key=lambda p: p.stat().st_mtime)
+    if not os.path.lexists(target) and olds:
+        complete = [t for t in tmps if (t / MANIFEST).is_file() and not (t / MANIFEST).is_symlink()]
+        if complete:
+            os.rename(complete[-1], target)
+            tmps.remove(complete[-1])
+            msgs.append(f"{target}: an earlier run was interrupted while replacing its results; "
+                        "its new results were complete and are now in place")
+        else:
+            os.rename(olds[-1], target)
+            olds.remove(olds[-1])
+            msgs.append(f"{target}: an earlier run was interrupted while replacing its results; "
+                        "the previous results were restored")
+    for p in tmps + olds:
+        shutil.rmtree(p, ignore_errors=True)
+        what = "unfinished results" if p in tmps else "backup of replaced results"
+        msgs.append(f"{parent / p.name}: removed the {what} left by an interrupted run")
+    return tuple(msgs)
+
+
+def _leftover_path(target: pathlib.Path, kind: str) -> pathlib.Path:
+    parent = target.parent if str(target.parent) else pathlib.Path(".")
+    return parent / f".{target.name}.{kind}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
+# --------------------------------------------------------------------------- checks
+
+def _nearest_existing(path: pathlib.Path) -> pathlib.Path:
+    p = path.absolute()
+    while not os.path.lexists(p) and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _writable_dir(path: pathlib.Path) -> bool:
+    return path.is_dir() and os.access(path, os.W_OK | os.X_OK)
+
+
+def _resolved(paths: Iterable[str | os.PathLike]) -> tuple[pathlib.Path, ...]:
+    out = []
+    for p in paths:
+        if p is None:
+            continue
+        try:
+            out.append(pathlib.Path(p).resolve())
+        except (OSError, RuntimeError):
+            continue
+    return tuple(out)
+
+
+def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathLike] = (),
+                      option: str = "--out") -> pathlib.Path:
+    """Check that a single output file can be written and is none of the files read.
+
+    Raises:
+        VsidgenError: ``path`` is a directory or another non-regular file, a file the
+            command reads, or its folder cannot be created or written.
+    """
+    path = pathlib.Path(path)
+    if str(path) in ("", "."):
+        raise VsidgenError(f"{option} '{path}': not a file name")
+    if os.path.lexists(path):
+        if path.is_dir():
+            raise VsidgenError(f"{path}: error: {option} is a directory; give a file name")
+        if not path.is_file():
+            raise VsidgenError(f"{path}: error: {option} exists and is not a regular file "
+                               "(a device, pipe or socket); give a file name")
+        for r in reads:
+            try:
+                same = os.path.samefile(path, r)
+            except OSError:
+                same = False
+            if same:
+                raise VsidgenError(f"{path}: error: {option} is a file this command reads "
+                                   f"({r}); write the output to another file")
+    parent = path.parent if str(path.parent) else pathlib.Path(".")
+    base = _nearest_existing(parent)
+    if not base.is_dir():
+        raise VsidgenError(f"{path}: error: cannot create {option}: {base} is not a directory")
+    if not _writable_dir(base):
+        raise VsidgenError(f"{path}: error: cannot write {option}: the folder {base} is not "
+                           "writable")
+    return path
+
+
+def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
+                    reads: Iterable[str | os.PathLike] = (), option: str = "--out",
+                    recover_leftovers: bool = True) -> OutputPlan:
+    """Check an output directory before any computation and decide how to write it.
+
+    See the module docstring for the rules. ``reads`` are the files the command
+    reads: none of them may be replaced or removed by the new results.
+
+    Raises:
+        VsidgenError: the directory cannot or must not be written (exit status 2).
+    """
+    target = pathlib.Path(target)
+    if str(target) in ("", ".", "..") or target.name in ("", ".", ".."):
+        raise VsidgenError(f"{option} '{target}': give a directory name (not '.' or '..'); "
+                           "the results directory is replaced as a whole")
+    if target.is_symlink():
+        raise VsidgenError(f"{target}: error: {option} is a symbolic link; give the directory "
+                           "it points to (vsidgen does not replace links)")
+    if os.path.lexists(target) and not target.is_dir():
+        raise VsidgenError(f"{target}: error: {option} exists and is not a directory; "
+                           "choose another directory")
+    parent = target.parent if str(target.parent) else pathlib.Path(".")
+    base = _nearest_existing(parent)
+    if not base.is_dir():
+        raise VsidgenError(f"{target}: error: cannot create {option}: {base} is not a directory")
+    if not _writable_dir(base):
+        raise VsidgenError(f"{target}: error: cannot write {option}: the folder {base} is not "
+                           "writable")
+    recovered = recover(target) if (recover_leftovers and parent.is_dir()) else ()
+    reads_r = _resolved(reads)
+    if not target.exists():
+        return OutputPlan(target, DirState.ABSENT, WriteMode.SWAP, recovered=recovered,
+                          reads=reads_r)
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise VsidgenError(f"{target}: error: {option} is not writable")
+    mode_bits = stat.S_IMODE(target.stat().st_mode)
+    files = listing(target)
+    tres = target.resolve()
+    inside = [r for r in reads_r if r == tres or tres in r.parents]
+    if not files:
+        return OutputPlan(target, DirState.EMPTY, WriteMode.SWAP, mode_bits=mode_bits,
+                          recovered=recovered, reads=reads_r)
+    manifest = read_manifest(target)
+    if manifest is not None:
+        ours = manifest["files"] & files
+        others = files - ours - {MANIFEST}
+        state = DirState.OWNED if not others else DirState.MIXED
+    else:
+        ours, others, state = set(), files, DirState.FOREIGN
+    if state is DirState.OWNED:
+        if inside:
+            raise VsidgenError(f"{target}: error: {option} holds {inside[0]}, which this command "
+                               "reads; the results directory is replaced as a whole, so write "
+                               "the results to another directory")
+        return OutputPlan(target, state, WriteMode.SWAP, previous=frozenset(ours),
+                          mode_bits=mode_bits, recovered=recovered, reads=reads_r)
+    if not overwrite:
+        shown = ", ".join(sorted(others)[:5]) + (", ..." if len(others) > 5 else "")
+        what = ("is not empty and is not a vsidgen results directory" if state is DirState.FOREIGN
+                else "also holds files vsidgen did not write")
+        raise VsidgenError(
+            f"{target}: error: {option} {what} ({len(others)} file"
+            f"{'s' if len(others) != 1 else ''}: {shown})\n"
+            f"  hint: choose a new or empty directory, or pass --overwrite to write vsidgen's "
+            f"files into it (other files are kept; files with the same names as vsidgen's "
+            f"are replaced)")
+    return OutputPlan(target, state, WriteMode.IN_PLACE, previous=frozenset(ours),
+                      kept=frozenset(others), mode_bits=mode_bits, recovered=recovered,
+                      reads=reads_r)
+
+
+def print_recovered(plan: OutputPlan, stream=None) -> None:
+    """Print what :func:`recover` did (stderr by default)."""
+    stream = stream if stream is not None else sys.stderr
+    for line in plan.recovered:
+        print(f"note: {line}", file=stream)
+
+
+# --------------------------------------------------------------------------- writing
+
+def _commit_swap(tmp: pathlib.Path, plan: OutputPlan) -> None:
+    target = plan.target
+    if plan.mode_bits is not None:
+        os.chmod(tmp, plan.mode_bits)
+    if not os.path.lexists(target):
+        os.rename(tmp, target)
+        return
+    old = _leftover_path(target, "old")
+    _ACTIVE.add(str(old))
     try:
-        os.replace(tmp, target)
-    except BaseException:
-        if old is not None:
-            os.replace(old, target)
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if old is not None:
+        os.rename(target, old)
+        try:
+            os.rename(tmp, target)
+        except BaseException:
+            os.rename(old, target)
+            raise
         shutil.rmtree(old, ignore_errors=True)
+    finally:
+        _ACTIVE.discard(str(old))
+
+
+def _remove_entry(path: pathlib.Path) -> None:
+    if path.is_symlink() or path.is_file():
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+
+
+def _commit_in_place(tmp: pathlib.Path, plan: OutputPlan, command: str) -> None:
+    target = plan.target
+    new = sorted(listing(tmp) - {MANIFEST})
+    tres = target.resolve()
+    for rel in new:
+        dest = tres / rel
+        if any(r == dest for r in plan.reads):
+            raise VsidgenError(f"{target / rel}: error: this command reads that file and would "
+                               "replace it; write the results to another directory")
+        if dest.is_dir() and not dest.is_symlink():
+            raise VsidgenError(f"{target / rel}: error: is a directory, where vsidgen writes a "
+                               "file; move it or choose another --out")
+        if any(p.is_symlink() for p in [dest, *dest.parents] if tres in p.parents or p == tres):
+            raise VsidgenError(f"{target / rel}: error: a symbolic link is in the way of a file "
+                               "vsidgen writes; move it or choose another --out")
+    for rel in new:
+        dest = target / rel
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / rel, dest)
+    for rel in sorted(plan.previous - set(new)):
+        if rel not in plan.kept:
+            _remove_entry(target / rel)
+    write_text_atomic(target / MANIFEST, _manifest_text(new, command=command,
+                                                        kept=plan.kept - set(new)))
+
+
+@contextlib.contextmanager
+def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = None,
+                     overwrite: bool = False, command: str = "fit") -> Iterator[pathlib.Path]:
+    """Yield a fresh temporary directory whose files become the results in ``target``.
+
+    On an exception (or KeyboardInterrupt) the temporary directory is removed and
+    ``target`` is left exactly as it was. On success the manifest is written and the
+    results are swapped in (or, for a directory holding other files and
+    ``overwrite``, moved in file by file); see the module docstring. ``plan`` is the
+    result of :func:`plan_output_dir` when the caller checked the directory before
+    computing (recommended); otherwise it is checked here.
+    """
+    if plan is None:
+        plan = plan_output_dir(target, overwrite=overwrite)
+        print_recovered(plan)
+    target = plan.target
+    parent = target.parent if str(target.parent) else pathlib.Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = _leftover_path(target, "tmp")
+    _ACTIVE.add(str(tmp))
+    try:
+        os.mkdir(tmp)
+        try:
+            yield tmp
+            if plan.mode is WriteMode.SWAP:
+                write_text_atomic(tmp / MANIFEST, _manifest_text(listing(tmp), command=command))
+                _commit_swap(tmp, plan)
+            else:
+                _commit_in_place(tmp, plan, command)
+        finally:
+            if os.path.lexists(tmp):
+                shutil.rmtree(tmp, ignore_errors=True)
+    finally:
+        _ACTIVE.discard(str(tmp))
+
+
+@contextlib.contextmanager
+def results_in_place(plan: OutputPlan, *, command: str) -> Iterator[pathlib.Path]:
+    """Write results directly into ``plan.target`` (a long job such as ``diagnose``).
+
+    The files vsidgen wrote there before (its manifest) are removed first, other
+    files are kept; the manifest marks the run incomplete until it ends, so a
+    crashed run still leaves a vsidgen results directory that the next run can
+    replace. Not atomic: a failed run leaves partial results, marked incomplete.
+    """
+    target = plan.target
+    target.mkdir(parents=True, exist_ok=True)
+    kept = set(plan.kept)
+    for rel in sorted(plan.previous):
+        _remove_entry(target / rel)
+    write_text_atomic(target / MANIFEST, _manifest_text((), command=command, complete=False,
+                                                        kept=kept))
+    yield target
+    files = listing(target) - kept - {MANIFEST}
+    write_text_atomic(target / MANIFEST, _manifest_text(files, command=command, kept=kept))
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> pathlib.Path:
@@ -67,3 +511,9 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> pathlib.Path:
             os.unlink(tmp)
         raise
     return path
+
+
+__all__ = ["MANIFEST", "DirState", "OutputPlan", "WriteMode", "add_to_manifest",
+           "atomic_directory", "check_output_file", "listing", "plan_output_dir",
+           "print_recovered", "read_manifest", "recover", "results_in_place",
+           "write_text_atomic"]

@@ -13,9 +13,8 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import os
 import sys
-
-import sympy
 
 from .errors import VsidgenError
 
@@ -102,6 +101,8 @@ def _unit(u) -> str:
 
 
 def _cmd_show(args) -> int:
+    import sympy
+
     from .symbolic import compile_spec
 
     m = compile_spec(args.spec)
@@ -212,20 +213,38 @@ def _cmd_simulate(args) -> int:
 
     import numpy as np
 
+    from .atomic import check_output_file
     from .data import load_record
-    from .model import load_model
-    from .simulate import parse_input_spec, simulate_to_csv
+    from .limits import check_input_file
+
+    reads = [args.spec] + [p for p in (args.inputs_from, args.params_from) if p]
+    if args.inputs_from:
+        check_input_file(args.inputs_from, what="data file")
+    if args.params_from:
+        check_input_file(args.params_from, what="results file", kind="json", data_error=False)
+    check_output_file(args.out, reads=reads)
+    if args.substeps is not None and args.substeps < 1:
+        raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
+
+    rec = None
+    if args.inputs_from:
+        from .symbolic import compile_spec
+
+        rec = load_record(compile_spec(args.spec), args.inputs_from)
 
     _enable_compilation_cache()
+    from .model import load_model
+    from .simulate import parse_input_spec, simulate_to_csv
 
     model = load_model(args.spec)
     theta = {}
     if args.params_from:
         try:
-            res = json.loads(pathlib.Path(args.params_from).read_text())
+            res = json.loads(pathlib.Path(args.params_from).read_text(encoding="utf-8"))
             theta.update({k: v["estimate"] for k, v in res["parameters"].items()})
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise VsidgenError(f"{args.params_from}: cannot read parameter estimates ({exc})") from None
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise VsidgenError(f"{args.params_from}: cannot read parameter estimates "
+                               f"({type(exc).__name__}: not a results.json of `vsidgen fit`?)") from None
     theta.update(_name_values(args.param, "param"))
     _check_names(theta, model.parameter_names, "parameter")
     x0 = _name_values(args.x0, "x0")
@@ -239,14 +258,18 @@ def _cmd_simulate(args) -> int:
     if args.inputs_from:
         if args.input:
             raise VsidgenError("give either --input generators or --inputs-from, not both")
-        rec = load_record(model, args.inputs_from)
-        t, u = rec.t, rec.u
+        # the record's uniform grid (fit reads the same time column the same way): stamps
+        # with an epoch offset carry rounding jitter that t_raw - t_raw[0] would keep
+        t, u = np.arange(rec.n) * rec.dt, rec.u
     else:
         dt = args.dt
         if dt is None or args.duration is None:
             raise VsidgenError("--duration and --dt are needed when inputs come from generators")
-        if dt <= 0 or args.duration <= dt:
-            raise VsidgenError("--dt must be positive and smaller than --duration")
+        if not (np.isfinite(dt) and np.isfinite(args.duration)) or dt <= 0 or args.duration <= dt:
+            raise VsidgenError("--dt must be positive and smaller than --duration (both finite)")
+        if args.duration / dt > 1e8:
+            raise VsidgenError(f"--duration {args.duration:g} s at --dt {dt:g} s gives more than "
+                               "1e8 samples; shorten the record or raise --dt")
         n = int(round(args.duration / dt)) + 1
         t = np.arange(n) * dt
         gens = {}
@@ -263,7 +286,7 @@ def _cmd_simulate(args) -> int:
                     measurement_std=mstd, integrator=args.integrator or model.integrator,
                     substeps=args.substeps or model.substeps, seed=args.seed,
                     quantize=quant or None)
-    print(f"wrote {args.out} ({len(t)} samples, dt = {t[1] - t[0]:g} s)")
+    print(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)")
     return 0
 
 
@@ -295,6 +318,9 @@ def _add_fit(sub):
                         "std = 1 ('unit', the paper's); auto tries them in turn until one "
                         "converges (θ always starts at the spec's null guesses)")
     p.add_argument("--report", action="store_true", help="also write DIR/report.html")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty DIR that is not a vsidgen results directory "
+                        "(only vsidgen's files are replaced; other files are kept)")
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates to compare in the report")
     p.add_argument("--quiet", action="store_true", help="no progress display")
@@ -336,9 +362,13 @@ def _enable_compilation_cache() -> None:
     if not cache:
         return
     try:
+        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
+        if "jax" not in sys.modules:  # read by jax when it is imported (not before it is needed)
+            os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
+            os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+            return
         import jax
 
-        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", cache)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
     except (OSError, AttributeError, ValueError):  # read-only home, older jax: run uncached
@@ -348,6 +378,10 @@ def _enable_compilation_cache() -> None:
 def _cmd_fit(args) -> int:
     from .pipeline import run_fit
 
+    if args.max_iter < 1:
+        raise VsidgenError(f"--max-iter must be >= 1, got {args.max_iter}")
+    if args.substeps is not None and args.substeps < 1:
+        raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
     _enable_compilation_cache()
 
     progress = None if args.quiet else _Progress(sys.stderr)
@@ -357,7 +391,8 @@ def _cmd_fit(args) -> int:
                       optimizer=args.optimizer, max_iter=args.max_iter,
                       init_states=args.init_states, noise_start=args.noise_start,
                       progress=progress,
-                      report=args.report, reference=args.reference)
+                      report=args.report, reference=args.reference,
+                      overwrite=args.overwrite)
     finally:
         if progress is not None:
             progress.close()
@@ -389,13 +424,39 @@ def _add_report(sub):
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates (e.g. ../shared/reference/hfb320_reference.json:fem)")
     p.add_argument("--out", default=None, help="HTML file (default DIR/report.html)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing HTML file that vsidgen did not write")
     p.set_defaults(handler=_cmd_report)
 
 
 def _cmd_report(args) -> int:
-    from .report import write_report
+    """Write the report; never over a file it reads or a file of the user's.
 
-    path = write_report(args.dir, out=args.out, reference=args.reference)
+    The default ``DIR/report.html`` may be replaced when DIR's manifest lists it
+    (vsidgen wrote it); any other existing file needs ``--overwrite``.
+    """
+    import os
+
+    from .atomic import add_to_manifest, check_output_file, read_manifest
+    from .report import _parse_reference, write_report
+
+    d = pathlib.Path(args.dir)
+    out = pathlib.Path(args.out) if args.out is not None else d / "report.html"
+    ref_path = _parse_reference(args.reference)[2] if args.reference is not None else None
+    reads = [d / "results.json"] + ([ref_path] if ref_path is not None else [])
+    if d.is_dir():
+        reads += [q for q in d.iterdir() if q.name.startswith("signals_")]
+    check_output_file(out, reads=reads)
+    in_dir = d.is_dir() and out.parent.resolve() == d.resolve()
+    manifest = read_manifest(d) if in_dir else None
+    owned = manifest is not None and out.name in manifest["files"]
+    if os.path.lexists(out) and not owned and not args.overwrite:
+        raise VsidgenError(f"{out}: error: exists and was not written by vsidgen (not listed in "
+                           f"the manifest of {d}); pass --overwrite to replace it or choose "
+                           "another --out")
+    path = write_report(args.dir, out=out, reference=args.reference)
+    if in_dir:
+        add_to_manifest(d, [out.name])
     print(f"wrote {path}")
     return 0
 
@@ -411,7 +472,13 @@ COMMANDS = [_add_build, _add_check, _add_show, _add_simulate, _add_fit, _add_rep
             _add_diagnose]
 
 
-def make_parser() -> argparse.ArgumentParser:
+#: commands whose arguments parse without the diagnose parser (which imports scipy.stats)
+_LIGHT_COMMANDS = frozenset({"build", "check", "show", "simulate", "fit", "report"})
+
+
+def make_parser(*, light: bool = False) -> argparse.ArgumentParser:
+    """The argument parser; ``light`` lists ``diagnose`` without building its options
+    (for argv naming another command: it starts about a second faster)."""
     parser = argparse.ArgumentParser(
         prog="vsidgen",
         description="Aircraft system identification from YAML model specs: compile specs to JAX, "
@@ -419,13 +486,17 @@ def make_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in COMMANDS:
+        if light and add is _add_diagnose:
+            sub.add_parser("diagnose", help="find, explain and add physics the model leaves out")
+            continue
         add(sub)
     return parser
 
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 error, 130 interrupted)."""
-    parser = make_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = make_parser(light=bool(argv) and argv[0] in _LIGHT_COMMANDS)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)

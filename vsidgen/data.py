@@ -11,9 +11,15 @@ and output is read through a :class:`vsidgen.metadata.ChannelMap`:
 Checks (each failure is a :class:`vsidgen.errors.DataError` naming the file,
 the column and/or the sample = 0-based data row, with a hint):
 
+* the path is not a regular file (a directory, ``/dev/zero``, a pipe) or is
+  larger than :func:`vsidgen.limits.data_limit` (2 GiB unless
+  ``$VSIDGEN_MAX_DATA_BYTES`` says otherwise): refused before it is opened;
 * file missing / unreadable / empty / header only; a mapped column missing
   (close names suggested); a non-numeric cell; ``±inf`` anywhere in a used
-  column; fewer than :data:`MIN_SAMPLES` samples;
+  column; a magnitude above :data:`MAX_ABS_VALUE` (1e150) in a used column or a
+  mapped channel: squares of such values overflow float64 (1.8e308) long before
+  the likelihood is summed, so they can only be corrupt samples; fewer than
+  :data:`MIN_SAMPLES` samples;
 * time: NaN, non-increasing (duplicated or going back), gaps and
   non-uniform sampling. The sample period is ``T = (t[N-1] - t[0])/(N-1)``;
   every step must satisfy ``|t[k+1] - t[k] - T| <= JITTER * T`` and the
@@ -21,7 +27,12 @@ the column and/or the sample = 0-based data row, with a hint):
   ``JITTER = 5 %`` accepts time stamps quantised by the recorder (HFB-320
   steps 0.09999–0.10001 s; ``totter_lon_data.csv`` alternates
   0.009766/0.010010 s, ±2.4 %) but rejects gaps (a missing sample is a 100 %
-  step error) and drifting rates;
+  step error) and drifting rates. The period must be resolvable at the stamps'
+  magnitude: the float64 spacing of the largest stamp, ``ulp(max|t|)``, must be
+  at most ``RESOLUTION * T`` (1e-3 T), else the stamps cannot carry the
+  ±5 % check (time stamps near 1e300 with T = 1 s, or T = 1e-300 s after a
+  large offset); and ``MIN_DT <= T <= MAX_DT`` (1 µs to one day: the time
+  column is in seconds, anything outside is a unit mistake);
 * inputs cannot be missing: NaN (an empty cell or ``nan``) in an input is an
   error naming the column and sample; outputs may have NaN (= missing
   sample, excluded from the likelihood) but not in every sample.
@@ -49,9 +60,17 @@ from collections.abc import Mapping
 import numpy as np
 
 from .errors import DataError, VsidgenError
+from .limits import check_input_file
 
 MIN_SAMPLES = 10
 JITTER = 0.05
+#: largest magnitude accepted in a used column or channel (float64 squares overflow above 1.3e154)
+MAX_ABS_VALUE = 1e150
+#: the float64 spacing of the largest time stamp must be at most RESOLUTION * T
+RESOLUTION = 1e-3
+#: sample periods outside [MIN_DT, MAX_DT] seconds are refused (a unit mistake)
+MIN_DT = 1e-6
+MAX_DT = 86400.0
 _MISSING = {"", "nan", "na", "n/a", "null", "none"}
 
 
@@ -237,6 +256,16 @@ def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
     return val
 
 
+def fmt_number(v) -> str:
+    """A number for messages: ``1e+308``, ``0.04``, ``1.7e+09`` (never ``np.float64(...)``)."""
+    v = float(v)
+    if math.isnan(v):
+        return "NaN"
+    if math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return f"{v:.6g}"
+
+
 def _first(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
 
@@ -251,18 +280,36 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
     bad = ~np.isfinite(t_raw)
     if bad.any():
         k = _first(bad)
-        raise DataError(f"time stamp is {t_raw[k]}", path=path, column=column, sample=k,
+        raise DataError(f"time stamp is {fmt_number(t_raw[k])}", path=path, column=column,
+                        sample=k,
                         hint="every sample needs a finite time stamp")
     steps = np.diff(t_raw)
     nonpos = steps <= 0
     if nonpos.any():
         k = _first(nonpos) + 1
         what = "duplicated" if steps[k - 1] == 0 else "goes back"
-        raise DataError(f"time is not increasing: {what} ({t_raw[k - 1]!r} -> {t_raw[k]!r})",
+        raise DataError(f"time is not increasing: {what} ({fmt_number(t_raw[k - 1])} -> "
+                        f"{fmt_number(t_raw[k])})",
                         path=path, column=column, sample=k,
                         hint="sort the record by time and remove repeated samples; "
                              "split it where the recording restarts")
     dt = float((t_raw[-1] - t_raw[0]) / (n - 1))
+    big = float(np.max(np.abs(t_raw)))
+    spacing = float(np.spacing(big))
+    if not (math.isfinite(dt) and spacing <= RESOLUTION * dt):
+        k = int(np.argmax(np.abs(t_raw)))
+        raise DataError(
+            f"time stamps of magnitude {fmt_number(big)} s cannot resolve the sample period "
+            f"{fmt_number(dt)} s (float64 spacing {fmt_number(spacing)} s there)",
+            path=path, column=column, sample=k,
+            hint="subtract the start time from the time column (vsidgen needs the sample "
+                 "period to be at least 1000 times the rounding step of the stamps)")
+    if not (MIN_DT <= dt <= MAX_DT):
+        raise DataError(
+            f"sample period {fmt_number(dt)} s is outside the accepted range "
+            f"{fmt_number(MIN_DT)} s to {fmt_number(MAX_DT)} s",
+            path=path, column=column, sample=1,
+            hint="the time column must be in seconds; convert it (or map another column)")
     dev = np.abs(steps - dt)
     tol = JITTER * dt
     if (dev > tol).any():
@@ -303,7 +350,7 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     Raises:
         DataError: see the module docstring.
     """
-    path = pathlib.Path(path)
+    path = check_input_file(path, what="data file")
     spec = model.data
     in_names, out_names = _names(model, "input"), _names(model, "output")
     in_maps = {c.name: c for c in spec.inputs}
@@ -349,9 +396,17 @@ def load_record(model, path, *, name: str | None = None) -> Record:
         inf = np.isinf(cols[c])
         if inf.any():
             k = _first(inf)
-            raise DataError(f"infinite value {cols[c][k]}", path=path, column=c, sample=k,
+            raise DataError(f"infinite value {fmt_number(cols[c][k])}", path=path, column=c,
+                            sample=k,
                             hint="replace overflowed or invalid samples (an empty cell marks a "
                                  "missing output sample)")
+        huge = np.abs(cols[c]) > MAX_ABS_VALUE
+        if huge.any():
+            k = _first(huge)
+            raise DataError(f"absurd value {fmt_number(cols[c][k])} (magnitude above "
+                            f"{fmt_number(MAX_ABS_VALUE)})", path=path, column=c, sample=k,
+                            hint="a corrupt or overflowed sample; fix it, or leave the cell "
+                                 "empty if it is an output (a missing sample)")
     if n < MIN_SAMPLES:
         raise DataError(f"too few samples: {n} (at least {MIN_SAMPLES} needed)", path=path,
                         hint="is this the right file? records must be contiguous time histories")
@@ -364,9 +419,11 @@ def load_record(model, path, *, name: str | None = None) -> Record:
         srcs = _columns_of(cmap)
         label = srcs[0] if len(srcs) == 1 and cmap.expr is None else f"{nm} = {cmap.expr}"
         col_for = srcs[0] if len(srcs) == 1 else None
-        if np.isinf(val).any():
-            k = _first(np.isinf(val))
-            raise DataError(f"{kind} '{nm}' is infinite (from {label})", path=path,
+        bad = np.isinf(val) | (np.abs(val) > MAX_ABS_VALUE)
+        if bad.any():
+            k = _first(bad)
+            what = "infinite" if np.isinf(val[k]) else f"absurd ({fmt_number(val[k])})"
+            raise DataError(f"{kind} '{nm}' is {what} (from {label})", path=path,
                             column=col_for, sample=k, hint="check the expression and the data")
         nan = np.isnan(val)
         if nan.all():
@@ -395,6 +452,38 @@ def load_record(model, path, *, name: str | None = None) -> Record:
         a.setflags(write=False)
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
                   u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw)
+
+
+def most_extreme_sample(records) -> tuple[Record, str, int, float] | None:
+    """The sample farthest from its channel's bulk, over every input and output of ``records``.
+
+    Distance is the robust z-score ``|v - median| / (1.4826 MAD)`` of each channel
+    (NaN ignored; a channel with MAD = 0 uses the mean absolute deviation, and a
+    constant channel is skipped). Used to locate the culprit when the estimator
+    cannot start on data that passed the per-value checks. Returns
+    ``(record, channel, sample, value)`` or None.
+    """
+    best = None
+    for rec in records:
+        for names, block in ((rec.input_names, rec.u), (rec.output_names, rec.y)):
+            for j, nm in enumerate(names):
+                v = np.asarray(block[:, j], dtype=np.float64)
+                ok = np.isfinite(v)
+                if ok.sum() < 3:
+                    continue
+                with np.errstate(all="ignore"):
+                    med = float(np.median(v[ok]))
+                    dev = np.abs(v - med)
+                    scale = 1.4826 * float(np.median(dev[ok]))
+                    if not scale > 0:
+                        scale = float(np.mean(dev[ok]))
+                    if not scale > 0:
+                        continue
+                    z = np.where(ok, dev / scale, -np.inf)
+                k = int(np.argmax(z))
+                if best is None or z[k] > best[0]:
+                    best = (float(z[k]), rec, nm, k, float(v[k]))
+    return None if best is None else best[1:]
 
 
 def resolution(values) -> float:
@@ -463,4 +552,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MIN_SAMPLES", "Record", "check_time", "load_record", "resolution", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "load_record", "most_extreme_sample", "resolution", "write_csv"]

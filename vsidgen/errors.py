@@ -15,10 +15,26 @@ class VsidgenError(Exception):
     """Base class of every user-facing vsidgen error."""
 
 
+#: longest source line shown under an error message (longer lines are cut)
+MAX_SHOWN_LINE = 200
+
+
+def printable(text) -> str:
+    """``text`` with every non-printable character (line breaks, terminal escapes, NUL...)
+    written as its Python escape sequence, so a message is one harmless line per part."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
 def _caret_block(text: str | None, column: int | None, length: int | None) -> str:
     if not text:
         return ""
     first = text.splitlines()[0] if text.splitlines() else text
+    # one character per character, so the caret column stays right
+    first = "".join(c if c.isprintable() else "?" for c in first)
+    if len(first) > MAX_SHOWN_LINE:
+        first = first[:MAX_SHOWN_LINE] + "..."
+        if column is not None and column > MAX_SHOWN_LINE:
+            column = None
     out = f"\n    {first}"
     if column is not None and column >= 1:
         n = max(1, length or 1)
@@ -71,13 +87,13 @@ class SpecError(VsidgenError):
         return Location(self.path, self.line, self.column)
 
     def render(self) -> str:
-        out = f"{self.location}: error: {self.message}"
+        out = f"{printable(self.location)}: error: {printable(self.message)}"
         if self.span is not None:
             out += _caret_block(self.text, self.span[0], self.span[1])
         else:
             out += _caret_block(self.text, None, None)
         if self.hint:
-            out += f"\n  hint: {self.hint}"
+            out += f"\n  hint: {printable(self.hint)}"
         return out
 
 
@@ -94,10 +110,11 @@ class SpecWarning:
     code: str = "warning"
 
     def __str__(self) -> str:
-        out = f"{Location(self.path, self.line, self.column)}: warning: {self.message}"
+        out = (f"{printable(Location(self.path, self.line, self.column))}: warning: "
+               f"{printable(self.message)}")
         out += _caret_block(self.text, None, None)
         if self.hint:
-            out += f"\n  hint: {self.hint}"
+            out += f"\n  hint: {printable(self.hint)}"
         return out
 
 

@@ -215,6 +215,50 @@ def _check_number(ctx, value, node):
     return sympy.Float(repr(value), 15)
 
 
+def _usable_constant(value) -> bool:
+    """True when the constant ``value`` is real, finite and 0 or of magnitude in [1e-300, 1e300].
+
+    Compared in sympy's arbitrary-exponent floats, so 1e-600 and 1e600 are seen as such
+    (in IEEE doubles they would silently become 0 and inf).
+    """
+    try:
+        v = value if value.is_Number else value.evalf(15)
+        if not (v.is_Number and v.is_finite and v.is_extended_real):
+            return False
+        mag = abs(v)
+        return bool(mag == 0 or (sympy.Float(1 / MAX_CONSTANT) <= mag <= sympy.Float(MAX_CONSTANT)))
+    except (OverflowError, ValueError, TypeError, ZeroDivisionError, AttributeError):
+        return False
+
+
+def _folded(ctx: _Ctx, result, node: ast.AST):
+    """``result`` of the operation at ``node``, refused when folding made it unusable.
+
+    sympy folds numbers and merges powers as it builds (``1e300*1e300`` is one Float
+    1e600, ``(a**100)**100`` is ``a**10000``, ``a**100*a**100`` is ``a**200``). The new
+    node and its direct arguments -- where folding puts its results -- must hold only
+    numbers of magnitude at most :data:`MAX_CONSTANT` and numeric exponents of magnitude
+    at most :data:`MAX_EXPONENT`.
+    """
+    if not isinstance(result, sympy.Basic):
+        return result
+    for part in (result, *result.args):
+        if part in (sympy.zoo, sympy.oo, -sympy.oo, sympy.nan):
+            raise _error(ctx, "this part of the expression is not finite "
+                              "(division by zero or an infinite value)", node)
+        if part.is_number and not isinstance(part, (sympy.Tuple, sympy.logic.boolalg.Boolean)):
+            if not _usable_constant(part):
+                raise _error(ctx, "the constant part of this expression is not a real number of "
+                                  f"magnitude between {1 / MAX_CONSTANT:g} and {MAX_CONSTANT:g} "
+                                  "(or 0)", node,
+                             hint="write the value as a number literal; check the constant factors")
+        if part.is_Pow and part.exp.is_Number and abs(part.exp) > MAX_EXPONENT:
+            raise _error(ctx, f"the total exponent of this power exceeds {MAX_EXPONENT}", node,
+                         hint=f"powers (also nested ones such as (a**10)**20) must have exponents "
+                              f"of magnitude at most {MAX_EXPONENT}")
+    return result
+
+
 def _convert(ctx: _Ctx, node: ast.AST, depth: int):
     if depth > MAX_DEPTH:
         raise _error(ctx, "expression is nested too deeply", node,
@@ -228,7 +272,7 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
     if isinstance(node, ast.UnaryOp):
         operand = _convert(ctx, node.operand, depth + 1)
         if isinstance(node.op, ast.USub):
-            return -operand
+            return _folded(ctx, -operand, node)
         if isinstance(node.op, ast.UAdd):
             return operand
         raise _error(ctx, f"operator `{_op_text(node.op)}` is not allowed", node,
@@ -249,19 +293,20 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
             if right.is_Number and (not right.is_finite or abs(right) > MAX_EXPONENT):
                 raise _error(ctx, "exponent is too large", node.right,
                              hint=f"exponents must be at most {MAX_EXPONENT} in magnitude")
-            if left.is_Number and right.is_Number and abs(left) > 1e6 and abs(right) > 1:
+            if left.is_Number and right.is_Number and abs(right) > 1 and (
+                    abs(left) >= 1e6 or (left != 0 and abs(left) <= 1e-6)):
                 raise _error(ctx, "power of a large constant", node,
                              hint="write the value as a number literal")
-            return left ** right
+            return _folded(ctx, left ** right, node)
         if isinstance(op, ast.Add):
-            return left + right
+            return _folded(ctx, left + right, node)
         if isinstance(op, ast.Sub):
-            return left - right
+            return _folded(ctx, left - right, node)
         if isinstance(op, ast.Mult):
-            return left * right
-        return left / right
+            return _folded(ctx, left * right, node)
+        return _folded(ctx, left / right, node)
     if isinstance(node, ast.Call):
-        return _call(ctx, node, depth)
+        return _folded(ctx, _call(ctx, node, depth), node)
     raise _error(ctx, _describe(node) + " is not allowed in an expression", node,
                  hint="expressions may use numbers, declared names, + - * / **, and the "
                       "functions " + ", ".join(FUNCTIONS))

@@ -90,7 +90,7 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
     Raises:
         SpecError: invalid spec, or stale module with ``build=False``.
     """
-    from .codegen import build_model, embedded_hash
+    from .codegen import build_model, is_up_to_date
     from .errors import SpecError
     from .symbolic import compile_spec
 
@@ -99,7 +99,7 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
     module_path = out_dir / f"{symbolic.name}.py"
     if build:
         build_model(symbolic, out_dir=out_dir)
-    elif embedded_hash(module_path) != symbolic.source_hash:
+    elif not is_up_to_date(symbolic, module_path):
         raise SpecError(f"generated module {module_path} is missing or out of date",
                         path=spec_path, hint=f"run `vsidgen build {spec_path}`")
     module = _import_module(module_path, symbolic.name, symbolic.source_hash)

@@ -19,8 +19,9 @@ from . import __version__
 from .codegen import display_path
 from .data import Record, load_record, write_csv
 from .errors import VsidgenError
-from .evaluation import evaluate
 from .model import Model, load_model
+from .atomic import plan_output_dir, print_recovered
+from .limits import check_input_file
 from .results import atomic_directory, dumps, signals_table, write_text_atomic
 
 
@@ -78,6 +79,8 @@ def _unique_names(records: Sequence[Record]) -> list[Record]:
 
 
 def _evaluate_all(model, records, fit, *, integrator, substeps):
+    from .evaluation import evaluate  # imports jax: not needed to refuse bad arguments
+
     signals = []
     for rec, sm in zip(records, fit.smoothers):
         signals.append(evaluate(model, rec, fit.theta, mu=np.asarray(sm.mu), G=fit.G, R=fit.R,
@@ -105,6 +108,31 @@ def _validation_warnings(vresult) -> list[dict]:
                         f"ELBO {vresult.elbo:.6g} is not its maximum and must not be compared"}]
 
 
+def _fit_located(fit, model, records, options):
+    """``fit(...)``, turning a start-up failure caused by the data into a located DataError.
+
+    Records have passed :func:`vsidgen.data.load_record` (finite values of magnitude
+    at most 1e150); a failure of the linear algebra can then still come from an
+    absurd sample: the message names the sample farthest from its channel's bulk
+    (:func:`most_extreme_sample`) instead of an internal error.
+    """
+    from .data import most_extreme_sample, fmt_number
+    from .errors import DataError, FitError
+
+    try:
+        return fit(model, records, options=options)
+    except (np.linalg.LinAlgError, FloatingPointError) as err:
+        where = most_extreme_sample(records)
+        if where is None:
+            raise FitError(f"the estimator cannot start on these records ({err})") from None
+        rec, channel, k, value = where
+        raise DataError(f"the estimator cannot start on this record ({type(err).__name__}); "
+                        f"the most extreme sample is {channel} = {fmt_number(value)}",
+                        path=rec.path, column=channel, sample=k,
+                        hint="check that sample (a corrupt value or a unit mistake) and the "
+                             "spec's initial values") from None
+
+
 def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             out: str | os.PathLike, validate: Sequence[str | os.PathLike] = (),
             integrator: str | None = None, substeps: int | None = None,
@@ -112,26 +140,44 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             init_states: str = "measured", noise_start: str = "auto",
             generated_dir: str | os.PathLike | None = None,
             progress: Callable | None = None, report: bool = False,
-            reference: str | None = None) -> FitJob:
+            reference: str | None = None, overwrite: bool = False) -> FitJob:
     """Fit ``spec`` to the ``data`` records and write the results directory ``out``.
 
     Validation records (``validate``) are smoothed with θ and the noise fixed at
     the estimates (the paper's validation mode) and evaluated separately.
-    """
-    from .estimator import FitOptions, fit, smooth
 
+    Every argument is checked before any computation: the records are regular
+    files within the size limit, the reference file exists and parses, and
+    ``out`` may be written (:func:`vsidgen.atomic.plan_output_dir`: a non-empty
+    directory that is not a vsidgen results directory needs ``overwrite``, and
+    even then only vsidgen's files in it are replaced).
+    """
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
+    for p in list(data) + list(validate):
+        check_input_file(p, what="data file")
+    ref_path = None
+    if reference is not None:
+        from .report import _parse_reference
+        ref_path = _parse_reference(reference)[2]
+    plan = plan_output_dir(out, overwrite=overwrite,
+                           reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
+    print_recovered(plan)
+    from .symbolic import compile_spec
+
+    symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
+    records = _unique_names([load_record(symbolic, p) for p in data])
+    vrecords = _unique_names([load_record(symbolic, p) for p in validate])
+    from .estimator import FitOptions, fit, smooth
+
     model = load_model(spec, generated_dir=generated_dir)
     integrator = integrator or model.integrator
     substeps = int(substeps or model.substeps)
-    records = _unique_names([load_record(model, p) for p in data])
-    vrecords = _unique_names([load_record(model, p) for p in validate])
     t0 = time.perf_counter()
     options = FitOptions(integrator=integrator, substeps=substeps, max_iter=max_iter,
                          init_states=init_states, noise_start=noise_start, optimizer=optimizer,
                          progress=progress)
-    result = fit(model, records, options=options)
+    result = _fit_located(fit, model, records, options)
     vresult = None
     if vrecords:
         vresult = smooth(model, vrecords, result.theta, result,
@@ -190,7 +236,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         "signals": {s.record: f"signals_{s.record}.csv" for s in signals + vsignals},
     }
 
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, plan=plan, command="fit") as tmp:
         for s, sm in list(zip(signals, result.smoothers)) + list(
                 zip(vsignals, vresult.smoothers if vresult is not None else [])):
             mu_std = np.sqrt(np.diag(np.asarray(sm.cov_marg)))
@@ -199,5 +245,5 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         write_text_atomic(tmp / "results.json", dumps(results))
         if report:
             from .report import write_report
-            write_report(tmp, reference=reference)
+            write_report(tmp, reference=reference, display_dir=out)
     return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult)

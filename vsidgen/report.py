@@ -25,10 +25,12 @@ from __future__ import annotations
 import base64
 import csv
 import datetime as _dt
+import hashlib
 import io
 import json
 import math
 import pathlib
+import os
 import platform
 import re
 from collections.abc import Iterable, Mapping, Sequence
@@ -38,6 +40,7 @@ import numpy as np
 
 from .atomic import write_text_atomic
 from .errors import VsidgenError
+from .limits import check_input_file
 
 __all__ = ["write_report", "SIGNAL_STYLE", "STRONG_CORRELATION"]
 
@@ -80,9 +83,10 @@ def _load_results(results_dir: pathlib.Path) -> dict:
         raise VsidgenError(f"{results_dir}: error: not a directory (expected a fit's results "
                            "directory containing results.json)")
     path = results_dir / "results.json"
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise VsidgenError(f"{path}: error: results.json not found; is {results_dir} the output "
                            "directory of `vsidgen fit`?")
+    path = contained_file(results_dir, "results.json", what="results file")
     try:
         res = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
@@ -102,6 +106,42 @@ def _load_results(results_dir: pathlib.Path) -> dict:
     return res
 
 
+def contained_file(results_dir: pathlib.Path, name: object, *, what: str) -> pathlib.Path:
+    """The regular file ``results_dir/name``, refusing anything that leaves the directory.
+
+    ``name`` comes from ``results.json`` and is untrusted: it must be a relative
+    path without ``..`` parts, and the file it names (after resolving symbolic
+    links) must lie inside ``results_dir`` and be a regular file within the size
+    limit of :func:`vsidgen.limits.json_limit`. Messages name the path but never
+    show the content of a file outside the directory.
+
+    Raises:
+        VsidgenError: any of these fails.
+    """
+    text = name if isinstance(name, str) else None
+    shown = repr(text[:200]) if text is not None else type(name).__name__
+    if not text or "\x00" in text or os.path.isabs(text) or text.startswith(("/", "\\")):
+        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} is not a "
+                           "relative file name inside the results directory")
+    parts = pathlib.PurePosixPath(text.replace("\\", "/")).parts
+    if any(part in ("..", "") for part in parts):
+        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} leaves the "
+                           "results directory ('..' is not allowed)")
+    path = results_dir / text
+    if not os.path.lexists(path):
+        raise VsidgenError(f"{path}: error: {what} listed in results.json is missing")
+    root = results_dir.resolve()
+    try:
+        real = path.resolve()
+    except (OSError, RuntimeError):
+        raise VsidgenError(f"{path}: error: cannot resolve {what} (a symbolic-link loop?)") from None
+    if root not in real.parents:
+        raise VsidgenError(f"{path}: error: {what} is a symbolic link that leaves the results "
+                           "directory; vsidgen reads only files inside it")
+    check_input_file(path, what=what, kind="json", data_error=False)
+    return path
+
+
 def _num(v) -> float:
     """JSON value -> float (None/'' -> nan)."""
     if v is None or v == "":
@@ -114,7 +154,7 @@ def _num(v) -> float:
 
 def _read_signals(path: pathlib.Path) -> dict[str, np.ndarray]:
     """Read a signals CSV into {column: float array}; empty cells are NaN."""
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise VsidgenError(f"{path}: error: signals file listed in results.json is missing")
     try:
         with open(path, newline="", encoding="utf-8") as fh:
@@ -137,15 +177,15 @@ def _read_signals(path: pathlib.Path) -> dict[str, np.ndarray]:
                 try:
                     data[i, j] = float(cell)
                 except ValueError:
-                    raise VsidgenError(f"{path}:{i + 2}: error: column `{header[j]}`: "
-                                       f"not a number: {cell!r}") from None
+                    raise VsidgenError(f"{path}:{i + 2}: error: column `{header[j][:80]}`: "
+                                       f"not a number: {cell[:40]!r}") from None
     return {h: data[:, j] for j, h in enumerate(header)}
 
 
-def _parse_reference(reference) -> tuple[dict[str, dict], str]:
-    """``PATH`` or ``PATH:method`` -> ({name: {value, std}}, label)."""
+def _parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | None]:
+    """``PATH`` or ``PATH:method`` -> ({name: {value, std}}, label, path)."""
     if reference is None:
-        return {}, ""
+        return {}, "", None
     text = str(reference)
     path, method = pathlib.Path(text), None
     if not path.is_file():
@@ -155,10 +195,13 @@ def _parse_reference(reference) -> tuple[dict[str, dict], str]:
         else:
             raise VsidgenError(f"{text}: error: reference file not found "
                                "(expected PATH or PATH:method)")
+    check_input_file(path, what="reference file", kind="json", data_error=False)
     try:
         ref = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise VsidgenError(f"{path}: error: cannot read reference JSON: {err}") from None
+        raise VsidgenError(f"{path}: error: cannot read reference JSON: "
+                           f"{type(err).__name__} at {getattr(err, 'lineno', '?')}:"
+                           f"{getattr(err, 'colno', '?')}") from None
     if not isinstance(ref, dict):
         raise VsidgenError(f"{path}: error: reference file must hold a JSON object")
     methods = [k for k, v in ref.items() if isinstance(v, dict) and isinstance(v.get("parameters"), dict)]
@@ -184,7 +227,7 @@ def _parse_reference(reference) -> tuple[dict[str, dict], str]:
             out[name] = {"value": _num(v), "std": math.nan}
     if isinstance(section.get("R_diag"), Mapping):
         out["__R_diag__"] = {k: _num(v) for k, v in section["R_diag"].items()}
-    return out, label
+    return out, label, path
 
 
 # --------------------------------------------------------------------------- numerics
@@ -616,7 +659,7 @@ def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: st
     if not sig_file:
         sec["missing"] = "no signals file recorded for this record in results.json"
         return sec
-    sig = _read_signals(results_dir / sig_file)
+    sig = _read_signals(contained_file(results_dir, sig_file, what="signals file"))
     t = sig["t_s"]
     dt = _num(rec.get("dt"))
     if not (math.isfinite(dt) and dt > 0):
@@ -687,7 +730,8 @@ def _versions(res: dict) -> list[tuple[str, str]]:
 
 
 def write_report(results_dir, *, out=None, reference=None, title: str | None = None,
-                 extra_sections: Sequence[tuple[str, str]] | None = None) -> pathlib.Path:
+                 extra_sections: Sequence[tuple[str, str]] | None = None,
+                 display_dir: str | os.PathLike | None = None) -> pathlib.Path:
     """Render a fit's results directory into one self-contained HTML file.
 
     Args:
@@ -704,6 +748,12 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
         title: page title (default ``"vsidgen report: <spec name>"``).
         extra_sections: ``(title, html)`` pairs appended as extra sections (e.g. the
             discrepancy analysis); ``html`` is inserted verbatim (trusted).
+        display_dir: the directory named in the footer (default ``results_dir``;
+            ``vsidgen fit`` passes its final ``--out`` while it writes a temporary one).
+
+    Only files inside ``results_dir`` are read (:func:`contained_file`); the page's
+    one inline script is allowed by its SHA-256 hash in the Content-Security-Policy
+    (no ``'unsafe-inline'`` scripts).
 
     Returns:
         The path of the written report.
@@ -716,7 +766,7 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
 
     results_dir = pathlib.Path(results_dir)
     res = _load_results(results_dir)
-    ref, ref_label = _parse_reference(reference)
+    ref, ref_label, _ = _parse_reference(reference)
     out_path = pathlib.Path(out) if out is not None else results_dir / "report.html"
 
     outputs = _vars(res["model"].get("outputs"))
@@ -765,7 +815,7 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
         "criteria": _CRITERIA, "style": SIGNAL_STYLE,
         "extra_sections": [(str(t), Markup(h)) for t, h in (extra_sections or [])],
         "generated": _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "results_dir": str(results_dir),
+        "results_dir": str(display_dir if display_dir is not None else results_dir),
     }
     n_fig = (1 if corr_fig else 0) + sum(
         2 * len(r["outputs"]) + len(r["states"]) for s in sections for r in s["records"])
@@ -779,6 +829,10 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
                              undefined=jinja2.StrictUndefined, trim_blocks=True,
                              lstrip_blocks=True)
     try:
+        script = env.get_template("report_check.js.j2").render()
+        ctx["check_script"] = Markup(script.replace("</", "<\\/"))
+        ctx["script_hash"] = "sha256-" + base64.b64encode(
+            hashlib.sha256(str(ctx["check_script"]).encode("utf-8")).digest()).decode("ascii")
         html = env.get_template("report.html.j2").render(**ctx)
     except jinja2.TemplateError as err:
         raise VsidgenError(f"{tdir / 'report.html.j2'}: error: cannot render report "

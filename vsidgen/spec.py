@@ -20,7 +20,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import pathlib
+import stat
 from typing import Any
 
 import yaml
@@ -35,6 +37,13 @@ NAMED_SECTIONS = ("states", "inputs", "outputs", "constants", "parameters", "def
                   "drift", "observations")
 MERGED_SECTIONS = ("noise", "data")
 ADD_TERM_SECTIONS = ("definitions", "drift", "observations")
+
+#: largest spec file read (bytes); the shipped specs are 1-4 KiB
+MAX_SPEC_BYTES = 1 << 20
+#: most YAML values one spec file may expand to, aliases (``*name``) counted at every use
+MAX_YAML_NODES = 100_000
+#: file name endings an ``extends`` target must have
+SPEC_SUFFIXES = (".yaml", ".yml")
 
 _ENTRY_WORD = {
     "drift": "equation for state", "observations": "equation for output",
@@ -215,10 +224,29 @@ class _Constructor(yaml.constructor.SafeConstructor):
     pass
 
 
-def _convert(node, path, src, parent_key, constructor, depth=0) -> YNode:
+class _Budget:
+    """Counts the YAML values built from one file (an alias counts at every use)."""
+
+    def __init__(self, limit: int):
+        self.left = limit
+
+    def take(self, node, path) -> None:
+        self.left -= 1
+        if self.left < 0:
+            raise SpecError(f"the spec expands to more than {MAX_YAML_NODES} YAML values",
+                            path=path, line=node.start_mark.line + 1,
+                            column=node.start_mark.column + 1,
+                            hint="YAML aliases (*name) repeat their anchor's content at every "
+                                 "use; nested aliases multiply it (an alias bomb)")
+
+
+def _convert(node, path, src, parent_key, constructor, depth=0, budget=None) -> YNode:
     if depth > 50:
         raise SpecError("YAML nesting is too deep", path=path, line=node.start_mark.line + 1,
                         column=node.start_mark.column + 1)
+    if budget is None:
+        budget = _Budget(MAX_YAML_NODES)
+    budget.take(node, path)
     line, col = node.start_mark.line + 1, node.start_mark.column + 1
     if isinstance(node, yaml.MappingNode):
         out: dict[str, YNode] = {}
@@ -242,20 +270,24 @@ def _convert(node, path, src, parent_key, constructor, depth=0) -> YNode:
                                 text=_line_text(src, knode.start_mark.line + 1),
                                 hint=f"`{key}` is already given on line {first.key_line}; "
                                      f"YAML would silently keep only the last one")
-            child = _convert(vnode, path, src, key, constructor, depth + 1)
+            child = _convert(vnode, path, src, key, constructor, depth + 1, budget)
             child.key_line = knode.start_mark.line + 1
             child.key_column = knode.start_mark.column + 1
             out[key] = child
         return YNode("map", out, path, line, col, src=src, start_index=node.start_mark.index,
                      end_index=node.end_mark.index)
     if isinstance(node, yaml.SequenceNode):
-        items = [_convert(v, path, src, parent_key, constructor, depth + 1) for v in node.value]
+        items = [_convert(v, path, src, parent_key, constructor, depth + 1, budget)
+                 for v in node.value]
         return YNode("seq", items, path, line, col, src=src, start_index=node.start_mark.index,
                      end_index=node.end_mark.index)
     try:
         value = constructor.construct_object(node, deep=True)
     except yaml.YAMLError as exc:
-        raise SpecError(f"invalid YAML value: {exc}", path=path, line=line, column=col) from None
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise SpecError(f"invalid YAML value: {problem}", path=path, line=line, column=col,
+                        text=_line_text(src, line),
+                        hint="vsidgen reads plain YAML: no language-specific tags") from None
     except Exception:
         value = node.value
     if not isinstance(value, (str, int, float, bool, type(None))):
@@ -264,21 +296,62 @@ def _convert(node, path, src, parent_key, constructor, depth=0) -> YNode:
                  start_index=node.start_mark.index, end_index=node.end_mark.index)
 
 
-def load_yaml(path) -> YNode:
-    """Read one YAML file into a :class:`YNode` tree (SpecError on any problem)."""
+def read_spec_text(path, *, where: dict | None = None) -> str:
+    """The text of a spec file, refusing anything that is not a small regular file.
+
+    The file is opened non-blocking (a FIFO cannot hang the open), checked with
+    ``fstat`` on the open descriptor (a regular file, at most :data:`MAX_SPEC_BYTES`)
+    and read to at most that many bytes; so ``/dev/zero``, FIFOs, sockets, directories
+    and huge files are refused before their content is read. ``where``: the location
+    to report (the ``extends`` line) instead of the file itself.
+    """
     path = pathlib.Path(path)
+    loc = where if where is not None else {"path": path}
+    what = "`extends` target" if where is not None else "spec file"
     try:
-        src = path.read_text(encoding="utf-8")
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
-        raise SpecError("spec file not found", path=path,
+        raise SpecError(f"{what} not found", **loc,
                         hint="check the path (relative paths are relative to the current "
                              "directory, or to the extending spec for `extends`)") from None
     except IsADirectoryError:
-        raise SpecError("spec path is a directory, not a file", path=path) from None
-    except UnicodeDecodeError as exc:
-        raise SpecError(f"spec file is not UTF-8 text ({exc.reason})", path=path) from None
+        raise SpecError(f"{what} is a directory, not a file", **loc) from None
     except OSError as exc:
-        raise SpecError(f"cannot read spec file: {exc.strerror}", path=path) from None
+        raise SpecError(f"cannot open {what}: {exc.strerror}", **loc) from None
+    try:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise SpecError(f"{what} is a directory, not a file", **loc)
+        if not stat.S_ISREG(info.st_mode):
+            raise SpecError(f"{what} is not a regular file (a device, FIFO or socket)", **loc,
+                            hint="a spec is a YAML text file")
+        if info.st_size > MAX_SPEC_BYTES:
+            raise SpecError(f"{what} is too large ({info.st_size} bytes; at most "
+                            f"{MAX_SPEC_BYTES} bytes)", **loc)
+        with os.fdopen(fd, "rb", closefd=True) as fh:
+            fd = -1
+            data = fh.read(MAX_SPEC_BYTES + 1)
+    except OSError as exc:
+        raise SpecError(f"cannot read {what}: {exc.strerror}", **loc) from None
+    finally:
+        if fd >= 0:
+            os.close(fd)
+    if len(data) > MAX_SPEC_BYTES:
+        raise SpecError(f"{what} is too large (more than {MAX_SPEC_BYTES} bytes)", **loc)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SpecError(f"{what} is not UTF-8 text ({exc.reason} at byte {exc.start})",
+                        **loc) from None
+
+
+def load_yaml(path) -> YNode:
+    """Read one YAML file into a :class:`YNode` tree (SpecError on any problem)."""
+    path = pathlib.Path(path)
+    src = read_spec_text(path)
+    if "\x00" in src:
+        raise SpecError("spec file contains a NUL character", path=path,
+                        line=src[:src.index("\x00")].count("\n") + 1)
     try:
         node = yaml.compose(src, Loader=yaml.SafeLoader)
     except yaml.MarkedYAMLError as exc:
@@ -291,6 +364,8 @@ def load_yaml(path) -> YNode:
                               "expressions that start with special characters")) from None
     except yaml.YAMLError as exc:
         raise SpecError(f"YAML error: {exc}", path=path) from None
+    except RecursionError:
+        raise SpecError("YAML nesting is too deep", path=path, line=1, column=1) from None
     if node is None:
         raise SpecError("spec file is empty", path=path, line=1, column=1,
                         hint="a spec needs at least name, states, drift")
@@ -377,6 +452,53 @@ def _collect_add_terms(root: YNode) -> list[AddTerm]:
     return out
 
 
+def _extends_target(ext: YNode, path: pathlib.Path) -> pathlib.Path:
+    """The file an ``extends`` value names, checked before anything is read from it.
+
+    Allowed: a path (relative to the extending spec's folder, or absolute) to a regular
+    file whose name -- and, through symbolic links, whose target's name -- ends in
+    ``.yaml`` or ``.yml``, of at most :data:`MAX_SPEC_BYTES` bytes. Errors point at the
+    ``extends`` line and never show the target's content.
+    """
+    target = ext.string("`extends`")
+    shown = repr(target)[1:-1]
+    if len(shown) > 200:
+        shown = shown[:200] + "..."
+    hint = (f"`extends` names a YAML spec (.yaml or .yml), relative to "
+            f"{path.parent.as_posix() or '.'} or absolute")
+    if not target.strip() or "\x00" in target:
+        raise SpecError("`extends` must name a spec file", **ext.loc, text=ext.source_line(),
+                        hint=hint)
+    ppath = path.parent / target
+    if not target.lower().endswith(SPEC_SUFFIXES):
+        raise SpecError(f"`extends`: `{shown}` is not a YAML spec file", **ext.loc,
+                        text=ext.source_line(), hint=hint)
+    try:
+        real = ppath.resolve()
+        exists = ppath.exists()
+    except (OSError, RuntimeError, ValueError):
+        raise SpecError(f"`extends`: cannot resolve `{shown}`", **ext.loc,
+                        text=ext.source_line(), hint=hint) from None
+    if not exists:
+        raise SpecError(f"`extends`: file `{shown}` not found", **ext.loc,
+                        text=ext.source_line(), hint=hint)
+    if not real.name.lower().endswith(SPEC_SUFFIXES):
+        raise SpecError(f"`extends`: `{shown}` links to a file that is not a YAML spec "
+                        f"(.yaml/.yml)", **ext.loc, text=ext.source_line(), hint=hint)
+    try:
+        info = real.stat()
+    except OSError as exc:
+        raise SpecError(f"`extends`: cannot read `{shown}`: {exc.strerror}", **ext.loc,
+                        text=ext.source_line(), hint=hint) from None
+    if not stat.S_ISREG(info.st_mode):
+        raise SpecError(f"`extends`: `{shown}` is not a regular file", **ext.loc,
+                        text=ext.source_line(), hint=hint)
+    if info.st_size > MAX_SPEC_BYTES:
+        raise SpecError(f"`extends`: `{shown}` is too large ({info.st_size} bytes; at most "
+                        f"{MAX_SPEC_BYTES})", **ext.loc, text=ext.source_line(), hint=hint)
+    return ppath
+
+
 def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
     """Load a spec and everything it ``extends``, merged (see module docstring)."""
     path = pathlib.Path(path)
@@ -390,12 +512,7 @@ def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
     parent: RawSpec | None = None
     ext = top.get("extends")
     if ext is not None:
-        target = ext.string("`extends`")
-        ppath = (path.parent / target)
-        if not ppath.exists():
-            raise SpecError(f"`extends`: file `{target}` not found", **ext.loc,
-                            text=ext.source_line(),
-                            hint=f"the path is relative to {path.parent.as_posix() or '.'}")
+        ppath = _extends_target(ext, path)
         try:
             parent = load_spec(ppath, _stack=_stack + (resolved,))
         except SpecError as err:
@@ -421,4 +538,4 @@ def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
 
 
 __all__ = ["YNode", "RawSpec", "AddTerm", "load_yaml", "load_spec", "keys_check",
-           "TOP_LEVEL_KEYS"]
+           "read_spec_text", "TOP_LEVEL_KEYS", "MAX_SPEC_BYTES", "MAX_YAML_NODES", "SPEC_SUFFIXES"]

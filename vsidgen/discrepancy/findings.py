@@ -310,7 +310,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         parts.append("</table>")
     for f in doc["findings"]:
         ev = f["evidence"]
-        parts.append(f"<h3>{f['rank']}. {e(f['title'])} — {e(f['target'])}</h3>"
+        parts.append(f"<h3>{e(str(f['rank']))}. {e(f['title'])} — {e(f['target'])}</h3>"
                      f"<p>{e(f['explanation'])}</p>")
         terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
                           for sect, d in f["added_terms"].items() for k, v in d.items())
@@ -321,8 +321,9 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                          for k, p in f["parameters"].items() if p.get("estimate") is not None)
         parts.append(f"<p><b>Estimates:</b> {e(ptxt)}</p>")
         parts.append(f"<p><b>Evidence:</b> ELBO {ev['elbo_before']:.6g} → {ev['elbo_after']:.6g}; "
-                     f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({ev['dof']}) threshold "
-                     f"{ev['threshold']:.4g} (α = {ev['alpha']}, {ev['n_candidates']} candidates, "
+                     f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({e(str(ev['dof']))}) threshold "
+                     f"{ev['threshold']:.4g} (α = {e(str(ev['alpha']))}, "
+                     f"{e(str(ev['n_candidates']))} candidates, "
                      f"Holm)</p>")
         if f.get("alternatives"):
             parts.append("<p><b>" + ("Ambiguous" if f.get("ambiguous") else "Form uncertain")

@@ -52,8 +52,10 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import StopReason
+from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
@@ -680,12 +682,16 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
-                 progress: Callable[[str], None] | None = None) -> DiagnoseResult:
+                 progress: Callable[[str], None] | None = None,
+                 overwrite: bool = False) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
 
     Writes ``out/findings.json``, ``out/diagnose.html`` (report section, also
     returned in the document), ``out/candidates/*.yaml`` (every refitted
-    candidate spec) and ``out/generated/`` (their compiled modules).
+    candidate spec) and ``out/generated/`` (their compiled modules), directly into
+    ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
+    checked before any computation, and a non-empty directory that is not a
+    vsidgen results directory needs ``overwrite`` (its other files are kept).
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -710,8 +716,29 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         if bad:
             raise VsidgenError(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(sorted(known))}")
         catalogue = [e for e in catalogue if e.id in set(effects)]
-    out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if max_iter < 1:
+        raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
+    for p in list(data) + list(validate):
+        check_input_file(p, what="data file")
+    plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
+    print_recovered(plan)
+    from ..data import load_record
+    from ..symbolic import compile_spec
+
+    symbolic = compile_spec(spec)  # bad records are refused before any fit
+    for p in list(data) + list(validate):
+        load_record(symbolic, p)
+    with results_in_place(plan, command="diagnose") as out:
+        return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
+                             max_candidates=max_candidates, alpha=alpha, min_score=min_score,
+                             catalogue=catalogue, max_iter=max_iter, screen=screen,
+                             progress=progress, version=__version__,
+                             build_document=build_document, write_findings=write_findings)
+
+
+def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
+                  catalogue, max_iter, screen, progress, version, build_document,
+                  write_findings) -> DiagnoseResult:
     gen = out / "generated"
     t_start = time.perf_counter()
 
@@ -849,7 +876,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         evidence = locate_state(current)
     doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
                          evidence=evidence0, final_evidence=evidence, alpha=alpha,
-                         version=__version__, wall_time_s=time.perf_counter() - t_start,
+                         version=version, wall_time_s=time.perf_counter() - t_start,
                          out=out, options={"max_rounds": max_rounds,
                                            "max_candidates": max_candidates,
                                            "alpha": alpha, "min_score": min_score,
@@ -896,6 +923,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty DIR that is not a vsidgen results directory "
+                        "(only vsidgen's files are replaced; other files are kept)")
     p.set_defaults(handler=diagnose_command)
     return p
 
@@ -907,7 +937,7 @@ def diagnose_command(args) -> int:
                        max_rounds=args.max_rounds, max_candidates=args.max_candidates,
                        alpha=args.alpha, min_score=args.min_score, effects=args.effects,
                        effects_module=args.effects_module, max_iter=args.max_iter,
-                       screen=args.screen, progress=progress)
+                       screen=args.screen, progress=progress, overwrite=args.overwrite)
     if not res.findings:
         print(f"no significant discrepancy found; findings in {res.out_dir / 'findings.json'}")
     else:

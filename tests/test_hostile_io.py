@@ -1,0 +1,372 @@
+"""Hostile and careless input on the I/O side (issue 12), each case through the CLI.
+
+Every case runs ``python -m vsidgen.cli ...`` in a subprocess with a temporary
+working directory holding a folder of the user's files (a spec, records, notes),
+under a wall-clock timeout and an address-space limit (``RLIMIT_AS``), and asserts:
+
+* exit status 2 and a message on stderr that names the file and, for data
+  values, the column and the sample; no ``Traceback`` and no ``internal error``;
+* nothing was executed (no ``SENTINEL`` file appears; several inputs carry code
+  that would create it);
+* no file of the user's changed: content hash, permission bits and the set of
+  entries of every file and folder under the temporary directory are the same
+  before and after.
+
+The cases are refused before any fitting, so the corpus stays cheap. Static inputs
+are in ``tests/hostile/io/``; devices, pipes, oversized files, symbolic links and
+crafted results directories are made here. Crash recovery of the results-directory
+swap (item 9) is tested by killing a child process between the two renames.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import resource
+import shutil
+import stat
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+HOSTILE = ROOT / "tests" / "hostile" / "io"
+SPEC = ROOT / "specs" / "attas_sp.yaml"
+DATA = ROOT / "data" / "attas_sp_synthetic.csv"
+#: address-space limit of every child (JAX starts well below it; measured: under 2 GB)
+MEMORY_LIMIT = 3 << 30
+TIMEOUT_S = 120
+
+
+def _limit_memory():
+    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+
+
+def run_cli(args, cwd, env_extra=None, timeout=TIMEOUT_S):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env["VSIDGEN_CACHE_DIR"] = ""
+    env.pop("VSIDGEN_DEBUG", None)
+    env.update(env_extra or {})
+    return subprocess.run([sys.executable, "-m", "vsidgen.cli", *map(str, args)], cwd=cwd,
+                          env=env, capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=_limit_memory)
+
+
+def snapshot(root: pathlib.Path) -> dict:
+    """{relative path: (kind, permission bits, sha256 | link target)} of everything under root."""
+    out = {}
+    for dirpath, dirs, files in os.walk(root, followlinks=False):
+        for name in dirs + files:
+            p = pathlib.Path(dirpath) / name
+            st = os.lstat(p)
+            rel = p.relative_to(root).as_posix()
+            mode = stat.S_IMODE(st.st_mode)
+            if stat.S_ISLNK(st.st_mode):
+                out[rel] = ("link", mode, os.readlink(p))
+            elif stat.S_ISREG(st.st_mode):
+                out[rel] = ("file", mode, hashlib.sha256(p.read_bytes()).hexdigest())
+            elif stat.S_ISDIR(st.st_mode):
+                out[rel] = ("dir", mode, None)
+            else:
+                out[rel] = ("special", mode, stat.S_IFMT(st.st_mode))
+    out["."] = ("dir", stat.S_IMODE(os.lstat(root).st_mode), None)
+    return out
+
+
+@pytest.fixture
+def user_dir(tmp_path):
+    """A folder of the user's: spec, records, notes (mode 0750), and the hostile inputs."""
+    u = tmp_path / "user"
+    u.mkdir()
+    shutil.copy(SPEC, u / "attas_sp.yaml")
+    shutil.copy(DATA, u / "flight.csv")
+    (u / "notes.txt").write_text("my notes\n")
+    os.chmod(u, 0o750)
+    shutil.copytree(HOSTILE, tmp_path / "hostile")
+    return tmp_path
+
+
+def expect_refused(proc, *texts):
+    err = proc.stderr
+    assert proc.returncode == 2, (proc.returncode, err[-3000:], proc.stdout[-1000:])
+    assert "Traceback" not in err and "internal error" not in err, err
+    for t in texts:
+        assert t in err, (t, err)
+
+
+def _case(tmp: pathlib.Path, args, *texts, env=None):
+    before = snapshot(tmp)
+    proc = run_cli(args, tmp, env)
+    expect_refused(proc, *texts)
+    assert not (tmp / "SENTINEL").exists()
+    after = snapshot(tmp)
+    assert after == before, {k: (before.get(k), after.get(k))
+                             for k in set(before) | set(after) if before.get(k) != after.get(k)}
+    return proc
+
+
+# --------------------------------------------------------------------------- data files
+
+DATA_CASES = [
+    # (file under hostile/, expected texts in the message)
+    ("input_1e308.csv", ["input_1e308.csv", "column 'de_rad'", "sample 17", "1e+308"]),
+    ("output_1e308.csv", ["output_1e308.csv", "column 'alpha_rad'", "sample 23"]),
+    ("output_neg_inf.csv", ["output_neg_inf.csv", "column 'q_radps'", "sample 5", "-inf"]),
+    ("input_nan.csv", ["input_nan.csv", "column 'de_rad'", "sample 9"]),
+    ("time_1e300.csv", ["time_1e300.csv", "column 't_s'", "sample 0"]),
+    ("time_step_1e-300.csv", ["time_step_1e-300.csv", "column 't_s'", "sample period 1e-300 s"]),
+    ("time_epoch_1e300_step.csv", ["time_epoch_1e300_step.csv", "column 't_s'"]),
+    ("time_nan.csv", ["time_nan.csv", "column 't_s'", "sample 12"]),
+    ("code_in_cell.csv", ["code_in_cell.csv", "column 'alpha_rad'", "sample 3", "non-numeric"]),
+    ("code_in_header.csv", ["code_in_header.csv", "'alpha_rad' not found"]),
+    ("binary_garbage.csv", ["binary_garbage.csv"]),
+]
+
+
+@pytest.mark.parametrize("name,texts", DATA_CASES, ids=[c[0] for c in DATA_CASES])
+def test_fit_refuses_bad_record(user_dir, name, texts):
+    proc = _case(user_dir, ["fit", "user/attas_sp.yaml", f"hostile/{name}", "--out", "res",
+                            "--quiet"], *texts)
+    assert "np.float64" not in proc.stderr
+
+
+def test_fit_refuses_devices_pipes_directories(user_dir):
+    os.mkfifo(user_dir / "pipe.csv")
+    for data, text in (("/dev/zero", "character device"), ("pipe.csv", "named pipe"),
+                       ("user", "is a directory"), ("missing.csv", "not found")):
+        _case(user_dir, ["fit", "user/attas_sp.yaml", data, "--out", "res", "--quiet"], data, text)
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "user/flight.csv", "--validate", "/dev/zero",
+                     "--out", "res", "--quiet"], "/dev/zero", "character device")
+    _case(user_dir, ["simulate", "user/attas_sp.yaml", "--inputs-from", "/dev/zero",
+                     "--out", "sim.csv"], "/dev/zero", "character device")
+    _case(user_dir, ["check", "user/attas_sp.yaml", "--data", "/dev/zero"], "/dev/zero",
+          "character device")
+    _case(user_dir, ["check", "user/attas_sp.yaml", "--data", "pipe.csv"], "pipe.csv",
+          "named pipe")
+
+
+def test_fit_refuses_files_over_the_size_limit(user_dir):
+    big = user_dir / "big.csv"
+    with open(big, "wb") as fh:  # sparse: 3 MiB of nothing on disk
+        fh.truncate(3 << 20)
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "big.csv", "--out", "res", "--quiet"],
+          "big.csv", "3 MiB", "limit of 1 MiB", "VSIDGEN_MAX_DATA_BYTES",
+          env={"VSIDGEN_MAX_DATA_BYTES": "1M"})
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "big.csv", "--out", "res", "--quiet"],
+          "VSIDGEN_MAX_DATA_BYTES", "byte count", env={"VSIDGEN_MAX_DATA_BYTES": "lots"})
+
+
+# --------------------------------------------------------------------------- arguments, outputs
+
+def test_fit_never_writes_into_a_folder_of_the_users(user_dir):
+    """Item 2: the folder holding the spec, records and notes is refused as --out."""
+    proc = _case(user_dir, ["fit", "user/attas_sp.yaml", "user/flight.csv", "--out", "user",
+                            "--quiet"], "user", "not a vsidgen results directory", "--overwrite")
+    assert "notes.txt" in proc.stderr
+
+
+def test_arguments_checked_before_any_computation(user_dir):
+    """Item 5: each is refused before the fit (the fit would take seconds: time bound 60 s)."""
+    (user_dir / "afile").write_text("x")
+    base = ["fit", "user/attas_sp.yaml", "user/flight.csv", "--quiet"]
+    _case(user_dir, base + ["--out", "res", "--reference", "nope.json"], "nope.json", "not found")
+    _case(user_dir, base + ["--out", "res", "--reference", "/dev/zero"], "/dev/zero")
+    _case(user_dir, base + ["--out", "res", "--validate", "nope.csv"], "nope.csv", "not found")
+    _case(user_dir, base + ["--out", "afile"], "afile", "not a directory")
+    _case(user_dir, base + ["--out", "afile/res"], "afile", "not a directory")
+    _case(user_dir, base + ["--out", "res", "--max-iter", "0"], "--max-iter")
+    os.symlink("user", user_dir / "link")
+    _case(user_dir, base + ["--out", "link"], "link", "symbolic link")
+    _case(user_dir, ["diagnose", "user/attas_sp.yaml", "user/flight.csv", "--out", "user",
+                     "--quiet"], "user", "not a vsidgen results directory")
+    _case(user_dir, ["diagnose", "user/attas_sp.yaml", "nope.csv", "--out", "d", "--quiet"],
+          "nope.csv", "not found")
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,
+                    reason="root may write into read-only folders")
+def test_out_inside_read_only_parent(user_dir):
+    ro = user_dir / "ro"
+    ro.mkdir()
+    os.chmod(ro, 0o555)
+    try:
+        _case(user_dir, ["fit", "user/attas_sp.yaml", "user/flight.csv", "--out", "ro/res",
+                         "--quiet"], "ro", "not writable")
+    finally:
+        os.chmod(ro, 0o755)
+
+
+def test_simulate_never_writes_over_what_it_reads(user_dir):
+    """Item 8: --out naming the --inputs-from record, the spec, or through a link."""
+    base = ["simulate", "user/attas_sp.yaml", "--inputs-from", "user/flight.csv"]
+    _case(user_dir, base + ["--out", "user/flight.csv"], "user/flight.csv", "reads")
+    _case(user_dir, base + ["--out", "user/attas_sp.yaml"], "reads")
+    os.symlink("user/flight.csv", user_dir / "alias.csv")
+    _case(user_dir, base + ["--out", "alias.csv"], "alias.csv", "reads")
+    _case(user_dir, base + ["--out", "user"], "user", "is a directory")
+
+
+# --------------------------------------------------------------------------- results directories
+
+def _results_dir(d: pathlib.Path, signals_name: str = "signals_r.csv") -> pathlib.Path:
+    """A minimal crafted results directory whose results.json names ``signals_name``."""
+    d.mkdir()
+    res = {"spec": {"name": "m"}, "model": {"states": [], "outputs": [], "inputs": []},
+           "parameters": {}, "records": {"estimation": [{"name": "r", "dt": 0.1}]},
+           "signals": {"r": signals_name}}
+    (d / "results.json").write_text(json.dumps(res))
+    return d
+
+
+SECRET = "TOP-SECRET-CONTENT-1234"
+
+
+@pytest.mark.parametrize("kind", ["absolute", "dotdot", "symlink", "results_symlink",
+                                  "results_dev_zero", "signals_fifo"])
+def test_report_reads_only_inside_the_results_directory(user_dir, kind):
+    """Item 4: paths from a crafted results.json never leave DIR; foreign content never shown."""
+    secret = user_dir / "secret.csv"
+    secret.write_text(f"t_s,{SECRET}\n1,2\n")
+    if kind == "absolute":
+        d = _results_dir(user_dir / "res", str(secret))
+        texts = ["not a relative file name"]
+    elif kind == "dotdot":
+        d = _results_dir(user_dir / "res", "../secret.csv")
+        texts = ["'..' is not allowed"]
+    elif kind == "symlink":
+        d = _results_dir(user_dir / "res")
+        os.symlink(secret, d / "signals_r.csv")
+        texts = ["signals_r.csv", "leaves the results directory"]
+    elif kind == "results_symlink":
+        d = user_dir / "res"
+        d.mkdir()
+        os.symlink(secret, d / "results.json")
+        texts = ["results.json", "leaves the results directory"]
+    elif kind == "results_dev_zero":
+        d = user_dir / "res"
+        d.mkdir()
+        os.symlink("/dev/zero", d / "results.json")
+        texts = ["results.json"]
+    else:
+        d = _results_dir(user_dir / "res")
+        os.mkfifo(d / "signals_r.csv")
+        texts = ["signals_r.csv", "named pipe"]
+    proc = _case(user_dir, ["report", "res"], *texts)
+    assert SECRET not in proc.stderr + proc.stdout
+
+
+def test_report_never_replaces_a_file_it_did_not_write(user_dir):
+    from report_fixture import write_results_dir
+
+    d = write_results_dir(user_dir / "res", n_samples=40, validation=False, n_outputs=1)
+    (d / "report.html").write_text("<p>my own page</p>")
+    _case(user_dir, ["report", "res"], "report.html", "--overwrite")
+    _case(user_dir, ["report", "res", "--out", "res/results.json"], "reads")
+    _case(user_dir, ["report", "res", "--out", "user/notes.txt"], "notes.txt", "--overwrite")
+
+
+# --------------------------------------------------------------------------- what works
+
+def test_simulate_accepts_epoch_time_stamps_like_fit(tmp_path):
+    """Item 7: one time-column reader; the record's grid is 0.04 s from its first stamp."""
+    out = tmp_path / "sim.csv"
+    proc = run_cli(["simulate", SPEC, "--inputs-from", HOSTILE / "epoch_time.csv", "--out", out],
+                   tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = out.read_text().splitlines()
+    assert len(lines) == 41
+    t = [float(r.split(",")[0]) for r in lines[1:]]
+    assert abs(t[-1] / (39 * 0.04) - 1) < 1e-6 and abs(t[1] / t[-1] - 1 / 39) < 1e-12
+
+
+# --------------------------------------------------------------------------- crash recovery (item 9)
+
+_CRASH = textwrap.dedent("""
+    import os, sys, pathlib
+    import vsidgen.atomic as atomic
+    target = pathlib.Path(sys.argv[1]); when = sys.argv[2]
+    calls = []
+    real_rename = os.rename
+    def rename(a, b):
+        calls.append((a, b))
+        real_rename(a, b)
+        if when == "between" and str(a) == str(target):
+            os._exit(9)              # killed after DIR -> .DIR.old-*, before .DIR.tmp-* -> DIR
+    atomic.os.rename = rename
+    with atomic.atomic_directory(target) as tmp:
+        (tmp / "results.json").write_text('{"run": 2}')
+        if when == "body":
+            os._exit(9)              # killed while writing
+""")
+
+
+def _first_run(d: pathlib.Path) -> None:
+    proc = subprocess.run([sys.executable, "-c", _CRASH.replace("when == \"between\"", "False")
+                           .replace("when == \"body\"", "False"), str(d), "none"],
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((d / "results.json").read_text()) == {"run": 2}
+    (d / "results.json").write_text('{"run": 1}')
+
+
+def _crash(d: pathlib.Path, when: str) -> None:
+    proc = subprocess.run([sys.executable, "-c", _CRASH, str(d), when],
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 9, proc.stderr
+
+
+def _leftovers(parent: pathlib.Path) -> list[str]:
+    return sorted(p.name for p in parent.iterdir() if p.name.startswith(".res."))
+
+
+def _next_run(tmp_path):
+    """A later command for the same --out (refused on its data, after the recovery)."""
+    return run_cli(["fit", SPEC, HOSTILE / "input_1e308.csv", "--out", "res", "--quiet"], tmp_path)
+
+
+def test_crash_between_renames_is_completed_by_the_next_run(tmp_path):
+    d = tmp_path / "res"
+    _first_run(d)
+    os.chmod(d, 0o750)
+    _crash(d, "between")
+    assert not d.exists()
+    names = _leftovers(tmp_path)
+    assert any(".old-" in n for n in names) and any(".tmp-" in n for n in names)
+    proc = _next_run(tmp_path)
+    expect_refused(proc, "input_1e308.csv", "sample 17")
+    assert "interrupted" in proc.stderr and "now in place" in proc.stderr
+    assert json.loads((d / "results.json").read_text()) == {"run": 2}
+    assert stat.S_IMODE(d.stat().st_mode) == 0o750
+    assert _leftovers(tmp_path) == []
+
+
+def test_crash_between_renames_without_complete_results_restores_the_old(tmp_path):
+    d = tmp_path / "res"
+    _first_run(d)
+    _crash(d, "between")
+    for p in tmp_path.glob(".res.tmp-*"):
+        (p / ".vsidgen-results.json").unlink()  # incomplete new results
+    proc = _next_run(tmp_path)
+    expect_refused(proc, "input_1e308.csv")
+    assert "previous results were restored" in proc.stderr
+    assert json.loads((d / "results.json").read_text()) == {"run": 1}
+    assert _leftovers(tmp_path) == []
+
+
+def test_killed_run_leftover_is_removed_and_results_kept(tmp_path):
+    d = tmp_path / "res"
+    _first_run(d)
+    _crash(d, "body")
+    assert any(".tmp-" in n for n in _leftovers(tmp_path))
+    proc = _next_run(tmp_path)
+    expect_refused(proc, "input_1e308.csv")
+    assert "removed the unfinished results" in proc.stderr
+    assert json.loads((d / "results.json").read_text()) == {"run": 1}
+    assert _leftovers(tmp_path) == []
