@@ -35,7 +35,8 @@ def test_demo_fit_converges_and_recovers_truth(demo_fit):
     rc, out = demo_fit
     assert rc == 0
     res = json.loads((out / "results.json").read_text())
-    assert res["converged"] is True
+    assert res["converged"] is True and res["stop_reason"] in ("newton_decrement", "gradient")
+    assert res["validation"]["converged"] is True and res["validation"]["elbo"] is not None
     assert res["iterations"] > 0 and res["wall_time_s"] > 0
     for name, truth in TRUTH.items():
         p = res["parameters"][name]
@@ -151,9 +152,15 @@ def test_failed_run_leaves_earlier_results_intact(tmp_path, monkeypatch, capsys)
 
 def test_not_converged_is_reported(tmp_path, capsys):
     out = tmp_path / "res"
-    rc = main(["fit", str(SPEC), str(DATA), "--out", str(out), "--quiet", "--max-iter", "2"])
+    rc = main(["fit", str(SPEC), str(DATA), "--validate", str(VAL), "--out", str(out), "--quiet",
+               "--max-iter", "2"])
     captured = capsys.readouterr()
     assert rc == 1
     assert "NOT CONVERGED" in captured.out
     res = json.loads((out / "results.json").read_text())
     assert res["converged"] is False and res["status"]
+    assert res["stop_reason"] == "iteration_limit" and res["std_errors_reliable"] is False
+    # the validation smoothing (two iterations from its start) is flagged in results.json and the CLI line
+    assert res["validation"]["converged"] is False and res["validation"]["stop_reason"] == "iteration_limit"
+    assert "validation smoothing: NOT CONVERGED" in captured.out
+    assert "validation_not_converged" in [w["code"] for w in res["warnings"]]

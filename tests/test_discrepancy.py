@@ -495,21 +495,20 @@ def test_ambiguity_alternatives_and_benchmark_outcome():
 
 
 def test_refit_convergence_rule():
-    """Converged = the gradient criterion, or a stall at numerical precision just above it."""
+    """Converged = the estimator's typed stop reason says so; status text is never parsed."""
     import types
 
-    from vsidgen.discrepancy.search import refit_converged
+    from vsidgen.discrepancy.search import conv_label, refit_converged
+    from vsidgen.estimator import StopReason
 
-    def res(conv, status):
-        return types.SimpleNamespace(converged=conv, status=status)
+    def res(reason, status="no further progress possible ... relative gradient 1e-9"):
+        return types.SimpleNamespace(converged=reason.converged, stop_reason=reason, status=status)
 
-    assert refit_converged(res(True, "converged: relative gradient 1e-9 < gtol 1e-06"))
-    stall = ("stopped: no further progress possible (relative step 8.3e-12, predicted reduction "
-             "6.2e-14) with relative gradient {} >= gtol 1e-06")
-    assert refit_converged(res(False, stall.format("6.51e-06")))
-    assert not refit_converged(res(False, stall.format("0.00876")))
-    assert not refit_converged(res(False, "stopped: iteration limit 400 reached (relative "
-                                          "gradient 3.5e-06)"))
+    assert refit_converged(res(StopReason.NEWTON_DECREMENT)) and refit_converged(res(StopReason.GRADIENT))
+    for r in (StopReason.NO_PROGRESS, StopReason.INDEFINITE_HESSIAN, StopReason.ITERATION_LIMIT,
+              StopReason.TIME_LIMIT, StopReason.STALLED, StopReason.DAMPING_OVERFLOW):
+        assert not refit_converged(res(r)) and conv_label(res(r)) == "NOT converged"
+    assert conv_label(res(StopReason.NEWTON_DECREMENT)) == "converged"
 
 
 def test_locate_partial_correlation_finds_collinear_alphadot_term():

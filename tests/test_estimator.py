@@ -186,7 +186,8 @@ def test_full_fit_recovers_truth_and_matches_kalman_mle(full_fit, rec400):
     # result bookkeeping
     assert res.free_mask.all() and res.correlation.shape == (4, 4)
     np.testing.assert_allclose(np.diag(res.correlation), 1.0)
-    assert res.history[-1]["grad_norm"] < 1e-6
+    assert res.stop_reason.converged and res.newton_decrement < FitOptions().decrement_tol
+    assert res.history[-1]["decrement"] == res.newton_decrement
     assert res.history[0]["elbo"] < res.elbo
 
 

@@ -308,7 +308,7 @@ def _add_fit(sub):
                     "record) by maximising the evidence lower bound, from null initial guesses. "
                     "Writes DIR/results.json and DIR/signals_<record>.csv atomically: a failed "
                     "or interrupted fit leaves earlier results in DIR intact. Exit status 0 "
-                    "when converged, 1 when the optimizer stopped without converging (results "
+                    "when converged, 1 when the optimizer (or the validation smoothing) stopped without converging (results "
                     "are still written and say so), 2 on bad input.")
     p.add_argument("spec", help="model spec (YAML)")
     p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
@@ -429,7 +429,12 @@ def _cmd_fit(args) -> int:
     state = "" if res["converged"] else "NOT CONVERGED — "
     print(f"{state}{res['status']} ({res['iterations']} iterations, "
           f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
-    return 0 if res["converged"] else 1
+    val = res.get("validation") or {}
+    val_ok = val.get("converged", True) is not False
+    if val.get("elbo") is not None:
+        vstate = "converged" if val_ok else "NOT CONVERGED — " + str(val.get("status"))
+        print(f"validation smoothing: {vstate}; validation ELBO {val['elbo']:.6g}")
+    return 0 if res["converged"] and val_ok else 1
 
 
 def _print_fit_quality(res) -> None:

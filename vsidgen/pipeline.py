@@ -6,6 +6,7 @@ This is what ``vsidgen fit`` runs; it holds no numerics of its own.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import pathlib
 import time
@@ -86,6 +87,26 @@ def _evaluate_all(model, records, fit, *, integrator, substeps):
         signals.append(evaluate(model, rec, fit.theta, mu=np.asarray(sm.mu), G=fit.G, R=fit.R,
                                 integrator=integrator, substeps=substeps))
     return signals
+
+
+def _reason(result) -> str | None:
+    """Stable code of the typed stop reason (:class:`vsidgen.estimator.StopReason`)."""
+    r = getattr(result, "stop_reason", None)
+    return None if r is None else r.value
+
+
+def _finite(v) -> float | None:
+    return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
+def _validation_warnings(vresult) -> list[dict]:
+    """A warning when the validation smoothing (θ and noise fixed) did not reach its optimum."""
+    if vresult is None or vresult.converged:
+        return []
+    r = _reason(vresult)
+    return [{"code": "validation_not_converged", "reliable": True, "stop_reason": r,
+             "message": f"validation smoothing did not converge ({vresult.status}): the validation "
+                        f"ELBO {vresult.elbo:.6g} is not its maximum and must not be compared"}]
 
 
 def _fit_located(fit, model, records, options):
@@ -206,13 +227,19 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "measurement_floor": dict(getattr(result, "measurement_floor", {}) or {}),
                   "G": np.asarray(result.G), "R": np.asarray(result.R)},
         "elbo": float(result.elbo), "converged": bool(result.converged), "status": result.status,
+        "stop_reason": _reason(result), "newton_decrement": _finite(getattr(result, "newton_decrement", None)),
+        "deterministic_states": list(getattr(result, "deterministic_states", ())),
         "iterations": int(result.iterations), "wall_time_s": float(result.wall_time_s),
         "total_time_s": total_time,
         "metrics": {"estimation": {s.record: s.metrics for s in signals},
                     "validation": {s.record: s.metrics for s in vsignals}},
-        "validation": {"elbo": None if vresult is None else float(vresult.elbo)},
+        "validation": ({"elbo": None} if vresult is None else
+                       {"elbo": float(vresult.elbo), "converged": bool(vresult.converged),
+                        "stop_reason": _reason(vresult), "status": vresult.status,
+                        "iterations": int(vresult.iterations),
+                        "newton_decrement": _finite(getattr(vresult, "newton_decrement", None))}),
         "warnings": [w.to_json() for r in records + vrecords
-                     for w in r.warnings] + list(result.warnings) + [
+                     for w in r.warnings] + list(result.warnings) + _validation_warnings(vresult) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())],
         "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),

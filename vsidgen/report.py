@@ -800,6 +800,8 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
         "status": res.get("status", ""), "iterations": res.get("iterations"),
         "wall_time": _fmt(res.get("wall_time_s"), 3), "elbo": _fmt(res.get("elbo"), 8),
         "validation_elbo": _fmt(val.get("elbo"), 8),
+        "validation_converged": val.get("converged", True) is not False,
+        "validation_status": str(val.get("status") or ""),
         "versions": _versions(res),
         "warnings": warnings,
         "std_reliable": bool(res.get("std_errors_reliable", True)),

@@ -55,6 +55,7 @@ from scipy import stats
 
 from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
+from ..estimator import StopReason
 from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
@@ -263,34 +264,14 @@ def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
     return _evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
 
 
-#: a refit that stopped because no step can lower the objective any more in floating point
-#: (the optimiser's "no further progress": relative step ~1e-11, predicted reduction ~1e-13)
-#: with a relative gradient below STALL_GTOL_FACTOR × gtol is stationary to the precision the
-#: ELBO can be evaluated; it counts as converged ("stationary at numerical precision")
-STALL_GTOL_FACTOR = 100.0
-
-
 def refit_converged(res) -> bool:
-    """Met the gradient criterion, or stalled at numerical precision just above it."""
-    if bool(res.converged):
-        return True
-    st = res.status or ""
-    m = re.search(r"no further progress possible.*?relative gradient ([0-9.eE+-]+)", st)
-    if m is None:
-        return False
-    try:
-        rg = float(m.group(1))
-    except ValueError:
-        return False
-    gt = re.search(r"gtol ([0-9.eE+-]+)", st)
-    gtol = float(gt.group(1)) if gt else 1e-6
-    return rg < STALL_GTOL_FACTOR * gtol
+    """Converged by the estimator's typed stop reason (Newton decrement or gradient test)."""
+    reason = getattr(res, "stop_reason", None)
+    return bool(res.converged) if reason is None else reason.converged
 
 
 def conv_label(res) -> str:
-    if bool(res.converged):
-        return "converged"
-    return "stationary at numerical precision" if refit_converged(res) else "NOT converged"
+    return "converged" if refit_converged(res) else "NOT converged"
 
 
 def _stage1_iter(max_iter: int) -> int:
@@ -384,7 +365,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             raise
         out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
         res2 = fit(m2, records, options=_diag_options(2 * max_iter))
-    if not res2.converged and "no further progress" in (res2.status or ""):
+    if not res2.converged and getattr(res2, "stop_reason", None) in (StopReason.NO_PROGRESS,
+                                                                     StopReason.INDEFINITE_HESSIAN):
         # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
         try:
             res2b = fit(m2, records, options=_diag_options(max_iter, warm_start=res2))

@@ -4,10 +4,10 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    FitOptions, FitResult, SmootherPath
+    FitOptions, FitResult, SmootherPath, StopReason
 """
 
 from .fit import fit, measured_states, smooth
-from .results import FitOptions, FitResult, SmootherPath
+from .results import FitOptions, FitResult, SmootherPath, StopReason
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "fit", "measured_states", "smooth"]
+__all__ = ["FitOptions", "FitResult", "SmootherPath", "StopReason", "fit", "measured_states", "smooth"]

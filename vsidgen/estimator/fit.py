@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import FitError
 from .core import NoiseMap, ThetaMap, bucket_length, get_objective, get_transition, make_cfg, record_data
-from .results import FitOptions, FitResult, SmootherPath
+from .results import FitOptions, FitResult, SmootherPath, StopReason
 
 jax.config.update("jax_enable_x64", True)
 
@@ -294,7 +294,7 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *,
               stall: bool = False):
     """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
 
-    With ``stall`` the run also stops (``stop_code`` "stalled", resumable) when the ELBO rose by less
+    With ``stall`` the run also stops (reason :attr:`StopReason.STALLED`, resumable) when the ELBO rose by less
     than ``options.stall_rtol`` (relative) over ``options.stall_window`` iterations without meeting the
     gradient criterion; used while other noise starts remain to be tried.
     """
@@ -318,8 +318,9 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *,
     converged = False
     status = ""
     it = it0
-    stop_code = None
+    reason = None
     blks = None
+    dec = float("nan")
     for it in range(it0, options.max_iter + 1):
         blks = P.blocks(s, recs)
         f = float(sum(float(b["f"]) for b in blks))
@@ -329,36 +330,49 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *,
         gs = gg[P.nrec * nq:]
         active = P.floor_active(s, gs)
         rg = _relgrad(f, s, recs, np.where(active, 0.0, gs), gmus, grs)
+        dec = newton_decrement(P, blks, gs, gmus, grs, active)
+        pd = math.isfinite(dec)
         elapsed = time.perf_counter() - t0
-        history.append({"iteration": it, "elbo": -f, "grad_norm": rg, "lambda": lam, "elapsed_s": elapsed})
+        history.append({"iteration": it, "elbo": -f, "grad_norm": rg, "lambda": lam, "elapsed_s": elapsed,
+                        "decrement": dec})
         if options.progress is not None:
             options.progress(it, -f, rg, elapsed)
         if options.verbose:
-            print(f"iter {it:4d}  elbo {-f: .10e}  relgrad {rg:.3e}  lambda {lam:.2e}  {elapsed:7.2f} s")
+            print(f"iter {it:4d}  elbo {-f: .10e}  relgrad {rg:.3e}  decrement/2 {dec:.3e}  lambda {lam:.2e}  "
+                  f"{elapsed:7.2f} s")
+        detail = f"Newton decrement λ²/2 = {dec:.3g} nats, relative gradient {rg:.3g}"
+        if not pd:
+            detail = f"Hessian not positive definite, relative gradient {rg:.3g}"
         if not np.isfinite(rg):
+            reason = StopReason.NONFINITE
             status = "stopped: gradient is not finite"
-            stop_code = "nonfinite"
             break
-        if rg < options.gtol:
-            converged = True
+        if pd and dec < options.decrement_tol:
+            reason = StopReason.NEWTON_DECREMENT
+            status = (f"converged: Newton decrement λ²/2 = {dec:.3g} nats < {options.decrement_tol:g} "
+                      f"(positive-definite Hessian; relative gradient {rg:.3g})")
+        elif rg < options.gtol:
+            reason = StopReason.GRADIENT
             status = f"converged: relative gradient {rg:.3g} < gtol {options.gtol:g}"
+        if reason is not None:
+            converged = True
             if active.any():
                 status += (f" (projected: {int(active.sum())} noise parameter(s) at their floor "
                            "treated as active bounds)")
             break
         if it == options.max_iter:
-            status = f"stopped: iteration limit {options.max_iter} reached (relative gradient {rg:.3g})"
-            stop_code = "iteration_limit"
+            status = f"stopped: iteration limit {options.max_iter} reached ({detail})"
+            reason = StopReason.ITERATION_LIMIT
             break
         if options.time_limit is not None and elapsed > options.time_limit:
-            status = f"stopped: time limit {options.time_limit:g} s reached (relative gradient {rg:.3g})"
-            stop_code = "iteration_limit"
+            status = f"stopped: time limit {options.time_limit:g} s reached ({detail})"
+            reason = StopReason.TIME_LIMIT
             break
         ws.append(np.asarray(s[P.tm.n_free:], float).copy())
         if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it):
             status = (f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) over "
-                      f"{options.stall_window} iterations (relative gradient {rg:.3g})")
-            stop_code = "stalled"
+                      f"{options.stall_window} iterations ({detail})")
+            reason = StopReason.STALLED
             break
         # Marquardt scaling
         dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in blks]
@@ -386,9 +400,9 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *,
                            + [float(np.max(np.abs(d1) / np.maximum(np.abs(m), 1.0))) for (m, _), d1 in zip(recs, dmu)]
                            + [float(np.max(np.abs(d2) / np.maximum(np.abs(r), 1.0))) for (_, r), d2 in zip(recs, dr)])
                 if pred <= 1e-15 * max(abs(f), 1.0) or step < options.xtol:
-                    stop_code = "step_size"
+                    reason = StopReason.NO_PROGRESS if pd else StopReason.INDEFINITE_HESSIAN
                     status = (f"stopped: no further progress possible (relative step {step:.2g}, predicted "
-                              f"reduction {pred:.2g}) with relative gradient {rg:.3g} >= gtol {options.gtol:g}")
+                              f"reduction {pred:.2g}; {detail})")
                     break
                 f_new = P.value(s_new, recs_new)
                 rho = (f - f_new) / pred
@@ -402,13 +416,35 @@ def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *,
                 lam *= nu
                 nu *= 2.0
             if lam > 1e16:
-                stop_code = "step_size"
-                status = f"stopped: damping overflow, no acceptable step (relative gradient {rg:.3g})"
+                reason = StopReason.DAMPING_OVERFLOW if pd else StopReason.INDEFINITE_HESSIAN
+                status = f"stopped: damping overflow, no acceptable step ({detail})"
                 break
         if not accepted:
             break
     return dict(s=s, recs=recs, blks=blks, converged=converged, status=status, iterations=it,
-                history=tuple(history), stop_code=stop_code, t0=t0, lam=lam)
+                history=tuple(history), reason=reason, t0=t0, lam=lam, decrement=dec)
+
+
+def newton_decrement(P: "_Problem", blks, gs, gmus, grs, active) -> float:
+    """Half the Newton decrement, λ²/2 = ½ gᵀH⁻¹g (nats), on the free subspace; NaN if H is not PD there.
+
+    H and g are the exact Hessian and gradient of −ELBO over every decision variable (θ,
+    noise, assumed-density parameters, state means); variables of active noise floors are
+    held fixed (projected out). λ²/2 is the ELBO gain of a full Newton step on the local
+    quadratic model, invariant to any affine change of variables (parameter units).
+    """
+    nq = P.obj.nq
+    zero_mu = [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks]
+    sol = P.newton_step(blks, 0.0, zero_mu, np.zeros(P.nglob), frozen=active)
+    if sol is None:
+        return float("nan")
+    ds, dmu, dr, _ = sol
+    gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
+                 + sum(float(g @ d) for g, d in zip(grs, dr)))
+    lam2 = -gdot
+    if not math.isfinite(lam2) or lam2 < -1e-8 * max(1.0, abs(float(np.sum(gs ** 2)))):
+        return float("nan")
+    return 0.5 * max(lam2, 0.0)
 
 
 AUTO_STARTS = ("data", "data-meas", "unit")
@@ -517,18 +553,19 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
     blks = P.blocks(s, recs)
     if state["converged"]:
         status = f"converged: relative gradient {state['rg']:.3g} < gtol {options.gtol:g} (trust-constr)"
-        stop_code = None
+        reason = StopReason.GRADIENT
     elif state.get("timed_out"):
         status = f"stopped: time limit {options.time_limit:g} s reached (trust-constr, relative gradient {state['rg']:.3g})"
-        stop_code = "iteration_limit"
+        reason = StopReason.TIME_LIMIT
     elif int(res.nit) >= 50 * max(options.max_iter, 1):
         status = f"stopped: trust-constr iteration limit {res.nit} reached (relative gradient {state['rg']:.3g})"
-        stop_code = "iteration_limit"
+        reason = StopReason.ITERATION_LIMIT
     else:
         status = f"stopped: trust-constr: {res.message} (relative gradient {state['rg']:.3g})"
-        stop_code = "step_size"
+        reason = StopReason.NO_PROGRESS
     return dict(s=s, recs=recs, blks=blks, converged=state["converged"], status=status,
-                iterations=int(res.nit), history=tuple(history), stop_code=stop_code, t0=t0)
+                iterations=int(res.nit), history=tuple(history), reason=reason, t0=t0,
+                decrement=float("nan"))
 
 
 def _uncertainty(P: _Problem, blks, s):
@@ -553,6 +590,9 @@ def _uncertainty(P: _Problem, blks, s):
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
     info["cond"] = float(ev[-1] / ev[0])
+    w, V = np.linalg.eigh(Ss)
+    v = np.abs(V[P.theta_idx, 0])  # θ components of the least-determined direction
+    info["weak"] = [int(i) for i in np.nonzero(v >= 0.3 * v.max())[0]] if v.size and v.max() > 0.1 else []
     Sinv = np.linalg.inv(Ss) / np.sqrt(np.outer(d, d))
     cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
     J = P.tm.dtheta_dz(s[:nt])
@@ -586,9 +626,14 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
                              "message": "the Hessian of the negative ELBO is not positive definite at the "
                                         "solution: standard errors are not available"})
         elif info["cond"] > 1e12:
+            weak = [model.parameter_names[P.tm.free_idx[i]] for i in info.get("weak", [])]
+            named = (f"; the least-determined direction involves {', '.join(weak)}" if weak
+                     else "; the least-determined direction involves noise or assumed-density variables")
             warnings.append({"code": "ill_conditioned", "reliable": False, "condition_number": info["cond"],
+                             "parameters": weak,
                              "message": f"the curvature is badly conditioned (scaled condition number "
-                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"})
+                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"
+                                        f"{named} (fix one of them or add excitation)"})
         se = np.sqrt(np.abs(np.diag(cov)))
         std_errors[P.tm.free_idx] = se
         with np.errstate(all="ignore"):
@@ -609,12 +654,12 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
             warnings.append({"code": "noise_at_floor", "reliable": False, "channel": nm, "kind": "process",
                              "std": float(Gd[i]), "floor": float(fl),
                              "message": f"process noise std of '{nm}' ({Gd[i]:.3g}) is at its floor ({fl:.3g})"})
-    if out["stop_code"] == "step_size":
-        warnings.append({"code": "stopped_on_step_size", "reliable": False, "message": out["status"]})
-    elif out["stop_code"] == "iteration_limit":
-        warnings.append({"code": "iteration_limit", "reliable": False, "message": out["status"]})
-    elif out["stop_code"] == "nonfinite":
-        warnings.append({"code": "nonfinite", "reliable": False, "message": out["status"]})
+    reason = out["reason"]
+    if reason is not None and not reason.converged:
+        code = {StopReason.ITERATION_LIMIT: "iteration_limit", StopReason.TIME_LIMIT: "iteration_limit",
+                StopReason.NONFINITE: "nonfinite"}.get(reason, "stopped_on_step_size")
+        warnings.append({"code": code, "reliable": False, "stop_reason": reason.value,
+                         "message": f"{reason.message}: {out['status']}"})
     # smoothers and state-vs-measurement check
     pairs = measured_states(model)
     smoothers = []
@@ -648,7 +693,9 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         history=out["history"],
         decision={"s": np.asarray(s).copy(), "records": [{"mu": np.asarray(m).copy(), "r": np.asarray(r).copy()}
                                                           for m, r in recs]},
-        covariance=cov, optimizer=options.optimizer)
+        covariance=cov, optimizer=options.optimizer, stop_reason=reason,
+        newton_decrement=float(out.get("decrement", float("nan"))),
+        deterministic_states=tuple(n for n, z in zip(model.state_names, P.nm.noisy) if not z))
 
 
 # --------------------------------------------------------------------------- public API
@@ -675,18 +722,18 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
             if out["converged"]:
                 break
         if not out["converged"]:
-            stalled = [k for k, (_, o) in enumerate(tried) if o["stop_code"] == "stalled"]
+            stalled = [k for k, (_, o) in enumerate(tried) if o["reason"] is StopReason.STALLED]
             if stalled:  # none converged: continue the best stalled start with its remaining iterations
                 k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
                 tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1]))
             out = next((o for _, o in tried if o["converged"]), None)
             if out is None:  # none converged: keep the highest ELBO
                 out = min((o for _, o in tried), key=_negelbo)
-        label = {None: "converged", "stalled": "stalled"}
+        label = {StopReason.STALLED: "stalled"}
         out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
         if len(tried) > 1:
             out["status"] += "; noise starts tried: " + ", ".join(
-                f"{st} ({label.get(o['stop_code'], 'not converged')}, ELBO {-_negelbo(o):.6g}, {o['iterations']} it.)"
+                f"{st} ({'converged' if o['converged'] else label.get(o['reason'], 'not converged')}, ELBO {-_negelbo(o):.6g}, {o['iterations']} it.)"
                 for st, o in tried)
         out["history"] = tuple(h for _, o in tried for h in o["history"])
         out["iterations"] = sum(o["iterations"] for _, o in tried)

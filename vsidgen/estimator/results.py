@@ -3,10 +3,56 @@
 from __future__ import annotations
 
 import dataclasses
+import enum
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
+
+class StopReason(enum.Enum):
+    """Why the optimizer stopped (typed; ``message`` is for people, ``value`` is the stable code).
+
+    Two members are optima: ``NEWTON_DECREMENT`` (the Hessian of −ELBO is positive definite
+    on the free subspace and a full Newton step would raise the ELBO by less than
+    ``FitOptions.decrement_tol`` nats) and ``GRADIENT`` (the relative gradient is below
+    ``FitOptions.gtol``: stationary to floating-point precision). Every other member is a
+    stop without an optimum, with its reason.
+    """
+
+    NEWTON_DECREMENT = "newton_decrement"
+    GRADIENT = "gradient"
+    ITERATION_LIMIT = "iteration_limit"
+    TIME_LIMIT = "time_limit"
+    STALLED = "stalled"
+    NO_PROGRESS = "no_progress"
+    INDEFINITE_HESSIAN = "indefinite_hessian"
+    DAMPING_OVERFLOW = "damping_overflow"
+    NONFINITE = "nonfinite"
+
+    @property
+    def converged(self) -> bool:
+        return self in (StopReason.NEWTON_DECREMENT, StopReason.GRADIENT)
+
+    @property
+    def message(self) -> str:
+        return _STOP_MESSAGES[self]
+
+
+_STOP_MESSAGES = {
+    StopReason.NEWTON_DECREMENT: "converged: a Newton step would raise the ELBO by less than the tolerance "
+                                 "(positive-definite Hessian)",
+    StopReason.GRADIENT: "converged: relative gradient below gtol",
+    StopReason.ITERATION_LIMIT: "stopped at the iteration limit before reaching an optimum",
+    StopReason.TIME_LIMIT: "stopped at the time limit before reaching an optimum",
+    StopReason.STALLED: "abandoned: the ELBO stopped rising far from an optimum (another noise start is tried)",
+    StopReason.NO_PROGRESS: "stopped: no step raises the ELBO although a Newton step predicts a gain "
+                            "(line search failure)",
+    StopReason.INDEFINITE_HESSIAN: "stopped: no further progress at a point where the Hessian of −ELBO is "
+                                   "not positive definite (a saddle or a flat direction, not an optimum)",
+    StopReason.DAMPING_OVERFLOW: "stopped: the damping overflowed without an acceptable step",
+    StopReason.NONFINITE: "stopped: the gradient is not finite",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +78,12 @@ class FitOptions:
         deterministic_std: std (state unit/√s) used for states that have no
             process noise; makes their transition quasi-deterministic (the exact
             degenerate case is not represented by the assumed density).
+        decrement_tol: convergence tolerance in nats on half the Newton decrement,
+            λ²/2 = ½ gᵀH⁻¹g, the ELBO gain predicted for a full Newton step over all
+            decision variables (active noise floors held fixed), required together with
+            H positive definite on that free subspace. It is invariant to affine
+            reparametrisations (the units of every parameter) and, being a difference of
+            log-likelihoods, means the same for every record length. See docs/estimator.md.
         xtol: stop (not converged) when the relative step falls below this.
         warm_start: a previous FitResult of the same problem shape to start from.
         lambda0: initial Levenberg–Marquardt damping (Marquardt diagonal scaling).
@@ -69,6 +121,7 @@ class FitOptions:
     substeps: int | None = None
     max_iter: int = 200
     gtol: float = 1e-6
+    decrement_tol: float = 1e-3
     init_states: str = "measured"
     optimizer: str = "structured-newton"
     progress: Callable | None = None
@@ -132,6 +185,9 @@ class FitResult:
     decision: dict | None = None     # {"s": shared vector, "records": [{"mu", "r"}]} for warm start
     covariance: np.ndarray | None = None   # free × free cov(θ_free)
     optimizer: str = "structured-newton"
+    stop_reason: StopReason | None = None
+    newton_decrement: float = float("nan")   # λ²/2 in nats at the returned point (NaN: H not PD)
+    deterministic_states: tuple[str, ...] = ()
 
     @property
     def estimates(self) -> dict:
