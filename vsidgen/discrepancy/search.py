@@ -55,7 +55,7 @@ from scipy import stats
 
 from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
-from ..estimator import StopReason
+from ..estimator import StopReason as FitStopReason
 from ..limits import check_input_file
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
@@ -365,8 +365,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             raise
         out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
         res2 = fit(m2, records, options=_diag_options(2 * max_iter))
-    if not res2.converged and getattr(res2, "stop_reason", None) in (StopReason.NO_PROGRESS,
-                                                                     StopReason.INDEFINITE_HESSIAN):
+    if not res2.converged and getattr(res2, "stop_reason", None) in (FitStopReason.NO_PROGRESS,
+                                                                     FitStopReason.INDEFINITE_HESSIAN):
         # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
         try:
             res2b = fit(m2, records, options=_diag_options(max_iter, warm_start=res2))
