@@ -37,12 +37,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import jax
 import jax.numpy as jnp
 
+from . import precision  # noqa: F401  (float64, set once)
 from .errors import VsidgenError
-
-jax.config.update("jax_enable_x64", True)
 
 INTEGRATORS = ("euler", "rk4")
 

@@ -58,7 +58,7 @@ from .dynamics import transition
 from .errors import VsidgenError
 from .simulate import theta_vector
 
-jax.config.update("jax_enable_x64", True)
+from . import precision  # noqa: F401  (float64, set once)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -47,7 +47,7 @@ from .data import _columns_of, write_csv
 from .dynamics import transition
 from .errors import VsidgenError
 
-jax.config.update("jax_enable_x64", True)
+from . import precision  # noqa: F401  (float64, set once)
 
 
 # --------------------------------------------------------------------------- maneuvers

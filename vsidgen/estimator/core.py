@@ -42,7 +42,7 @@ from ..data import resolution
 from ..errors import FitError
 from .linalg import btd_solve
 
-jax.config.update("jax_enable_x64", True)
+from .. import precision  # noqa: F401  (float64, set once)
 
 LOG2PI = math.log(2.0 * math.pi)
 

@@ -32,7 +32,7 @@ from ..errors import FitError
 from .core import NoiseMap, ThetaMap, bucket_length, get_objective, get_transition, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath, StopReason
 
-jax.config.update("jax_enable_x64", True)
+from .. import precision  # noqa: F401  (float64, set once)
 
 
 # --------------------------------------------------------------------------- helpers

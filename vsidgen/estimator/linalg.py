@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
-jax.config.update("jax_enable_x64", True)
+from .. import precision  # noqa: F401  (float64, set once)
 
 
 def btd_solve(D, B, R):
