@@ -112,10 +112,10 @@ def make_record(case: Case, work: pathlib.Path) -> pathlib.Path:
 
 
 def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit: float,
-                 max_candidates: int, max_rounds: int, effects=None) -> dict:
+                 max_candidates: int, max_rounds: int, effects=None, workers: int = 1) -> dict:
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(SPEC[case.model]), str(csv),
            "--out", str(out), "--max-candidates", str(max_candidates),
-           "--max-rounds", str(max_rounds), "--quiet"]
+           "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet"]
     if effects:
         cmd += ["--effects", *effects]
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -189,12 +189,14 @@ def run_case(case: Case, args) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     csv = make_record(case, work)
     res = run_diagnose(case, csv, work / case.name, time_limit=args.time_limit,
-                       max_candidates=args.max_candidates, max_rounds=args.max_rounds)
+                       max_candidates=args.max_candidates, max_rounds=args.max_rounds,
+                       workers=args.workers)
     row = classify(case, res)
     if args.oracle and case.effect != "none" and row["outcome"] != "ok":
         ores = run_diagnose(case, csv, work / (case.name + "_oracle"),
                             time_limit=args.time_limit, max_candidates=args.max_candidates,
-                            max_rounds=1, effects=[ORACLE_EFFECT[case.effect]])
+                            max_rounds=1, effects=[ORACLE_EFFECT[case.effect]],
+                            workers=args.workers)
         orow = classify(case, ores)
         row["oracle"] = {"named": orow["named"], "statistic": orow.get("statistic"),
                          "threshold": orow.get("threshold"), "estimates": orow.get("estimates"),
@@ -279,6 +281,9 @@ def main(argv=None) -> int:
                     help="wall-clock limit per diagnose run, s (default 1800)")
     ap.add_argument("--max-candidates", type=int, default=3)
     ap.add_argument("--max-rounds", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="dask workers per diagnose run (default 1: cases run in parallel "
+                         "with --jobs, each serially)")
     ap.add_argument("--oracle", action="store_true",
                     help="rerun a missed/wrong case restricted to the true effect class")
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "independent" / "work"),
