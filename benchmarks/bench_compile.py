@@ -79,7 +79,7 @@ def main(argv=None) -> int:
           f"{res.iterations} iterations, converged {res.converged}, ELBO {res.elbo:.6f}")
     print(f"compile events: trace {tot['trace']:.1f} s, lower {tot['lower']:.1f} s, "
           f"XLA compile {tot['compile']:.1f} s, total {sum(tot.values()):.1f} s")
-    print(f"| function | traces | trace s | lower s | XLA compile s | total s |")
+    print("| function | traces | trace s | lower s | XLA compile s | total s |")
     print("|---|---|---|---|---|---|")
     rows = sorted(sums.items(), key=lambda kv: -sum(kv[1].values()))
     for name, d in rows[:a.top]:

@@ -12,7 +12,6 @@ stderr without a traceback and give exit status 2; Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
-import os
 import pathlib
 import sys
 

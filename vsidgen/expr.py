@@ -27,7 +27,6 @@ arguments, strings, dunder names, unknown names or functions) raises
 from __future__ import annotations
 
 import ast
-import difflib
 import keyword
 import re
 import warnings

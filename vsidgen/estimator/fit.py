@@ -433,7 +433,6 @@ def newton_decrement(P: "_Problem", blks, gs, gmus, grs, active) -> float:
     held fixed (projected out). λ²/2 is the ELBO gain of a full Newton step on the local
     quadratic model, invariant to any affine change of variables (parameter units).
     """
-    nq = P.obj.nq
     zero_mu = [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks]
     sol = P.newton_step(blks, 0.0, zero_mu, np.zeros(P.nglob), frozen=active)
     if sol is None:
