@@ -716,11 +716,14 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
         t0 = time.perf_counter()
         tried = []
         for i, start in enumerate(starts):
+            # every start is run: a converged start is a local optimum, and another start
+            # may reach a higher one (multi-start, the best converged ELBO is kept)
             out = _optimize(P, options, start, t0=t0, stall=i < len(starts) - 1)
             tried.append((start, out))
-            if out["converged"]:
-                break
-        if not out["converged"]:
+        converged = [o for _, o in tried if o["converged"]]
+        if converged:
+            out = min(converged, key=_negelbo)
+        else:
             stalled = [k for k, (_, o) in enumerate(tried) if o["reason"] is StopReason.STALLED]
             if stalled:  # none converged: continue the best stalled start with its remaining iterations
                 k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
