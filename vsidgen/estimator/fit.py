@@ -717,8 +717,11 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
         tried = []
         for i, start in enumerate(starts):
             # every start is run: a converged start is a local optimum, and another start
-            # may reach a higher one (multi-start, the best converged ELBO is kept)
-            out = _optimize(P, options, start, t0=t0, stall=i < len(starts) - 1)
+            # may reach a higher one (multi-start, the best converged ELBO is kept). A start
+            # that stalls is abandoned early while another start remains or has converged.
+            have_optimum = any(o["converged"] for _, o in tried)
+            out = _optimize(P, options, start, t0=t0,
+                            stall=i < len(starts) - 1 or have_optimum)
             tried.append((start, out))
         converged = [o for _, o in tried if o["converged"]]
         if converged:
