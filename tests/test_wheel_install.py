@@ -66,11 +66,13 @@ def test_wheel_installs_and_runs_outside_checkout(tmp_path):
                  cwd=work, env=env).stdout.strip()
     assert pathlib.Path(where).is_relative_to(env_dir.resolve()), where
 
-    _run([str(exe), "build", "specs/attas_sp.yaml", "--out", "generated"], cwd=work, env=env)
+    # the console script is run by the environment's interpreter (pip --prefix writes the
+    # running interpreter into its shebang line, which does not see the new environment)
+    _run([str(py), str(exe), "build", "specs/attas_sp.yaml", "--out", "generated"], cwd=work, env=env)
     assert (work / "generated" / "attas_sp.py").is_file()
-    _run([str(exe), "fit", "specs/attas_sp.yaml", "attas_sp_synthetic.csv", "--out", "res",
+    _run([str(py), str(exe), "fit", "specs/attas_sp.yaml", "attas_sp_synthetic.csv", "--out", "res",
           "--report", "--quiet"], cwd=work, env=env)
     assert (work / "res" / "results.json").is_file()
     html = (work / "res" / "report.html").read_text()
     assert "attas_sp" in html and "<img" in html
-    assert "diagnose" in _run([str(exe), "diagnose", "--help"], cwd=work, env=env).stdout
+    assert "diagnose" in _run([str(py), str(exe), "diagnose", "--help"], cwd=work, env=env).stdout
