@@ -297,6 +297,12 @@ def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathL
             if same:
                 raise VsidgenError(f"{path}: error: {option} is a file this command reads "
                                    f"({r}); write the output to another file")
+    _check_parent_writable(path, option)
+    return path
+
+
+def _check_parent_writable(path: pathlib.Path, option: str) -> pathlib.Path:
+    """The parent of ``path`` (its nearest existing ancestor must be a writable folder)."""
     parent = path.parent if str(path.parent) else pathlib.Path(".")
     base = _nearest_existing(parent)
     if not base.is_dir():
@@ -304,7 +310,7 @@ def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathL
     if not _writable_dir(base):
         raise VsidgenError(f"{path}: error: cannot write {option}: the folder {base} is not "
                            "writable")
-    return path
+    return parent
 
 
 def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
@@ -328,13 +334,7 @@ def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
     if os.path.lexists(target) and not target.is_dir():
         raise VsidgenError(f"{target}: error: {option} exists and is not a directory; "
                            "choose another directory")
-    parent = target.parent if str(target.parent) else pathlib.Path(".")
-    base = _nearest_existing(parent)
-    if not base.is_dir():
-        raise VsidgenError(f"{target}: error: cannot create {option}: {base} is not a directory")
-    if not _writable_dir(base):
-        raise VsidgenError(f"{target}: error: cannot write {option}: the folder {base} is not "
-                           "writable")
+    parent = _check_parent_writable(target, option)
     recovered = recover(target) if (recover_leftovers and parent.is_dir()) else ()
     reads_r = _resolved(reads)
     if not target.exists():
