@@ -89,6 +89,17 @@ def worker_env() -> dict[str, str]:
     return env
 
 
+def add_engine_arguments(parser, *, what: str) -> None:
+    """``--workers`` and ``--scheduler`` for a command whose independent ``what`` run on
+    the engine (diagnose: candidate refits; fleet: record fits)."""
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help=f"run the {what} on a local dask cluster of N worker processes "
+                             "(default: every local core; 1 = serially in this process)")
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help=f"run the {what} on an existing dask cluster (e.g. "
+                             "tcp://host:8786; DIR must be on a file system its workers share)")
+
+
 def default_workers() -> int:
     """Cores this process may use (``os.sched_getaffinity`` where available)."""
     try:

@@ -164,12 +164,9 @@ def add_fleet_parser(subparsers):
     p.add_argument("spec", help="model spec (YAML)")
     p.add_argument("data", nargs="+", help="records (CSV), one fit each")
     p.add_argument("--out", required=True, help="output directory (one results folder per record)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of a local dask cluster (default: every local core; "
-                        "1 = serially in this process)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="use an existing dask cluster (DIR must be on a file system its "
-                        "workers share)")
+    from .engine import add_engine_arguments
+
+    add_engine_arguments(p, what="record fits")
     p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
     p.add_argument("--substeps", type=int, default=None)
     p.add_argument("--max-iter", type=int, default=200)

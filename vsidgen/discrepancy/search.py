@@ -1120,12 +1120,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="stop cleanly between refits after this many seconds; the effects "
                         "accepted so far and the unfinished round are written (exit status 1)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="refit the candidates of a round on a local dask cluster of N worker "
-                        "processes (default: every local core; 1 = serially in this process)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="refit on an existing dask cluster (e.g. tcp://host:8786; DIR must be "
-                        "on a file system its workers share)")
+    from ..engine import add_engine_arguments
+
+    add_engine_arguments(p, what="candidate refits of a round")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty DIR that is not a vsidgen results directory "
