@@ -11,8 +11,8 @@ generated module is reused:
 * ``--free NAME``: ``fixed = false``;
 
 applied in that order. ``--method output-error`` removes the process noise
-(the state path is the deterministic simulation, G fixed at the estimator's
-deterministic floor: the output-error method); ``filter-error`` (default)
+(every state deterministic: the estimator fits the exact limit of vanishing
+process noise, i.e. the output-error method; docs/estimator.md); ``filter-error`` (default)
 keeps the spec's process noise. Unknown names raise a VsidgenError with a
 role-aware suggestion (:func:`vsidgen.suggest.suggest`).
 """
