@@ -206,8 +206,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     base_idx = [names1.index(n) for n in names0]
     new_idx = [j for j, n in enumerate(names1) if n not in names0]
     n0, n1 = len(names0), len(names1)
-    F = transition(model1, integrator=getattr(model1, "integrator", "euler") or "euler",
-                   substeps=getattr(model1, "substeps", 1) or 1)
+    F = transition(model1, integrator=None, substeps=None)
     th = jnp.asarray(theta1)
     ni = np.asarray(new_idx)
 

@@ -188,7 +188,9 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
     import jax.numpy as jnp
 
-    from ..estimator.core import NoiseMap, ThetaMap, get_objective, get_transition, make_cfg
+    from ..dynamics import settings as transition_settings
+    from ..dynamics import transition
+    from ..estimator.core import NoiseMap, ThetaMap, get_objective, make_cfg
     from ..estimator.core import record_data
     from ..model import load_model
     from .refit import _noise_of, _noise_w, stage0_start
@@ -202,9 +204,8 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
     base_fit = current.fit
-    integ = getattr(m, "integrator", "euler") or "euler"
-    sub = int(getattr(m, "substeps", 1) or 1)
-    F = get_transition(m, integ, sub)
+    integ, sub = transition_settings(m)
+    F = transition(m, integrator=integ, substeps=sub)
     tm = ThetaMap(m.parameters)
     nm = NoiseMap(m, records, deterministic_std=det_std)
     obj = get_objective(m, tm, nm, F, (integ, sub))

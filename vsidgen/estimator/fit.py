@@ -29,7 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from .core import NoiseMap, ThetaMap, bucket_length, get_objective, get_transition, make_cfg, record_data
+from ..dynamics import settings as transition_settings
+from ..dynamics import transition
+from .core import NoiseMap, ThetaMap, bucket_length, get_objective, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -120,9 +122,9 @@ class _Problem:
     def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None):
         self.model = model
         self.records = _check_records(model, records)
-        self.integrator = options.integrator or getattr(model, "integrator", "euler") or "euler"
-        self.substeps = int(options.substeps or getattr(model, "substeps", 1) or 1)
-        F = get_transition(model, self.integrator, self.substeps)
+        self.integrator, self.substeps = transition_settings(
+            model, integrator=options.integrator, substeps=options.substeps)
+        F = transition(model, integrator=self.integrator, substeps=self.substeps)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model))
