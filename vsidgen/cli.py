@@ -72,7 +72,8 @@ def _add_check(subparsers) -> None:
 
 
 def _cmd_check(args) -> int:
-    from .symbolic import check_record, compile_spec
+    from .datacheck import check_record
+    from .symbolic import compile_spec
 
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
