@@ -126,7 +126,7 @@ def hfb_trim(model, theta: dict):
     import jax.numpy as jnp
     from scipy.optimize import fsolve
 
-    from vsidgen.simulate import theta_vector
+    from vsidgen.model import theta_vector
 
     p = jnp.asarray(theta_vector(model, theta))
     V0 = 104.67

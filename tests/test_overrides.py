@@ -110,7 +110,7 @@ def test_role_aware_suggestions():
 
 
 def test_missing_rudder_column_does_not_suggest_the_aileron(tmp_path):
-    from vsidgen.data import column_hint
+    from vsidgen.suggest import column_hint
 
     header = ["t_s", "da_deg", "p_degps"]
     taken = {"t_s": "the time", "da_deg": "input `da`", "dr_deg": "input `dr`"}

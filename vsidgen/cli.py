@@ -15,7 +15,9 @@ import argparse
 import pathlib
 import sys
 
+from .compilecache import enable_compilation_cache
 from .errors import VsidgenError
+from .overrides import add_override_arguments, overrides_of
 
 
 def _print_warnings(warnings) -> None:
@@ -243,7 +245,7 @@ def _cmd_simulate(args) -> int:
 
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
-    _enable_compilation_cache()
+    enable_compilation_cache()
     from .model import load_model
     from .simulate import parse_input_spec, simulate_to_csv
 
@@ -339,57 +341,6 @@ def _add_fit(sub):
     p.set_defaults(handler=_cmd_fit)
 
 
-def add_override_arguments(p) -> None:
-    """``--fix/--free/--init/--init-from/--method`` (shared by fit and diagnose)."""
-    g = p.add_argument_group("parameters and method (override the spec for this run; "
-                             "recorded in the results)")
-    g.add_argument("--fix", action="append", metavar="NAME=VALUE", default=None,
-                   help="fix a parameter at VALUE (as `fixed: true, initial: VALUE` in the spec)")
-    g.add_argument("--free", action="append", metavar="NAME", default=None,
-                   help="estimate a parameter the spec fixes")
-    g.add_argument("--init", action="append", metavar="NAME=VALUE", default=None,
-                   help="initial value of a parameter")
-    g.add_argument("--init-from", metavar="RESULTS_JSON", default=None,
-                   help="initial values from an earlier fit's results.json (--init and --fix win)")
-    g.add_argument("--method", choices=("filter-error", "output-error"), default="filter-error",
-                   help="filter-error (default): process and measurement noise; output-error: "
-                        "no process noise (deterministic state path)")
-
-
-def overrides_of(args):
-    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
-    from .overrides import parse_overrides
-
-    return parse_overrides(fix=args.fix, free=args.free, init=args.init,
-                           init_from=args.init_from, method=args.method)
-
-
-def _enable_compilation_cache() -> None:
-    """Persist JAX compilations across runs (``$VSIDGEN_CACHE_DIR``, default ~/.cache/vsidgen/jax).
-
-    A second fit of the same model then skips most of its compile time. Set
-    ``VSIDGEN_CACHE_DIR=`` (empty) to disable.
-    """
-    import os
-
-    default = pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache"))
-    cache = os.environ.get("VSIDGEN_CACHE_DIR", str(default / "vsidgen" / "jax"))
-    if not cache:
-        return
-    try:
-        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
-        if "jax" not in sys.modules:  # read by jax when it is imported (not before it is needed)
-            os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
-            os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
-            return
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-    except (OSError, AttributeError, ValueError):  # read-only home, older jax: run uncached
-        pass
-
-
 def _cmd_fit(args) -> int:
     from .pipeline import run_fit
 
@@ -397,7 +348,7 @@ def _cmd_fit(args) -> int:
         raise VsidgenError(f"--max-iter must be >= 1, got {args.max_iter}")
     if args.substeps is not None and args.substeps < 1:
         raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
-    _enable_compilation_cache()
+    enable_compilation_cache()
 
     overrides = overrides_of(args)
     from .progress import FitProgress
@@ -484,11 +435,11 @@ def _cmd_report(args) -> int:
     import os
 
     from .atomic import add_to_manifest, check_output_file, read_manifest
-    from .report import _parse_reference, write_report
+    from .report import parse_reference, write_report
 
     d = pathlib.Path(args.dir)
     out = pathlib.Path(args.out) if args.out is not None else d / "report.html"
-    ref_path = _parse_reference(args.reference)[2] if args.reference is not None else None
+    ref_path = parse_reference(args.reference)[2] if args.reference is not None else None
     reads = [d / "results.json"] + ([ref_path] if ref_path is not None else [])
     if d.is_dir():
         reads += [q for q in d.iterdir() if q.name.startswith("signals_")]

@@ -16,12 +16,13 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .data import column_hint, load_record
+from .data import load_record
 from .errors import DataError, Location, SpecError, SpecWarning
 from .expr import did_you_mean
 from .formats import DataFormat, detect_format
 from .limits import check_input_file
 from .metadata import ChannelMap
+from .suggest import column_hint
 from .symbolic import SymbolicModel
 
 __all__ = ["check_first_sample", "check_record", "read_first_row"]

@@ -17,7 +17,7 @@ import numpy as np
 
 from . import __version__
 from .codegen import display_path
-from .data import Record, load_record, write_csv
+from .data import Record, load_record, unique_names, write_csv
 from .errors import VsidgenError
 from .model import Model, load_model
 from .overrides import Overrides, apply_overrides
@@ -62,21 +62,6 @@ def _record_info(rec: Record) -> dict[str, Any]:
     n = len(rec.t)
     return {"name": rec.name, "path": None if rec.path is None else str(rec.path),
             "n_samples": n, "dt": float(rec.dt), "duration_s": float(rec.dt * (n - 1))}
-
-
-def _unique_names(records: Sequence[Record]) -> list[Record]:
-    seen: dict[str, int] = {}
-    out = []
-    for rec in records:
-        name = rec.name
-        if name in seen:
-            seen[name] += 1
-            name = f"{name}_{seen[name]}"
-            rec = dataclasses.replace(rec, name=name)
-        else:
-            seen[name] = 0
-        out.append(rec)
-    return out
 
 
 def _evaluate_all(model, records, fit, *, integrator, substeps):
@@ -164,8 +149,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         check_input_file(p, what="data file")
     ref_path = None
     if reference is not None:
-        from .report import _parse_reference
-        ref_path = _parse_reference(reference)[2]
+        from .report import parse_reference
+        ref_path = parse_reference(reference)[2]
     plan = plan_output_dir(out, overwrite=overwrite,
                            reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
     print_recovered(plan)
@@ -173,8 +158,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
-    records = _unique_names([load_record(symbolic, p) for p in data])
-    vrecords = _unique_names([load_record(symbolic, p) for p in validate])
+    records = unique_names([load_record(symbolic, p) for p in data])
+    vrecords = unique_names([load_record(symbolic, p) for p in validate])
     from .estimator import FitOptions, fit, smooth
 
     model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)

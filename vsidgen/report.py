@@ -42,7 +42,7 @@ from .atomic import write_text_atomic
 from .errors import VsidgenError
 from .limits import check_input_file
 
-__all__ = ["write_report", "SIGNAL_STYLE", "STRONG_CORRELATION"]
+__all__ = ["parse_reference", "write_report", "SIGNAL_STYLE", "STRONG_CORRELATION"]
 
 #: |r| above which a parameter pair is flagged as strongly correlated.
 STRONG_CORRELATION = 0.9
@@ -181,7 +181,7 @@ def _read_signals(path: pathlib.Path) -> dict[str, np.ndarray]:
     return {h: data[:, j] for j, h in enumerate(header)}
 
 
-def _parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | None]:
+def parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | None]:
     """``PATH`` or ``PATH:method`` -> ({name: {value, std}}, label, path)."""
     if reference is None:
         return {}, "", None
@@ -768,7 +768,7 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
 
     results_dir = pathlib.Path(results_dir)
     res = _load_results(results_dir)
-    ref, ref_label, _ = _parse_reference(reference)
+    ref, ref_label, _ = parse_reference(reference)
     out_path = pathlib.Path(out) if out is not None else results_dir / "report.html"
 
     outputs = _vars(res["model"].get("outputs"))

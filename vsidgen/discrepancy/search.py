@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from ..atomic import plan_output_dir, print_recovered, results_in_place
+from ..atomic import plan_output_dir, print_recovered, results_in_place, write_text_atomic
 from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import StopReason as FitStopReason
 from ..limits import check_input_file
@@ -238,14 +238,13 @@ def _evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitStat
 def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
              warm_theta: dict | None = None) -> FitState:
     """Load, fit, evaluate (and validate) one spec on the given record files."""
-    from ..data import load_record
+    from ..data import load_record, unique_names
     from ..estimator import fit
     from ..model import load_model
-    from ..pipeline import _unique_names
 
     model = load_model(spec_path, generated_dir=generated_dir)
-    records = tuple(_unique_names([load_record(model, p) for p in data]))
-    vrecords = tuple(_unique_names([load_record(model, p) for p in validate]))
+    records = tuple(unique_names([load_record(model, p) for p in data]))
+    vrecords = tuple(unique_names([load_record(model, p) for p in validate]))
     res = fit(model, list(records), options=_diag_options(max_iter))
     return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
@@ -396,7 +395,7 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
     import jax
     import jax.numpy as jnp
 
-    from ..simulate import theta_vector
+    from ..model import theta_vector
 
     m = st.model
     free = [i for i, p in enumerate(m.parameters) if not p.fixed]
@@ -427,10 +426,8 @@ def write_spec(path: pathlib.Path, header: str, d: dict) -> pathlib.Path:
     """Write a generated spec mapping ``d`` as YAML under a ``# header`` comment line."""
     import yaml
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"# {header}\n" + yaml.safe_dump(d, sort_keys=False, width=100,
-                                                     allow_unicode=True), encoding="utf-8")
-    return path
+    return write_text_atomic(path, f"# {header}\n" + yaml.safe_dump(
+        d, sort_keys=False, width=100, allow_unicode=True))
 
 
 def _extends(spec_path, path: pathlib.Path) -> str:
@@ -1114,7 +1111,7 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
-    from ..cli import add_override_arguments
+    from ..overrides import add_override_arguments
 
     add_override_arguments(p)
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
@@ -1131,39 +1128,17 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def terminate_as_interrupt():
-    """Context manager: SIGTERM raises KeyboardInterrupt (so a terminated run writes what it
-    has, as on Ctrl-C); the previous handler is restored on exit. No-op off the main thread."""
-    import contextlib
-    import signal
-    import threading
-
-    @contextlib.contextmanager
-    def cm():
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-
-        def handler(signum, frame):
-            raise KeyboardInterrupt(f"signal {signum}")
-
-        old = signal.signal(signal.SIGTERM, handler)
-        try:
-            yield
-        finally:
-            signal.signal(signal.SIGTERM, old)
-    return cm()
-
-
 def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; exit status 0 (completed) or 1 (stopped at the time
     limit; what was found is written). An interrupt (Ctrl-C, SIGTERM) writes the findings
     and propagates (status 130)."""
-    from ..cli import _enable_compilation_cache, overrides_of
+    from ..compilecache import enable_compilation_cache
+    from ..engine import terminate_as_interrupt
+    from ..overrides import overrides_of
     from ..progress import DiagnoseProgress
 
     ov = overrides_of(args)
-    _enable_compilation_cache()
+    enable_compilation_cache()
     progress = None if args.quiet else DiagnoseProgress(sys.stderr)
     try:
         with terminate_as_interrupt():
