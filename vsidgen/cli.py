@@ -17,7 +17,7 @@ import sys
 
 from .compilecache import enable_compilation_cache
 from .errors import VsidgenError
-from .overrides import add_override_arguments, overrides_of
+from .overrides import add_override_arguments, overrides_of, read_estimates
 
 
 def _print_warnings(warnings) -> None:
@@ -222,8 +222,6 @@ def _add_simulate(sub):
 
 
 def _cmd_simulate(args) -> int:
-    import json
-
     import numpy as np
 
     from .atomic import check_output_file
@@ -252,12 +250,7 @@ def _cmd_simulate(args) -> int:
     model = load_model(args.spec)
     theta = {}
     if args.params_from:
-        try:
-            res = json.loads(pathlib.Path(args.params_from).read_text(encoding="utf-8"))
-            theta.update({k: v["estimate"] for k, v in res["parameters"].items()})
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-            raise VsidgenError(f"{args.params_from}: cannot read parameter estimates "
-                               f"({type(exc).__name__}: not a results.json of `vsidgen fit`?)") from None
+        theta.update(read_estimates(args.params_from, option="--params-from"))
     theta.update(_name_values(args.param, "param"))
     _check_names(theta, model.parameter_names, "parameter", model, "--param")
     x0 = _name_values(args.x0, "x0")

@@ -72,17 +72,18 @@ def _name_value(item: str, option: str) -> tuple[str, float]:
     return name.strip(), x
 
 
-def read_estimates(path) -> dict[str, float]:
-    """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit``."""
+def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
+    """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit`` (``option``
+    names the command-line option that gave ``path`` in error messages)."""
     path = pathlib.Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         params = doc["parameters"]
         return {str(k): float(v["estimate"]) for k, v in params.items()}
     except FileNotFoundError:
-        raise VsidgenError(f"--init-from {path}: file not found") from None
+        raise VsidgenError(f"{option} {path}: file not found") from None
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-        raise VsidgenError(f"--init-from {path}: not a vsidgen results.json with parameter "
+        raise VsidgenError(f"{option} {path}: not a vsidgen results.json with parameter "
                            f"estimates ({type(exc).__name__}: {exc})") from None
 
 

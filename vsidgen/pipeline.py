@@ -6,7 +6,6 @@ This is what ``vsidgen fit`` runs; it holds no numerics of its own.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import pathlib
 import time
@@ -21,9 +20,9 @@ from .data import Record, load_record, unique_names, write_csv
 from .errors import VsidgenError
 from .model import Model, load_model
 from .overrides import Overrides, apply_overrides
-from .atomic import plan_output_dir, print_recovered
+from .atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
 from .limits import check_input_file
-from .results import atomic_directory, dumps, signals_table, write_text_atomic
+from .results import dumps, finite_or_none, signals_table
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,10 +77,6 @@ def _reason(result) -> str | None:
     """Stable code of the typed stop reason (:class:`vsidgen.estimator.StopReason`)."""
     r = getattr(result, "stop_reason", None)
     return None if r is None else r.value
-
-
-def _finite(v) -> float | None:
-    return float(v) if v is not None and math.isfinite(float(v)) else None
 
 
 def _validation_warnings(vresult) -> list[dict]:
@@ -212,7 +207,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "measurement_floor": dict(getattr(result, "measurement_floor", {}) or {}),
                   "G": np.asarray(result.G), "R": np.asarray(result.R)},
         "elbo": float(result.elbo), "converged": bool(result.converged), "status": result.status,
-        "stop_reason": _reason(result), "newton_decrement": _finite(getattr(result, "newton_decrement", None)),
+        "stop_reason": _reason(result), "newton_decrement": finite_or_none(getattr(result, "newton_decrement", None)),
         "deterministic_states": list(getattr(result, "deterministic_states", ())),
         "iterations": int(result.iterations), "wall_time_s": float(result.wall_time_s),
         "total_time_s": total_time,
@@ -222,7 +217,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                        {"elbo": float(vresult.elbo), "converged": bool(vresult.converged),
                         "stop_reason": _reason(vresult), "status": vresult.status,
                         "iterations": int(vresult.iterations),
-                        "newton_decrement": _finite(getattr(vresult, "newton_decrement", None))}),
+                        "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
         "warnings": [w.to_json() for r in records + vrecords
                      for w in r.warnings] + list(result.warnings) + _validation_warnings(vresult) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}

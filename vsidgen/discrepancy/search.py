@@ -53,38 +53,17 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from ..atomic import plan_output_dir, print_recovered, results_in_place, write_text_atomic
+from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import StopReason as FitStopReason
+from ..estimator import WarmStart
 from ..limits import check_input_file
+from ..results import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
-
-
-@dataclasses.dataclass(frozen=True)
-class DiagnoseOptions:
-    """Options of :func:`run_diagnose` (all keyword, defaults shown).
-
-    Attributes:
-        max_rounds: maximum number of accepted effects (rounds of the search).
-        max_candidates: candidates refitted per round (the best-scoring ones).
-        alpha: family-wise significance level per round (Holm over the candidates tried).
-        min_score: minimum locate score (−log10 p) for a candidate to be refitted.
-        effects: restrict the catalogue to these effect ids (None: all registered).
-        max_iter: optimizer iteration limit of each fit.
-        screen: score-test pre-screen of the candidates that add no state (default off: see
-            :mod:`.score` for its cost and its failure on degenerate base optima).
-    """
-
-    max_rounds: int = 3
-    max_candidates: int = 8
-    alpha: float = 0.01
-    min_score: float = 1.0
-    effects: tuple[str, ...] | None = None
-    max_iter: int = 200
-    screen: bool = False
+from .specwrite import clip_to_bounds, warm_parameters, write_spec
 
 
 #: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
@@ -194,16 +173,6 @@ class DiagnoseResult:
     stop: StopReason = StopReason.COMPLETED
 
 
-def _f(v):
-    if v is None:
-        return None
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
-
-
 def _say(progress, msg):
     if progress is not None:
         progress(msg)
@@ -287,8 +256,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     """
     from ..estimator import fit, smooth
     from ..model import load_model
-    from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, _noise_of, _noise_w, _ns,
-                        _z0, stage0_start, x0_entropy)
+    from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, noise_parameters, noise_stds,
+                        parameter_start, stage0_start, x0_entropy)
 
     t0 = time.perf_counter()
     out = RefitOutcome()
@@ -299,8 +268,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     write_candidate(c, current, info, p1, name + "_s1", fix_base=True)
     m1 = load_model(p1, generated_dir=generated_dir)
     new_states = [n for n in m1.state_names if n not in current.model.state_names]
-    z1, theta1 = _z0(m1)
-    proc_std, offd, meas_std = _noise_of(base_fit, current.model)
+    z1, theta1 = parameter_start(m1)
+    proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     decision0 = base_fit.decision
     warm = base_fit.decision is not None
     out.elbo_ref = current.elbo
@@ -310,7 +279,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             dec0, G1, R1, H0, notes = stage0_start(m1, records, base_fit, current.model, theta1, DET)
             out.notes += notes
             r0 = smooth(m1, records, theta1, {"G": G1, "R": R1},
-                        options=_diag_options(max_iter, warm_start=_ns(dec0)))
+                        options=_diag_options(max_iter, warm_start=WarmStart.from_decision(dec0)))
             out.elbo_stage0, out.converged_stage0 = float(r0.elbo), bool(r0.converged)
             out.x0_entropy = H0
             out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
@@ -325,9 +294,9 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     opts1 = {}
     if warm:
         try:
-            s1 = np.concatenate([z1, _noise_w(m1, records, DET, proc_std=proc_std, proc_G=offd,
+            s1 = np.concatenate([z1, noise_parameters(m1, records, DET, proc_std=proc_std, proc_G=offd,
                                               meas_std=meas_std)])
-            opts1["warm_start"] = _ns({"s": s1, "records": decision0["records"]})
+            opts1["warm_start"] = WarmStart.from_decision({"s": s1, "records": decision0["records"]})
             out.warm = out.warm or "base"
         except (FitError, ValueError, KeyError) as err:
             out.notes.append(f"no warm start for stage 1 ({err})")
@@ -351,10 +320,10 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     m2 = load_model(path, generated_dir=generated_dir)
     opts2 = {}
     try:
-        z2, _ = _z0(m2)
-        ps, od, ms = _noise_of(res1, m1)
-        s2 = np.concatenate([z2, _noise_w(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-        opts2["warm_start"] = _ns({"s": s2, "records": res1.decision["records"]})
+        z2, _ = parameter_start(m2)
+        ps, od, ms = noise_stds(res1, m1)
+        s2 = np.concatenate([z2, noise_parameters(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
+        opts2["warm_start"] = WarmStart.from_decision({"s": s2, "records": res1.decision["records"]})
     except (FitError, ValueError, KeyError, TypeError) as err:
         out.notes.append(f"no warm start for stage 2 ({err})")
     try:
@@ -422,14 +391,6 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
 PROJECTED_TOL = 0.05
 
 
-def write_spec(path: pathlib.Path, header: str, d: dict) -> pathlib.Path:
-    """Write a generated spec mapping ``d`` as YAML under a ``# header`` comment line."""
-    import yaml
-
-    return write_text_atomic(path, f"# {header}\n" + yaml.safe_dump(
-        d, sort_keys=False, width=100, allow_unicode=True))
-
-
 def _extends(spec_path, path: pathlib.Path) -> str:
     """``extends:`` text of a spec written at ``path`` that extends ``spec_path``."""
     import os
@@ -442,14 +403,14 @@ def _refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, gene
     and assumed density (the same state layout) and the spec's parameter initial values."""
     from ..estimator import fit
     from ..model import load_model
-    from .refit import REFIT_DETERMINISTIC_STD as DET, _noise_of, _noise_w, _ns, _z0
+    from .refit import REFIT_DETERMINISTIC_STD as DET, noise_parameters, noise_stds, parameter_start
 
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
-    z, _ = _z0(m)
-    ps, od, ms = _noise_of(source.fit, source.model)
-    s0 = np.concatenate([z, _noise_w(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=_diag_options(iterations, warm_start=_ns(
+    z, _ = parameter_start(m)
+    ps, od, ms = noise_stds(source.fit, source.model)
+    s0 = np.concatenate([z, noise_parameters(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
+    res = fit(m, records, options=_diag_options(iterations, warm_start=WarmStart.from_decision(
         {"s": s0, "records": source.fit.decision["records"]})))
     return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
 
@@ -469,7 +430,7 @@ def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str
     start. When it ends above the current ELBO, the current model has a better optimum,
     which becomes the reference of every candidate of the round.
     """
-    params = _warm_parameters(t.state)
+    params = warm_parameters(t.state.model, t.state.fit.theta)
     for q in t.candidate.parameters:
         params[q.name].update(initial=float(q.initial), fixed=True)
     write_spec(path, f"vsidgen diagnose: projected refit of {t.candidate.key}",
@@ -491,10 +452,10 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
     candidate's zeroed terms.
     """
     est = dict(zip(better.model.parameter_names, map(float, better.fit.theta)))
-    params = _warm_parameters(current)
+    params = warm_parameters(current.model, current.fit.theta)
     for k, v in params.items():
         if not v.get("fixed") and k in est and math.isfinite(est[k]):
-            v["initial"] = _clip(est[k], v.get("bounds"))
+            v["initial"] = clip_to_bounds(est[k], v.get("bounds"))
     write_spec(path, "vsidgen diagnose: the current model re-estimated (better optimum)",
                {"name": name,
                 "description": "the current model at a better optimum of its own parameters "
@@ -546,29 +507,6 @@ def model_info_of(st: FitState) -> ModelInfo:
     return dataclasses.replace(info, breaks=breaks)
 
 
-def _clip(x: float, bounds) -> float:
-    """``x`` clipped to a parameter's ``[lower, upper]`` bounds (``None`` = unbounded)."""
-    lo, hi = bounds or (None, None)
-    x = float(x) if lo is None else max(float(x), lo)
-    return x if hi is None else min(x, hi)
-
-
-def _warm_parameters(st: FitState) -> dict:
-    """Parameter entries of the current model with the estimates as initial values."""
-    out = {}
-    for p, v in zip(st.model.parameters, st.fit.theta):
-        d: dict[str, Any] = {"unit": p.unit if p.unit is not None else "1",
-                             "description": p.description or "",
-                             "initial": float(p.initial if p.fixed else v)}
-        if p.lower is not None or p.upper is not None:
-            d["bounds"] = [p.lower, p.upper]
-            d["initial"] = _clip(d["initial"], d["bounds"])
-        if p.fixed:
-            d["fixed"] = True
-        out[p.name] = d
-    return out
-
-
 def _safe(key: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]+", "_", key).strip("_")[:60]
 
@@ -585,14 +523,14 @@ def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.P
 
     d = c.spec_dict(st.spec_path, name=name, candidate_path=path, info=info)
     if warm:
-        params = _warm_parameters(st)
+        params = warm_parameters(st.model, st.fit.theta)
         if fix_base:
             for v in params.values():
                 v["fixed"] = True
         new = d.get("parameters") or {}
         for k, v in new.items():
             if new_initial and k in new_initial and math.isfinite(new_initial[k]) and not v.get("fixed"):
-                v["initial"] = _clip(new_initial[k], v.get("bounds"))
+                v["initial"] = clip_to_bounds(new_initial[k], v.get("bounds"))
         params.update(new)
         d["parameters"] = params
     return write_spec(path, f"vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; "

@@ -32,7 +32,7 @@ from ..errors import FitError
 from ..dynamics import settings as transition_settings
 from ..dynamics import transition
 from .core import NoiseMap, ThetaMap, bucket_length, get_objective, make_cfg, record_data
-from .results import FitOptions, FitResult, SmootherPath, StopReason
+from .results import FitOptions, FitResult, SmootherPath, StopReason, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -145,10 +145,11 @@ class _Problem:
 
     def initial(self, options: FitOptions, start: str = "data"):
         ws = options.warm_start
-        if ws is not None and getattr(ws, "decision", None) is not None:
-            dec = ws.decision
-            s = np.asarray(dec["s"], float)
-            recs = [(np.asarray(d["mu"], float), np.asarray(d["r"], float)) for d in dec["records"]]
+        if isinstance(ws, FitResult):
+            ws = None if ws.decision is None else WarmStart.from_decision(ws.decision)
+        if ws is not None:
+            s = np.asarray(ws.shared, float)
+            recs = [(np.asarray(m, float), np.asarray(r, float)) for m, r in ws.records]
             if s.shape == (self.obj.ng,) and len(recs) == self.nrec and all(
                     m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
                 return s, recs
