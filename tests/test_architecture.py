@@ -40,6 +40,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: locate", ("discrepancy.locate",)),
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
     ("diagnose: findings and refit", ("discrepancy.findings", "discrepancy.refit")),
+    ("diagnose: fit states", ("discrepancy.fitstate",)),
     ("diagnose: score test", ("discrepancy.score",)),
     ("diagnose: search", ("discrepancy.search",)),
     ("diagnose: package", ("discrepancy",)),

@@ -498,7 +498,7 @@ def test_refit_convergence_rule():
     """Converged = the estimator's typed stop reason says so; status text is never parsed."""
     import types
 
-    from vsidgen.discrepancy.search import conv_label, refit_converged
+    from vsidgen.discrepancy.fitstate import conv_label, refit_converged
     from vsidgen.estimator import StopReason
 
     def res(reason, status="no further progress possible ... relative gradient 1e-9"):

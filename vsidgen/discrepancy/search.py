@@ -44,7 +44,6 @@ import dataclasses
 import enum
 import math
 import pathlib
-import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -63,35 +62,15 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_mod
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
-from .specwrite import clip_to_bounds, warm_parameters, write_spec
+from .fitstate import (FitState, conv_label, diag_options, evaluated, refit_converged, refit_warm,
+                       stage1_iterations)
+from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
 
 
 #: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
 #: two explanations below e³ ≈ 20, "not strong" on the Kass–Raftery scale) is reported as an
 #: alternative explanation and the finding is marked ambiguous
 AMBIGUITY_NATS = 3.0
-
-
-@dataclasses.dataclass(frozen=True)
-class FitState:
-    """A fitted model: spec, model, fit, evaluation signals (estimation and validation)."""
-
-    spec_path: pathlib.Path
-    model: Any
-    records: tuple
-    fit: Any
-    signals: tuple
-    vrecords: tuple = ()
-    vfit: Any = None
-    vsignals: tuple = ()
-
-    @property
-    def elbo(self) -> float:
-        return float(self.fit.elbo)
-
-    @property
-    def val_elbo(self) -> float | None:
-        return None if self.vfit is None else float(self.vfit.elbo)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,30 +161,6 @@ def _say(progress, msg):
 # fitting helpers
 # ---------------------------------------------------------------------------
 
-def _diag_options(max_iter, **kw):
-    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see refit.py)."""
-    from ..estimator import FitOptions
-    from .refit import REFIT_DETERMINISTIC_STD
-    kw.setdefault("deterministic", "quasi")
-    return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
-
-
-def _evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
-    """Evaluate a fit (and smooth the validation records with θ and noise fixed)."""
-    from ..estimator import smooth
-    from ..evaluation import evaluate
-
-    signals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                    for r, sm in zip(records, res.smoothers))
-    vfit, vsignals = None, ()
-    if vrecords:
-        vfit = smooth(model, list(vrecords), res.theta, res, options=_diag_options(max_iter))
-        vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                         for r, sm in zip(vrecords, vfit.smoothers))
-    return FitState(pathlib.Path(spec_path), model, tuple(records), res, signals, tuple(vrecords),
-                    vfit, vsignals)
-
-
 def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
              warm_theta: dict | None = None) -> FitState:
     """Load, fit, evaluate (and validate) one spec on the given record files."""
@@ -217,8 +172,8 @@ def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
     records = tuple(unique_names([load_record(model, p) for p in data]))
     vrecords = tuple(unique_names([load_record(model, p) for p in validate]))
     # the user's model: its own states without process noise are fitted in the exact limit
-    res = fit(model, list(records), options=_diag_options(max_iter, deterministic="limit"))
-    return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
+    res = fit(model, list(records), options=diag_options(max_iter, deterministic="limit"))
+    return evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 
 def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
@@ -227,27 +182,12 @@ def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
 
     _say(progress, f"base fit not converged ({st.fit.status}); continuing it")
     try:
-        res = fit(st.model, list(st.records), options=_diag_options(2 * max_iter, warm_start=st.fit))
+        res = fit(st.model, list(st.records), options=diag_options(2 * max_iter, warm_start=st.fit))
     except FitError:
         return st
     if res.elbo < st.elbo:
         return st
-    return _evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
-
-
-def refit_converged(res) -> bool:
-    """Converged by the estimator's typed stop reason (Newton decrement or gradient test)."""
-    reason = getattr(res, "stop_reason", None)
-    return bool(res.converged) if reason is None else reason.converged
-
-
-def conv_label(res) -> str:
-    return "converged" if refit_converged(res) else "NOT converged"
-
-
-def _stage1_iter(max_iter: int) -> int:
-    """Stage 1 only has to bring the new parameters near their optimum (stage 2 finishes)."""
-    return max(10, min(max_iter, 40))
+    return evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
 
 
 def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib.Path,
@@ -282,7 +222,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             dec0, G1, R1, H0, notes = stage0_start(m1, records, base_fit, current.model, theta1, DET)
             out.notes += notes
             r0 = smooth(m1, records, theta1, {"G": G1, "R": R1},
-                        options=_diag_options(max_iter, warm_start=WarmStart.from_decision(dec0)))
+                        options=diag_options(max_iter, warm_start=WarmStart.from_decision(dec0)))
             out.elbo_stage0, out.converged_stage0 = float(r0.elbo), bool(r0.converged)
             out.x0_entropy = H0
             out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
@@ -306,12 +246,12 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter), **opts1))
+        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter), **opts1))
     except FitError as err:
         if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter)))
+        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter)))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     if not new_states and not opts1:
         out.elbo_ref = current.elbo
@@ -330,17 +270,17 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     except (FitError, ValueError, KeyError, TypeError) as err:
         out.notes.append(f"no warm start for stage 2 ({err})")
     try:
-        res2 = fit(m2, records, options=_diag_options(2 * max_iter, **opts2))
+        res2 = fit(m2, records, options=diag_options(2 * max_iter, **opts2))
     except FitError as err:
         if not opts2:
             raise
         out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res2 = fit(m2, records, options=_diag_options(2 * max_iter))
+        res2 = fit(m2, records, options=diag_options(2 * max_iter))
     if not res2.converged and getattr(res2, "stop_reason", None) in (FitStopReason.NO_PROGRESS,
                                                                      FitStopReason.INDEFINITE_HESSIAN):
         # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
         try:
-            res2b = fit(m2, records, options=_diag_options(max_iter, warm_start=res2))
+            res2b = fit(m2, records, options=diag_options(max_iter, warm_start=res2))
             if res2b.elbo >= res2.elbo:
                 out.notes.append(f"stage 2 restarted after a stall: {res2b.status}")
                 res2 = res2b
@@ -348,7 +288,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             out.notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
     if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
         out.notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
-    st = _evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
+    st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:
         out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
     out.state = st
@@ -394,30 +334,6 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
 PROJECTED_TOL = 0.05
 
 
-def _extends(spec_path, path: pathlib.Path) -> str:
-    """``extends:`` text of a spec written at ``path`` that extends ``spec_path``."""
-    import os
-    return os.path.relpath(pathlib.Path(spec_path).resolve(), path.resolve().parent)
-
-
-def _refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
-                iterations: int, max_iter: int) -> FitState:
-    """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
-    and assumed density (the same state layout) and the spec's parameter initial values."""
-    from ..estimator import fit
-    from ..model import load_model
-    from .refit import REFIT_DETERMINISTIC_STD as DET, noise_parameters, noise_stds, parameter_start
-
-    m = load_model(path, generated_dir=generated_dir)
-    records = list(current.records)
-    z, _ = parameter_start(m)
-    ps, od, ms = noise_stds(source.fit, source.model)
-    s0 = np.concatenate([z, noise_parameters(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=_diag_options(iterations, warm_start=WarmStart.from_decision(
-        {"s": s0, "records": source.fit.decision["records"]})))
-    return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
-
-
 def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str, *,
                     generated_dir, max_iter: int) -> FitState:
     """The *current* model refitted from a candidate's optimum, its new terms removed.
@@ -440,8 +356,8 @@ def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str
                {"name": name,
                 "description": f"{t.candidate.key} with its new terms at their nesting values "
                                "(the current model), started at the candidate's optimum",
-                "extends": _extends(t.spec_path, path), "parameters": params})
-    return _refit_warm(path, t.state, current, generated_dir=generated_dir,
+                "extends": extends_text(t.spec_path, path), "parameters": params})
+    return refit_warm(path, t.state, current, generated_dir=generated_dir,
                        iterations=2 * max_iter, max_iter=max_iter)
 
 
@@ -463,8 +379,8 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
                {"name": name,
                 "description": "the current model at a better optimum of its own parameters "
                                "and noise",
-                "extends": _extends(current.spec_path, path), "parameters": params})
-    return _refit_warm(path, better, current, generated_dir=generated_dir,
+                "extends": extends_text(current.spec_path, path), "parameters": params})
+    return refit_warm(path, better, current, generated_dir=generated_dir,
                        iterations=max_iter, max_iter=max_iter)
 
 
@@ -508,10 +424,6 @@ def model_info_of(st: FitState) -> ModelInfo:
     for j, u in enumerate(m.input_names):
         breaks[u] = tuple(break_points(U[:, j]))
     return dataclasses.replace(info, breaks=breaks)
-
-
-def _safe(key: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_]+", "_", key).strip("_")[:60]
 
 
 def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.Path,
@@ -622,7 +534,7 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
     scores = {}
     if screen and current is not None and current.fit.decision is not None and every:
         scores = score_screen([c for _, c in every], current, info, workdir,
-                              f"{_safe(current.model.name)[:30]}_sc",
+                              f"{safe_name(current.model.name)[:30]}_sc",
                               generated_dir=generated_dir, det_std=REFIT_DETERMINISTIC_STD,
                               progress=progress)
     rows = []
@@ -840,10 +752,10 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                 "score): " if screen else "locate scores: ")
                      + ", ".join(f"{r['key']} {r['priority']:.3g}"
                                  for r in table[:max_candidates + 4] if r['priority'] is not None))
-                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
+                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
                          for i, (_, _, c, _) in enumerate(ranked)]
                 tasks = [(c.key, (c, current, info, paths[i],
-                                  f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
+                                  f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter))
                          for i, (_, _, c, _) in enumerate(ranked)]
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
@@ -897,9 +809,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                             or not t.converged or not (t.p_value < alpha)):
                         continue
                     ppath = (out / "candidates"
-                             / f"r{rnd}_{i + 1:02d}_{_safe(t.candidate.key)}.projected.yaml")
+                             / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
                     ptasks.append((t.candidate.key, (t, current, ppath,
-                                                     f"{_safe(current.model.name)[:30]}_dg{rnd}_"
+                                                     f"{safe_name(current.model.name)[:30]}_dg{rnd}_"
                                                      f"{i + 1}p", gen, max_iter)))
                 if ptasks:
                     unfinished["projected_pending"] = [k for k, _ in ptasks]
@@ -931,7 +843,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     try:
                         rb = rebase(better, current,
                                     out / "candidates" / f"r{rnd}_00_current.yaml",
-                                    f"{_safe(current.model.name)[:30]}_dg{rnd}_0",
+                                    f"{safe_name(current.model.name)[:30]}_dg{rnd}_0",
                                     generated_dir=gen, max_iter=max_iter)
                         if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
                             better = rb

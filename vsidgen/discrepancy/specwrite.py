@@ -3,7 +3,9 @@ from a fit's estimates."""
 
 from __future__ import annotations
 
+import os
 import pathlib
+import re
 from typing import Any
 
 import yaml
@@ -41,4 +43,15 @@ def warm_parameters(model, theta) -> dict:
     return out
 
 
-__all__ = ["clip_to_bounds", "warm_parameters", "write_spec"]
+def extends_text(spec_path, path: pathlib.Path) -> str:
+    """``extends:`` text of a spec written at ``path`` that extends ``spec_path``."""
+    return os.path.relpath(pathlib.Path(spec_path).resolve(), path.resolve().parent)
+
+
+def safe_name(key: str) -> str:
+    """``key`` as a file-name part: runs of other characters than letters, digits and _ become
+    one _, at most 60 characters."""
+    return re.sub(r"[^A-Za-z0-9_]+", "_", key).strip("_")[:60]
+
+
+__all__ = ["clip_to_bounds", "extends_text", "safe_name", "warm_parameters", "write_spec"]
