@@ -30,9 +30,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from .core import (NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, get_transition, make_cfg,
-                   record_data)
-from .results import FitOptions, FitResult, SmootherPath, StopReason
+from ..dynamics import settings as transition_settings
+from ..dynamics import transition
+from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
+from .results import FitOptions, FitResult, SmootherPath, StopReason, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -123,9 +124,9 @@ class _Problem:
                  relax: bool = False):
         self.model = model
         self.records = _check_records(model, records)
-        self.integrator = options.integrator or getattr(model, "integrator", "euler") or "euler"
-        self.substeps = int(options.substeps or getattr(model, "substeps", 1) or 1)
-        F = get_transition(model, self.integrator, self.substeps)
+        self.integrator, self.substeps = transition_settings(
+            model, integrator=options.integrator, substeps=options.substeps)
+        F = transition(model, integrator=self.integrator, substeps=self.substeps)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax)
@@ -146,10 +147,11 @@ class _Problem:
 
     def initial(self, options: FitOptions, start: str = "data"):
         ws = options.warm_start
-        if ws is not None and getattr(ws, "decision", None) is not None:
-            dec = ws.decision
-            s = np.asarray(dec["s"], float)
-            recs = [(np.asarray(d["mu"], float), np.asarray(d["r"], float)) for d in dec["records"]]
+        if isinstance(ws, FitResult):
+            ws = None if ws.decision is None else WarmStart.from_decision(ws.decision)
+        if ws is not None:
+            s = np.asarray(ws.shared, float)
+            recs = [(np.asarray(m, float), np.asarray(r, float)) for m, r in ws.records]
             if s.shape == (self.obj.ng,) and len(recs) == self.nrec and all(
                     m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
                 return s, recs
