@@ -900,9 +900,9 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
     model) has a posterior spread that decays along the record, which the time-invariant
     assumed density cannot follow: its spread collapses with ε and the ELBO falls by
     exactly ln 10 per full stage per collapsed direction while the estimates converge.
-    Two consecutive full stages with the same whole number k of ln 10 (within
-    ``limit_tol``) and converged estimates end the continuation too (reported as k
-    collapsed directions: such ELBOs compare only at equal ε).
+    Two consecutive stages with the same factor ρ and the same whole number k of ln(1/ρ)
+    (within ``limit_tol`` per decade) and converged estimates end the continuation too
+    (reported as k collapsed directions: such ELBOs compare only at equal ε).
     """
     det_idx = np.nonzero(P.nm.deterministic)[0]
     names = [P.model.state_names[i] for i in det_idx]
@@ -976,16 +976,17 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
                 r_ = np.abs(theta - base["theta"]) / se
             d_theta = float(np.nanmax(r_)) if np.any(np.isfinite(r_)) else 0.0
         base = dict(s=o["s"], recs=o["recs"], elbo=elbo, theta=theta, eps=e, out=o)
+        ln_step = math.log(1.0 / ratio)
+        k = int(round(-d_elbo / ln_step))
+        steady_k = (k >= 1 and abs(d_elbo + k * ln_step) < options.limit_tol * ln_step / math.log(10.0)
+                    and prev_k == (k, ratio))
+        prev_k = (k, ratio)
+        if d_theta < options.limit_tol and (steady_k or (ratio == LIMIT_RATIO and abs(d_elbo) < options.limit_tol)):
+            reached = True
+            collapsed = k if steady_k else 0
+            break
         if ratio == LIMIT_RATIO:
             full += 1
-            ln_step = math.log(1.0 / ratio)
-            k = int(round(-d_elbo / ln_step))
-            steady_k = k >= 1 and abs(d_elbo + k * ln_step) < options.limit_tol and prev_k == k
-            prev_k = k
-            if d_theta < options.limit_tol and (abs(d_elbo) < options.limit_tol or steady_k):
-                reached = True
-                collapsed = k if steady_k else 0
-                break
             if full >= LIMIT_MAX_STAGES:
                 break
         ratio = max(LIMIT_RATIO, ratio * ratio)
