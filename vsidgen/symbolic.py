@@ -84,6 +84,8 @@ class SymbolicModel:
     integrator: str
     substeps: int
     warnings: tuple[SpecWarning, ...] = ()
+    #: input hold between samples of the transition: "zoh" | "foh" (:mod:`vsidgen.dynamics`)
+    input_hold: str = "zoh"
     #: "drift:V" / "observations:V" / "definitions:qbar" -> where the equation is written
     locations: Mapping[str, Location] = dataclasses.field(default_factory=dict, compare=False)
     #: every file of the spec, the `extends` ancestors first
@@ -292,9 +294,9 @@ def _compile(path) -> SymbolicModel:
     description = ""
     if "description" in top and top["description"].value is not None:
         description = top["description"].string("`description`")
-    method, substeps = "euler", 1
+    method, substeps, input_hold = "euler", 1, "zoh"
     if "integrator" in top:
-        integ = keys_check(top["integrator"], ("method", "substeps"), "`integrator`")
+        integ = keys_check(top["integrator"], ("method", "substeps", "inputs"), "`integrator`")
         if "method" in integ:
             method = integ["method"].string("integrator method")
             if method not in ("euler", "rk4"):
@@ -308,6 +310,14 @@ def _compile(path) -> SymbolicModel:
                 raise SpecError("integrator substeps must be an integer >= 1", **n.loc,
                                 text=n.source_line())
             substeps = n.value
+        if "inputs" in integ:
+            input_hold = integ["inputs"].string("integrator inputs")
+            if input_hold not in ("zoh", "foh"):
+                raise SpecError(f"unknown input hold `{input_hold}`", **integ["inputs"].loc,
+                                text=integ["inputs"].source_line(),
+                                hint=did_you_mean(input_hold, ("zoh", "foh"))
+                                or "use zoh (inputs held over each sample) or foh (inputs "
+                                   "interpolated linearly between samples)")
 
     # declarations -----------------------------------------------------------------
     declared: dict[str, tuple[str, YNode]] = {}
@@ -538,7 +548,7 @@ def _compile(path) -> SymbolicModel:
         constants=tuple(constants), parameters=tuple(parameters), definitions=definitions,
         drift=tuple(drift), observations=tuple(observations), process_noise=process,
         measurement_noise=tuple(measurement[o] for o in output_names), data=data,
-        integrator=method, substeps=substeps, warnings=tuple(warnings), locations=locations,
+        integrator=method, substeps=substeps, input_hold=input_hold, warnings=tuple(warnings), locations=locations,
         files=raw.files, canonical=raw.canonical())
 
 

@@ -204,7 +204,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     base_fit = current.fit
     integ = getattr(m, "integrator", "euler") or "euler"
     sub = int(getattr(m, "substeps", 1) or 1)
-    F = get_transition(m, integ, sub)
+    F = get_transition(m, integ, sub)  # the model's input hold
     tm = ThetaMap(m.parameters)
     nm = NoiseMap(m, records, deterministic_std=det_std)
     obj = get_objective(m, tm, nm, F, (integ, sub))

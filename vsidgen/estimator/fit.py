@@ -122,7 +122,8 @@ class _Problem:
         self.records = _check_records(model, records)
         self.integrator = options.integrator or getattr(model, "integrator", "euler") or "euler"
         self.substeps = int(options.substeps or getattr(model, "substeps", 1) or 1)
-        F = get_transition(model, self.integrator, self.substeps)
+        self.input_hold = options.input_hold or getattr(model, "input_hold", "zoh") or "zoh"
+        F = get_transition(model, self.integrator, self.substeps, self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model))
