@@ -4,6 +4,8 @@ findings.json (keys in this order)::
 
     {"vsidgen_version", "spec", "records": {"estimation": [...], "validation": [...]},
      "options": {...}, "conclusion": "plain words",
+     "numerics": null | {"kind": "modelling_numerics", "current", "trials": [...],
+                         "adopted": null | {"setting", "recommendation", "statistic", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -185,6 +187,11 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     (one source of truth): per finding its test, estimates with units, explanation and
     alternatives; the last line is the document's ``conclusion`` and where it is written."""
     lines = []
+    adopted = (document.get("numerics") or {}).get("adopted")
+    if adopted:
+        lines.append(f"0. modelling numerics (not physics): {adopted['recommendation']}: 2ΔELBO = "
+                     f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}")
+        lines.append(f"   {adopted['explanation']}")
     for f in document.get("findings") or []:
         ev = f["evidence"]
         lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
@@ -202,13 +209,25 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     return lines
 
 
+def numerics_text(numerics: dict | None) -> str:
+    """Sentence on the modelling-numerics stage put before the conclusion ("" when nothing
+    was adopted)."""
+    adopted = (numerics or {}).get("adopted")
+    if not adopted:
+        return ""
+    return (f"MODELLING NUMERICS (not a physical effect): {adopted['recommendation']} "
+            f"(2ΔELBO = {adopted['statistic']:.4g} > {adopted['threshold']:.4g} with no parameter "
+            "added); the physical search below used it. ")
+
+
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options, stop: dict | None = None,
-                   unfinished_round: dict | None = None) -> dict:
+                   unfinished_round: dict | None = None, numerics: dict | None = None) -> dict:
     """The findings.json mapping (see the module docstring).
 
     ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
-    ``unfinished_round``: the round that was in progress (refitted trials, pending keys).
+    ``unfinished_round``: the round that was in progress (refitted trials, pending keys);
+    ``numerics``: the modelling-numerics stage (:meth:`.numerics.NumericsResult.to_json`).
     """
     findings = []
     for rank, (trial, before, ev) in enumerate(accepted, start=1):
@@ -260,13 +279,13 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
-    conclusion = stopped + conclusion
+    conclusion = stopped + numerics_text(numerics) + conclusion
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
-        "findings": findings, "final_spec": str(final.spec_path),
+        "numerics": numerics, "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "metrics": metrics_summary(base)},
         "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
@@ -375,6 +394,21 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
     e = html.escape
     parts = ["<section id='diagnose'><h2>Discrepancy diagnosis</h2>",
              f"<p>{e(doc['conclusion'])}</p>"]
+    num = doc.get("numerics") or {}
+    if num.get("trials"):
+        parts.append("<h3>Modelling numerics (tested before physics)</h3>"
+                     f"<p>Current setting: <code>{e(num['current']['text'])}</code>. "
+                     + (f"<b>{e(num['adopted']['explanation'])}</b>" if num.get("adopted")
+                        else "Kept: no other setting improved the fit significantly.")
+                     + "</p><table border='1' cellpadding='3' style='border-collapse:collapse;"
+                       "font-size:90%'><tr><th>setting</th><th>2ΔELBO</th><th>threshold</th>"
+                       "<th>verdict</th></tr>")
+        for t in num["trials"]:
+            st = t.get("statistic")
+            parts.append(f"<tr><td><code>{e(t['setting']['text'])}</code></td>"
+                         f"<td>{'n/a' if st is None else f'{st:.4g}'}</td>"
+                         f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
+        parts.append("</table>")
     loc = doc.get("locate", {})
     if loc:
         parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "

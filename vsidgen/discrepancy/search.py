@@ -76,6 +76,8 @@ class DiagnoseOptions:
         max_iter: optimizer iteration limit of each fit.
         screen: score-test pre-screen of the candidates that add no state (default off: see
             :mod:`.score` for its cost and its failure on degenerate base optima).
+        numerics: test the integrator settings first (:mod:`.numerics`) and continue with a
+            setting that removes a significant part of the mismatch.
     """
 
     max_rounds: int = 3
@@ -85,6 +87,7 @@ class DiagnoseOptions:
     effects: tuple[str, ...] | None = None
     max_iter: int = 200
     screen: bool = False
+    numerics: bool = True
 
 
 #: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
@@ -738,7 +741,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
                  time_limit: float | None = None, workers: int | None = 1,
-                 scheduler: str | None = None,
+                 scheduler: str | None = None, numerics: bool = True,
                  progress: Callable[[str], None] | None = None,
                  overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
@@ -764,6 +767,11 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     core) runs them on a local ``dask.distributed`` cluster, ``scheduler`` on an existing
     one (see :mod:`vsidgen.engine`); ``workers=1`` runs them in this process. Both give
     the same findings.
+
+    ``numerics``: before any physics candidate the current model is refitted with other
+    integrator settings (rk4, sub-steps, first-order hold of the inputs; :mod:`.numerics`);
+    a setting that removes a significant part of the mismatch is adopted for the rest of
+    the run and reported as a modelling-numerics finding (``findings.json`` → ``numerics``).
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -818,12 +826,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
                              progress=progress, version=__version__,
                              build_document=build_document, write_findings=write_findings,
-                             time_limit=time_limit, engine=engine)
+                             time_limit=time_limit, engine=engine, numerics=numerics)
 
 
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
-                  write_findings, time_limit, engine) -> DiagnoseResult:
+                  write_findings, time_limit, engine, numerics=True) -> DiagnoseResult:
     from ..engine import TaskStatus
     from .findings import write_findings_json
 
@@ -832,7 +840,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     deadline = None if time_limit is None else time.monotonic() + float(time_limit)
     options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
                "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
-               "time_limit_s": time_limit, "engine": engine.describe()}
+               "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics}
 
     def past_deadline() -> bool:
         return deadline is not None and time.monotonic() >= deadline
@@ -842,6 +850,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     accepted: list[tuple[Trial, FitState, Evidence]] = []
     unfinished: dict | None = None
     current = evidence0 = evidence = None
+    numres = None
 
     from .refit import compile_seconds
 
@@ -853,7 +862,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                               version=version, wall_time_s=time.perf_counter() - t_start,
                               out=out, options=options,
                               stop={"reason": stop.value, "time_limit_s": time_limit},
-                              unfinished_round=unfinished)
+                              unfinished_round=unfinished,
+                              numerics=None if numres is None else numres.to_json())
         refit_c = [t["refit"].get("compile_s") for r in rounds for t in r.get("trials", ())
                    if t.get("refit")]
         doc["compile_s"] = {"this_process": round(compile_seconds() - compile0, 2),
@@ -882,6 +892,16 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
         with engine:
             if not engine.serial:
                 _say(progress, f"refits run on a {engine.describe()}")
+            if numerics and not past_deadline():
+                from .numerics import run_numerics
+
+                numres = run_numerics(current, out, alpha=alpha, generated_dir=gen,
+                                      max_iter=max_iter, engine=engine, deadline=deadline,
+                                      progress=progress)
+                if numres.adopted is not None:
+                    current = numres.adopted.state
+                    evidence = locate_state(current)
+                checkpoint(StopReason.RUNNING)
             for rnd in range(1, max_rounds + 1):
                 if past_deadline():
                     stop = StopReason.TIME_LIMIT
@@ -1111,6 +1131,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--effects-module", action="append", default=None, metavar="PATH.py",
                    help="Python file defining extra Effect subclasses (repeatable)")
     p.add_argument("--max-iter", type=int, default=200, help="optimizer iterations per fit")
+    p.add_argument("--no-numerics", action="store_true",
+                   help="do not test the integrator settings (rk4, sub-steps, first-order hold "
+                        "of the inputs) before the physical candidates")
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
@@ -1173,6 +1196,7 @@ def diagnose_command(args) -> int:
                                effects_module=args.effects_module, max_iter=args.max_iter,
                                screen=args.screen, time_limit=args.time_limit,
                                workers=args.workers, scheduler=args.scheduler, progress=progress,
+                               numerics=not args.no_numerics,
                                overwrite=args.overwrite, overrides=ov)
     finally:
         if progress is not None:
