@@ -41,6 +41,8 @@ _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 MAX_EXPANDED_SIZE = 10_000
 #: longest name (model, state, input, output, parameter, constant, definition) accepted
 MAX_NAME_LENGTH = 64
+#: largest pure transport delay of an input (``inputs: {u: {delay: seconds}}``)
+MAX_INPUT_DELAY_S = 10.0
 
 #: names the generated module defines or imports (no spec name may equal one of them;
 #: every other name the module uses itself starts with ``_``, which spec names cannot)
@@ -338,12 +340,23 @@ def _compile(path) -> SymbolicModel:
     for key, what, bucket in (("states", "state", states), ("inputs", "input", inputs),
                               ("outputs", "output", outputs)):
         for nm, node, fields in _variables(raw, key, what):
-            keys_check(node, ("unit", "description"), f"{what} `{nm}`") if node.kind == "map" else None
+            allowed = ("unit", "description", "delay") if key == "inputs" else ("unit", "description")
+            keys_check(node, allowed, f"{what} `{nm}`") if node.kind == "map" else None
             unit, dim = _unit_of(fields, f"{what} `{nm}`")
+            delay = 0.0
+            if "delay" in fields:
+                dn = fields["delay"]
+                delay = dn.number(f"delay of input `{nm}`")
+                if not (math.isfinite(delay) and 0.0 <= delay <= MAX_INPUT_DELAY_S):
+                    raise SpecError(f"delay of input `{nm}` must be between 0 and "
+                                    f"{MAX_INPUT_DELAY_S:g} seconds, got {delay:g}", **dn.loc,
+                                    text=dn.source_line(),
+                                    hint="a pure transport delay in seconds: the model sees the "
+                                         f"recorded {nm} shifted later by this time")
             if key != "outputs":
                 declare(nm, f"a {what}", node)
                 dims[_sym(nm)] = dim
-                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))
+                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm), delay=float(delay)))
             else:
                 output_dims[nm] = dim
                 bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))

@@ -61,6 +61,11 @@ def _target_metrics(m: dict, target: str) -> dict:
 def _params(c, st) -> dict:
     names = list(st.model.parameter_names)
     out = {}
+    delay = (c.info or {}).get("delay")
+    if delay:  # a profiled transport delay: not a model parameter (the input is shifted)
+        out[delay["name"]] = {"estimate": _f(delay["estimate"]), "std_error": _f(delay["std_error"]),
+                              "unit": "s", "fixed": False,
+                              "description": f"transport delay of {c.info['input']} (profiled)"}
     for p in c.parameters:
         if p.name not in names:
             continue
@@ -267,7 +272,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "validation_elbo_after": _f(after.val_elbo),
                 "metrics_before": _target_metrics(mb, c.target),
                 "metrics_after": _target_metrics(ma, c.target),
-                "locate": locate_part},
+                "locate": locate_part,
+                "delay_profile": (c.info or {}).get("profile_result")},
             "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
             "alternatives": [a.alternative_json() for a in trial.alternatives],
             "spec": str(trial.spec_path)})

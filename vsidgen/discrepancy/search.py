@@ -520,6 +520,10 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         h0 = t.refit.x0_entropy if t.candidate.states else 0.0
         ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
+        n_grid = _grid_size(t.candidate)
+        if n_grid:
+            from .delay import delay_p_value
+            p = delay_p_value(lam, n_grid)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
                                        statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
                                        verdict=trial_verdict(t.candidate, t.state, lam)))
@@ -737,6 +741,51 @@ def _trial_of(oc, c, score, sr, path, current) -> Trial:
                  verdict=trial_verdict(c, st, lam))
 
 
+def _grid_size(c: Candidate) -> int:
+    """Number of delays profiled for a transport-delay candidate (0 for any other)."""
+    return len(((c.info or {}).get("profile_result") or {}).get("grid_s") or ())
+
+
+def _delay_trial(c, score, current, path, name, *, engine, generated_dir, max_iter,
+                 deadline) -> Trial | None:
+    """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
+    estimate and the test (Bonferroni over the grid; None when the time ran out)."""
+    from .delay import delay_p_value, profile_delay
+    from .refit import RefitOutcome
+
+    u = c.info["input"]
+    j = list(current.model.input_names).index(u)
+    if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error=f"the model already delays {u}")
+    try:
+        prof = profile_delay(current, u, path, name, engine=engine, generated_dir=generated_dir,
+                             max_iter=max_iter, deadline=deadline)
+    except (FitError, SpecError, VsidgenError, ValueError, ArithmeticError) as err:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error=f"failed: {str(err).splitlines()[0]}")
+    if prof is None:
+        return None
+    if prof.state is None:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error="failed: no grid fit or final refit succeeded")
+    st = prof.state
+    lam = 2.0 * (st.elbo - current.elbo)
+    ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate,
+           "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s"}
+    from .base import get_effect
+    text = get_effect(c.effect).explain(input=u, delay=f"{prof.estimate:.4g}")
+    c2 = dataclasses.replace(c, explanation=text,
+                             info={**c.info, "delay": ent, "profile_result": prof.to_json()})
+    ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
+                      notes=[f"profile over {len(prof.grid)} delays; best grid value "
+                             f"{prof.best_grid:.4g} s, refined {prof.estimate:.4g} s"],
+                      wall_s=prof.wall_s)
+    return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
+                 statistic_vs_base=lam, converged=refit_converged(st.fit),
+                 verdict=refit_verdict(lam, {}, {}))
+
+
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
@@ -924,10 +973,13 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                  for r in table[:max_candidates + 4] if r['priority'] is not None))
                 paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
                          for i, (_, _, c, _) in enumerate(ranked)]
+                # transport delays are profiled over a grid of delays (.delay), not refitted
+                profiled = [i for i, (_, _, c, _) in enumerate(ranked)
+                            if c.info.get("profile") == "delay"]
                 tasks = [(c.key, (c, current, info, paths[i],
                                   f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter))
-                         for i, (_, _, c, _) in enumerate(ranked)]
+                         for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                               "base_elbo": current.elbo, "n_candidates": n_examined,
@@ -970,6 +1022,24 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 for o in outcomes:
                     i, score, c, sr = by_key[o.key]
                     trials.append(_trial_of(o, c, score, sr, paths[i], current))
+                for i in profiled:
+                    score, _, c, sr = ranked[i]
+                    _say(progress, f"round {rnd}: {c.key}: profiling the delay over a grid")
+                    t = _delay_trial(c, score, current, paths[i],
+                                     f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}",
+                                     engine=engine, generated_dir=gen, max_iter=max_iter,
+                                     deadline=deadline)
+                    if t is None:
+                        stop = StopReason.TIME_LIMIT
+                        break
+                    unfinished["pending"].remove(c.key)
+                    unfinished["refitted"].append(t.to_json())
+                    if t.state is not None:
+                        _say(progress, f"round {rnd}: {c.key}: delay {t.candidate.info['delay']}"
+                                       f", 2ΔELBO {t.statistic:.4g}")
+                    trials.append(t)
+                if stop is StopReason.TIME_LIMIT:
+                    break
                 # a candidate's gain may be a better optimum of the current model itself: refit
                 # the current model from each nominally significant candidate's optimum
                 # (new terms removed)
@@ -1071,7 +1141,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
     for t, (sig, level) in zip(trials, decisions):
-        thr = float(stats.chi2.isf(level, max(t.dof, 1)))
+        # a profiled delay's p-value carries the Bonferroni factor of its grid (.delay)
+        thr = float(stats.chi2.isf(level / max(_grid_size(t.candidate), 1), max(t.dof, 1)))
         vok = None
         if sig and t.state is not None and t.state.vfit is not None:
             corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
