@@ -264,7 +264,7 @@ class TransportDelay(Effect):
                    "{delay} s, found by profiling the fit over delays of whole and fractional "
                    "samples up to about a second. Modelled by shifting the recorded {input} "
                    "itself (linear interpolation between samples; spec: "
-                   "`inputs: {{{input}: {{delay: {delay}}}}}`); no state is added.")
+                   "`inputs: {{{input}: {{delay: {spec_delay}}}}}`); no state is added.")
     doc = ("A pure time delay of one input in seconds, u(t − τ), realised by shifting the input "
            "(fractional samples by interpolation); τ is profiled over a grid, not refitted "
            "from zero (:mod:`vsidgen.discrepancy.delay`).")
@@ -277,7 +277,7 @@ class TransportDelay(Effect):
                 continue
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
-                explanation=self.explain(input=u, delay="τ"),
+                explanation=self.explain(input=u, delay="τ", spec_delay="τ"),
                 info={"input": u, "states": tuple(gains), "profile": "delay"},
                 screenable=False))
         return out

@@ -21,6 +21,11 @@ Test: Λ = 2(ELBO(τ̂) − ELBO_current) with one degree of freedom. Because τ
 the best of ``n`` grid values, its p-value is multiplied by ``n`` (Bonferroni over the
 grid), which covers the maximisation over τ conservatively; the round's Holm correction
 then counts the profiled input as one more candidate.
+
+Units: the spec carries the delay τ̂ applied to the recorded samples. A model that holds
+its inputs over each sample (zero-order hold) already delays a continuously moving input by
+half a sample on average (:func:`hold_lag`), so the physical transport delay reported is
+τ̂ + lag; both are given.
 """
 
 from __future__ import annotations
@@ -173,6 +178,23 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
                         time.perf_counter() - t0)
 
 
+def hold_lag(model, dt: float) -> float:
+    """Delay (s) the model's own transition already applies to a continuously varying input.
+
+    A zero-order hold uses ``u_k`` over ``[t_k, t_k + T)``, i.e. ``u(t − (t − t_k))``: to
+    first order in T the input delayed by the mean ``T/2``. With a first-order hold Euler
+    sub-step j uses the input at its start, ``T/(2m)`` behind on average; RK4 evaluates
+    the interpolated input at its stage times (no lag). The physical transport delay is the
+    spec's delay plus this lag.
+    """
+    hold = getattr(model, "input_hold", "zoh") or "zoh"
+    if hold == "zoh":
+        return 0.5 * dt
+    if (getattr(model, "integrator", "euler") or "euler") == "rk4":
+        return 0.0
+    return 0.5 * dt / int(getattr(model, "substeps", 1) or 1)
+
+
 def delay_p_value(statistic: float, n_grid: int) -> float:
     """χ²₁ upper tail of Λ, times the number of grid values profiled (Bonferroni), at most 1."""
     if not (math.isfinite(statistic) and statistic > 0):
@@ -181,4 +203,4 @@ def delay_p_value(statistic: float, n_grid: int) -> float:
 
 
 __all__ = ["DelayProfile", "delay_grid", "delay_p_value", "parabola_vertex", "profile_delay",
-           "shifted_records"]
+           "hold_lag", "shifted_records"]

@@ -750,7 +750,7 @@ def _delay_trial(c, score, current, path, name, *, engine, generated_dir, max_it
                  deadline) -> Trial | None:
     """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
     estimate and the test (Bonferroni over the grid; None when the time ran out)."""
-    from .delay import delay_p_value, profile_delay
+    from .delay import delay_p_value, hold_lag, profile_delay
     from .refit import RefitOutcome
 
     u = c.info["input"]
@@ -771,10 +771,17 @@ def _delay_trial(c, score, current, path, name, *, engine, generated_dir, max_it
                      error="failed: no grid fit or final refit succeeded")
     st = prof.state
     lam = 2.0 * (st.elbo - current.elbo)
-    ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate,
-           "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s"}
+    lag = hold_lag(current.model, float(np.median([r.dt for r in current.records])))
+    ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate + lag,
+           "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s",
+           "spec_value": prof.estimate, "hold_lag": lag}
     from .base import get_effect
-    text = get_effect(c.effect).explain(input=u, delay=f"{prof.estimate:.4g}")
+    text = get_effect(c.effect).explain(input=u, delay=f"{prof.estimate + lag:.4g}",
+                                        spec_delay=f"{prof.estimate:.4g}")
+    if lag > 0:
+        text += (f" The model holds {u} over each sample, which by itself delays it by "
+                 f"{lag:.4g} s on average; the spec's delay is therefore {prof.estimate:.4g} s "
+                 f"for a physical transport delay of {prof.estimate + lag:.4g} s.")
     c2 = dataclasses.replace(c, explanation=text,
                              info={**c.info, "delay": ent, "profile_result": prof.to_json()})
     ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
