@@ -263,8 +263,8 @@ class TransportDelay(Effect):
                    "pure transport delay (control system, filters, data acquisition) of "
                    "{delay} s, found by profiling the fit over delays of whole and fractional "
                    "samples up to about a second. Modelled by shifting the recorded {input} "
-                   "itself (linear interpolation between samples; spec: "
-                   "`inputs: {{{input}: {{delay: {spec_delay}}}}}`); no state is added.")
+                   "itself (linear interpolation between samples; in the spec: input {input} "
+                   "with `delay: {spec_delay}`); no state is added.")
     doc = ("A pure time delay of one input in seconds, u(t − τ), realised by shifting the input "
            "(fractional samples by interpolation); τ is profiled over a grid, not refitted "
            "from zero (:mod:`vsidgen.discrepancy.delay`).")

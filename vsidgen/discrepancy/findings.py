@@ -89,8 +89,11 @@ def _capital(text: str) -> str:
 
 
 def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
-                    final_spec, base_converged: bool = True, base_status: str = "") -> str:
-    """The plain-words conclusion of findings.json (pure: findings and round records only)."""
+                    final_spec, base_converged: bool = True, base_status: str = "",
+                    numerics_adopted: bool = False) -> str:
+    """The plain-words conclusion of findings.json (pure: findings and round records only;
+    ``numerics_adopted``: a modelling-numerics setting was adopted, so only the physics is
+    kept when nothing else is found)."""
     if findings:
         conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
                       f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
@@ -105,10 +108,13 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                  "must judge the label (or a maneuver that separates them is "
                                  "needed).")
     else:
-        conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
+        what = "physical discrepancy" if numerics_adopted else "discrepancy"
+        kept = ("The model's physics is kept as it is (with the numerics setting above)"
+                if numerics_adopted else "The model is kept as it is")
+        conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                       f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
                       + (" and on the validation records" if validated else "")
-                      + ". The model is kept as it is; the residual mismatch is consistent with "
+                      + f". {kept}; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
     tried = [t for r in rounds for t in r.get("trials", [])]
     val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
@@ -280,7 +286,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
     conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
-                                 base_status=base.fit.status)
+                                 base_status=base.fit.status,
+                                 numerics_adopted=bool((numerics or {}).get("adopted")))
     stopped = stop_text(stop, unfinished_round, len(findings))
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
