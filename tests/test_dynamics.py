@@ -150,3 +150,28 @@ def test_foh_with_constant_input_is_zoh_and_step_inputs():
     assert Ff.scan_inputs(U).shape == (4, 4) and Ff.step_width(2) == 4
     with pytest.raises(VsidgenError, match="input hold"):
         transition_fn(lambda x, u, p: x, inputs="cubic")
+
+
+def test_zoh_is_the_previous_transition_bit_for_bit():
+    """The default hold runs the previous code path: identical floating-point results."""
+    model = _model()
+
+    def old(x, u, p, dt, integrator, m):
+        h = dt / m
+        z = jnp.asarray(x)
+        for _ in range(m):
+            if integrator == "euler":
+                z = z + h * model.drift(z, u, p)
+            else:
+                k1 = model.drift(z, u, p)
+                k2 = model.drift(z + 0.5 * h * k1, u, p)
+                k3 = model.drift(z + 0.5 * h * k2, u, p)
+                k4 = model.drift(z + h * k3, u, p)
+                z = z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        return z
+
+    for integ, m in (("euler", 1), ("euler", 3), ("rk4", 1), ("rk4", 2)):
+        F = transition(model, integrator=integ, substeps=m)
+        assert F.inputs == "zoh"
+        np.testing.assert_array_equal(np.asarray(F(x0, u0, p0, 0.07)),
+                                      np.asarray(old(x0, u0, p0, 0.07, integ, m)))
