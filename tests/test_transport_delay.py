@@ -93,3 +93,28 @@ def test_diagnose_names_an_independent_delay_in_seconds(tmp_path):
     assert name == "D_DELAY_de" and p["unit"] == "s"
     assert abs(p["estimate"] - 0.12) < 3 * p["std_error"]
     assert f["added_terms"]["inputs"]["de"]["delay"] == pytest.approx(p["estimate"] - 0.02)
+
+
+def test_profile_highest_at_zero_is_no_delay_not_an_optimizer_failure(monkeypatch):
+    """On a record without a delay every delayed fit is below the current model: the profile
+    reports τ = 0 with no refit (not a refit 'below its nesting point')."""
+    import types
+
+    from vsidgen.discrepancy import delay as D, search
+    from vsidgen.discrepancy.base import Candidate
+    from vsidgen.engine import Engine
+
+    rec = types.SimpleNamespace(dt=0.04)
+    model = types.SimpleNamespace(input_names=("de",), inputs=(types.SimpleNamespace(delay=0.0),))
+    current = types.SimpleNamespace(records=(rec,), elbo=100.0, model=model)
+    monkeypatch.setattr(D, "_grid_task", lambda cur, j, tau, it: (100.0 - 50.0 * tau, True))
+    prof = D.profile_delay(current, "de", pathlib.Path("x.yaml"), "x", engine=Engine(workers=1),
+                           generated_dir=None, max_iter=10)
+    assert prof.at_zero and prof.state is None and prof.estimate == 0.0
+    c = Candidate("transport_delay", "transport_delay:de", "input:de", "e",
+                  info={"input": "de", "profile": "delay"}, screenable=False)
+    monkeypatch.setattr(D, "profile_delay", lambda *a, **k: prof)
+    t = search._delay_trial(c, 3.0, current, pathlib.Path("x.yaml"), "x", engine=None,
+                            generated_dir=None, max_iter=10, deadline=None)
+    assert t.state is None and t.statistic == 0.0 and t.p_value == 1.0 and t.verdict is None
+    assert "τ = 0" in t.refit.notes[0] and t.to_json()["verdict"] is None

@@ -124,6 +124,7 @@ class DelayProfile:
     std_error: float
     state: object = None                  # FitState at the estimate
     wall_s: float = 0.0
+    at_zero: bool = False                 # the profile is highest at τ = 0 (the current model)
 
     def to_json(self) -> dict:
         def f(v):
@@ -131,13 +132,14 @@ class DelayProfile:
         return {"input": self.input, "grid_s": [float(g) for g in self.grid],
                 "elbo": [f(e) for e in self.elbos], "best_grid_s": f(self.best_grid),
                 "estimate_s": f(self.estimate), "std_error_s": f(self.std_error),
-                "wall_s": round(self.wall_s, 2)}
+                "at_zero": self.at_zero, "wall_s": round(self.wall_s, 2)}
 
 
 def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, generated_dir,
                   max_iter: int, deadline=None) -> DelayProfile | None:
-    """Profile the delay of input ``u`` (see the module docstring); None when every grid fit
-    failed or the run ran out of time."""
+    """Profile the delay of input ``u`` (see the module docstring); None when the run ran out
+    of time. When the profile is highest at τ = 0 (the current model itself) no refit is
+    made: ``at_zero`` is set and ``state`` is None."""
     from ..engine import TaskStatus
     from .search import _stage1_iter
 
@@ -155,8 +157,12 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
     ys = [current.elbo] + elbos
     ok = [i for i in range(1, len(xs)) if math.isfinite(ys[i])]
     if not ok:
-        return None
+        return DelayProfile(u, tuple(grid), tuple(elbos), math.nan, math.nan, math.nan, None,
+                            time.perf_counter() - t0)
     i = max(ok, key=lambda k: ys[k])
+    if ys[i] <= ys[0]:
+        return DelayProfile(u, tuple(grid), tuple(elbos), 0.0, 0.0, math.nan, None,
+                            time.perf_counter() - t0, at_zero=True)
     est, curv = xs[i], math.nan
     if 0 < i < len(xs) - 1 and all(math.isfinite(ys[k]) for k in (i - 1, i, i + 1)):
         v, c = parabola_vertex(xs[i - 1:i + 2], ys[i - 1:i + 2])

@@ -769,6 +769,15 @@ def _delay_trial(c, score, current, path, name, *, engine, generated_dir, max_it
                      error=f"failed: {str(err).splitlines()[0]}")
     if prof is None:
         return None
+    if prof.at_zero:
+        # no delay: every delayed fit is below the current model (τ = 0); nothing to refit
+        c0 = dataclasses.replace(c, info={**c.info, "profile_result": prof.to_json()})
+        best = max((e for e in prof.elbos if math.isfinite(e)), default=math.nan)
+        return Trial(c0, score, path, None, 0.0, 1, 1.0,
+                     refit=RefitOutcome(elbo_ref=current.elbo, warm="delay profile",
+                                        notes=[f"profile highest at τ = 0 (the current model): "
+                                               f"best delayed fit {best - current.elbo:+.4g} nats"
+                                               ], wall_s=prof.wall_s))
     if prof.state is None:
         return Trial(c, score, path, None, math.nan, 1, 1.0,
                      error="failed: no grid fit or final refit succeeded")
@@ -1047,6 +1056,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     if t.state is not None:
                         _say(progress, f"round {rnd}: {c.key}: delay {t.candidate.info['delay']}"
                                        f", 2ΔELBO {t.statistic:.4g}")
+                    elif t.refit is not None:
+                        _say(progress, f"round {rnd}: {c.key}: {t.refit.notes[0]}")
                     trials.append(t)
                 if stop is StopReason.TIME_LIMIT:
                     break
