@@ -114,7 +114,7 @@ def test_profile_highest_at_zero_is_no_delay_not_an_optimizer_failure(monkeypatc
     c = Candidate("transport_delay", "transport_delay:de", "input:de", "e",
                   info={"input": "de", "profile": "delay"}, screenable=False)
     monkeypatch.setattr(D, "profile_delay", lambda *a, **k: prof)
-    t = search._delay_trial(c, 3.0, current, pathlib.Path("x.yaml"), "x", engine=None,
+    t = search.delay_trial(c, 3.0, current, pathlib.Path("x.yaml"), "x", engine=None,
                             generated_dir=None, max_iter=10, deadline=None)
     assert t.state is None and t.statistic == 0.0 and t.p_value == 1.0 and t.verdict is None
     assert "τ = 0" in t.refit.notes[0] and t.to_json()["verdict"] is None

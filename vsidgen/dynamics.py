@@ -176,6 +176,24 @@ def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int =
     return Transition(F, integrator, m, inputs)
 
 
+def settings(model, *, integrator: str | None = None, substeps: int | None = None) -> tuple[str, int]:
+    """Checked ``(integrator, substeps)`` for ``model``: an explicit value wins, ``None``
+    (or an empty value) takes the model's own (``model.integrator``, ``model.substeps``;
+    ``"euler"`` and ``1`` for a bare model that has none). The input hold: :func:`input_hold`.
+    """
+    integrator = integrator or getattr(model, "integrator", None) or "euler"
+    substeps = substeps or getattr(model, "substeps", None) or 1
+    integrator, substeps, _ = _check(integrator, substeps)
+    return integrator, substeps
+
+
+def input_hold(model, inputs: str | None = None) -> str:
+    """Checked input hold for ``model``: ``inputs`` when given, else ``model.input_hold``
+    (``"zoh"`` for a bare model that has none)."""
+    inputs = inputs or getattr(model, "input_hold", None) or "zoh"
+    return _check("euler", 1, inputs)[2]
+
+
 def transition(model, *, integrator: str | None = "euler", substeps: int | None = 1,
                inputs: str | None = None) -> Transition:
     """Discrete mean transition ``F(x, v, p, dt)`` of ``model``.
@@ -191,13 +209,10 @@ def transition(model, *, integrator: str | None = "euler", substeps: int | None 
     Returns:
         :class:`Transition`; pure, jit/vmap/grad friendly.
     """
-    if integrator is None:
-        integrator = getattr(model, "integrator", "euler") or "euler"
-    if substeps is None:
-        substeps = getattr(model, "substeps", 1) or 1
-    if inputs is None:
-        inputs = getattr(model, "input_hold", "zoh") or "zoh"
-    return transition_fn(model.drift, integrator=integrator, substeps=substeps, inputs=inputs)
+    integrator, substeps = settings(model, integrator=integrator, substeps=substeps)
+    return transition_fn(model.drift, integrator=integrator, substeps=substeps,
+                         inputs=input_hold(model, inputs))
 
 
-__all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "transition", "transition_fn"]
+__all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "input_hold", "settings", "transition",
+           "transition_fn"]

@@ -79,37 +79,37 @@ def parabola_vertex(x, y) -> tuple[float, float]:
 def _grid_task(current, j: int, tau: float, iterations: int):
     """ELBO of the current model refitted (warm) with input j delayed by tau; (elbo, converged)."""
     from ..estimator import fit
-    from .search import _diag_options, refit_converged
+    from .fitstate import diag_options, refit_converged
 
     recs = shifted_records(current.records, j, tau)
-    res = fit(current.model, list(recs), options=_diag_options(iterations, warm_start=current.fit))
+    res = fit(current.model, list(recs), options=diag_options(iterations, warm_start=current.fit))
     return float(res.elbo), bool(refit_converged(res))
 
 
 def write_delay_spec(current, u: str, tau: float, path: pathlib.Path, name: str):
-    from .search import _extends, _warm_parameters, write_spec
+    from .specwrite import extends_text, warm_parameters, write_spec
 
     return write_spec(path, f"vsidgen diagnose candidate transport_delay:{u}",
                       {"name": name,
                        "description": f"transport_delay:{u}: the model sees {u} delayed by "
                                       f"{tau:.6g} s",
-                       "extends": _extends(current.spec_path, path),
+                       "extends": extends_text(current.spec_path, path),
                        "inputs": {u: {"delay": float(tau)}},
-                       "parameters": _warm_parameters(current)})
+                       "parameters": warm_parameters(current.model, current.fit.theta)})
 
 
 def _final_task(current, u: str, j: int, tau: float, path, name, generated_dir, max_iter):
     """Refit at the refined delay from the spec that carries it; a FitState."""
     from ..estimator import fit
     from ..model import load_model
-    from .search import _diag_options, _evaluated
+    from .fitstate import diag_options, evaluated
 
     write_delay_spec(current, u, tau, path, name)
     m = load_model(path, generated_dir=generated_dir)
     recs = shifted_records(current.records, j, tau)
     vrecs = shifted_records(current.vrecords, j, tau)
-    res = fit(m, list(recs), options=_diag_options(2 * max_iter, warm_start=current.fit))
-    return _evaluated(path, m, recs, res, vrecs, max_iter=max_iter)
+    res = fit(m, list(recs), options=diag_options(2 * max_iter, warm_start=current.fit))
+    return evaluated(path, m, recs, res, vrecs, max_iter=max_iter)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,13 +141,13 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
     of time. When the profile is highest at τ = 0 (the current model itself) no refit is
     made: ``at_zero`` is set and ``state`` is None."""
     from ..engine import TaskStatus
-    from .search import _stage1_iter
+    from .fitstate import stage1_iterations
 
     t0 = time.perf_counter()
     j = list(current.model.input_names).index(u)
     dt = float(np.median([r.dt for r in current.records]))
     grid = delay_grid(dt)
-    iters = _stage1_iter(max_iter)
+    iters = stage1_iterations(max_iter)
     outs = engine.run(_grid_task, [(f"{u}@{g:.6g}", (current, j, g, iters)) for g in grid],
                       deadline=deadline)
     if any(o.status is TaskStatus.CANCELLED for o in outs):

@@ -210,22 +210,22 @@ def decide(trials, elbo_current: float, alpha: float) -> tuple[list[NumericsTria
 
 def write_setting_spec(current, setting: NumericsSetting, path: pathlib.Path, name: str):
     """Spec extending the current one with ``setting`` (current estimates as initial values)."""
-    from .search import _extends, _warm_parameters, write_spec
+    from .specwrite import extends_text, warm_parameters, write_spec
 
     return write_spec(path, f"vsidgen diagnose: modelling numerics {setting.text}",
                       {"name": name,
                        "description": f"the current model with {setting.text}",
-                       "extends": _extends(current.spec_path, path),
+                       "extends": extends_text(current.spec_path, path),
                        "integrator": setting.spec(),
-                       "parameters": _warm_parameters(current)})
+                       "parameters": warm_parameters(current.model, current.fit.theta)})
 
 
 def _numerics_task(setting, current, path, name, generated_dir, max_iter):
     """One setting's warm refit (runs on an engine worker); a FitState."""
-    from .search import _refit_warm
+    from .fitstate import refit_warm
 
     write_setting_spec(current, setting, path, name)
-    return _refit_warm(path, current, current, generated_dir=generated_dir,
+    return refit_warm(path, current, current, generated_dir=generated_dir,
                        iterations=2 * max_iter, max_iter=max_iter)
 
 
@@ -235,7 +235,8 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
     and decide (see the module docstring). Returns the :class:`NumericsResult`; its
     ``adopted`` trial's state is the model the rest of the run continues from."""
     from ..engine import TaskStatus
-    from .search import _safe, refit_converged
+    from .fitstate import refit_converged
+    from .specwrite import safe_name
 
     cur = NumericsSetting.of(current.model)
     settings = numerics_settings(cur)
@@ -244,7 +245,7 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
     for i, s in enumerate(settings):
         p = pathlib.Path(out) / "candidates" / f"r0_{i + 1:02d}_numerics_{s.label}.yaml"
         paths[s.label] = (s, p)
-        tasks.append((s.label, (s, current, p, f"{_safe(current.model.name)[:30]}_num{i + 1}",
+        tasks.append((s.label, (s, current, p, f"{safe_name(current.model.name)[:30]}_num{i + 1}",
                                 generated_dir, max_iter)))
     if progress is not None and tasks:
         progress("modelling numerics first: refitting with " + ", ".join(s.text for s in settings))

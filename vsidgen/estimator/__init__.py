@@ -4,10 +4,11 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    FitOptions, FitResult, SmootherPath, StopReason
+    FitOptions, FitResult, SmootherPath, StopReason, WarmStart
 """
 
 from .fit import fit, measured_states, smooth
-from .results import FitOptions, FitResult, SmootherPath, StopReason
+from .results import FitOptions, FitResult, SmootherPath, StopReason, WarmStart
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "StopReason", "fit", "measured_states", "smooth"]
+__all__ = ["FitOptions", "FitResult", "SmootherPath", "StopReason", "WarmStart", "fit", "measured_states",
+           "smooth"]

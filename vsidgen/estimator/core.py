@@ -48,18 +48,6 @@ LOG2PI = math.log(2.0 * math.pi)
 
 
 # --------------------------------------------------------------------------- transition
-def get_transition(model, integrator: str, substeps: int, inputs: str | None = None):
-    """Mean transition F(x, v, p, dt) (:class:`vsidgen.dynamics.Transition`); ``inputs``
-    (the input hold, ``None``: the model's) decides the step inputs v (see dynamics)."""
-    from .. import dynamics
-    from ..errors import VsidgenError
-
-    try:
-        return dynamics.transition(model, integrator=integrator, substeps=substeps, inputs=inputs)
-    except VsidgenError as err:
-        raise FitError(str(err)) from None
-
-
 def step_inputs(F, u):
     """The step inputs of transition ``F`` for the (N, nu) inputs ``u`` (u[:-1] for a bare function)."""
     fn = getattr(F, "step_inputs", None)
