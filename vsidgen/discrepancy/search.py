@@ -638,6 +638,11 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         text += (f" The model holds {u} over each sample, which by itself delays it by "
                  f"{lag:.4g} s on average; the spec's delay is therefore {prof.estimate:.4g} s "
                  f"for a physical transport delay of {prof.estimate + lag:.4g} s.")
+    if (getattr(current.model, "integrator", "euler") == "euler"
+            and int(getattr(current.model, "substeps", 1) or 1) == 1):
+        text += (" The model integrates with one Euler step per sample, whose own phase error is "
+                 "of the order of a sample too: the physical value is reliable only with an "
+                 "accurate integrator (integrator: {method: rk4}).")
     c2 = dataclasses.replace(c, explanation=text,
                              info={**c.info, "delay": ent, "profile_result": prof.to_json()})
     ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
