@@ -42,6 +42,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
     ("diagnose: findings and refit", ("discrepancy.findings", "discrepancy.refit")),
     ("diagnose: fit states", ("discrepancy.fitstate",)),
+    ("diagnose: numerics and delay profiles", ("discrepancy.numerics", "discrepancy.delay")),
     ("diagnose: score test", ("discrepancy.score",)),
     ("diagnose: search", ("discrepancy.search",)),
     ("diagnose: package", ("discrepancy",)),

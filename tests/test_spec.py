@@ -239,3 +239,15 @@ def test_warnings_unused_and_units(tmp_path):
     assert any("`V` has dimension length/time " in w.message and "length/time**2" in w.message
                and "drift of `V`" in w.message for w in units), msgs
     assert units and all(w.line == 18 for w in units)
+
+
+def test_integrator_input_hold(tmp_path):
+    m = compile_spec(write(tmp_path, replace("states:\n", "integrator: {method: rk4, inputs: foh}\nstates:\n")))
+    assert (m.integrator, m.substeps, m.input_hold) == ("rk4", 1, "foh")
+    assert compile_spec(write(tmp_path, GOOD, "plain.yaml")).input_hold == "zoh"
+    err = error(tmp_path, replace("states:\n", "integrator: {method: euler, inputs: fho}\nstates:\n"))
+    assert err.message == "unknown input hold `fho`"
+    assert (err.line, err.text) == (2, "integrator: {method: euler, inputs: fho}")
+    assert err.hint == "did you mean `foh`?"
+    err = error(tmp_path, replace("states:\n", "integrator: {method: euler, input: foh}\nstates:\n"))
+    assert "input" in err.message and err.line == 2

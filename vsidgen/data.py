@@ -476,8 +476,11 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
         return val
 
     u = np.empty((n, len(in_names)))
+    delays = {v.name: float(getattr(v, "delay", 0.0) or 0.0) for v in getattr(model, "inputs", ())}
     for i, nm in enumerate(in_names):
         u[:, i] = channel(nm, in_maps[nm], "input")
+        if delays.get(nm, 0.0) > 0.0:
+            u[:, i] = delay_input(u[:, i], t_raw - t_raw[0], delays[nm])
     y = np.empty((n, len(out_names)))
     for i, nm in enumerate(out_names):
         y[:, i] = channel(nm, out_maps[nm], "output")
@@ -489,6 +492,20 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
                   u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw,
                   warnings=found)
+
+
+def delay_input(values, t, delay: float) -> np.ndarray:
+    """A recorded input as the model sees it through a pure transport delay ``τ = delay`` s:
+    ``u_τ(t_k) = u(t_k − τ)``, linearly interpolated between the samples (fractional delays);
+    before the record starts (``t_k − τ < t_0``) the first sample is held.
+
+    ``delay`` ≥ 0 in seconds; ``t`` increasing (N,), ``values`` (N,).
+    """
+    v = np.asarray(values, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if not delay > 0.0:
+        return v.copy()
+    return np.interp(t - float(delay), t, v, left=v[0], right=v[-1])
 
 
 def most_extreme_sample(records) -> tuple[Record, str, int, float] | None:
@@ -593,4 +610,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "load_record", "most_extreme_sample", "resolution", "unique_names", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "load_record", "most_extreme_sample", "resolution", "unique_names", "write_csv"]

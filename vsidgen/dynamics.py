@@ -1,51 +1,65 @@
 """Discrete-time transition of the continuous model.
 
-The model is the Itô SDE ``dx = f(x, u, θ) dt + G dW`` with the input held
-constant over one sample interval (zero-order hold, ``u(t) = u_k`` for
-``t_k <= t < t_{k+1}``). The estimator, the simulator and the evaluation all
-use the same *mean* transition
+The model is the Itô SDE ``dx = f(x, u, θ) dt + G dW``. Between two samples the
+input is reconstructed from the recorded samples by one of two holds:
+
+* ``"zoh"`` (zero-order hold, the default): ``u(t_k + sT) = u_k`` for ``0 <= s < 1``;
+* ``"foh"`` (first-order hold): ``u(t_k + sT) = u_k + s (u_{k+1} − u_k)``, the
+  linear interpolation between the samples (what a continuously moving control
+  surface, recorded at discrete times, looks like to first order).
+
+The estimator, the simulator and the evaluation all use the same *mean* transition
 
 .. math::
 
-    x_{k+1} = F(x_k, u_k, θ, T) + \\sqrt{T}\\, G\\, w_k,\\qquad w_k \\sim N(0, I),
+    x_{k+1} = F(x_k, v_k, θ, T) + \\sqrt{T}\\, G\\, w_k,\\qquad w_k \\sim N(0, I),
 
-where ``F`` is one of
+with the *step input* ``v_k = u_k`` (zoh) or ``v_k = (u_k, u_{k+1})`` concatenated
+(foh, length ``2 nu``); :meth:`Transition.step_inputs` builds the ``v_k`` of a record.
+``F`` integrates ``ż = f(z, u(t), θ)`` over one sample in ``m = substeps`` sub-steps of
+``h = T/m``; sub-step ``j`` starts at the fraction ``s_j = j/m`` of the interval, and
+``u(s)`` is the hold above:
 
-* ``"euler"`` (Euler–Maruyama, the paper's choice) with ``m = substeps``
-  sub-steps of ``h = T/m``:
+* ``"euler"`` (Euler–Maruyama, the paper's choice):
 
-  .. math:: z_0 = x_k,\\quad z_{j+1} = z_j + h\\, f(z_j, u_k, θ),\\quad F = z_m
+  .. math:: z_0 = x_k,\\quad z_{j+1} = z_j + h\\, f(z_j, u(s_j), θ),\\quad F = z_m
 
-  (``m = 1`` gives ``F = x + T f(x, u, θ)``).
-* ``"rk4"``: the classic fourth-order Runge–Kutta step over ``h = T/m`` (again
-  ``m`` sub-steps, ``u`` held at ``u_k``):
+  (``m = 1`` with zoh gives ``F = x + T f(x, u_k, θ)``).
+* ``"rk4"``: the classic fourth-order Runge–Kutta step, each stage at its own time:
 
   .. math::
 
-      k_1 = f(z),\\ k_2 = f(z + \\tfrac h2 k_1),\\ k_3 = f(z + \\tfrac h2 k_2),\\
-      k_4 = f(z + h k_3),\\quad z^+ = z + \\tfrac h6 (k_1 + 2k_2 + 2k_3 + k_4).
+      k_1 = f(z, u(s_j)),\\ k_2 = f(z + \\tfrac h2 k_1, u(s_j + \\tfrac{1}{2m})),\\
+      k_3 = f(z + \\tfrac h2 k_2, u(s_j + \\tfrac{1}{2m})),\\ k_4 = f(z + h k_3, u(s_{j+1})),
 
-  Local error O(h^5) per step for smooth ``f``.
+      z^+ = z + \\tfrac h6 (k_1 + 2k_2 + 2k_3 + k_4).
 
-The noise enters as a single increment ``√T G w_k`` per sample in both cases
-(the Euler–Maruyama diffusion term); the integrator only changes the mean.
-The returned function is pure ``jax.numpy``: it can be jitted, vmapped and
-differentiated.
+  Local error O(h^5) per step for smooth ``f`` and a smooth input; with foh the input is
+  piecewise linear, so RK4 integrates the interpolated input exactly to that order
+  (with zoh every stage sees ``u_k``).
+
+The noise enters as a single increment ``√T G w_k`` per sample in all cases (the
+Euler–Maruyama diffusion term); integrator and hold only change the mean. The
+transition is pure ``jax.numpy``: it can be jitted, vmapped and differentiated.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import jax.numpy as jnp
+import numpy as np
 
 from . import precision  # noqa: F401  (float64, set once)
 from .errors import VsidgenError
 
 INTEGRATORS = ("euler", "rk4")
+#: input reconstruction between samples: zero-order hold, first-order hold (linear)
+INPUT_HOLDS = ("zoh", "foh")
 
 
-def _check(integrator: str, substeps: int) -> tuple[str, int]:
+def _check(integrator: str, substeps: int, inputs: str = "zoh") -> tuple[str, int, str]:
     if integrator not in INTEGRATORS:
         raise VsidgenError(
             f"unknown integrator '{integrator}'\n  hint: use one of {', '.join(INTEGRATORS)}")
@@ -55,68 +69,150 @@ def _check(integrator: str, substeps: int) -> tuple[str, int]:
         m = 0
     if m < 1 or m != substeps:
         raise VsidgenError(f"substeps must be an integer >= 1, got {substeps!r}")
-    return integrator, m
+    if inputs not in INPUT_HOLDS:
+        raise VsidgenError(f"unknown input hold '{inputs}'\n  hint: use one of {', '.join(INPUT_HOLDS)}")
+    return integrator, m, inputs
 
 
-def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int = 1) -> Callable:
-    """Build ``F(x, u, p, dt)`` from a bare drift function ``f(x, u, p)``.
+@dataclasses.dataclass(frozen=True, eq=False)
+class Transition:
+    """Mean transition ``F(x, v, p, dt)`` (callable) with its numerical setting.
 
-    See the module docstring for the formulas. ``dt`` may be a Python float or
-    a traced scalar.
+    ``v`` is the step input of :meth:`step_inputs` (``u_k`` for zoh, ``(u_k, u_{k+1})``
+    for foh); ``dt`` may be a Python float or a traced scalar.
     """
-    integrator, m = _check(integrator, substeps)
 
-    if integrator == "euler":
-        def one(z, u, p, h):
-            return z + h * drift(z, u, p)
+    fn: Callable
+    integrator: str
+    substeps: int
+    inputs: str
+
+    def __call__(self, x, v, p, dt):
+        return self.fn(x, v, p, dt)
+
+    @property
+    def key(self) -> tuple:
+        """Hashable description of the numerical setting (caches of compiled code)."""
+        return (self.integrator, self.substeps, self.inputs)
+
+    def step_width(self, nu: int) -> int:
+        """Length of one step input ``v_k`` for ``nu`` inputs."""
+        return 2 * nu if self.inputs == "foh" else nu
+
+    def step_inputs(self, u):
+        """Step inputs ``v_k``, k = 0..N-2, of the (N, nu) input samples ``u`` (numpy or jax).
+
+        zoh: ``u[:-1]``; foh: ``[u[:-1], u[1:]]`` side by side.
+        """
+        if self.inputs == "foh":
+            xp = jnp if not isinstance(u, np.ndarray) else np
+            return xp.concatenate([u[:-1], u[1:]], axis=1)
+        return u[:-1]
+
+    def scan_inputs(self, u):
+        """One step input per sample, k = 0..N-1, for scans that also evaluate the output at
+        ``u_k``: :meth:`step_inputs` with the last sample's own hold appended (its transition
+        leaves the record and is never used)."""
+        v = self.step_inputs(u)
+        xp = jnp if not isinstance(u, np.ndarray) else np
+        last = u[-1:] if self.inputs == "zoh" else xp.concatenate([u[-1:], u[-1:]], axis=1)
+        return xp.concatenate([v, last], axis=0)
+
+
+def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int = 1,
+                  inputs: str = "zoh") -> Transition:
+    """Build the :class:`Transition` ``F(x, v, p, dt)`` from a bare drift ``f(x, u, p)``.
+
+    See the module docstring for the formulas.
+    """
+    integrator, m, inputs = _check(integrator, substeps, inputs)
+
+    if inputs == "zoh":
+        if integrator == "euler":
+            def one(z, u, p, h):
+                return z + h * drift(z, u, p)
+        else:
+            def one(z, u, p, h):
+                k1 = drift(z, u, p)
+                k2 = drift(z + 0.5 * h * k1, u, p)
+                k3 = drift(z + 0.5 * h * k2, u, p)
+                k4 = drift(z + h * k3, u, p)
+                return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+        def F(x, u, p, dt):
+            x = jnp.asarray(x)
+            h = dt / m
+            z = x
+            # m is a small static integer: unroll (keeps the function simple to
+            # differentiate and to vmap; no Python-side state).
+            for _ in range(m):
+                z = one(z, u, p, h)
+            return z
     else:
-        def one(z, u, p, h):
-            k1 = drift(z, u, p)
-            k2 = drift(z + 0.5 * h * k1, u, p)
-            k3 = drift(z + 0.5 * h * k2, u, p)
-            k4 = drift(z + h * k3, u, p)
-            return z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        def F(x, v, p, dt):
+            z = jnp.asarray(x)
+            nu = v.shape[-1] // 2
+            u0, du = v[:nu], v[nu:] - v[:nu]
 
-    def F(x, u, p, dt):
-        x = jnp.asarray(x)
-        h = dt / m
-        z = x
-        # m is a small static integer: unroll (keeps the function simple to
-        # differentiate and to vmap; no Python-side state).
-        for _ in range(m):
-            z = one(z, u, p, h)
-        return z
+            def u_at(s):  # s: fraction of the sample interval (static Python float)
+                return u0 + s * du
 
-    F.__doc__ = (f"Mean transition F(x, u, p, dt): {integrator}, {m} substep(s), "
-                 "u held at u_k (see vsidgen.dynamics).")
-    return F
+            h = dt / m
+            for j in range(m):
+                s0 = j / m
+                if integrator == "euler":
+                    z = z + h * drift(z, u_at(s0), p)
+                else:
+                    um = u_at(s0 + 0.5 / m)
+                    k1 = drift(z, u_at(s0), p)
+                    k2 = drift(z + 0.5 * h * k1, um, p)
+                    k3 = drift(z + 0.5 * h * k2, um, p)
+                    k4 = drift(z + h * k3, u_at((j + 1) / m), p)
+                    z = z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            return z
+
+    F.__doc__ = (f"Mean transition F(x, v, p, dt): {integrator}, {m} substep(s), "
+                 f"inputs {inputs} (see vsidgen.dynamics).")
+    return Transition(F, integrator, m, inputs)
 
 
 def settings(model, *, integrator: str | None = None, substeps: int | None = None) -> tuple[str, int]:
     """Checked ``(integrator, substeps)`` for ``model``: an explicit value wins, ``None``
     (or an empty value) takes the model's own (``model.integrator``, ``model.substeps``;
-    ``"euler"`` and ``1`` for a bare model that has none).
+    ``"euler"`` and ``1`` for a bare model that has none). The input hold: :func:`input_hold`.
     """
     integrator = integrator or getattr(model, "integrator", None) or "euler"
     substeps = substeps or getattr(model, "substeps", None) or 1
-    return _check(integrator, substeps)
+    integrator, substeps, _ = _check(integrator, substeps)
+    return integrator, substeps
 
 
-def transition(model, *, integrator: str | None = "euler", substeps: int | None = 1) -> Callable:
-    """Discrete mean transition ``F(x, u, p, dt)`` of ``model``.
+def input_hold(model, inputs: str | None = None) -> str:
+    """Checked input hold for ``model``: ``inputs`` when given, else ``model.input_hold``
+    (``"zoh"`` for a bare model that has none)."""
+    inputs = inputs or getattr(model, "input_hold", None) or "zoh"
+    return _check("euler", 1, inputs)[2]
+
+
+def transition(model, *, integrator: str | None = "euler", substeps: int | None = 1,
+               inputs: str | None = None) -> Transition:
+    """Discrete mean transition ``F(x, v, p, dt)`` of ``model``.
 
     Args:
-        model: a :class:`vsidgen.model.Model` (only ``model.drift`` is used).
-        integrator: ``"euler"`` (Euler–Maruyama mean ``x + dt f``) or ``"rk4"``;
-            ``None`` takes ``model.integrator``.
-        substeps: number ``m >= 1`` of equal sub-steps ``dt/m`` per sample
-            (``None`` takes ``model.substeps``).
+        model: a :class:`vsidgen.model.Model` (``model.drift``; its ``integrator``,
+            ``substeps`` and ``input_hold`` fill the arguments given as ``None``).
+        integrator: ``"euler"`` (Euler–Maruyama mean ``x + dt f``) or ``"rk4"``.
+        substeps: number ``m >= 1`` of equal sub-steps ``dt/m`` per sample.
+        inputs: ``"zoh"`` or ``"foh"``, the input hold between samples
+            (``None``: the model's, ``"zoh"`` for models without one).
 
     Returns:
-        ``F(x, u, p, dt) -> (nx,)`` jnp array; pure, jit/vmap/grad friendly.
+        :class:`Transition`; pure, jit/vmap/grad friendly.
     """
     integrator, substeps = settings(model, integrator=integrator, substeps=substeps)
-    return transition_fn(model.drift, integrator=integrator, substeps=substeps)
+    return transition_fn(model.drift, integrator=integrator, substeps=substeps,
+                         inputs=input_hold(model, inputs))
 
 
-__all__ = ["INTEGRATORS", "settings", "transition", "transition_fn"]
+__all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "input_hold", "settings", "transition",
+           "transition_fn"]

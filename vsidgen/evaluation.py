@@ -156,7 +156,7 @@ def _matrix(a, shape0, name, square=False) -> np.ndarray:
 
 
 def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
-             substeps: int | None = None) -> Signals:
+             substeps: int | None = None, input_hold: str | None = None) -> Signals:
     """Compute the four evaluation signals and their fit metrics for one record.
 
     Args:
@@ -166,8 +166,9 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
         mu: (N, nx) smoother mean.
         G: (nx, k) process-noise matrix (state-unit/√s); ``Q = T G Gᵀ``.
         R: (ny, ny) measurement-noise covariance.
-        integrator, substeps: transition F (``None``: the model's choice, as
-            used by the estimator).
+        integrator, substeps, input_hold: transition F (``None``: the model's choice, as
+            used by the estimator); with ``input_hold="foh"`` the free simulation and the
+            predictor step from sample k with the input interpolated to u_{k+1}.
     """
     p = jnp.asarray(theta_vector(model, theta))
     mu = np.asarray(mu, dtype=np.float64)
@@ -187,7 +188,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     G = _matrix(G, model.nx, "G")
     R = _matrix(R, model.ny, "R", square=True)
     T = float(record.dt)
-    F = transition(model, integrator=integrator, substeps=substeps)
+    F = transition(model, integrator=integrator, substeps=substeps, inputs=input_hold)
     h, f = model.output, model.drift
     warnings: list[str] = []
 
@@ -196,21 +197,24 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     f_smooth = np.asarray(jax.vmap(lambda x, uk: f(x, uk, p))(mu_j[:-1], u_j[:-1]))
     xdot_fd = np.diff(mu, axis=0) / T
 
+    v_j = F.scan_inputs(u_j)  # step input per sample (the last one is never used)
+
     @jax.jit
-    def free_sim(x0, U):
-        def body(x, uk):
-            return F(x, uk, p, T), h(x, uk, p)
-        _, ys = jax.lax.scan(body, x0, U)
+    def free_sim(x0, U, V):
+        def body(x, inp):
+            uk, vk = inp
+            return F(x, vk, p, T), h(x, uk, p)
+        _, ys = jax.lax.scan(body, x0, (U, V))
         return ys
 
-    y_sim = np.asarray(free_sim(mu_j[0], u_j))
+    y_sim = np.asarray(free_sim(mu_j[0], u_j, v_j))
     if not np.isfinite(y_sim).all():
         k = int(np.flatnonzero(~np.isfinite(y_sim).all(axis=1))[0])
         warnings.append(f"free simulation diverged at sample {k} (t = {record.t[k]:.6g} s)")
 
     # steady-state Kalman filter, linearised at the first sample
-    x0, u0 = mu_j[0], u_j[0]
-    A = np.asarray(jax.jacfwd(lambda x: F(x, u0, p, T))(x0))
+    x0, u0, v0 = mu_j[0], u_j[0], v_j[0]
+    A = np.asarray(jax.jacfwd(lambda x: F(x, v0, p, T))(x0))
     H = np.asarray(jax.jacfwd(lambda x: h(x, u0, p))(x0))
     Q = T * G @ G.T
     K = None
@@ -226,17 +230,17 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
         Kj = jnp.asarray(K)
 
         @jax.jit
-        def predictor(x0, U, Y):
+        def predictor(x0, U, V, Y):
             def body(xp, inp):
-                uk, yk = inp
+                uk, vk, yk = inp
                 yp = h(xp, uk, p)
                 innov = jnp.where(jnp.isnan(yk), 0.0, yk - yp)
                 xf = xp + Kj @ innov
-                return F(xf, uk, p, T), yp
-            _, yps = jax.lax.scan(body, x0, (U, Y))
+                return F(xf, vk, p, T), yp
+            _, yps = jax.lax.scan(body, x0, (U, V, Y))
             return yps
 
-        y_pred = np.asarray(predictor(mu_j[0], u_j, jnp.asarray(y)))
+        y_pred = np.asarray(predictor(mu_j[0], u_j, v_j, jnp.asarray(y)))
     else:
         y_pred = y_sim.copy()
 

@@ -21,6 +21,9 @@ class Variable:
     unit: str | None = None
     description: str = ""
     symbol: Any = None  # sympy.Symbol when built from a spec
+    #: inputs only: pure transport delay in seconds, the model sees u(t − delay)
+    #: (:func:`vsidgen.data.delay_input`); 0 = none
+    delay: float = 0.0
 
 
 class VariableNames:

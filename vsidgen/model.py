@@ -36,6 +36,8 @@ class Model(VariableNames):
     data: DataSpec = dataclasses.field(default_factory=DataSpec)
     integrator: str = "euler"
     substeps: int = 1
+    #: input hold between samples: "zoh" | "foh" (spec ``integrator: {inputs: ...}``)
+    input_hold: str = "zoh"
     symbolic: Any = None                 # SymbolicModel when loaded from a spec
     module: types.ModuleType | None = None
     module_path: pathlib.Path | None = None
@@ -128,6 +130,7 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
         states=symbolic.states, inputs=symbolic.inputs, outputs=symbolic.outputs,
         parameters=symbolic.parameters, process_noise=symbolic.process_noise,
         measurement_noise=symbolic.measurement_noise, data=symbolic.data,
-        integrator=symbolic.integrator, substeps=symbolic.substeps, symbolic=symbolic,
+        integrator=symbolic.integrator, substeps=symbolic.substeps,
+        input_hold=getattr(symbolic, "input_hold", "zoh"), symbolic=symbolic,
         module=module, module_path=module_path,
     )

@@ -282,7 +282,8 @@ def _input_matrix(model, u, t) -> np.ndarray:
 
 
 def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
-             integrator: str | None = "euler", substeps: int | None = 1, seed: int = 0,
+             integrator: str | None = "euler", substeps: int | None = 1,
+             input_hold: str | None = None, seed: int = 0,
              quantize=None) -> SimulationResult:
     """Simulate ``model`` (see the module docstring for the equations).
 
@@ -295,6 +296,8 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
         measurement_std: dict output -> std; default no measurement noise.
         integrator, substeps: mean transition, see :func:`vsidgen.dynamics.transition`
             (``None`` = the model's choice).
+        input_hold: "zoh" | "foh", inputs held or interpolated linearly between the
+            samples of ``t`` (``None`` = the model's choice).
         seed: seed of the noise generator (numpy ``default_rng``).
         quantize: dict output -> quantisation step (applied after the noise).
 
@@ -318,16 +321,16 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
     W = rng.standard_normal((n - 1, model.nx)) * (math.sqrt(T) * g)
     V = rng.standard_normal((n, model.ny)) * r
 
-    F = transition(model, integrator=integrator, substeps=substeps)
+    F = transition(model, integrator=integrator, substeps=substeps, inputs=input_hold)
 
     @jax.jit
     def run(x0, U, p, W):
         def body(x, inp):
-            uk, wk = inp
-            xn = F(x, uk, p, T) + wk
+            vk, wk = inp
+            xn = F(x, vk, p, T) + wk
             return xn, xn
 
-        _, xs = jax.lax.scan(body, x0, (U[:-1], W))
+        _, xs = jax.lax.scan(body, x0, (F.step_inputs(U), W))
         X = jnp.concatenate([x0[None, :], xs], axis=0)
         Y = jax.vmap(lambda x, u: model.output(x, u, p))(X, U)
         return X, Y

@@ -15,6 +15,7 @@ where f and h may use the ordered ``definitions`` (intermediate quantities);
 from __future__ import annotations
 
 import dataclasses
+import math
 import pathlib
 import re
 from collections.abc import Mapping
@@ -39,6 +40,8 @@ _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 MAX_EXPANDED_SIZE = 10_000
 #: longest name (model, state, input, output, parameter, constant, definition) accepted
 MAX_NAME_LENGTH = 64
+#: largest pure transport delay of an input (``inputs: {u: {delay: seconds}}``)
+MAX_INPUT_DELAY_S = 10.0
 
 #: names the generated module defines or imports (no spec name may equal one of them;
 #: every other name the module uses itself starts with ``_``, which spec names cannot)
@@ -82,6 +85,8 @@ class SymbolicModel:
     integrator: str
     substeps: int
     warnings: tuple[SpecWarning, ...] = ()
+    #: input hold between samples of the transition: "zoh" | "foh" (:mod:`vsidgen.dynamics`)
+    input_hold: str = "zoh"
     #: "drift:V" / "observations:V" / "definitions:qbar" -> where the equation is written
     locations: Mapping[str, Location] = dataclasses.field(default_factory=dict, compare=False)
     #: every file of the spec, the `extends` ancestors first
@@ -290,9 +295,9 @@ def _compile(path) -> SymbolicModel:
     description = ""
     if "description" in top and top["description"].value is not None:
         description = top["description"].string("`description`")
-    method, substeps = "euler", 1
+    method, substeps, input_hold = "euler", 1, "zoh"
     if "integrator" in top:
-        integ = keys_check(top["integrator"], ("method", "substeps"), "`integrator`")
+        integ = keys_check(top["integrator"], ("method", "substeps", "inputs"), "`integrator`")
         if "method" in integ:
             method = integ["method"].string("integrator method")
             if method not in ("euler", "rk4"):
@@ -306,6 +311,14 @@ def _compile(path) -> SymbolicModel:
                 raise SpecError("integrator substeps must be an integer >= 1", **n.loc,
                                 text=n.source_line())
             substeps = n.value
+        if "inputs" in integ:
+            input_hold = integ["inputs"].string("integrator inputs")
+            if input_hold not in ("zoh", "foh"):
+                raise SpecError(f"unknown input hold `{input_hold}`", **integ["inputs"].loc,
+                                text=integ["inputs"].source_line(),
+                                hint=did_you_mean(input_hold, ("zoh", "foh"))
+                                or "use zoh (inputs held over each sample) or foh (inputs "
+                                   "interpolated linearly between samples)")
 
     # declarations -----------------------------------------------------------------
     declared: dict[str, tuple[str, YNode]] = {}
@@ -326,12 +339,23 @@ def _compile(path) -> SymbolicModel:
     for key, what, bucket in (("states", "state", states), ("inputs", "input", inputs),
                               ("outputs", "output", outputs)):
         for nm, node, fields in _variables(raw, key, what):
-            keys_check(node, ("unit", "description"), f"{what} `{nm}`") if node.kind == "map" else None
+            allowed = ("unit", "description", "delay") if key == "inputs" else ("unit", "description")
+            keys_check(node, allowed, f"{what} `{nm}`") if node.kind == "map" else None
             unit, dim = _unit_of(fields, f"{what} `{nm}`")
+            delay = 0.0
+            if "delay" in fields:
+                dn = fields["delay"]
+                delay = dn.number(f"delay of input `{nm}`")
+                if not (math.isfinite(delay) and 0.0 <= delay <= MAX_INPUT_DELAY_S):
+                    raise SpecError(f"delay of input `{nm}` must be between 0 and "
+                                    f"{MAX_INPUT_DELAY_S:g} seconds, got {delay:g}", **dn.loc,
+                                    text=dn.source_line(),
+                                    hint="a pure transport delay in seconds: the model sees the "
+                                         f"recorded {nm} shifted later by this time")
             if key != "outputs":
                 declare(nm, f"a {what}", node)
                 dims[_sym(nm)] = dim
-                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))
+                bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm), delay=float(delay)))
             else:
                 output_dims[nm] = dim
                 bucket.append(Variable(nm, unit, _desc(fields, nm), _sym(nm)))
@@ -536,7 +560,7 @@ def _compile(path) -> SymbolicModel:
         constants=tuple(constants), parameters=tuple(parameters), definitions=definitions,
         drift=tuple(drift), observations=tuple(observations), process_noise=process,
         measurement_noise=tuple(measurement[o] for o in output_names), data=data,
-        integrator=method, substeps=substeps, warnings=tuple(warnings), locations=locations,
+        integrator=method, substeps=substeps, input_hold=input_hold, warnings=tuple(warnings), locations=locations,
         files=raw.files, canonical=raw.canonical())
 
 

@@ -45,7 +45,7 @@ SIMULATE = {"hfb": sim.simulate_hfb, "sp": sim.simulate_sp, "lat": sim.simulate_
 
 #: effect named first that counts as the true effect: (effect id, target) pairs; target None = any
 TRUE_LABELS = {
-    ("hfb", "de_delay"): {("control_delay", "input:de")},
+    ("hfb", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
     ("hfb", "de_lag"): {("actuator_lag", "input:de")},
     ("hfb", "alpha_vane"): {("sensor_position", "output:alpha")},
     ("hfb", "az_position"): {("sensor_position", "output:az"), ("sensor_position", "output:ax")},
@@ -55,11 +55,11 @@ TRUE_LABELS = {
     ("hfb", "lift_stall"): {("nonlinear_aero", "drift:alpha")},
     ("hfb", "gust"): {("unmodelled_wind", None)},
     ("sp", "phugoid"): {("missing_dynamics", None)},
-    ("sp", "de_delay"): {("control_delay", "input:de")},
+    ("sp", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
     ("lat", "beta_vane"): {("sensor_position", "output:beta")},
 }
 #: catalogue effect class of each true effect (for --oracle)
-ORACLE_EFFECT = {"de_delay": "control_delay", "de_lag": "actuator_lag",
+ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "alpha_vane": "sensor_position", "az_position": "sensor_position",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
                  "missing_CLde": "missing_derivative", "lift_stall": "nonlinear_aero",
@@ -148,6 +148,9 @@ def classify(case: Case, res: dict) -> dict:
         out.update(named="(no result)", outcome="timeout" if res["rc"] is None else "error")
         return out
     inconclusive = doc.get("conclusion", "").startswith("INCONCLUSIVE")
+    adopted = (doc.get("numerics") or {}).get("adopted")
+    # a modelling-numerics finding is not a physical effect: reported, never counted as one
+    out["numerics"] = adopted["setting"]["text"] if adopted else None
     findings = doc.get("findings") or []
     if findings:
         f = findings[0]
@@ -218,8 +221,9 @@ def _fmt_est(est: dict | None) -> str:
 
 
 def report(rows: list[dict]) -> str:
-    lines = ["| case | truth | named first | estimate | 2ΔELBO (threshold) | outcome | wall |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| case | truth | numerics adopted | named first | estimate | 2ΔELBO (threshold) "
+             "| outcome | wall |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         truth = "none" if r["effect"] == "none" else \
             f"{r['effect']} {r['magnitude']:g} {UNIT[r['effect']]}"
@@ -227,13 +231,14 @@ def report(rows: list[dict]) -> str:
             f"{r['statistic']:.4g} ({r['threshold']:.3g})"
         named = r["named"] + (" (alt: " + ", ".join(r["alternatives"]) + ")"
                               if r.get("alternatives") else "")
-        lines.append(f"| {r['case']} | {truth} | {named} | {_fmt_est(r.get('estimates'))} | "
-                     f"{stat} | {r['outcome']} | {r['wall_s']:.0f} s |")
+        lines.append(f"| {r['case']} | {truth} | {r.get('numerics') or '–'} | {named} | "
+                     f"{_fmt_est(r.get('estimates'))} | {stat} | {r['outcome']} | "
+                     f"{r['wall_s']:.0f} s |")
         if r.get("oracle"):
             o = r["oracle"]
             ostat = "–" if o.get("statistic") is None else \
                 f"{o['statistic']:.4g} ({o['threshold']:.3g})"
-            lines.append(f"|  ↳ oracle (`--effects {ORACLE_EFFECT[r['effect']]}`) | | "
+            lines.append(f"|  ↳ oracle (`--effects {ORACLE_EFFECT[r['effect']]}`) | | | "
                          f"{o['named']} | {_fmt_est(o.get('estimates'))} | {ostat} | | "
                          f"{o['wall_s']:.0f} s |")
     # confusion matrix: true effect × effect named first

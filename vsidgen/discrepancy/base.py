@@ -378,6 +378,10 @@ class Candidate:
             out["new_definitions"] = dict(self.definitions)
         if self.states:
             out["new_states"] = {s.name: s.drift for s in self.states}
+        delay = self.info.get("delay") if self.info else None
+        if delay:  # a profiled transport delay (.delay): the spec's input declaration
+            out["inputs"] = {self.info["input"]: {"delay": delay.get("spec_value",
+                                                                     delay["estimate"])}}
         return out
 
     def spec_dict(self, base_spec, *, name: str, candidate_path=None,

@@ -256,6 +256,41 @@ class ControlDelay(_InputDynamics):
 
 
 @register_effect
+class TransportDelay(Effect):
+    id = "transport_delay"
+    title = "input transport delay"
+    explanation = ("The aircraft responds to {input} later than the recorded {input} signal: a "
+                   "pure transport delay (control system, filters, data acquisition) of "
+                   "{delay} s, found by profiling the fit over delays of whole and fractional "
+                   "samples up to about a second. Modelled by shifting the recorded {input} "
+                   "itself (linear interpolation between samples; in the spec: input {input} "
+                   "with `delay: {spec_delay}`); no state is added.")
+    doc = ("A pure time delay of one input in seconds, u(t − τ), realised by shifting the input "
+           "(fractional samples by interpolation); τ is profiled over a grid, not refitted "
+           "from zero (:mod:`vsidgen.discrepancy.delay`).")
+
+    def applies_to(self, info):
+        out = []
+        for u in info.input_names:
+            gains = _input_gains(info, u)
+            if not gains:
+                continue
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
+                explanation=self.explain(input=u, delay="τ", spec_delay="τ"),
+                info={"input": u, "states": tuple(gains), "profile": "delay"},
+                screenable=False))
+        return out
+
+    def score(self, c, ev):
+        """The evidence of :class:`ControlDelay`: equation errors of the states the input
+        drives correlate with its rate or a lagged copy."""
+        u = c.info["input"]
+        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                    for s in c.info["states"]), default=0.0)
+
+
+@register_effect
 class ActuatorLag(_InputDynamics):
     id = "actuator_lag"
     title = "actuator or engine lag"

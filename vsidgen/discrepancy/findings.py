@@ -4,6 +4,8 @@ findings.json (keys in this order)::
 
     {"vsidgen_version", "spec", "records": {"estimation": [...], "validation": [...]},
      "options": {...}, "conclusion": "plain words",
+     "numerics": null | {"kind": "modelling_numerics", "current", "trials": [...],
+                         "adopted": null | {"setting", "recommendation", "statistic", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -59,6 +61,11 @@ def _target_metrics(m: dict, target: str) -> dict:
 def _params(c, st) -> dict:
     names = list(st.model.parameter_names)
     out = {}
+    delay = (c.info or {}).get("delay")
+    if delay:  # a profiled transport delay: not a model parameter (the input is shifted)
+        out[delay["name"]] = {"estimate": _f(delay["estimate"]), "std_error": _f(delay["std_error"]),
+                              "unit": "s", "fixed": False,
+                              "description": f"transport delay of {c.info['input']} (profiled)"}
     for p in c.parameters:
         if p.name not in names:
             continue
@@ -82,8 +89,11 @@ def _capital(text: str) -> str:
 
 
 def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
-                    final_spec, base_converged: bool = True, base_status: str = "") -> str:
-    """The plain-words conclusion of findings.json (pure: findings and round records only)."""
+                    final_spec, base_converged: bool = True, base_status: str = "",
+                    numerics_adopted: bool = False) -> str:
+    """The plain-words conclusion of findings.json (pure: findings and round records only;
+    ``numerics_adopted``: a modelling-numerics setting was adopted, so only the physics is
+    kept when nothing else is found)."""
     if findings:
         conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
                       f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
@@ -98,10 +108,13 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                  "must judge the label (or a maneuver that separates them is "
                                  "needed).")
     else:
-        conclusion = ("No significant discrepancy found: no candidate effect improved the ELBO "
+        what = "physical discrepancy" if numerics_adopted else "discrepancy"
+        kept = ("The model's physics is kept as it is (with the numerics setting above)"
+                if numerics_adopted else "The model is kept as it is")
+        conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                       f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
                       + (" and on the validation records" if validated else "")
-                      + ". The model is kept as it is; the residual mismatch is consistent with "
+                      + f". {kept}; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
     tried = [t for r in rounds for t in r.get("trials", [])]
     val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
@@ -185,6 +198,11 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     (one source of truth): per finding its test, estimates with units, explanation and
     alternatives; the last line is the document's ``conclusion`` and where it is written."""
     lines = []
+    adopted = (document.get("numerics") or {}).get("adopted")
+    if adopted:
+        lines.append(f"0. modelling numerics (not physics): {adopted['recommendation']}: 2ΔELBO = "
+                     f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}")
+        lines.append(f"   {adopted['explanation']}")
     for f in document.get("findings") or []:
         ev = f["evidence"]
         lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
@@ -202,13 +220,25 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     return lines
 
 
+def numerics_text(numerics: dict | None) -> str:
+    """Sentence on the modelling-numerics stage put before the conclusion ("" when nothing
+    was adopted)."""
+    adopted = (numerics or {}).get("adopted")
+    if not adopted:
+        return ""
+    return (f"MODELLING NUMERICS (not a physical effect): {adopted['recommendation']} "
+            f"(2ΔELBO = {adopted['statistic']:.4g} > {adopted['threshold']:.4g} with no parameter "
+            "added); the physical search below used it. ")
+
+
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options, stop: dict | None = None,
-                   unfinished_round: dict | None = None) -> dict:
+                   unfinished_round: dict | None = None, numerics: dict | None = None) -> dict:
     """The findings.json mapping (see the module docstring).
 
     ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
-    ``unfinished_round``: the round that was in progress (refitted trials, pending keys).
+    ``unfinished_round``: the round that was in progress (refitted trials, pending keys);
+    ``numerics``: the modelling-numerics stage (:meth:`.numerics.NumericsResult.to_json`).
     """
     findings = []
     for rank, (trial, before, ev) in enumerate(accepted, start=1):
@@ -248,25 +278,27 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "validation_elbo_after": _f(after.val_elbo),
                 "metrics_before": _target_metrics(mb, c.target),
                 "metrics_after": _target_metrics(ma, c.target),
-                "locate": locate_part},
+                "locate": locate_part,
+                "delay_profile": (c.info or {}).get("profile_result")},
             "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
             "alternatives": [a.alternative_json() for a in trial.alternatives],
             "spec": str(trial.spec_path)})
     conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
-                                 base_status=base.fit.status)
+                                 base_status=base.fit.status,
+                                 numerics_adopted=bool((numerics or {}).get("adopted")))
     stopped = stop_text(stop, unfinished_round, len(findings))
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
-    conclusion = stopped + conclusion
+    conclusion = stopped + numerics_text(numerics) + conclusion
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
-        "findings": findings, "final_spec": str(final.spec_path),
+        "numerics": numerics, "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "metrics": metrics_summary(base)},
         "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
@@ -363,6 +395,21 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
     e = html.escape
     parts = ["<section id='diagnose'><h2>Discrepancy diagnosis</h2>",
              f"<p>{e(doc['conclusion'])}</p>"]
+    num = doc.get("numerics") or {}
+    if num.get("trials"):
+        parts.append("<h3>Modelling numerics (tested before physics)</h3>"
+                     f"<p>Current setting: <code>{e(num['current']['text'])}</code>. "
+                     + (f"<b>{e(num['adopted']['explanation'])}</b>" if num.get("adopted")
+                        else "Kept: no other setting improved the fit significantly.")
+                     + "</p><table border='1' cellpadding='3' style='border-collapse:collapse;"
+                       "font-size:90%'><tr><th>setting</th><th>2ΔELBO</th><th>threshold</th>"
+                       "<th>verdict</th></tr>")
+        for t in num["trials"]:
+            st = t.get("statistic")
+            parts.append(f"<tr><td><code>{e(t['setting']['text'])}</code></td>"
+                         f"<td>{'n/a' if st is None else f'{st:.4g}'}</td>"
+                         f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
+        parts.append("</table>")
     loc = doc.get("locate", {})
     if loc:
         parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "

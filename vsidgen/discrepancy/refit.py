@@ -214,7 +214,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
             x, uk = inp
             xn = F(x.at[ni].set(z), uk, th, dt)
             return xn[ni], z
-        zl, zs = jax.lax.scan(step, z0, (mu[:-1], u[:-1]))
+        zl, zs = jax.lax.scan(step, z0, (mu[:-1], F.step_inputs(u)))
         return jnp.concatenate([zs, zl[None]], axis=0)
 
     jacF = jax.jit(jax.vmap(jax.jacfwd(lambda x, u, dt: F(x, u, th, dt)), in_axes=(0, 0, None)))
@@ -246,7 +246,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
             notes.append("new states diverged in the start simulation; started at 0")
             zs = np.zeros_like(zs)
         mu1[:, ni] = zs
-        Js = np.asarray(jacF(jnp.asarray(mu1[:-1]), jnp.asarray(u[:-1]), dt), float)
+        Js = np.asarray(jacF(jnp.asarray(mu1[:-1]), jnp.asarray(F.step_inputs(u)), dt), float)
         a = np.clip(Js[:, ni, ni].mean(axis=0), -0.999, 0.999)
         Q = dt * det_std ** 2 * np.ones(len(ni))
         P = Q / (1.0 - a ** 2)

@@ -394,6 +394,10 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
         h0 = t.refit.x0_entropy if t.candidate.states else 0.0
         ro = dataclasses.replace(t.refit, elbo_ref=max(t.refit.elbo_ref, better.elbo + h0))
         lam, p = lr_test(ro.elbo_ref, t.state.elbo, t.dof)
+        n_grid = _grid_size(t.candidate)
+        if n_grid:
+            from .delay import delay_p_value
+            p = delay_p_value(lam, n_grid)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
                                        statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
                                        verdict=trial_verdict(t.candidate, t.state, lam)))
@@ -584,11 +588,77 @@ def _trial_of(oc, c, score, sr, path, current) -> Trial:
                  verdict=trial_verdict(c, st, lam))
 
 
+def _grid_size(c: Candidate) -> int:
+    """Number of delays profiled for a transport-delay candidate (0 for any other)."""
+    return len(((c.info or {}).get("profile_result") or {}).get("grid_s") or ())
+
+
+def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_iter,
+                 deadline) -> Trial | None:
+    """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
+    estimate and the test (Bonferroni over the grid; None when the time ran out)."""
+    from .delay import delay_p_value, hold_lag, profile_delay
+    from .refit import RefitOutcome
+
+    u = c.info["input"]
+    j = list(current.model.input_names).index(u)
+    if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error=f"the model already delays {u}")
+    try:
+        prof = profile_delay(current, u, path, name, engine=engine, generated_dir=generated_dir,
+                             max_iter=max_iter, deadline=deadline)
+    except (FitError, SpecError, VsidgenError, ValueError, ArithmeticError) as err:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error=f"failed: {str(err).splitlines()[0]}")
+    if prof is None:
+        return None
+    if prof.at_zero:
+        # no delay: every delayed fit is below the current model (τ = 0); nothing to refit
+        c0 = dataclasses.replace(c, info={**c.info, "profile_result": prof.to_json()})
+        best = max((e for e in prof.elbos if math.isfinite(e)), default=math.nan)
+        return Trial(c0, score, path, None, 0.0, 1, 1.0,
+                     refit=RefitOutcome(elbo_ref=current.elbo, warm="delay profile",
+                                        notes=[f"profile highest at τ = 0 (the current model): "
+                                               f"best delayed fit {best - current.elbo:+.4g} nats"
+                                               ], wall_s=prof.wall_s))
+    if prof.state is None:
+        return Trial(c, score, path, None, math.nan, 1, 1.0,
+                     error="failed: no grid fit or final refit succeeded")
+    st = prof.state
+    lam = 2.0 * (st.elbo - current.elbo)
+    lag = hold_lag(current.model, float(np.median([r.dt for r in current.records])))
+    ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate + lag,
+           "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s",
+           "spec_value": prof.estimate, "hold_lag": lag}
+    from .base import get_effect
+    text = get_effect(c.effect).explain(input=u, delay=f"{prof.estimate + lag:.4g}",
+                                        spec_delay=f"{prof.estimate:.4g}")
+    if lag > 0:
+        text += (f" The model holds {u} over each sample, which by itself delays it by "
+                 f"{lag:.4g} s on average; the spec's delay is therefore {prof.estimate:.4g} s "
+                 f"for a physical transport delay of {prof.estimate + lag:.4g} s.")
+    if (getattr(current.model, "integrator", "euler") == "euler"
+            and int(getattr(current.model, "substeps", 1) or 1) == 1):
+        text += (" The model integrates with one Euler step per sample, whose own phase error is "
+                 "of the order of a sample too: the physical value is reliable only with an "
+                 "accurate integrator (integrator: {method: rk4}).")
+    c2 = dataclasses.replace(c, explanation=text,
+                             info={**c.info, "delay": ent, "profile_result": prof.to_json()})
+    ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
+                      notes=[f"profile over {len(prof.grid)} delays; best grid value "
+                             f"{prof.best_grid:.4g} s, refined {prof.estimate:.4g} s"],
+                      wall_s=prof.wall_s)
+    return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
+                 statistic_vs_base=lam, converged=refit_converged(st.fit),
+                 verdict=refit_verdict(lam, {}, {}))
+
+
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
                  time_limit: float | None = None, workers: int | None = 1,
-                 scheduler: str | None = None,
+                 scheduler: str | None = None, numerics: bool = True,
                  progress: Callable[[str], None] | None = None,
                  overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
@@ -614,6 +684,11 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     core) runs them on a local ``dask.distributed`` cluster, ``scheduler`` on an existing
     one (see :mod:`vsidgen.engine`); ``workers=1`` runs them in this process. Both give
     the same findings.
+
+    ``numerics``: before any physics candidate the current model is refitted with other
+    integrator settings (rk4, sub-steps, first-order hold of the inputs; :mod:`.numerics`);
+    a setting that removes a significant part of the mismatch is adopted for the rest of
+    the run and reported as a modelling-numerics finding (``findings.json`` → ``numerics``).
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -668,12 +743,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
                              progress=progress, version=__version__,
                              build_document=build_document, write_findings=write_findings,
-                             time_limit=time_limit, engine=engine)
+                             time_limit=time_limit, engine=engine, numerics=numerics)
 
 
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
-                  write_findings, time_limit, engine) -> DiagnoseResult:
+                  write_findings, time_limit, engine, numerics=True) -> DiagnoseResult:
     from ..engine import TaskStatus
     from .findings import write_findings_json
 
@@ -682,7 +757,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     deadline = None if time_limit is None else time.monotonic() + float(time_limit)
     options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
                "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
-               "time_limit_s": time_limit, "engine": engine.describe()}
+               "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics}
 
     def past_deadline() -> bool:
         return deadline is not None and time.monotonic() >= deadline
@@ -692,6 +767,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     accepted: list[tuple[Trial, FitState, Evidence]] = []
     unfinished: dict | None = None
     current = evidence0 = evidence = None
+    numres = None
 
     from .refit import compile_seconds
 
@@ -703,7 +779,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                               version=version, wall_time_s=time.perf_counter() - t_start,
                               out=out, options=options,
                               stop={"reason": stop.value, "time_limit_s": time_limit},
-                              unfinished_round=unfinished)
+                              unfinished_round=unfinished,
+                              numerics=None if numres is None else numres.to_json())
         refit_c = [t["refit"].get("compile_s") for r in rounds for t in r.get("trials", ())
                    if t.get("refit")]
         doc["compile_s"] = {"this_process": round(compile_seconds() - compile0, 2),
@@ -732,6 +809,16 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
         with engine:
             if not engine.serial:
                 _say(progress, f"refits run on a {engine.describe()}")
+            if numerics and not past_deadline():
+                from .numerics import run_numerics
+
+                numres = run_numerics(current, out, alpha=alpha, generated_dir=gen,
+                                      max_iter=max_iter, engine=engine, deadline=deadline,
+                                      progress=progress)
+                if numres.adopted is not None:
+                    current = numres.adopted.state
+                    evidence = locate_state(current)
+                checkpoint(StopReason.RUNNING)
             for rnd in range(1, max_rounds + 1):
                 if past_deadline():
                     stop = StopReason.TIME_LIMIT
@@ -754,10 +841,13 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                  for r in table[:max_candidates + 4] if r['priority'] is not None))
                 paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
                          for i, (_, _, c, _) in enumerate(ranked)]
+                # transport delays are profiled over a grid of delays (.delay), not refitted
+                profiled = [i for i, (_, _, c, _) in enumerate(ranked)
+                            if c.info.get("profile") == "delay"]
                 tasks = [(c.key, (c, current, info, paths[i],
                                   f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter))
-                         for i, (_, _, c, _) in enumerate(ranked)]
+                         for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                               "base_elbo": current.elbo, "n_candidates": n_examined,
@@ -800,6 +890,26 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 for o in outcomes:
                     i, score, c, sr = by_key[o.key]
                     trials.append(_trial_of(o, c, score, sr, paths[i], current))
+                for i in profiled:
+                    score, _, c, sr = ranked[i]
+                    _say(progress, f"round {rnd}: {c.key}: profiling the delay over a grid")
+                    t = delay_trial(c, score, current, paths[i],
+                                     f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}",
+                                     engine=engine, generated_dir=gen, max_iter=max_iter,
+                                     deadline=deadline)
+                    if t is None:
+                        stop = StopReason.TIME_LIMIT
+                        break
+                    unfinished["pending"].remove(c.key)
+                    unfinished["refitted"].append(t.to_json())
+                    if t.state is not None:
+                        _say(progress, f"round {rnd}: {c.key}: delay {t.candidate.info['delay']}"
+                                       f", 2ΔELBO {t.statistic:.4g}")
+                    elif t.refit is not None:
+                        _say(progress, f"round {rnd}: {c.key}: {t.refit.notes[0]}")
+                    trials.append(t)
+                if stop is StopReason.TIME_LIMIT:
+                    break
                 # a candidate's gain may be a better optimum of the current model itself: refit
                 # the current model from each nominally significant candidate's optimum
                 # (new terms removed)
@@ -901,7 +1011,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
     for t, (sig, level) in zip(trials, decisions):
-        thr = float(stats.chi2.isf(level, max(t.dof, 1)))
+        # a profiled delay's p-value carries the Bonferroni factor of its grid (.delay)
+        thr = float(stats.chi2.isf(level / max(_grid_size(t.candidate), 1), max(t.dof, 1)))
         vok = None
         if sig and t.state is not None and t.state.vfit is not None:
             corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
@@ -961,6 +1072,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--effects-module", action="append", default=None, metavar="PATH.py",
                    help="Python file defining extra Effect subclasses (repeatable)")
     p.add_argument("--max-iter", type=int, default=200, help="optimizer iterations per fit")
+    p.add_argument("--no-numerics", action="store_true",
+                   help="do not test the integrator settings (rk4, sub-steps, first-order hold "
+                        "of the inputs) before the physical candidates")
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
@@ -1001,6 +1115,7 @@ def diagnose_command(args) -> int:
                                effects_module=args.effects_module, max_iter=args.max_iter,
                                screen=args.screen, time_limit=args.time_limit,
                                workers=args.workers, scheduler=args.scheduler, progress=progress,
+                               numerics=not args.no_numerics,
                                overwrite=args.overwrite, overrides=ov)
     finally:
         if progress is not None:

@@ -47,6 +47,13 @@ from .. import precision  # noqa: F401  (float64, set once)
 LOG2PI = math.log(2.0 * math.pi)
 
 
+# --------------------------------------------------------------------------- transition
+def step_inputs(F, u):
+    """The step inputs of transition ``F`` for the (N, nu) inputs ``u`` (u[:-1] for a bare function)."""
+    fn = getattr(F, "step_inputs", None)
+    return u[:-1] if fn is None else fn(u)
+
+
 # --------------------------------------------------------------------------- small dense linear algebra
 # Unrolled Cholesky / triangular solve for the small (n ≲ 12) matrices of the
 # assumed density: plain arithmetic differentiates twice into a much smaller
@@ -425,7 +432,8 @@ class Objective:
         self._tril = np.tril_indices(n, -1)
         self.chunk = 512  # pairs / nodes per vmapped chunk of the Hessian assembly (cache-sized: 512 was
         # 1.5x faster than 4096 at N = 4e4 on the 2-core dev machine; memory is one chunk of blocks)
-        na, nu = n + model.np, model.nu
+        na = n + model.np
+        nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
         # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)
         self.kv_F = curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu)
         self.kv_h = curvature_vars(lambda a, u: model.output(a[:n], u, a[n:]), na, nu)
@@ -494,7 +502,9 @@ class Objective:
         return fs + jnp.einsum("ija,ia->ij", Js, da)
 
     def pair_nll(self, mu0, mu1, r, s, u0, dt, cfg, lin=None):
-        """Pair term; with ``lin`` = (X0*, F*, J*, θ*) F is replaced by its linearisation (see blocks)."""
+        """Pair term; ``u0``: the step input of the transition (u_k, or (u_k, u_{k+1}) with a
+        first-order hold; :func:`step_inputs`); with ``lin`` = (X0*, F*, J*, θ*) F is replaced
+        by its linearisation (see blocks)."""
         theta, G, _ = self.unpack_s(s, cfg)
         dx0, dx1 = self.pair_offsets(r)
         X0 = mu0 + dx0
@@ -527,8 +537,8 @@ class Objective:
         """Negative ELBO of one record; padded samples (see :func:`record_data`) contribute nothing."""
         self.traces["value"] += 1  # Python side effect: runs once per trace (tests count recompilations)
         u, y, m, dt, wp, wn, nt = data
-        vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None, None))(mu[:-1], mu[1:], r, s, u[:-1],
-                                                                                dt, cfg)
+        vp = jax.vmap(self.pair_nll, in_axes=(0, 0, None, None, 0, None, None))(
+            mu[:-1], mu[1:], r, s, step_inputs(self.F, u), dt, cfg)
         vn = jax.vmap(self.node_nll, in_axes=(0, None, None, 0, 0, 0, None))(mu, r, s, u, y, m, cfg)
         return (jnp.sum(jnp.where(wp > 0, vp, 0.0)) + jnp.sum(jnp.where(wn > 0, vn, 0.0))
                 + self.neg_entropy(r, nt))
@@ -698,7 +708,7 @@ class Objective:
             rest = {k: v.reshape((nc * ch,) + v.shape[2:])[:count] for k, v in rest.items()}
             return acc, rest
 
-        pa, pr = chunked(pair_piece, [mu[:-1], mu[1:], u[:-1]], N - 1, wp)
+        pa, pr = chunked(pair_piece, [mu[:-1], mu[1:], step_inputs(self.F, u)], N - 1, wp)
         na, nr = chunked(node_piece, [mu, u, y, m], N, wn)
 
         # shared functions of the border: noise terms, lifting curvature, entropy
@@ -775,6 +785,7 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     dimensions, integrator and the static index structure of the maps.
     """
     key = (model.drift, model.output, model.nx, model.nu, model.ny, model.np, key_extra,
+           getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
     obj = _OBJECTIVES.get(key)
     if obj is None:

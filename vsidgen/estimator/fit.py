@@ -30,6 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
+from ..dynamics import input_hold as transition_input_hold
 from ..dynamics import settings as transition_settings
 from ..dynamics import transition
 from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
@@ -126,7 +127,9 @@ class _Problem:
         self.records = _check_records(model, records)
         self.integrator, self.substeps = transition_settings(
             model, integrator=options.integrator, substeps=options.substeps)
-        F = transition(model, integrator=self.integrator, substeps=self.substeps)
+        self.input_hold = transition_input_hold(model, options.input_hold)
+        F = transition(model, integrator=self.integrator, substeps=self.substeps,
+                       inputs=self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax)

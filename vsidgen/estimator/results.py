@@ -61,6 +61,8 @@ class FitOptions:
     Attributes:
         integrator: "euler" | "rk4"; None → ``model.integrator``.
         substeps: integration substeps per sample; None → ``model.substeps``.
+        input_hold: "zoh" | "foh", inputs held or interpolated linearly between samples
+            (:mod:`vsidgen.dynamics`); None → ``model.input_hold``.
         max_iter: iteration limit of the optimizer.
         gtol: convergence tolerance on the *relative gradient*
             ``max_i |∂(−L)/∂v_i| · max(|v_i|, 1) / max(|L|, 1)`` over the whole
@@ -128,6 +130,7 @@ class FitOptions:
 
     integrator: str | None = None
     substeps: int | None = None
+    input_hold: str | None = None
     max_iter: int = 200
     gtol: float = 1e-6
     decrement_tol: float = 1e-3

@@ -1,0 +1,276 @@
+"""Numerical explanations before physics: the model's own discretisation as a candidate.
+
+The estimator integrates the model over each sample with a chosen method (Euler or RK4),
+a number of sub-steps and an input hold between samples (zero-order: inputs held; first
+order: inputs interpolated linearly; :mod:`vsidgen.dynamics`). An aircraft integrates in
+continuous time with inputs that move between samples, so a coarse setting leaves a
+mismatch of its own: Euler with held inputs lags the continuous response by about half a
+sample, which the physics catalogue would otherwise name a time skew, an α̇ term or an
+actuator lag.
+
+Before any physics candidate, :func:`run_numerics` refits the current model with each
+setting of :func:`numerics_settings` (integrator rk4 if euler, 4 sub-steps, the
+first-order hold; each a *model setting*, no term and no parameter added), warm-started
+from the current fit.
+
+Decision. The settings are not nested in the current model and add no parameter, so
+Λ = 2(ELBO_setting − ELBO_current) has no χ² reference distribution. A setting is adopted
+only when Λ exceeds the threshold a physics candidate with *one* new parameter would face
+in a family of the m settings tried: the χ²₁ quantile at the Holm level α/(m − rank) of its
+rank. That is stricter than any information criterion for models of equal dimension (AIC
+and BIC accept any Λ > 0): a numerics setting is adopted only on evidence that would
+accept a one-parameter physical effect, and among the significant ones the one with the
+largest ELBO is adopted (within 0.5 nats of it: the one with the fewest drift evaluations
+per sample, then the larger ELBO). The
+adopted setting is a *modelling-numerics finding* ("use integrator: {...}"), reported
+apart from the physical findings; the rest of the run (and the final spec) uses it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import pathlib
+import time
+from typing import Any
+
+from scipy import stats
+
+#: sub-steps proposed when the current setting has fewer
+SUBSTEPS = 4
+
+
+class NumericsVerdict(enum.Enum):
+    """Outcome of one numerics setting (``findings.json`` → ``numerics.trials[].verdict``)."""
+
+    ADOPTED = "adopted"
+    SIGNIFICANT = "significant"          # above its threshold, but another setting was better
+    NOT_SIGNIFICANT = "not_significant"
+    NOT_CONVERGED = "not_converged"
+    FAILED = "failed"
+
+
+@dataclasses.dataclass(frozen=True)
+class NumericsSetting:
+    """One integrator setting: method, sub-steps and input hold."""
+
+    method: str
+    substeps: int
+    inputs: str
+
+    @classmethod
+    def of(cls, model) -> "NumericsSetting":
+        return cls(getattr(model, "integrator", "euler") or "euler",
+                   int(getattr(model, "substeps", 1) or 1),
+                   getattr(model, "input_hold", "zoh") or "zoh")
+
+    def spec(self) -> dict:
+        """The spec's ``integrator:`` mapping."""
+        return {"method": self.method, "substeps": self.substeps, "inputs": self.inputs}
+
+    @property
+    def text(self) -> str:
+        return (f"integrator: {{method: {self.method}, substeps: {self.substeps}, "
+                f"inputs: {self.inputs}}}")
+
+    @property
+    def label(self) -> str:
+        return f"{self.method}x{self.substeps}_{self.inputs}"
+
+    @property
+    def cost(self) -> int:
+        """Drift evaluations per sample (tie-break: the cheaper setting)."""
+        return self.substeps * (4 if self.method == "rk4" else 1)
+
+    def to_json(self) -> dict:
+        return {**self.spec(), "text": self.text}
+
+
+def numerics_settings(current: NumericsSetting) -> list[NumericsSetting]:
+    """Settings to test against ``current``: rk4 if euler, ``SUBSTEPS`` sub-steps if fewer,
+    and the first-order hold with each integrator (a first-order hold with one Euler step
+    evaluates the input only at the start of the interval, where it equals the zero-order
+    hold, so that combination is never proposed). ``current`` itself is excluded."""
+    methods = [current.method] + (["rk4"] if current.method == "euler" else [])
+    subs = [current.substeps] + ([SUBSTEPS] if current.substeps < SUBSTEPS else [])
+    holds = [current.inputs] + (["foh"] if current.inputs == "zoh" else [])
+    out = []
+    for m in methods:
+        for s in subs:
+            for h in holds:
+                st = NumericsSetting(m, s, h)
+                if st == current or (m == "euler" and s == 1 and h == "foh"):
+                    continue
+                if m != current.method and s != current.substeps:
+                    continue   # rk4 with more sub-steps: one change at a time besides the hold
+                out.append(st)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class NumericsTrial:
+    """The current model refitted with one setting."""
+
+    setting: NumericsSetting
+    spec_path: pathlib.Path
+    state: Any = None                    # search.FitState (None: failed)
+    statistic: float = math.nan          # 2(ELBO_setting − ELBO_current)
+    threshold: float = math.nan
+    converged: bool = False
+    verdict: NumericsVerdict = NumericsVerdict.FAILED
+    error: str | None = None
+    wall_s: float = 0.0
+
+    def to_json(self) -> dict:
+        def f(v):
+            return None if v is None or not math.isfinite(v) else float(v)
+        return {"setting": self.setting.to_json(), "spec": str(self.spec_path),
+                "elbo": None if self.state is None else f(self.state.elbo),
+                "statistic": f(self.statistic), "threshold": f(self.threshold),
+                "converged": self.converged, "verdict": self.verdict.value,
+                "error": self.error, "wall_s": round(self.wall_s, 2)}
+
+
+@dataclasses.dataclass(frozen=True)
+class NumericsResult:
+    """The numerics stage of a diagnose run."""
+
+    current: NumericsSetting
+    elbo_current: float
+    trials: tuple[NumericsTrial, ...]
+    alpha: float
+    adopted: NumericsTrial | None = None
+
+    def to_json(self) -> dict:
+        adopted = None
+        if self.adopted is not None:
+            a = self.adopted
+            adopted = {"setting": a.setting.to_json(), "spec": str(a.spec_path),
+                       "statistic": float(a.statistic), "threshold": float(a.threshold),
+                       "elbo_before": float(self.elbo_current), "elbo_after": float(a.state.elbo),
+                       "recommendation": f"use {a.setting.text}",
+                       "explanation": explanation(self.current, a)}
+        return {"kind": "modelling_numerics",
+                "test": "2*(ELBO_setting - ELBO_current) against the chi2(1) quantile at the Holm "
+                        "level of its rank over the settings tried (not nested, no parameter "
+                        "added: the evidence a one-parameter physical effect would need)",
+                "current": self.current.to_json(), "elbo_current": float(self.elbo_current),
+                "alpha": self.alpha, "trials": [t.to_json() for t in self.trials],
+                "adopted": adopted}
+
+
+def explanation(current: NumericsSetting, trial: NumericsTrial) -> str:
+    """Plain words for an adopted setting."""
+    parts = []
+    s = trial.setting
+    if s.inputs != current.inputs:
+        parts.append("the inputs move between samples (first-order hold: interpolated linearly) "
+                     "instead of being held over each sample")
+    if s.method != current.method:
+        parts.append(f"the {s.method} integrator replaces {current.method}")
+    if s.substeps != current.substeps:
+        parts.append(f"{s.substeps} sub-steps per sample instead of {current.substeps}")
+    return ("Modelling numerics, not physics: the mismatch shrinks when " + "; ".join(parts)
+            + f" (2ΔELBO = {trial.statistic:.4g} > {trial.threshold:.4g}, no parameter added). "
+            f"Use `{s.text}` in the spec; the physical search continues with it.")
+
+
+def decide(trials, elbo_current: float, alpha: float) -> tuple[list[NumericsTrial], NumericsTrial | None]:
+    """Thresholds (χ²₁ at Holm levels), verdicts and the adopted trial (see module docstring)."""
+    m = len(trials)
+    order = sorted(range(m), key=lambda i: -(trials[i].statistic
+                                             if trials[i].state is not None
+                                             and math.isfinite(trials[i].statistic) else -math.inf))
+    out = list(trials)
+    going = True
+    for rank, i in enumerate(order):
+        t = trials[i]
+        thr = float(stats.chi2.isf(alpha / (m - rank), 1))
+        if t.state is None:
+            out[i] = dataclasses.replace(t, threshold=thr, verdict=NumericsVerdict.FAILED)
+            going = False
+            continue
+        sig = going and t.converged and t.statistic > thr
+        if not t.converged:
+            v = NumericsVerdict.NOT_CONVERGED
+        else:
+            v = NumericsVerdict.SIGNIFICANT if sig else NumericsVerdict.NOT_SIGNIFICANT
+        going = sig
+        out[i] = dataclasses.replace(t, threshold=thr, verdict=v)
+    good = [t for t in out if t.verdict is NumericsVerdict.SIGNIFICANT]
+    if not good:
+        return out, None
+    top = max(t.state.elbo for t in good)
+    best = min((t for t in good if t.state.elbo >= top - 0.5),
+               key=lambda t: (t.setting.cost, -t.state.elbo))
+    out = [dataclasses.replace(t, verdict=NumericsVerdict.ADOPTED) if t is best else t for t in out]
+    return out, next(t for t in out if t.verdict is NumericsVerdict.ADOPTED)
+
+
+def write_setting_spec(current, setting: NumericsSetting, path: pathlib.Path, name: str):
+    """Spec extending the current one with ``setting`` (current estimates as initial values)."""
+    from .specwrite import extends_text, warm_parameters, write_spec
+
+    return write_spec(path, f"vsidgen diagnose: modelling numerics {setting.text}",
+                      {"name": name,
+                       "description": f"the current model with {setting.text}",
+                       "extends": extends_text(current.spec_path, path),
+                       "integrator": setting.spec(),
+                       "parameters": warm_parameters(current.model, current.fit.theta)})
+
+
+def _numerics_task(setting, current, path, name, generated_dir, max_iter):
+    """One setting's warm refit (runs on an engine worker); a FitState."""
+    from .fitstate import refit_warm
+
+    write_setting_spec(current, setting, path, name)
+    return refit_warm(path, current, current, generated_dir=generated_dir,
+                       iterations=2 * max_iter, max_iter=max_iter)
+
+
+def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max_iter: int,
+                  engine, deadline=None, progress=None) -> NumericsResult:
+    """Refit ``current`` (a search.FitState) with every setting of :func:`numerics_settings`
+    and decide (see the module docstring). Returns the :class:`NumericsResult`; its
+    ``adopted`` trial's state is the model the rest of the run continues from."""
+    from ..engine import TaskStatus
+    from .fitstate import refit_converged
+    from .specwrite import safe_name
+
+    cur = NumericsSetting.of(current.model)
+    settings = numerics_settings(cur)
+    tasks = []
+    paths = {}
+    for i, s in enumerate(settings):
+        p = pathlib.Path(out) / "candidates" / f"r0_{i + 1:02d}_numerics_{s.label}.yaml"
+        paths[s.label] = (s, p)
+        tasks.append((s.label, (s, current, p, f"{safe_name(current.model.name)[:30]}_num{i + 1}",
+                                generated_dir, max_iter)))
+    if progress is not None and tasks:
+        progress("modelling numerics first: refitting with " + ", ".join(s.text for s in settings))
+    t0 = time.perf_counter()
+    outcomes = engine.run(_numerics_task, tasks, deadline=deadline) if tasks else []
+    trials = []
+    for o in outcomes:
+        s, p = paths[o.key]
+        if o.status is not TaskStatus.DONE:
+            trials.append(NumericsTrial(s, p, error=f"{o.status.value}: {o.error}",
+                                        wall_s=o.wall_s))
+            continue
+        st = o.value
+        trials.append(NumericsTrial(s, p, st, 2.0 * (st.elbo - current.elbo),
+                                    converged=refit_converged(st.fit), wall_s=o.wall_s))
+    trials, adopted = decide(trials, current.elbo, alpha)
+    if progress is not None:
+        for t in trials:
+            progress(f"    {t.setting.text}: 2ΔELBO {t.statistic:.4g} (threshold "
+                     f"{t.threshold:.4g}) {t.verdict.value}" + (f" [{t.error}]" if t.error else ""))
+        progress((f"modelling numerics: {adopted.setting.text} adopted" if adopted is not None
+                  else "modelling numerics: the current setting is kept")
+                 + f" ({time.perf_counter() - t0:.0f} s)")
+    return NumericsResult(cur, current.elbo, tuple(trials), alpha, adopted)
+
+
+__all__ = ["NumericsResult", "NumericsSetting", "NumericsTrial", "NumericsVerdict", "decide",
+           "numerics_settings", "run_numerics"]
