@@ -1003,7 +1003,8 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
             + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
                if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
     if collapsed:
-        what += (f"; the estimates converged while the ELBO falls by ln 10 per stage in {collapsed} "
+        what += (f"; the estimates converged while the ELBO falls by ln(1/ρ) per stage (ρ: the stage's "
+                 f"process-noise factor) in {collapsed} "
                  f"direction(s) of a contracting deterministic subsystem (its initial-condition spread "
                  f"collapses): compare ELBOs only at the same process-noise std")
     out["status"] = out["status"] + "; " + what + (f"; first stage: {status0}" if status0 else "")
