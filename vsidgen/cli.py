@@ -428,6 +428,11 @@ def _cmd_fit(args) -> int:
     state = "" if res["converged"] else "NOT CONVERGED — "
     print(f"{state}{res['status']} ({res['iterations']} iterations, "
           f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
+    issues = res.get("std_error_issues") or []
+    if res["parameters"] and not res.get("std_errors_reliable", True):
+        codes = ", ".join(f"{i['code']}" + (f" ({', '.join(i['parameters'])})" if i.get("parameters") else "")
+                          for i in issues) or "see warnings"
+        print(f"standard errors: UNRELIABLE — {codes}")
     val = res.get("validation") or {}
     val_ok = val.get("converged", True) is not False
     if val.get("elbo") is not None:

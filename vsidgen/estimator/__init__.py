@@ -4,10 +4,10 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    FitOptions, FitResult, SmootherPath, StopReason
+    FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag
 """
 
 from .fit import fit, measured_states, smooth
-from .results import FitOptions, FitResult, SmootherPath, StopReason
+from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "StopReason", "fit", "measured_states", "smooth"]
+__all__ = ["FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "fit", "measured_states", "smooth"]
