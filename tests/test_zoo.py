@@ -60,7 +60,7 @@ def test_zoo_coverage_of_95_percent_intervals():
     or an estimate biased by more than a fraction of its s.e. would fall below it."""
     import numpy as np
 
-    rows = [zoo.run_one("sp_pn", seed) for seed in range(101, 113)]
+    rows = [zoo.run_one("sp_pn", seed) for seed in range(1, 13)]
     for r in rows:
         assert "error" not in r and r["converged"], r
     z = np.concatenate([np.asarray(r["z"]) for r in rows])
