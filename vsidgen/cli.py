@@ -428,6 +428,12 @@ def _cmd_fit(args) -> int:
     state = "" if res["converged"] else "NOT CONVERGED — "
     print(f"{state}{res['status']} ({res['iterations']} iterations, "
           f"{res['wall_time_s']:.1f} s); ELBO {res['elbo']:.6g}; results in {args.out}")
+    det = res.get("deterministic_states") or []
+    if det:
+        lim = res.get("deterministic_limit") or {}
+        how = ("exact limit of vanishing process noise" if lim.get("reached")
+               else "limit of vanishing process noise NOT reached" if lim else "quasi-deterministic")
+        print(f"states without process noise: {', '.join(det)} ({how})")
     issues = res.get("std_error_issues") or []
     if res["parameters"] and not res.get("std_errors_reliable", True):
         codes = ", ".join(f"{i['code']}" + (f" ({', '.join(i['parameters'])})" if i.get("parameters") else "")

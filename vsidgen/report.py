@@ -622,7 +622,16 @@ def _noise(res: dict, ref: dict, units_out: dict, units_state: dict) -> dict:
     for x, v in proc.items():
         u = units_state.get(x)
         prows.append({"name": x, "unit": (f"{u}/√s" if u and u != "1" else "1/√s"),
-                      "std": _fmt(v)})
+                      "std": _fmt(v), "note": ""})
+    lim = res.get("deterministic_limit") if isinstance(res.get("deterministic_limit"), Mapping) else {}
+    for x in res.get("deterministic_states") or ():
+        if x in proc:
+            continue
+        u = units_state.get(x)
+        note = "deterministic (no process noise)"
+        if lim:
+            note += (": exact limit reached" if lim.get("reached") else ": limit NOT reached (see warnings)")
+        prows.append({"name": x, "unit": (f"{u}/√s" if u and u != "1" else "1/√s"), "std": "0", "note": note})
     return {"measurement": mrows, "process": prows, "has_ref": bool(r_ref)}
 
 

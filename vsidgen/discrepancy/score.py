@@ -223,7 +223,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
         from .refit import _ns
         dec, G1, R1, _, _ = stage0_start(m, records, base_fit, current.model, theta, det_std)
         r0 = smooth(m, records, theta, {"G": G1, "R": R1},
-                    options=FitOptions(max_iter=100, deterministic_std=det_std,
+                    options=FitOptions(max_iter=100, deterministic="quasi", deterministic_std=det_std,
                                        warm_start=_ns(dec)))
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in r0.decision["records"]]

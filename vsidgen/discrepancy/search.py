@@ -214,8 +214,10 @@ def _say(progress, msg):
 # ---------------------------------------------------------------------------
 
 def _diag_options(max_iter, **kw):
+    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see refit.py)."""
     from ..estimator import FitOptions
     from .refit import REFIT_DETERMINISTIC_STD
+    kw.setdefault("deterministic", "quasi")
     return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
 
 
@@ -246,7 +248,8 @@ def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
     model = load_model(spec_path, generated_dir=generated_dir)
     records = tuple(_unique_names([load_record(model, p) for p in data]))
     vrecords = tuple(_unique_names([load_record(model, p) for p in validate]))
-    res = fit(model, list(records), options=_diag_options(max_iter))
+    # the user's model: its own states without process noise are fitted in the exact limit
+    res = fit(model, list(records), options=_diag_options(max_iter, deterministic="limit"))
     return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 

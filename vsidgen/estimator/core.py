@@ -218,8 +218,10 @@ class NoiseMap:
     G is lower triangular on the state order; on the noisy states its
     diagonal is ``floor_i + exp(g_i)`` (estimated) or the fixed std; for
     ``structure: full`` the strictly-lower entries among noisy states are free
-    (start at 0). States without process noise get the fixed tiny diagonal
-    ``deterministic_std`` (a quasi-deterministic transition; see FitOptions).
+    (start at 0). States without process noise (``deterministic``) get the fixed
+    diagonal ``deterministic_std`` (a scalar or one value per state; the estimator
+    drives it to the deterministic limit, see :mod:`vsidgen.estimator.fit`), or, with
+    ``relax``, an estimated one like a noisy state's (the first stage of that limit).
     Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
     Starting values (``inits``): the spec's std where given; otherwise "unit":
     exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =
@@ -227,8 +229,8 @@ class NoiseMap:
     G_ii = scale_j/√T; "data-meas": σ from the data, G unit. Floors are honoured by the map, never by clipping.
     """
 
-    def __init__(self, model, records, *, deterministic_std: float, fixed_G=None, fixed_R=None,
-                 state_outputs=None):
+    def __init__(self, model, records, *, deterministic_std, fixed_G=None, fixed_R=None,
+                 state_outputs=None, relax: bool = False):
         nx, ny = model.nx, model.ny
         self.nx, self.ny = nx, ny
         states = model.state_names
@@ -238,23 +240,31 @@ class NoiseMap:
             if s not in states:
                 raise FitError(f"process noise names unknown state '{s}'")
         self.noisy = np.array([s in noisy_names for s in states], bool)
-        self.det_std = float(deterministic_std)
+        self.det = np.broadcast_to(np.asarray(deterministic_std, float), (nx,)).copy()
         self.proc_floor = np.array([float(pn.floor.get(s, 0.0)) if self.noisy[i] else 0.0
                                     for i, s in enumerate(states)])
         self.fixed_G = None
+        self._G_given = None
         self.proc_est_idx = np.zeros(0, int)
         self.offdiag = []
         init = []
         init_pd = []
         if fixed_G is not None:
-            Gm = np.array(fixed_G, float).reshape(nx, nx)
-            for i in range(nx):
-                if not np.any(Gm[i] != 0):
-                    Gm[i, i] = self.det_std
-            self.fixed_G = np.linalg.cholesky(Gm @ Gm.T)
-            self.noisy = np.array([np.any(np.asarray(fixed_G)[i] != 0) for i in range(nx)])
-        elif pn.estimate:
-            self.proc_est_idx = np.nonzero(self.noisy)[0]
+            self._G_given = np.array(fixed_G, float).reshape(nx, nx)
+            self.noisy = np.array([np.any(self._G_given[i] != 0) for i in range(nx)])
+            self.fixed_G = self._fixed_factor()
+        elif pn.estimate or relax:
+            if not pn.estimate:  # process noise fixed in the spec: its stds stay fixed, on the diagonal
+                for i, s in enumerate(states):
+                    v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
+                    if v > 0:
+                        self.det[i] = v
+                    else:
+                        self.noisy[i] = False
+            est = self.noisy.copy() if pn.estimate else np.zeros(nx, bool)
+            if relax:
+                est |= ~self.noisy
+            self.proc_est_idx = np.nonzero(est)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)
                 v = math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else 0.0
@@ -265,20 +275,19 @@ class NoiseMap:
                     if sd > self.proc_floor[i]:
                         v = math.log(sd - self.proc_floor[i])
                 init_pd.append(v)
-            if pn.structure == "full":
-                idx = self.proc_est_idx
+            if pn.structure == "full" and pn.estimate:
+                idx = np.nonzero(self.noisy)[0]
                 self.offdiag = [(int(a), int(b)) for ai, a in enumerate(idx) for b in idx[:ai]]
                 init += [0.0] * len(self.offdiag)
                 init_pd += [0.0] * len(self.offdiag)
         else:
-            fixed = np.full(nx, self.det_std)
             for i, s in enumerate(states):
                 v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
                 if v > 0:
-                    fixed[i] = v
+                    self.det[i] = v
                 else:
                     self.noisy[i] = False
-            self.fixed_G = np.diag(fixed)
+            self.fixed_G = np.diag(self.det)
         self.n_proc = len(init)
         # measurement
         specs = {m.output: m for m in model.measurement_noise}
@@ -320,13 +329,34 @@ class NoiseMap:
         self.init = self.inits["data"]
         self.n = self.n_proc + self.n_meas
 
+    def _fixed_factor(self):
+        """Cholesky factor of the given G Gᵀ, deterministic rows (all zero) replaced by ``det`` on the diagonal."""
+        Gm = self._G_given.copy()
+        for i in np.nonzero(~self.noisy)[0]:
+            Gm[i, i] = self.det[i]
+        return np.linalg.cholesky(Gm @ Gm.T)
+
+    @property
+    def deterministic(self) -> np.ndarray:
+        """Mask of the states without process noise (in the spec, or zero rows of a given G)."""
+        return ~self.noisy
+
+    def set_deterministic_std(self, std) -> None:
+        """Set the diagonal std of the deterministic states (one value per such state, state order)."""
+        std = np.asarray(std, float)
+        self.det[~self.noisy] = std
+        if self._G_given is not None:
+            self.fixed_G = self._fixed_factor()
+        elif self.fixed_G is not None:
+            self.fixed_G = np.diag(self.det)
+
     def static_key(self):
         return ("noise", self.fixed_G is None, tuple(self.proc_est_idx.tolist()), tuple(self.offdiag),
                 tuple(self.meas_est_idx.tolist()), self.n_proc, self.n_meas)
 
     def arrays(self):
         """Numeric configuration passed to the jitted objective (so compiled code is shared)."""
-        return {"det_std": np.full(self.nx, self.det_std), "proc_floor": self.proc_floor,
+        return {"det_std": self.det.copy(), "proc_floor": self.proc_floor,
                 "fixed_G": self.fixed_G if self.fixed_G is not None else np.zeros((self.nx, self.nx)),
                 "meas_floor": self.meas_floor, "meas_fixed": self.meas_fixed}
 

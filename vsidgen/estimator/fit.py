@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from .core import NoiseMap, ThetaMap, bucket_length, get_objective, get_transition, make_cfg, record_data
+from .core import (NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, get_transition, make_cfg,
+                   record_data)
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -117,7 +118,8 @@ def _check_records(model, records):
 class _Problem:
     """Everything fixed during one optimisation: maps, objective, records, layout."""
 
-    def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None):
+    def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None,
+                 relax: bool = False):
         self.model = model
         self.records = _check_records(model, records)
         self.integrator = options.integrator or getattr(model, "integrator", "euler") or "euler"
@@ -125,7 +127,7 @@ class _Problem:
         F = get_transition(model, self.integrator, self.substeps)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model))
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax)
         self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
         self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
@@ -733,6 +735,17 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
             warnings.append({"code": "noise_at_floor", "reliable": True, "channel": nm, "kind": "process",
                              "std": float(Gd[i]), "floor": float(fl),
                              "message": f"process noise std of '{nm}' ({Gd[i]:.3g}) is at its floor ({fl:.3g})"})
+    lim = out.get("limit")
+    if lim is not None and not lim["reached"]:
+        warnings.append({"code": "deterministic_limit_not_reached", "reliable": False,
+                         "states": list(lim["states"]), "elbo_change": lim["elbo_change"],
+                         "theta_change_se": lim["theta_change_se"],
+                         "message": f"the limit of vanishing process noise on {', '.join(lim['states'])} was "
+                                    f"not reached: the last stage (std {lim['scale']:.2g} × the first stage's) "
+                                    f"changed the ELBO by {lim['elbo_change']:.3g} nats and the parameters by "
+                                    f"{lim['theta_change_se']:.3g} s.e.; the estimates are those of that small "
+                                    f"process noise (a nonlinear kinematic equation of a state without process "
+                                    f"noise, or a model that needs process noise on it)"})
     reason = out["reason"]
     if reason is not None and not reason.converged:
         code = {StopReason.ITERATION_LIMIT: "iteration_limit", StopReason.TIME_LIMIT: "iteration_limit",
@@ -773,7 +786,8 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         covariance=cov, optimizer=options.optimizer, stop_reason=reason,
         newton_decrement=float(out.get("decrement", float("nan"))),
         deterministic_states=tuple(n for n, z in zip(model.state_names, P.nm.noisy) if not z),
-        std_error_flags=tuple(flags))
+        std_error_flags=tuple(flags),
+        deterministic_limit=out.get("limit"))
 
 
 # --------------------------------------------------------------------------- public API
@@ -791,41 +805,213 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     """
     P = _Problem(model, records, options)
     starts = _starts(options)
-    if options.optimizer == "structured-newton":
+    if options.deterministic not in ("limit", "quasi"):
+        raise FitError(f"deterministic must be 'limit' or 'quasi', got '{options.deterministic}'")
+    limit = (options.deterministic == "limit" and options.optimizer == "structured-newton"
+             and bool(P.nm.deterministic.any()))
+    if limit:
         t0 = time.perf_counter()
-        tried = []
-        for i, start in enumerate(starts):
-            # every start is run: a converged start is a local optimum, and another start
-            # may reach a higher one (multi-start, the best converged ELBO is kept). A start
-            # that stalls is abandoned early while another start remains or has converged.
-            have_optimum = any(o["converged"] for _, o in tried)
-            out = _optimize(P, options, start, t0=t0,
-                            stall=i < len(starts) - 1 or have_optimum)
-            tried.append((start, out))
-        converged = [o for _, o in tried if o["converged"]]
-        if converged:
-            out = min(converged, key=_negelbo)
+        if options.warm_start is not None:
+            out0, P0 = None, None
+            eps = _warm_limit_scale(P, options.warm_start)
         else:
-            stalled = [k for k, (_, o) in enumerate(tried) if o["reason"] is StopReason.STALLED]
-            if stalled:  # none converged: continue the best stalled start with its remaining iterations
-                k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
-                tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1]))
-            out = next((o for _, o in tried if o["converged"]), None)
-            if out is None:  # none converged: keep the highest ELBO
-                out = min((o for _, o in tried), key=_negelbo)
-        label = {StopReason.STALLED: "stalled"}
-        out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
-        if len(tried) > 1:
-            out["status"] += "; noise starts tried: " + ", ".join(
-                f"{st} ({'converged' if o['converged'] else label.get(o['reason'], 'not converged')}, ELBO {-_negelbo(o):.6g}, {o['iterations']} it.)"
-                for st, o in tried)
-        out["history"] = tuple(h for _, o in tried for h in o["history"])
-        out["iterations"] = sum(o["iterations"] for _, o in tried)
+            P0 = _Problem(model, records, options, relax=True)
+            out0 = _multistart(P0, options, starts)
+            eps = _relaxed_std(P0, out0)
+        out = _deterministic_limit(P, P0, out0, eps, options, t0)
+        return _finish(P, out, mode="fit", options=options)
+    if options.optimizer == "structured-newton":
+        out = _multistart(P, options, starts)
     elif options.optimizer == "trust-constr":
         out = _optimize_trust_constr(P, options, starts[0])
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
     return _finish(P, out, mode="fit", options=options)
+
+
+def _multistart(P: _Problem, options: FitOptions, starts) -> dict:
+    """Run every noise start (stalled ones abandoned early) and return the best converged output."""
+    t0 = time.perf_counter()
+    tried = []
+    for i, start in enumerate(starts):
+        # every start is run: a converged start is a local optimum, and another start
+        # may reach a higher one (multi-start, the best converged ELBO is kept). A start
+        # that stalls is abandoned early while another start remains or has converged.
+        have_optimum = any(o["converged"] for _, o in tried)
+        out = _optimize(P, options, start, t0=t0,
+                        stall=i < len(starts) - 1 or have_optimum)
+        tried.append((start, out))
+    converged = [o for _, o in tried if o["converged"]]
+    if converged:
+        out = min(converged, key=_negelbo)
+    else:
+        stalled = [k for k, (_, o) in enumerate(tried) if o["reason"] is StopReason.STALLED]
+        if stalled:  # none converged: continue the best stalled start with its remaining iterations
+            k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
+            tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1]))
+        out = next((o for _, o in tried if o["converged"]), None)
+        if out is None:  # none converged: keep the highest ELBO
+            out = min((o for _, o in tried), key=_negelbo)
+    label = {StopReason.STALLED: "stalled"}
+    out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
+    if len(tried) > 1:
+        out["status"] += "; noise starts tried: " + ", ".join(
+            f"{st} ({'converged' if o['converged'] else label.get(o['reason'], 'not converged')}, ELBO {-_negelbo(o):.6g}, {o['iterations']} it.)"
+            for st, o in tried)
+    out["history"] = tuple(h for _, o in tried for h in o["history"])
+    out["iterations"] = sum(o["iterations"] for _, o in tried)
+    return out
+
+
+# --------------------------------------------------------------------------- deterministic states
+LIMIT_RATIO = 0.1       # process-noise std of the deterministic states: factor per continuation stage
+LIMIT_MAX_STAGES = 8    # stages after the first (std down to 1e-8 of the first stage's)
+
+
+def _relaxed_std(P0: _Problem, out0) -> np.ndarray:
+    """Process-noise std the relaxed first stage estimated for the deterministic states (their order)."""
+    nt = P0.tm.n_free
+    G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:]), {k: jnp.asarray(v) for k, v in P0.nm.arrays().items()}))
+    return np.abs(np.diagonal(G))[P0.nm.deterministic]
+
+
+def _warm_limit_scale(P: _Problem, ws) -> np.ndarray:
+    """Starting std of a warm-started limit: the warm start's last stage, else the quasi std."""
+    lim = getattr(ws, "deterministic_limit", None)
+    n = int(P.nm.deterministic.sum())
+    if lim is not None and len(lim.get("std", {})) == n:
+        return np.asarray(list(lim["std"].values()), float) / LIMIT_RATIO
+    return np.full(n, float(P.nm.det[P.nm.deterministic][0]) if n else 1.0) / LIMIT_RATIO
+
+
+def _smoothing_start_std(P: _Problem) -> np.ndarray:
+    """First-stage std of deterministic states when smoothing: the data start of a noisy state.
+
+    A state measured directly by output j gets the robust spread of output j's
+    sample-to-sample differences / √T (the random-walk rate the record allows); an
+    unmeasured one 1 (state unit/√s).
+    """
+    pairs = measured_states(P.model)
+    T = float(np.mean([float(r.dt) for r in P.records]))
+    out = []
+    for i in np.nonzero(P.nm.deterministic)[0]:
+        v = diff_scale(P.records, pairs[i]) / math.sqrt(T) if i in pairs else 0.0
+        out.append(v if v > 0 else 1.0)
+    return np.asarray(out, float)
+
+
+def _scale_cond_rows(obj, r, rho) -> np.ndarray:
+    """Assumed-density parameters r with the rows of S_c (Σ_cond = S_c S_cᵀ) scaled by ``rho`` (per state)."""
+    Sc, _, _, _ = obj.cov_factors(jnp.asarray(r))
+    Sc = np.asarray(Sc) * np.asarray(rho, float)[:, None]
+    dg = np.diagonal(Sc).copy()
+    out = np.asarray(r, float).copy()
+    n = obj.n
+    out[:n] = 2.0 * np.log(dg)
+    out[n:n + obj.nl] = (Sc / dg[None, :])[obj._tril]
+    return out
+
+
+def _from_relaxed(P0: _Problem, P: _Problem, s0) -> np.ndarray:
+    """Shared vector of P from the relaxed problem's: the deterministic states' noise parameters dropped."""
+    nt = P0.tm.n_free
+    w0 = np.asarray(s0[nt:], float)
+    keep_states = set(P.nm.proc_est_idx.tolist())
+    ne0 = len(P0.nm.proc_est_idx)
+    keep = [a for a, i in enumerate(P0.nm.proc_est_idx) if int(i) in keep_states]
+    return np.concatenate([np.asarray(s0[:nt], float), w0[keep], w0[ne0:]])
+
+
+def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) -> dict:
+    """Fit (or smooth) in the limit of vanishing process noise on the deterministic states.
+
+    A state without process noise has a degenerate transition, x_{k+1,i} = F_i(x_k): the
+    ELBO of the model is the limit ε → 0 of the ELBO with process-noise std ε on that
+    state (for a linear kinematic equation such as φ̇ = p the assumed density can satisfy
+    it exactly and the limit is finite, with ELBO(ε) = ELBO(0) + O(ε²)). Fixing ε tiny at
+    once makes the transition term ~1/ε² and the optimisation hopelessly ill-conditioned
+    (the optimizer must bring Σ_cond, C and μ of that state onto the constraint from a
+    start far from it). This is the quadratic-penalty method with continuation instead:
+    the first stage (``P0``/``out0``, skipped for smoothing and warm starts) estimates ε
+    like any process noise, so the problem is well conditioned and the data choose the
+    scale ε̂; then ε ← ε/10 per stage, warm-started with the rows of S_c of the
+    deterministic states scaled by the same factor (the conditional spread shrinks with
+    ε), each stage converged by the Newton-decrement test. The limit is taken as reached
+    when a stage changes the ELBO by less than ``limit_tol`` nats and every free parameter
+    by less than ``limit_tol`` of its standard error: in the O(ε²) regime the remaining
+    distance to the limit is then about 1 % of that change.
+    """
+    det_idx = np.nonzero(P.nm.deterministic)[0]
+    names = [P.model.state_names[i] for i in det_idx]
+    rho = np.where(P.nm.deterministic, LIMIT_RATIO, 1.0)
+    eps = np.asarray(eps, float)
+    nt = P.tm.n_free
+    history, iterations, stages = [], 0, []
+    if out0 is not None:  # relaxed first stage: map its point onto P
+        s = _from_relaxed(P0, P, out0["s"])
+        recs = [(np.asarray(m), _scale_cond_rows(P.obj, r, rho)) for m, r in out0["recs"]]
+        prev_elbo = -_negelbo(out0)
+        prev_theta = np.asarray(P0.tm.theta(jnp.asarray(out0["s"][:nt])), float)[P.tm.free_idx]
+        history += list(out0["history"])
+        iterations += int(out0["iterations"])
+        stages.append({"stage": 0, "std": {n: float(e) for n, e in zip(names, eps)}, "elbo": prev_elbo,
+                       "iterations": int(out0["iterations"]), "converged": bool(out0["converged"])})
+        status0 = out0["status"]
+        eps = eps * LIMIT_RATIO
+        resume = dict(s=s, recs=recs)
+    else:
+        prev_elbo, prev_theta, status0 = None, None, ""
+        resume = None
+    eps_ref = np.asarray(eps, float) / (LIMIT_RATIO if out0 is not None else 1.0)  # first stage's std
+    out = None
+    reached = False
+    d_elbo = d_theta = float("nan")
+    for stage in range(1, LIMIT_MAX_STAGES + 2):
+        P.nm.set_deterministic_std(eps)
+        P.cfg = make_cfg(P.tm, P.nm)
+        if resume is None:
+            s, recs = P.initial(options, "data")
+            out = _optimize(P, options, t0=t0)
+        else:
+            out = _optimize(P, options, t0=t0, resume=dict(s=resume["s"], recs=resume["recs"],
+                                                          lam=float(options.lambda0), history=[{}], iterations=0))
+        history += list(out["history"])
+        iterations += int(out["iterations"])
+        elbo = -_negelbo(out)
+        theta = np.asarray(P.tm.theta(jnp.asarray(out["s"][:nt])), float)[P.tm.free_idx]
+        stages.append({"stage": stage, "std": {n: float(e) for n, e in zip(names, eps)}, "elbo": elbo,
+                       "iterations": int(out["iterations"]), "converged": bool(out["converged"])})
+        if not out["converged"]:
+            break
+        if prev_elbo is not None:
+            d_elbo = elbo - prev_elbo
+            d_theta = 0.0
+            if nt:
+                cov, info = _uncertainty(P, out["blks"], out["s"])
+                se = np.sqrt(np.abs(np.diag(cov)))
+                se = np.where(np.isfinite(se) & (se > 0), se, np.nan)
+                with np.errstate(invalid="ignore"):
+                    r_ = np.abs(theta - prev_theta) / se
+                d_theta = float(np.nanmax(r_)) if np.any(np.isfinite(r_)) else 0.0
+            if abs(d_elbo) < options.limit_tol and d_theta < options.limit_tol:
+                reached = True
+                break
+        if stage == LIMIT_MAX_STAGES + 1:
+            break
+        prev_elbo, prev_theta = elbo, theta
+        resume = dict(s=out["s"], recs=[(np.asarray(m), _scale_cond_rows(P.obj, r, rho)) for m, r in out["recs"]])
+        eps = eps * LIMIT_RATIO
+    scale = float(np.max(eps / np.where(eps_ref > 0, eps_ref, 1.0)))
+    out["limit"] = {"states": names, "std": {n: float(e) for n, e in zip(names, eps)}, "stages": stages,
+                    "reached": reached, "elbo_change": float(d_elbo), "theta_change_se": float(d_theta),
+                    "scale": scale}
+    what = (f"deterministic state(s) {', '.join(names)}: limit of vanishing process noise "
+            + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
+               if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
+    out["status"] = out["status"] + "; " + what + (f"; first stage: {status0}" if status0 else "")
+    out["history"] = tuple(history)
+    out["iterations"] = iterations
+    return out
 
 
 def _noise_from(noise, model):
@@ -855,5 +1041,8 @@ def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) 
         raise FitError(f"theta has shape {theta.shape}, expected ({model.np},)")
     G, R = _noise_from(noise, model)
     P = _Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
-    out = _optimize(P, options)
+    if options.deterministic == "limit" and P.nm.deterministic.any():
+        out = _deterministic_limit(P, None, None, _smoothing_start_std(P), options, time.perf_counter())
+    else:
+        out = _optimize(P, options)
     return _finish(P, out, mode="smooth", options=options)

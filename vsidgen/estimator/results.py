@@ -139,9 +139,16 @@ class FitOptions:
             (scipy.optimize.minimize reference path, dense Hessian–vector products).
         progress: callback(iteration, elbo, grad_norm, elapsed_s) called each iteration.
         verbose: print one line per iteration.
-        deterministic_std: std (state unit/√s) used for states that have no
-            process noise; makes their transition quasi-deterministic (the exact
-            degenerate case is not represented by the assumed density).
+        deterministic: how states without process noise (deterministic states, e.g.
+            φ̇ = p) are treated. "limit" (default): the fit is the limit of process-noise
+            std ε → 0 on those states, computed by continuation (a first stage with their
+            noise estimated, then ε shrunk tenfold per stage with a warm start until the
+            ELBO changes by less than ``limit_tol`` nats and every free parameter by less
+            than ``limit_tol`` standard errors; see docs/estimator.md). "quasi": a fixed
+            std ``deterministic_std`` (the diagnose refits' added states use this).
+        deterministic_std: std (state unit/√s) of the deterministic states in "quasi" mode.
+        limit_tol: stopping tolerance of the deterministic limit, in nats for the ELBO
+            and in standard errors for the parameters (per stage change).
         decrement_tol: convergence tolerance in nats on half the Newton decrement,
             λ²/2 = ½ gᵀH⁻¹g, the ELBO gain predicted for a full Newton step over all
             decision variables (active noise floors held fixed), required together with
@@ -192,7 +199,9 @@ class FitOptions:
     optimizer: str = "structured-newton"
     progress: Callable | None = None
     verbose: bool = False
+    deterministic: str = "limit"
     deterministic_std: float = 1e-6
+    limit_tol: float = 0.1
     xtol: float = 1e-13
     warm_start: Any = None
     lambda0: float = 1e-3
@@ -260,6 +269,7 @@ class FitResult:
     newton_decrement: float = float("nan")   # λ²/2 in nats at the returned point (NaN: H not PD)
     deterministic_states: tuple[str, ...] = ()
     std_error_flags: tuple[StdErrorFlag, ...] = ()
+    deterministic_limit: dict | None = None   # continuation record of the deterministic limit (see FitOptions)
 
     @property
     def estimates(self) -> dict:

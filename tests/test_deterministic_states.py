@@ -1,0 +1,150 @@
+"""States without process noise (exact kinematics such as φ̇ = p) against an exact Kalman reference.
+
+Linear model with three states: x1, x2 a damped oscillator driven by u with process noise,
+x3 its integral (ẋ3 = x1, no process noise: deterministic given its neighbours); outputs
+y = C x + v. The discrete model (Euler, Q = T diag(g1², g2², 0), singular) has an exact
+likelihood from a Kalman filter, which handles a singular Q without approximation, and
+exact smoothed means from the Rauch–Tung–Striebel smoother. Both are written here in
+numpy; nothing is shared with vsidgen. With a flat prior on x_0 the filter is started
+from N(0, P0 I) and log p(y) ≈ log p_KF(y) + (n/2) log(2π P0).
+"""
+
+from __future__ import annotations
+
+import math
+import types
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+from vsidgen.estimator import FitOptions, fit, smooth
+from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
+from vsidgen.model import Model
+
+T = 0.05
+THETA_TRUE = np.array([-0.5, -2.0, -0.8, 1.5])  # a11, a21, a22, b2
+G_TRUE = np.array([0.1, 0.2, 0.0])
+R_STD = np.array([0.05, 0.08, 0.02])
+C_OUT = np.array([[1.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 1.0]])
+P0 = 1e6
+
+
+def _A(p):
+    return np.array([[p[0], 1.0, 0.0], [p[1], p[2], 0.0], [1.0, 0.0, 0.0]])
+
+
+def drift(x, u, p):
+    return jnp.stack([p[0] * x[0] + x[1], p[1] * x[0] + p[2] * x[1] + p[3] * u[0], x[0]])
+
+
+def output(x, u, p):
+    return jnp.asarray(C_OUT) @ x
+
+
+def model(*, estimate=True):
+    return Model(
+        name="integ", drift=drift, output=output,
+        states=(Variable("x1"), Variable("x2"), Variable("x3")), inputs=(Variable("u"),),
+        outputs=(Variable("y1"), Variable("y2"), Variable("y3")),
+        parameters=tuple(Parameter(n) for n in ("a11", "a21", "a22", "b2")),
+        process_noise=ProcessNoiseSpec(states=("x1", "x2"), estimate=estimate,
+                                       std={"x1": G_TRUE[0], "x2": G_TRUE[1]}),
+        measurement_noise=tuple(MeasurementNoiseSpec(o, estimate=estimate, std=float(s), floor=0.0)
+                                for o, s in zip(("y1", "y2", "y3"), R_STD)))
+
+
+def record(N, seed):
+    rng = np.random.default_rng(seed)
+    k = np.arange(N)
+    u = (np.sign(np.sin(k * T * 1.3)) + 0.3 * np.sin(k * T * 4.1))[:, None]
+    x = np.array([0.3, -0.2, 0.1])
+    X = np.empty((N, 3))
+    for i in range(N):
+        X[i] = x
+        x = x + T * (_A(THETA_TRUE) @ x + np.array([0.0, THETA_TRUE[3], 0.0]) * u[i, 0]) \
+            + math.sqrt(T) * G_TRUE * rng.normal(size=3)
+    y = X @ C_OUT.T + R_STD * rng.normal(size=(N, 3))
+    return types.SimpleNamespace(name="r", path=None, t=k * T, dt=T, u=u, y=y,
+                                 input_names=("u",), output_names=("y1", "y2", "y3"))
+
+
+def kalman(theta, g, r, rec, *, smooth=False):
+    """Exact log-likelihood (flat prior on x_0) of the discrete model, singular Q allowed; RTS means."""
+    Ad = np.eye(3) + T * _A(theta)
+    Bd = T * np.array([0.0, theta[3], 0.0])
+    Q = T * np.diag(np.asarray(g, float) ** 2)
+    R = np.diag(np.asarray(r, float) ** 2)
+    m, P = np.zeros(3), P0 * np.eye(3)
+    ll = 1.5 * math.log(2 * math.pi * P0)
+    mf, Pf, mp, Pp = [], [], [], []
+    for k in range(len(rec.y)):
+        mp.append(m)
+        Pp.append(P)
+        S = C_OUT @ P @ C_OUT.T + R
+        e = rec.y[k] - C_OUT @ m
+        ll += -0.5 * (e @ np.linalg.solve(S, e) + np.linalg.slogdet(2 * np.pi * S)[1])
+        K = P @ C_OUT.T @ np.linalg.inv(S)
+        m = m + K @ e
+        P = (np.eye(3) - K @ C_OUT) @ P
+        mf.append(m)
+        Pf.append(P)
+        m = Ad @ m + Bd * rec.u[k, 0]
+        P = Ad @ P @ Ad.T + Q
+    if not smooth:
+        return ll
+    ms, Ps = [None] * len(mf), [None] * len(mf)
+    ms[-1], Ps[-1] = mf[-1], Pf[-1]
+    for k in range(len(mf) - 2, -1, -1):
+        J = Pf[k] @ Ad.T @ np.linalg.inv(Pp[k + 1])
+        ms[k] = mf[k] + J @ (ms[k + 1] - mp[k + 1])
+        Ps[k] = Pf[k] + J @ (Ps[k + 1] - Pp[k + 1]) @ J.T
+    return ll, np.array(ms), np.array(Ps)
+
+
+@pytest.fixture(scope="module")
+def rec():
+    return record(400, seed=3)
+
+
+@pytest.fixture(scope="module")
+def fitted(rec):
+    return fit(model(), [rec])
+
+
+def test_smoothing_with_a_deterministic_state_matches_the_exact_smoother(rec):
+    res = smooth(model(estimate=False), [rec], THETA_TRUE, {"G": np.diag(G_TRUE), "R": np.diag(R_STD ** 2)})
+    assert res.converged, res.status
+    assert res.deterministic_states == ("x3",)
+    lim = res.deterministic_limit
+    assert lim is not None and lim["reached"], lim
+    ll, ms, Ps = kalman(THETA_TRUE, G_TRUE, R_STD, rec, smooth=True)
+    gap = ll - res.elbo
+    assert gap > -1e-3, gap                 # a lower bound on the exact likelihood (within the limit's tolerance)
+    assert gap < 1.0, gap                   # and tight: only the stationary covariance at the ends is slack
+    mid = slice(40, -40)
+    err = np.abs(res.smoothers[0].mu[mid] - ms[mid]) / np.sqrt(np.diagonal(Ps[mid], axis1=1, axis2=2))
+    assert err.max() < 0.05, err.max()      # smoothed means within 5 % of the exact posterior std
+
+
+def test_fit_with_a_deterministic_state_from_null_guesses_matches_the_exact_mle(fitted, rec):
+    res = fitted
+    assert res.converged, res.status
+    assert res.deterministic_states == ("x3",)
+    assert res.deterministic_limit["reached"], res.deterministic_limit
+    assert "x3" not in res.process_std and not np.any(res.G[2])   # reported without process noise
+    se = res.std_errors
+    assert np.all(np.isfinite(se)) and np.all(se > 0)
+    assert np.all(np.abs(res.theta - THETA_TRUE) < 3 * se), (res.theta, se)
+    # exact maximum likelihood of the model with Q33 = 0 (Kalman filter, BFGS)
+
+    def nll(v):
+        return -kalman(v[:4], np.r_[np.exp(v[4:6]), 0.0], np.exp(v[6:9]), rec)
+
+    v0 = np.concatenate([THETA_TRUE, np.log(G_TRUE[:2]), np.log(R_STD)])
+    opt = scipy.optimize.minimize(nll, v0, method="BFGS", options={"gtol": 1e-6})
+    assert np.all(np.abs(res.theta - opt.x[:4]) < 0.5 * se), (res.theta, opt.x[:4], se)
+    assert res.elbo <= -opt.fun + 1e-3          # the ELBO cannot exceed the maximised likelihood
+    assert -opt.fun - res.elbo < 2.0, -opt.fun - res.elbo
+    assert not any(w["code"] == "deterministic_limit_not_reached" for w in res.warnings)
