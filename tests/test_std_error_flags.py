@@ -97,3 +97,12 @@ def test_rules_bound_and_not_converged():
     assert [f.issue for f in flags] == [StdErrorIssue.NOT_CONVERGED]
     assert std_error_flags(NAMES, theta, se, np.eye(3), **dict(kw, kind=np.zeros(3, int)),
                            stop_reason=StopReason.NEWTON_DECREMENT) == ()
+
+
+def test_rules_deterministic_limit_not_reached():
+    kw = dict(FREE, stop_reason=StopReason.NEWTON_DECREMENT)
+    (f,) = std_error_flags(NAMES, np.ones(3), np.ones(3), np.eye(3), **kw,
+                           limit={"reached": False, "states": ["phi"]})
+    assert f.issue is StdErrorIssue.DETERMINISTIC_LIMIT and "phi" in f.detail
+    assert std_error_flags(NAMES, np.ones(3), np.ones(3), np.eye(3), **kw,
+                           limit={"reached": True, "states": ["phi"]}) == ()

@@ -625,10 +625,12 @@ Z95 = 1.959963984540054
 
 
 def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: bool, weak=(),
-                    stop_reason=None) -> tuple[StdErrorFlag, ...]:
+                    stop_reason=None, limit=None) -> tuple[StdErrorFlag, ...]:
     """Every reason the standard errors of a fit need attention, each only when its cause is present.
 
     * ``NOT_CONVERGED``: the stop reason is not an optimum.
+    * ``DETERMINISTIC_LIMIT``: ``limit`` (the continuation record of the states without
+      process noise) says the limit of vanishing noise was not reached.
     * ``HESSIAN_NOT_PD``: the Schur complement of the Hessian of −ELBO onto the free θ is
       not positive definite; ``weak`` names the θ components of its least-determined direction.
     * ``NEAR_SINGULAR``: with R = corr(θ̂) (unit free), some |R_ij| > ``CORRELATION_LIMIT``
@@ -647,6 +649,9 @@ def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: 
     flags = []
     if stop_reason is not None and not stop_reason.converged:
         flags.append(StdErrorFlag(StdErrorIssue.NOT_CONVERGED, (), f"stop reason {stop_reason.value}"))
+    if limit is not None and not limit.get("reached", True):
+        flags.append(StdErrorFlag(StdErrorIssue.DETERMINISTIC_LIMIT, (),
+                                  f"states {', '.join(limit.get('states', ()))}"))
     if not len(names):
         return tuple(flags)
     if not positive_definite:
@@ -714,9 +719,11 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         flags = std_error_flags(
             free_names, theta[P.tm.free_idx], std_errors[P.tm.free_idx], corr,
             kind=P.tm.kind, lo=P.tm.lo, hi=P.tm.hi, positive_definite=bool(info["pd"]),
-            weak=[free_names[i] for i in info.get("weak", [])], stop_reason=out["reason"])
+            weak=[free_names[i] for i in info.get("weak", [])], stop_reason=out["reason"],
+            limit=out.get("limit"))
     for fl in flags:
-        if fl.issue is not StdErrorIssue.NOT_CONVERGED:  # the stop reason has its own warning below
+        # the stop reason and the deterministic limit have their own warnings below
+        if fl.issue not in (StdErrorIssue.NOT_CONVERGED, StdErrorIssue.DETERMINISTIC_LIMIT):
             warnings.append({"code": fl.issue.value, "reliable": False, "parameters": list(fl.parameters),
                              "message": f"standard errors: {fl.message}"})
     # floors

@@ -70,6 +70,7 @@ class StdErrorIssue(enum.Enum):
     HESSIAN_NOT_PD = "hessian_not_positive_definite"
     NEAR_SINGULAR = "near_singular_information"
     AT_BOUND = "parameter_at_bound"
+    DETERMINISTIC_LIMIT = "deterministic_limit_not_reached"
 
     @property
     def message(self) -> str:
@@ -97,6 +98,10 @@ _SE_MESSAGES = {
         "a parameter is within 1.96 standard errors of a bound: its symmetric 95 % interval crosses "
         "the bound and the Gaussian interval is not valid",
         "check the bound; if it is physical, fix the parameter at it or report a one-sided interval"),
+    StdErrorIssue.DETERMINISTIC_LIMIT: (
+        "the limit of vanishing process noise on the states without it was not reached: estimates and "
+        "standard errors are those of a small process noise on them",
+        "give those states process noise in the spec if the data need it"),
 }
 
 
