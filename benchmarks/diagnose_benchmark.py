@@ -126,7 +126,7 @@ def hfb_trim(model, theta: dict):
     import jax.numpy as jnp
     from scipy.optimize import fsolve
 
-    from vsidgen.simulate import theta_vector
+    from vsidgen.model import theta_vector
 
     p = jnp.asarray(theta_vector(model, theta))
     V0 = 104.67
@@ -235,8 +235,8 @@ def oracle_refit(case: Case, res, work: pathlib.Path, *, max_iter: int, alpha: f
     """
     from scipy import stats
 
-    from vsidgen.discrepancy.search import (lr_test, model_info_of, refit_converged,
-                                            staged_refit)
+    from vsidgen.discrepancy.fitstate import refit_converged
+    from vsidgen.discrepancy.search import lr_test, model_info_of, staged_refit
 
     base = res.base
     info = model_info_of(base)

@@ -8,7 +8,8 @@ import pytest
 
 from vsidgen.cli import main
 from vsidgen.errors import SpecError
-from vsidgen.symbolic import check_first_sample, compile_spec
+from vsidgen.datacheck import check_first_sample
+from vsidgen.symbolic import compile_spec
 
 SPECS = pathlib.Path(__file__).parent / "specs"
 

@@ -148,3 +148,62 @@ def test_fit_with_a_deterministic_state_from_null_guesses_matches_the_exact_mle(
     assert res.elbo <= -opt.fun + 1e-3          # the ELBO cannot exceed the maximised likelihood
     assert -opt.fun - res.elbo < 2.0, -opt.fun - res.elbo
     assert not any(w["code"] == "deterministic_limit_not_reached" for w in res.warnings)
+
+
+def _drift2(x, u, p):
+    return jnp.stack([p[0] * x[0] + x[1], p[1] * x[0] + p[2] * x[1] + p[3] * u[0]])
+
+
+def _output2(x, u, p):
+    return jnp.asarray(C_OUT[:2, :2]) @ x
+
+
+def test_output_error_fit_matches_the_exact_output_error_estimate():
+    """Every state deterministic (output error, stable model): the limit against a hand-written OE fit.
+
+    Reference: the output-error maximum-likelihood estimate of the same discrete model, θ and
+    x_0 by scipy least squares on the simulated outputs with the measurement variances
+    concentrated out (R̂_j = mean squared residual of output j); standard errors from the
+    Gauss–Newton information. The record has no process noise.
+    """
+    rng = np.random.default_rng(11)
+    N = 300
+    k = np.arange(N)
+    u = (np.sign(np.sin(k * T * 1.3)) + 0.3 * np.sin(k * T * 4.1))[:, None]
+
+    def simulate(theta, x0):
+        A = np.array([[theta[0], 1.0], [theta[1], theta[2]]])
+        Ad, Bd = np.eye(2) + T * A, T * np.array([0.0, theta[3]])
+        X = np.empty((N, 2))
+        x = np.asarray(x0, float)
+        for i in range(N):
+            X[i] = x
+            x = Ad @ x + Bd * u[i, 0]
+        return X @ C_OUT[:2, :2].T
+
+    y = simulate(THETA_TRUE, [0.3, -0.2]) + R_STD[:2] * rng.normal(size=(N, 2))
+    rec = types.SimpleNamespace(name="oe", path=None, t=k * T, dt=T, u=u, y=y,
+                                input_names=("u",), output_names=("y1", "y2"))
+    m = Model(name="oe2", drift=_drift2, output=_output2, states=(Variable("x1"), Variable("x2")),
+              inputs=(Variable("u"),), outputs=(Variable("y1"), Variable("y2")),
+              parameters=tuple(Parameter(n) for n in ("a11", "a21", "a22", "b2")),
+              process_noise=ProcessNoiseSpec(states=("x1", "x2"), estimate=False),
+              measurement_noise=tuple(MeasurementNoiseSpec(o, floor=0.0) for o in ("y1", "y2")))
+    res = fit(m, [rec])
+    assert res.converged, res.status
+    lim = res.deterministic_limit
+    assert res.deterministic_states == ("x1", "x2") and lim["reached"], lim
+    assert lim["collapsed_directions"] == 2   # both directions contract: their spread collapses
+
+    sig = R_STD[:2].copy()
+    v = np.concatenate([THETA_TRUE, [0.3, -0.2]])
+    for _ in range(4):  # alternate: weighted least squares in (θ, x0), then R̂ from the residuals
+        sol = scipy.optimize.least_squares(lambda w: ((simulate(w[:4], w[4:]) - y) / sig).ravel(), v,
+                                           xtol=1e-12, ftol=1e-12, gtol=1e-12)
+        v = sol.x
+        sig = np.sqrt(np.mean((simulate(v[:4], v[4:]) - y) ** 2, axis=0))
+    J = sol.jac
+    se_ref = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))[:4]
+    assert np.all(np.abs(res.theta - v[:4]) < 0.1 * se_ref), (res.theta, v[:4], se_ref)
+    np.testing.assert_allclose(res.std_errors, se_ref, rtol=0.15)
+    np.testing.assert_allclose([res.measurement_std[o] for o in ("y1", "y2")], sig, rtol=0.02)

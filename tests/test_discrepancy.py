@@ -376,7 +376,7 @@ def test_stage0_start_embeds_base_path_and_starts_lag_at_the_input(tmp_path):
     """The nesting start: base means and covariance kept, a lag state tracks its input."""
     import types
 
-    from vsidgen.discrepancy.refit import _embed_r, _z0, stage0_start
+    from vsidgen.discrepancy.refit import _embed_r, parameter_start, stage0_start
     from vsidgen.discrepancy.search import write_candidate
     from vsidgen.model import load_model
 
@@ -392,7 +392,7 @@ def test_stage0_start_embeds_base_path_and_starts_lag_at_the_input(tmp_path):
     base_fit = types.SimpleNamespace(G=np.diag([0.002, 0.005]), R=np.diag([1e-6, 1e-6]),
                                      decision={"records": [{"mu": rec.x_smooth, "r": r0}]})
     record = types.SimpleNamespace(u=rec.u, dt=DT)
-    _, theta1 = _z0(m1)
+    _, theta1 = parameter_start(m1)
     dec, G1, R1, H0, notes = stage0_start(m1, [record], base_fit, st.model, theta1, 1e-5)
     mu = dec["records"][0]["mu"]
     assert mu.shape == (n, 3) and not notes
@@ -498,7 +498,7 @@ def test_refit_convergence_rule():
     """Converged = the estimator's typed stop reason says so; status text is never parsed."""
     import types
 
-    from vsidgen.discrepancy.search import conv_label, refit_converged
+    from vsidgen.discrepancy.fitstate import conv_label, refit_converged
     from vsidgen.estimator import StopReason
 
     def res(reason, status="no further progress possible ... relative gradient 1e-9"):

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from vsidgen.estimator import FitOptions, fit, smooth
+from vsidgen.errors import FitError
+from vsidgen.estimator import FitOptions, WarmStart, fit, smooth
 from vsidgen.estimator.fit import _Problem
 from vsidgen.estimator.linalg import btd_solve, btd_to_dense
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
@@ -198,6 +199,17 @@ def test_fit_progress_callback_and_warm_start(full_fit, rec400):
     assert res.converged and res.iterations <= 2
     assert calls and len(calls[0]) == 4
     np.testing.assert_allclose(res.theta, full_fit.theta, rtol=1e-6)
+
+
+def test_typed_warm_start_starts_where_the_result_ended(full_fit, rec400):
+    ws = WarmStart.from_decision(full_fit.decision)
+    assert ws.shared.shape == np.shape(full_fit.decision["s"]) and len(ws.records) == 1
+    res = fit(lin_model(), [rec400], options=FitOptions(warm_start=ws))
+    assert res.converged and res.iterations <= 2
+    np.testing.assert_allclose(res.theta, full_fit.theta, rtol=1e-6)
+    short = WarmStart(shared=ws.shared, records=((ws.records[0][0][:-1], ws.records[0][1]),))
+    with pytest.raises(FitError, match="does not match"):
+        fit(lin_model(), [rec400], options=FitOptions(warm_start=short))
 
 
 # ----------------------------------------------------------------- multi-record, missing data

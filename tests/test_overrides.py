@@ -92,6 +92,21 @@ def test_bad_override_exits_2(tmp_path, capsys, argv, expected):
     assert not (tmp_path / "o").exists()
 
 
+def test_simulate_params_from_reads_estimates_like_init_from(tmp_path, capsys):
+    names = [p.name for p in compile_spec(SPEC).parameters]
+    good, bad = tmp_path / "good.json", tmp_path / "bad.json"
+    good.write_text(json.dumps({"parameters": {n: {"estimate": -0.5} for n in names}}))
+    bad.write_text(json.dumps({"parameters": {names[0]: {"value": -0.5}}}))
+    argv = ["simulate", str(SPEC), "--duration", "2", "--dt", "0.05",
+            "--input", "de=doublet:amplitude=0.02,start=0.5,width=0.5"]
+    assert main(argv + ["--out", str(tmp_path / "b.csv"), "--params-from", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"--params-from {bad}: not a vsidgen results.json" in err and "Traceback" not in err
+    assert main(argv + ["--out", str(tmp_path / "g.csv"), "--params-from", str(good)]) == 0
+    assert main(argv + ["--out", str(tmp_path / "p.csv")] + [f"--param={n}=-0.5" for n in names]) == 0
+    assert (tmp_path / "g.csv").read_text() == (tmp_path / "p.csv").read_text()
+
+
 def test_bounds_checked(tmp_path):
     spec = tmp_path / "b.yaml"
     spec.write_text(f"extends: {SPEC}\nname: b\nparameters:\n  MQ: {{bounds: [-10, 0]}}\n")
@@ -110,7 +125,7 @@ def test_role_aware_suggestions():
 
 
 def test_missing_rudder_column_does_not_suggest_the_aileron(tmp_path):
-    from vsidgen.data import column_hint
+    from vsidgen.suggest import column_hint
 
     header = ["t_s", "da_deg", "p_degps"]
     taken = {"t_s": "the time", "da_deg": "input `da`", "dr_deg": "input `dr`"}

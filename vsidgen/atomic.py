@@ -41,6 +41,7 @@ import stat
 import sys
 import tempfile
 from collections.abc import Iterable, Iterator
+from typing import TextIO
 
 from .errors import VsidgenError
 
@@ -497,23 +498,36 @@ def results_in_place(plan: OutputPlan, *, command: str) -> Iterator[pathlib.Path
     write_text_atomic(target / MANIFEST, _manifest_text(files, command=command, kept=kept))
 
 
-def write_text_atomic(path: str | os.PathLike, text: str) -> pathlib.Path:
-    """Write ``text`` to ``path`` through a temporary file and ``os.replace``."""
+@contextlib.contextmanager
+def atomic_text_file(path: str | os.PathLike) -> Iterator[TextIO]:
+    """A UTF-8 text file (``\\n`` line ends) that appears at ``path`` only when the block ends.
+
+    What is written goes to a temporary file beside ``path`` (parent folders created),
+    which :func:`os.replace` moves into place when the block ends without an exception, so
+    a reader sees the old file or the whole new one, never a part; on an exception the
+    temporary file is removed and ``path`` is left as it was.
+    """
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(text)
+            yield fh
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    return path
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> pathlib.Path:
+    """Write ``text`` to ``path`` atomically (:func:`atomic_text_file`)."""
+    with atomic_text_file(path) as fh:
+        fh.write(text)
+    return pathlib.Path(path)
 
 
 __all__ = ["MANIFEST", "DirState", "OutputPlan", "WriteMode", "add_to_manifest",
-           "atomic_directory", "check_output_file", "listing", "plan_output_dir",
+           "atomic_directory", "atomic_text_file", "check_output_file", "listing", "plan_output_dir",
            "print_recovered", "read_manifest", "recover", "results_in_place",
            "write_text_atomic"]

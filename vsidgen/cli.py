@@ -15,7 +15,9 @@ import argparse
 import pathlib
 import sys
 
+from .compilecache import enable_compilation_cache
 from .errors import VsidgenError
+from .overrides import add_override_arguments, overrides_of, read_estimates
 
 
 def _print_warnings(warnings) -> None:
@@ -72,7 +74,8 @@ def _add_check(subparsers) -> None:
 
 
 def _cmd_check(args) -> int:
-    from .symbolic import check_record, compile_spec
+    from .datacheck import check_record
+    from .symbolic import compile_spec
 
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
@@ -219,8 +222,6 @@ def _add_simulate(sub):
 
 
 def _cmd_simulate(args) -> int:
-    import json
-
     import numpy as np
 
     from .atomic import check_output_file
@@ -242,19 +243,14 @@ def _cmd_simulate(args) -> int:
 
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
-    _enable_compilation_cache()
+    enable_compilation_cache()
     from .model import load_model
     from .simulate import parse_input_spec, simulate_to_csv
 
     model = load_model(args.spec)
     theta = {}
     if args.params_from:
-        try:
-            res = json.loads(pathlib.Path(args.params_from).read_text(encoding="utf-8"))
-            theta.update({k: v["estimate"] for k, v in res["parameters"].items()})
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-            raise VsidgenError(f"{args.params_from}: cannot read parameter estimates "
-                               f"({type(exc).__name__}: not a results.json of `vsidgen fit`?)") from None
+        theta.update(read_estimates(args.params_from, option="--params-from"))
     theta.update(_name_values(args.param, "param"))
     _check_names(theta, model.parameter_names, "parameter", model, "--param")
     x0 = _name_values(args.x0, "x0")
@@ -338,57 +334,6 @@ def _add_fit(sub):
     p.set_defaults(handler=_cmd_fit)
 
 
-def add_override_arguments(p) -> None:
-    """``--fix/--free/--init/--init-from/--method`` (shared by fit and diagnose)."""
-    g = p.add_argument_group("parameters and method (override the spec for this run; "
-                             "recorded in the results)")
-    g.add_argument("--fix", action="append", metavar="NAME=VALUE", default=None,
-                   help="fix a parameter at VALUE (as `fixed: true, initial: VALUE` in the spec)")
-    g.add_argument("--free", action="append", metavar="NAME", default=None,
-                   help="estimate a parameter the spec fixes")
-    g.add_argument("--init", action="append", metavar="NAME=VALUE", default=None,
-                   help="initial value of a parameter")
-    g.add_argument("--init-from", metavar="RESULTS_JSON", default=None,
-                   help="initial values from an earlier fit's results.json (--init and --fix win)")
-    g.add_argument("--method", choices=("filter-error", "output-error"), default="filter-error",
-                   help="filter-error (default): process and measurement noise; output-error: "
-                        "no process noise (deterministic state path)")
-
-
-def overrides_of(args):
-    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
-    from .overrides import parse_overrides
-
-    return parse_overrides(fix=args.fix, free=args.free, init=args.init,
-                           init_from=args.init_from, method=args.method)
-
-
-def _enable_compilation_cache() -> None:
-    """Persist JAX compilations across runs (``$VSIDGEN_CACHE_DIR``, default ~/.cache/vsidgen/jax).
-
-    A second fit of the same model then skips most of its compile time. Set
-    ``VSIDGEN_CACHE_DIR=`` (empty) to disable.
-    """
-    import os
-
-    default = pathlib.Path(os.environ.get("XDG_CACHE_HOME", pathlib.Path.home() / ".cache"))
-    cache = os.environ.get("VSIDGEN_CACHE_DIR", str(default / "vsidgen" / "jax"))
-    if not cache:
-        return
-    try:
-        pathlib.Path(cache).mkdir(parents=True, exist_ok=True)
-        if "jax" not in sys.modules:  # read by jax when it is imported (not before it is needed)
-            os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", cache)
-            os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
-            return
-        import jax
-
-        jax.config.update("jax_compilation_cache_dir", cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-    except (OSError, AttributeError, ValueError):  # read-only home, older jax: run uncached
-        pass
-
-
 def _cmd_fit(args) -> int:
     from .pipeline import run_fit
 
@@ -396,7 +341,7 @@ def _cmd_fit(args) -> int:
         raise VsidgenError(f"--max-iter must be >= 1, got {args.max_iter}")
     if args.substeps is not None and args.substeps < 1:
         raise VsidgenError(f"--substeps must be >= 1, got {args.substeps}")
-    _enable_compilation_cache()
+    enable_compilation_cache()
 
     overrides = overrides_of(args)
     from .progress import FitProgress
@@ -494,11 +439,11 @@ def _cmd_report(args) -> int:
     import os
 
     from .atomic import add_to_manifest, check_output_file, read_manifest
-    from .report import _parse_reference, write_report
+    from .report import parse_reference, write_report
 
     d = pathlib.Path(args.dir)
     out = pathlib.Path(args.out) if args.out is not None else d / "report.html"
-    ref_path = _parse_reference(args.reference)[2] if args.reference is not None else None
+    ref_path = parse_reference(args.reference)[2] if args.reference is not None else None
     reads = [d / "results.json"] + ([ref_path] if ref_path is not None else [])
     if d.is_dir():
         reads += [q for q in d.iterdir() if q.name.startswith("signals_")]

@@ -53,18 +53,18 @@ import csv
 import dataclasses
 import io
 import math
-import os
 import pathlib
-import tempfile
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .atomic import atomic_text_file
 from .dataunits import plausibility_warnings
 from .errors import DataError, VsidgenError
 from .formats import DataFormat, detect_format, read_mat_columns
 from .limits import check_input_file
+from .suggest import column_hint
 
 MIN_SAMPLES = 10
 JITTER = 0.05
@@ -124,15 +124,6 @@ def _names(model, kind: str) -> tuple[str, ...]:
     if attr is not None:
         return tuple(attr)
     return tuple(v.name for v in getattr(model, kind + "s"))
-
-
-def _columns_of(cmap) -> tuple[str, ...]:
-    if cmap.expr is not None:
-        cols = tuple(cmap.columns) or tuple(sorted(str(s) for s in cmap.expr.free_symbols))
-        return cols
-    if cmap.column is not None:
-        return (cmap.column,)
-    return (cmap.name,)
 
 
 def _read_header(path: pathlib.Path) -> list[str]:
@@ -252,43 +243,6 @@ def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         return _slow_parse(path, header, idx)
 
 
-def _same_quantity(name: str, cand: str) -> bool:
-    """Whether two column names can name the same quantity: names like ``dr_deg`` are
-    ``<quantity>_<unit>``, so a shared unit suffix alone (``p_deg``) is no likeness — the
-    leading parts must be alike (or the whole names nearly equal)."""
-    import difflib
-
-    from .suggest import closest
-
-    a, b = name.split("_", 1)[0], cand.split("_", 1)[0]
-    if a == b or difflib.SequenceMatcher(None, name, cand).ratio() >= 0.8:
-        return True
-    return bool(closest(a, [b])) and len(a) > 2
-
-
-def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str | None:
-    """Role-aware suggestion for a missing column ``name``.
-
-    Columns that the data map already reads for another channel (``taken``:
-    {column: "input `da`"}) are not offered as the missing one (a missing
-    rudder column ``dr_deg`` must not suggest the aileron's ``da_deg``); when
-    only such a column is similar, the hint says whose column it is.
-    """
-    from .suggest import closest
-
-    taken = {c: who for c, who in (taken or {}).items() if c != name}
-    free = [h for h in header if h not in taken]
-    close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
-    if close:
-        return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
-    used = [c for c in closest(name, [h for h in header if h in taken], n=1)
-            if _same_quantity(name, c) or c[:1] == name[:1]]
-    if used:
-        return (f"no similar unused column ('{used[0]}' is already the column of "
-                f"{taken[used[0]]})")
-    return None
-
-
 def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str:
     hint = column_hint(name, header, taken)
     if hint and hint.startswith("did you mean"):
@@ -305,14 +259,14 @@ def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
 
         expr = cmap.expr
         by_name = {str(s): s for s in expr.free_symbols}
-        names = [c for c in _columns_of(cmap) if c in by_name]
+        names = [c for c in cmap.source_columns() if c in by_name]
         syms = [by_name[c] for c in names]
         fn = sympy.lambdify(syms, expr, "numpy")
         with np.errstate(all="ignore"):
             val = np.asarray(fn(*[cols[c] for c in names]), dtype=np.float64)
         val = np.broadcast_to(val, (n,)).copy()
     else:
-        val = cols[_columns_of(cmap)[0]].copy()
+        val = cols[cmap.source_columns()[0]].copy()
     return np.asarray(cmap.apply(val), dtype=np.float64)
 
 
@@ -425,14 +379,14 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     # columns needed, in a stable order: time first
     needed: list[str] = [spec.time]
     for nm in in_names:
-        needed += [c for c in _columns_of(in_maps[nm]) if c not in needed]
+        needed += [c for c in in_maps[nm].source_columns() if c not in needed]
     for nm in out_names:
-        needed += [c for c in _columns_of(out_maps[nm]) if c not in needed]
+        needed += [c for c in out_maps[nm].source_columns() if c not in needed]
 
     taken = {spec.time: "the time"}
     for kind, names, maps in (("input", in_names, in_maps), ("output", out_names, out_maps)):
         for nm in names:
-            for c in _columns_of(maps[nm]):
+            for c in maps[nm].source_columns():
                 taken.setdefault(c, f"{kind} `{nm}`")
     fmt = detect_format(path)
     if fmt is DataFormat.CSV:
@@ -497,7 +451,7 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
 
     def channel(nm, cmap, kind):
         val = _eval_map(cmap, cols, n)
-        srcs = _columns_of(cmap)
+        srcs = cmap.source_columns()
         label = srcs[0] if len(srcs) == 1 and cmap.expr is None else f"{nm} = {cmap.expr}"
         col_for = srcs[0] if len(srcs) == 1 else None
         bad = np.isinf(val) | (np.abs(val) > MAX_ABS_VALUE)
@@ -597,13 +551,28 @@ def resolution(values) -> float:
     return float(d[int(0.01 * d.size)] / math.sqrt(12.0))
 
 
+def unique_names(records: Sequence[Record]) -> list[Record]:
+    """The records with repeated names made unique: the second ``r`` becomes ``r_1``, the third ``r_2``."""
+    seen: dict[str, int] = {}
+    out = []
+    for rec in records:
+        name = rec.name
+        if name in seen:
+            seen[name] += 1
+            name = f"{name}_{seen[name]}"
+            rec = dataclasses.replace(rec, name=name)
+        else:
+            seen[name] = 0
+        out.append(rec)
+    return out
+
+
 def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     """Write equal-length columns to a CSV file atomically, at full precision.
 
     Values are written with ``%.17g`` (exact float64 round trip; NaN as
-    ``nan``). The file is written to a temporary file in the same directory
-    and moved into place with :func:`os.replace`, so readers never see a
-    partial file.
+    ``nan``) through :func:`vsidgen.atomic.atomic_text_file`, so readers never
+    see a partial file.
     """
     path = pathlib.Path(path)
     names = list(columns)
@@ -618,21 +587,10 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
         if a.shape[0] != n:
             raise VsidgenError(f"write_csv: column '{nm}' has {a.shape[0]} values, expected {n}")
     block = np.column_stack(arrs) if n else np.empty((0, len(names)))
-    directory = path.parent if str(path.parent) else pathlib.Path(".")
-    directory.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", newline="") as fh:
-            fh.write(",".join(names) + "\n")
-            np.savetxt(fh, block, fmt="%.17g", delimiter=",")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_text_file(path) as fh:
+        fh.write(",".join(names) + "\n")
+        np.savetxt(fh, block, fmt="%.17g", delimiter=",")
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "load_record", "most_extreme_sample", "resolution", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "load_record", "most_extreme_sample", "resolution", "unique_names", "write_csv"]

@@ -92,6 +92,16 @@ def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int =
     return F
 
 
+def settings(model, *, integrator: str | None = None, substeps: int | None = None) -> tuple[str, int]:
+    """Checked ``(integrator, substeps)`` for ``model``: an explicit value wins, ``None``
+    (or an empty value) takes the model's own (``model.integrator``, ``model.substeps``;
+    ``"euler"`` and ``1`` for a bare model that has none).
+    """
+    integrator = integrator or getattr(model, "integrator", None) or "euler"
+    substeps = substeps or getattr(model, "substeps", None) or 1
+    return _check(integrator, substeps)
+
+
 def transition(model, *, integrator: str | None = "euler", substeps: int | None = 1) -> Callable:
     """Discrete mean transition ``F(x, u, p, dt)`` of ``model``.
 
@@ -105,11 +115,8 @@ def transition(model, *, integrator: str | None = "euler", substeps: int | None 
     Returns:
         ``F(x, u, p, dt) -> (nx,)`` jnp array; pure, jit/vmap/grad friendly.
     """
-    if integrator is None:
-        integrator = getattr(model, "integrator", "euler") or "euler"
-    if substeps is None:
-        substeps = getattr(model, "substeps", 1) or 1
+    integrator, substeps = settings(model, integrator=integrator, substeps=substeps)
     return transition_fn(model.drift, integrator=integrator, substeps=substeps)
 
 
-__all__ = ["INTEGRATORS", "transition", "transition_fn"]
+__all__ = ["INTEGRATORS", "settings", "transition", "transition_fn"]

@@ -288,3 +288,27 @@ def _next_within(ac, timeout: float):
         if time.monotonic() >= end:
             raise TimeoutError
         time.sleep(min(0.05, max(0.0, end - time.monotonic())))
+
+
+def terminate_as_interrupt():
+    """Context manager: SIGTERM raises KeyboardInterrupt (so a terminated run writes what it
+    has, as on Ctrl-C); the previous handler is restored on exit. No-op off the main thread."""
+    import contextlib
+    import signal
+    import threading
+
+    @contextlib.contextmanager
+    def cm():
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+
+        def handler(signum, frame):
+            raise KeyboardInterrupt(f"signal {signum}")
+
+        old = signal.signal(signal.SIGTERM, handler)
+        try:
+            yield
+        finally:
+            signal.signal(signal.SIGTERM, old)
+    return cm()

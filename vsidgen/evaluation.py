@@ -56,7 +56,7 @@ import scipy.linalg
 
 from .dynamics import transition
 from .errors import VsidgenError
-from .simulate import theta_vector
+from .model import theta_vector
 
 from . import precision  # noqa: F401  (float64, set once)
 

@@ -177,10 +177,10 @@ def add_fleet_parser(subparsers):
 
 
 def fleet_command(args) -> int:
-    from .cli import _enable_compilation_cache
-    from .discrepancy.search import terminate_as_interrupt
+    from .compilecache import enable_compilation_cache
+    from .engine import terminate_as_interrupt
 
-    _enable_compilation_cache()
+    enable_compilation_cache()
     progress = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     with terminate_as_interrupt():
         res = run_fleet(args.spec, args.data, out=args.out, workers=args.workers,

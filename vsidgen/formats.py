@@ -253,7 +253,7 @@ def _resolve(variables, ref: str, path, named, taken=None) -> np.ndarray:
                             column=ref, hint="give one name per column of the matrix")
         return matrix[:, j]
     if v is None:
-        from .data import column_hint
+        from .suggest import column_hint
 
         hint = column_hint(ref, _names_of(variables), taken)
         if not (hint and hint.startswith("did you mean")):

@@ -121,6 +121,15 @@ class ChannelMap:
     unit: str | None = None
     unit_conversion: tuple[float, float] = (1.0, 0.0)
 
+    def source_columns(self) -> tuple[str, ...]:
+        """The record columns this channel reads: ``columns`` (or the expression's symbols,
+        sorted) for an ``expr`` map, else ``column``, else a column named after the channel."""
+        if self.expr is not None:
+            return tuple(self.columns) or tuple(sorted(str(s) for s in self.expr.free_symbols))
+        if self.column is not None:
+            return (self.column,)
+        return (self.name,)
+
     def apply(self, value):
         """The channel's value in the spec's unit from the column (or expression) value."""
         a, b = self.unit_conversion

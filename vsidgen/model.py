@@ -5,9 +5,12 @@ from __future__ import annotations
 import dataclasses
 import pathlib
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
+
+from .errors import VsidgenError
 from .metadata import (DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable,
                        VariableNames)
 
@@ -56,6 +59,23 @@ class Model(VariableNames):
     @property
     def np(self) -> int:
         return len(self.parameters)
+
+
+def theta_vector(model, theta) -> np.ndarray:
+    """Full parameter vector from a dict name->value (missing: ``Parameter.initial``) or an array."""
+    names = model.parameter_names
+    if isinstance(theta, Mapping):
+        unknown = [k for k in theta if k not in names]
+        if unknown:
+            raise VsidgenError(f"unknown parameter(s) {', '.join(map(repr, unknown))}\n"
+                               f"  hint: model {model.name} has parameters {', '.join(names)}")
+        return np.array([float(theta.get(p.name, p.initial)) for p in model.parameters])
+    if theta is None:
+        return np.array([float(p.initial) for p in model.parameters])
+    arr = np.asarray(theta, dtype=np.float64).ravel()
+    if arr.shape != (model.np,):
+        raise VsidgenError(f"theta has {arr.size} values, model {model.name} has {model.np} parameters")
+    return arr
 
 
 def default_generated_dir(spec_path) -> pathlib.Path:

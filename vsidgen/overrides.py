@@ -11,8 +11,8 @@ generated module is reused:
 * ``--free NAME``: ``fixed = false``;
 
 applied in that order. ``--method output-error`` removes the process noise
-(the state path is the deterministic simulation, G fixed at the estimator's
-deterministic floor: the output-error method); ``filter-error`` (default)
+(every state deterministic: the estimator fits the exact limit of vanishing
+process noise, i.e. the output-error method; docs/estimator.md); ``filter-error`` (default)
 keeps the spec's process noise. Unknown names raise a VsidgenError with a
 role-aware suggestion (:func:`vsidgen.suggest.suggest`).
 """
@@ -72,17 +72,18 @@ def _name_value(item: str, option: str) -> tuple[str, float]:
     return name.strip(), x
 
 
-def read_estimates(path) -> dict[str, float]:
-    """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit``."""
+def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
+    """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit`` (``option``
+    names the command-line option that gave ``path`` in error messages)."""
     path = pathlib.Path(path)
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         params = doc["parameters"]
         return {str(k): float(v["estimate"]) for k, v in params.items()}
     except FileNotFoundError:
-        raise VsidgenError(f"--init-from {path}: file not found") from None
+        raise VsidgenError(f"{option} {path}: file not found") from None
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-        raise VsidgenError(f"--init-from {path}: not a vsidgen results.json with parameter "
+        raise VsidgenError(f"{option} {path}: not a vsidgen results.json with parameter "
                            f"estimates ({type(exc).__name__}: {exc})") from None
 
 
@@ -167,8 +168,31 @@ def override_spec_text(spec_path, ov: Overrides, *, name: str, model) -> str:
             + yaml.safe_dump(doc, sort_keys=False))
 
 
-__all__ = ["Method", "Overrides", "apply_overrides", "override_spec_text", "parse_overrides",
-           "read_estimates"]
+def add_override_arguments(p) -> None:
+    """``--fix/--free/--init/--init-from/--method`` (shared by fit and diagnose)."""
+    g = p.add_argument_group("parameters and method (override the spec for this run; "
+                             "recorded in the results)")
+    g.add_argument("--fix", action="append", metavar="NAME=VALUE", default=None,
+                   help="fix a parameter at VALUE (as `fixed: true, initial: VALUE` in the spec)")
+    g.add_argument("--free", action="append", metavar="NAME", default=None,
+                   help="estimate a parameter the spec fixes")
+    g.add_argument("--init", action="append", metavar="NAME=VALUE", default=None,
+                   help="initial value of a parameter")
+    g.add_argument("--init-from", metavar="RESULTS_JSON", default=None,
+                   help="initial values from an earlier fit's results.json (--init and --fix win)")
+    g.add_argument("--method", choices=("filter-error", "output-error"), default="filter-error",
+                   help="filter-error (default): process and measurement noise; output-error: "
+                        "no process noise (deterministic state path)")
+
+
+def overrides_of(args):
+    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
+    return parse_overrides(fix=args.fix, free=args.free, init=args.init,
+                           init_from=args.init_from, method=args.method)
+
+
+__all__ = ["Method", "Overrides", "add_override_arguments", "apply_overrides", "override_spec_text",
+           "overrides_of", "parse_overrides", "read_estimates"]
 
 
 def write_override_spec(spec_path, ov: Overrides, out_dir) -> pathlib.Path:

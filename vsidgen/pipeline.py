@@ -6,7 +6,6 @@ This is what ``vsidgen fit`` runs; it holds no numerics of its own.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import pathlib
 import time
@@ -17,13 +16,13 @@ import numpy as np
 
 from . import __version__
 from .codegen import display_path
-from .data import Record, load_record, write_csv
+from .data import Record, load_record, unique_names, write_csv
 from .errors import VsidgenError
 from .model import Model, load_model
 from .overrides import Overrides, apply_overrides
-from .atomic import plan_output_dir, print_recovered
+from .atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
 from .limits import check_input_file
-from .results import atomic_directory, dumps, signals_table, write_text_atomic
+from .results import dumps, finite_or_none, signals_table
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,21 +63,6 @@ def _record_info(rec: Record) -> dict[str, Any]:
             "n_samples": n, "dt": float(rec.dt), "duration_s": float(rec.dt * (n - 1))}
 
 
-def _unique_names(records: Sequence[Record]) -> list[Record]:
-    seen: dict[str, int] = {}
-    out = []
-    for rec in records:
-        name = rec.name
-        if name in seen:
-            seen[name] += 1
-            name = f"{name}_{seen[name]}"
-            rec = dataclasses.replace(rec, name=name)
-        else:
-            seen[name] = 0
-        out.append(rec)
-    return out
-
-
 def _evaluate_all(model, records, fit, *, integrator, substeps):
     from .evaluation import evaluate  # imports jax: not needed to refuse bad arguments
 
@@ -93,10 +77,6 @@ def _reason(result) -> str | None:
     """Stable code of the typed stop reason (:class:`vsidgen.estimator.StopReason`)."""
     r = getattr(result, "stop_reason", None)
     return None if r is None else r.value
-
-
-def _finite(v) -> float | None:
-    return float(v) if v is not None and math.isfinite(float(v)) else None
 
 
 def _validation_warnings(vresult) -> list[dict]:
@@ -164,8 +144,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         check_input_file(p, what="data file")
     ref_path = None
     if reference is not None:
-        from .report import _parse_reference
-        ref_path = _parse_reference(reference)[2]
+        from .report import parse_reference
+        ref_path = parse_reference(reference)[2]
     plan = plan_output_dir(out, overwrite=overwrite,
                            reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
     print_recovered(plan)
@@ -173,8 +153,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
-    records = _unique_names([load_record(symbolic, p) for p in data])
-    vrecords = _unique_names([load_record(symbolic, p) for p in validate])
+    records = unique_names([load_record(symbolic, p) for p in data])
+    vrecords = unique_names([load_record(symbolic, p) for p in validate])
     from .estimator import FitOptions, fit, smooth
 
     model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
@@ -227,7 +207,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                   "measurement_floor": dict(getattr(result, "measurement_floor", {}) or {}),
                   "G": np.asarray(result.G), "R": np.asarray(result.R)},
         "elbo": float(result.elbo), "converged": bool(result.converged), "status": result.status,
-        "stop_reason": _reason(result), "newton_decrement": _finite(getattr(result, "newton_decrement", None)),
+        "stop_reason": _reason(result), "newton_decrement": finite_or_none(getattr(result, "newton_decrement", None)),
         "deterministic_states": list(getattr(result, "deterministic_states", ())),
         "deterministic_limit": getattr(result, "deterministic_limit", None),
         "iterations": int(result.iterations), "wall_time_s": float(result.wall_time_s),
@@ -239,7 +219,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                         "stop_reason": _reason(vresult), "status": vresult.status,
                         "iterations": int(vresult.iterations),
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),
-                        "newton_decrement": _finite(getattr(vresult, "newton_decrement", None))}),
+                        "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
         "warnings": [w.to_json() for r in records + vrecords
                      for w in r.warnings] + list(result.warnings) + _validation_warnings(vresult) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}

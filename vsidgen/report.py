@@ -41,8 +41,10 @@ import numpy as np
 from .atomic import write_text_atomic
 from .errors import VsidgenError
 from .limits import check_input_file
+from .results import contained_file, read_results
 
-__all__ = ["write_report", "SIGNAL_STYLE", "STRONG_CORRELATION"]
+__all__ = ["new_figure", "parse_reference", "png_data_uri", "write_report", "SIGNAL_STYLE",
+           "STRONG_CORRELATION"]
 
 #: |r| above which a parameter pair is flagged as strongly correlated.
 STRONG_CORRELATION = 0.9
@@ -73,72 +75,6 @@ FIG_DPI = 100
 def _templates_dir() -> pathlib.Path:
     """The templates shipped inside the package (``vsidgen/templates``)."""
     return pathlib.Path(__file__).resolve().parent / "templates"
-
-
-def _load_results(results_dir: pathlib.Path) -> dict:
-    if not results_dir.exists():
-        raise VsidgenError(f"{results_dir}: error: results directory does not exist")
-    if not results_dir.is_dir():
-        raise VsidgenError(f"{results_dir}: error: not a directory (expected a fit's results "
-                           "directory containing results.json)")
-    path = results_dir / "results.json"
-    if not os.path.lexists(path):
-        raise VsidgenError(f"{path}: error: results.json not found; is {results_dir} the output "
-                           "directory of `vsidgen fit`?")
-    path = contained_file(results_dir, "results.json", what="results file")
-    try:
-        res = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as err:
-        raise VsidgenError(f"{path}: error: cannot read results file: {err}") from None
-    except json.JSONDecodeError as err:
-        raise VsidgenError(f"{path}:{err.lineno}:{err.colno}: error: results.json is not valid "
-                           f"JSON: {err.msg}") from None
-    if not isinstance(res, dict):
-        raise VsidgenError(f"{path}: error: results.json must hold a JSON object")
-    for key, typ in (("spec", dict), ("model", dict), ("parameters", dict), ("records", dict)):
-        if not isinstance(res.get(key), typ):
-            raise VsidgenError(f"{path}: error: results.json has no valid `{key}` entry "
-                               "(written by an incompatible vsidgen version?)")
-    for key in ("states", "outputs"):
-        if not isinstance(res["model"].get(key), list):
-            raise VsidgenError(f"{path}: error: results.json `model.{key}` is missing or not a list")
-    return res
-
-
-def contained_file(results_dir: pathlib.Path, name: object, *, what: str) -> pathlib.Path:
-    """The regular file ``results_dir/name``, refusing anything that leaves the directory.
-
-    ``name`` comes from ``results.json`` and is untrusted: it must be a relative
-    path without ``..`` parts, and the file it names (after resolving symbolic
-    links) must lie inside ``results_dir`` and be a regular file within the size
-    limit of :func:`vsidgen.limits.json_limit`. Messages name the path but never
-    show the content of a file outside the directory.
-
-    Raises:
-        VsidgenError: any of these fails.
-    """
-    text = name if isinstance(name, str) else None
-    shown = repr(text[:200]) if text is not None else type(name).__name__
-    if not text or "\x00" in text or os.path.isabs(text) or text.startswith(("/", "\\")):
-        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} is not a "
-                           "relative file name inside the results directory")
-    parts = pathlib.PurePosixPath(text.replace("\\", "/")).parts
-    if any(part in ("..", "") for part in parts):
-        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} leaves the "
-                           "results directory ('..' is not allowed)")
-    path = results_dir / text
-    if not os.path.lexists(path):
-        raise VsidgenError(f"{path}: error: {what} listed in results.json is missing")
-    root = results_dir.resolve()
-    try:
-        real = path.resolve()
-    except (OSError, RuntimeError):
-        raise VsidgenError(f"{path}: error: cannot resolve {what} (a symbolic-link loop?)") from None
-    if root not in real.parents:
-        raise VsidgenError(f"{path}: error: {what} is a symbolic link that leaves the results "
-                           "directory; vsidgen reads only files inside it")
-    check_input_file(path, what=what, kind="json", data_error=False)
-    return path
 
 
 def _num(v) -> float:
@@ -181,7 +117,7 @@ def _read_signals(path: pathlib.Path) -> dict[str, np.ndarray]:
     return {h: data[:, j] for j, h in enumerate(header)}
 
 
-def _parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | None]:
+def parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | None]:
     """``PATH`` or ``PATH:method`` -> ({name: {value, std}}, label, path)."""
     if reference is None:
         return {}, "", None
@@ -272,7 +208,9 @@ def _welch(e: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- figures
 
 
-def _new_figure(width: float, height: float):
+def new_figure(width: float, height: float):
+    """A matplotlib Figure of ``width`` x ``height`` inches at ``FIG_DPI``, on the Agg canvas
+    (no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -281,7 +219,7 @@ def _new_figure(width: float, height: float):
     return fig
 
 
-def _png(fig) -> str:
+def png_data_uri(fig) -> str:
     """Figure -> palette PNG data URI (quantised: ~4x smaller than RGBA, same look)."""
     from PIL import Image
 
@@ -317,7 +255,7 @@ def _rate_unit(unit: str | None) -> str:
 
 
 def _output_figure(t, sig, name, unit, desc) -> str:
-    fig = _new_figure(10.0, 5.2)
+    fig = new_figure(10.0, 5.2)
     ax1, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2.2, 1]})
     fig.subplots_adjust(left=0.09, right=0.985, top=0.87, bottom=0.1, hspace=0.08)
     for key in ("meas", "smooth", "sim", "pred"):
@@ -340,11 +278,11 @@ def _output_figure(t, sig, name, unit, desc) -> str:
     ax2.set_xlabel("time (s)")
     ax2.legend(loc="upper right", fontsize=8, ncols=2, framealpha=0.8)
     ax2.grid(alpha=0.3)
-    return _png(fig)
+    return png_data_uri(fig)
 
 
 def _state_figure(t, sig, name, unit, desc) -> str:
-    fig = _new_figure(10.0, 4.6)
+    fig = new_figure(10.0, 4.6)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     fig.subplots_adjust(left=0.09, right=0.985, top=0.86, bottom=0.11, hspace=0.1)
     mu = sig.get(f"{name}_mu")
@@ -371,11 +309,11 @@ def _state_figure(t, sig, name, unit, desc) -> str:
     ax2.set_xlabel("time (s)")
     ax2.legend(loc="upper right", fontsize=8, ncols=2, framealpha=0.8)
     ax2.grid(alpha=0.3)
-    return _png(fig)
+    return png_data_uri(fig)
 
 
 def _diagnostics_figure(name, unit, acfs, spectra, lags) -> str:
-    fig = _new_figure(10.0, 3.4)
+    fig = new_figure(10.0, 3.4)
     axa, axb = fig.subplots(1, 2)
     fig.subplots_adjust(left=0.085, right=0.985, top=0.9, bottom=0.15, wspace=0.25)
     for key, label in _RESIDUALS:
@@ -409,13 +347,13 @@ def _diagnostics_figure(name, unit, acfs, spectra, lags) -> str:
     axb.set_title(f"{name}: residual spectrum (Welch)", fontsize=10, loc="left")
     axb.legend(fontsize=7, loc="upper right", framealpha=0.8)
     axb.grid(alpha=0.3, which="both")
-    return _png(fig)
+    return png_data_uri(fig)
 
 
 def _correlation_figure(names: Sequence[str], c: np.ndarray) -> str:
     n = len(names)
     size = min(11.0, max(4.5, 0.5 * n + 2.0))
-    fig = _new_figure(size + 1.2, size)
+    fig = new_figure(size + 1.2, size)
     ax = fig.subplots()
     fig.subplots_adjust(left=0.14, right=0.98, top=0.93, bottom=0.14)
     im = ax.imshow(c, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
@@ -438,7 +376,7 @@ def _correlation_figure(names: Sequence[str], c: np.ndarray) -> str:
                  loc="left")
     cb = fig.colorbar(im, ax=ax, shrink=0.8)
     cb.set_label("correlation coefficient r (–)")
-    return _png(fig)
+    return png_data_uri(fig)
 
 
 def _rect(x, y):
@@ -776,8 +714,8 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
     from markupsafe import Markup
 
     results_dir = pathlib.Path(results_dir)
-    res = _load_results(results_dir)
-    ref, ref_label, _ = _parse_reference(reference)
+    res = read_results(results_dir)
+    ref, ref_label, _ = parse_reference(reference)
     out_path = pathlib.Path(out) if out is not None else results_dir / "report.html"
 
     outputs = _vars(res["model"].get("outputs"))

@@ -16,9 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from .atomic import atomic_directory, write_text_atomic  # noqa: F401  (re-exported)
 from .errors import VsidgenError
+from .limits import check_input_file
 
 
 def finite_or_none(v: Any) -> float | None:
@@ -76,16 +75,70 @@ def signals_table(signals, state_names: Sequence[str], output_names: Sequence[st
 
 
 def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
-    """Read ``results.json`` of a results directory (VsidgenError when absent/corrupt)."""
-    path = pathlib.Path(results_dir) / "results.json"
+    """``results.json`` of a results directory, checked: a regular file inside the directory
+    (:func:`contained_file`), a JSON object with the entries the report needs (VsidgenError,
+    with the path and, for bad JSON, line and column, otherwise)."""
+    results_dir = pathlib.Path(results_dir)
+    if not results_dir.exists():
+        raise VsidgenError(f"{results_dir}: error: results directory does not exist")
+    if not results_dir.is_dir():
+        raise VsidgenError(f"{results_dir}: error: not a directory (expected a fit's results "
+                           "directory containing results.json)")
+    path = results_dir / "results.json"
+    if not os.path.lexists(path):
+        raise VsidgenError(f"{path}: error: results.json not found; is {results_dir} the output "
+                           "directory of `vsidgen fit`?")
+    path = contained_file(results_dir, "results.json", what="results file")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise VsidgenError(f"{path}: no results.json here; run `vsidgen fit ... --out "
-                           f"{results_dir}` first") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise VsidgenError(f"{path}: cannot read results ({exc})") from None
+        res = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as err:
+        raise VsidgenError(f"{path}: error: cannot read results file: {err}") from None
+    except json.JSONDecodeError as err:
+        raise VsidgenError(f"{path}:{err.lineno}:{err.colno}: error: results.json is not valid "
+                           f"JSON: {err.msg}") from None
+    if not isinstance(res, dict):
+        raise VsidgenError(f"{path}: error: results.json must hold a JSON object")
+    for key, typ in (("spec", dict), ("model", dict), ("parameters", dict), ("records", dict)):
+        if not isinstance(res.get(key), typ):
+            raise VsidgenError(f"{path}: error: results.json has no valid `{key}` entry "
+                               "(written by an incompatible vsidgen version?)")
+    for key in ("states", "outputs"):
+        if not isinstance(res["model"].get(key), list):
+            raise VsidgenError(f"{path}: error: results.json `model.{key}` is missing or not a list")
+    return res
 
 
-def results_version() -> str:
-    return __version__
+def contained_file(results_dir: pathlib.Path, name: object, *, what: str) -> pathlib.Path:
+    """The regular file ``results_dir/name``, refusing anything that leaves the directory.
+
+    ``name`` comes from ``results.json`` and is untrusted: it must be a relative
+    path without ``..`` parts, and the file it names (after resolving symbolic
+    links) must lie inside ``results_dir`` and be a regular file within the size
+    limit of :func:`vsidgen.limits.json_limit`. Messages name the path but never
+    show the content of a file outside the directory.
+
+    Raises:
+        VsidgenError: any of these fails.
+    """
+    text = name if isinstance(name, str) else None
+    shown = repr(text[:200]) if text is not None else type(name).__name__
+    if not text or "\x00" in text or os.path.isabs(text) or text.startswith(("/", "\\")):
+        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} is not a "
+                           "relative file name inside the results directory")
+    parts = pathlib.PurePosixPath(text.replace("\\", "/")).parts
+    if any(part in ("..", "") for part in parts):
+        raise VsidgenError(f"{results_dir}/results.json: error: {what} {shown} leaves the "
+                           "results directory ('..' is not allowed)")
+    path = results_dir / text
+    if not os.path.lexists(path):
+        raise VsidgenError(f"{path}: error: {what} listed in results.json is missing")
+    root = results_dir.resolve()
+    try:
+        real = path.resolve()
+    except (OSError, RuntimeError):
+        raise VsidgenError(f"{path}: error: cannot resolve {what} (a symbolic-link loop?)") from None
+    if root not in real.parents:
+        raise VsidgenError(f"{path}: error: {what} is a symbolic link that leaves the results "
+                           "directory; vsidgen reads only files inside it")
+    check_input_file(path, what=what, kind="json", data_error=False)
+    return path

@@ -43,9 +43,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .data import _columns_of, write_csv
+from .data import write_csv
 from .dynamics import transition
 from .errors import VsidgenError
+from .model import theta_vector
 
 from . import precision  # noqa: F401  (float64, set once)
 
@@ -225,23 +226,6 @@ class SimulationResult:
     u: np.ndarray
 
 
-def theta_vector(model, theta) -> np.ndarray:
-    """Full parameter vector from a dict name->value (missing: ``Parameter.initial``) or an array."""
-    names = model.parameter_names
-    if isinstance(theta, Mapping):
-        unknown = [k for k in theta if k not in names]
-        if unknown:
-            raise VsidgenError(f"unknown parameter(s) {', '.join(map(repr, unknown))}\n"
-                               f"  hint: model {model.name} has parameters {', '.join(names)}")
-        return np.array([float(theta.get(p.name, p.initial)) for p in model.parameters])
-    if theta is None:
-        return np.array([float(p.initial) for p in model.parameters])
-    arr = np.asarray(theta, dtype=np.float64).ravel()
-    if arr.shape != (model.np,):
-        raise VsidgenError(f"theta has {arr.size} values, model {model.name} has {model.np} parameters")
-    return arr
-
-
 def _named_vector(model, values, names, what) -> np.ndarray:
     if isinstance(values, Mapping):
         unknown = [k for k in values if k not in names]
@@ -380,10 +364,10 @@ def _inverse_columns(cmap, values: np.ndarray) -> dict[str, np.ndarray]:
     a, b = getattr(cmap, "unit_conversion", (1.0, 0.0))
     raw = ((values - cmap.offset) / cmap.scale - b) / a
     if cmap.expr is None:
-        return {_columns_of(cmap)[0]: raw}
+        return {cmap.source_columns()[0]: raw}
     import sympy
 
-    cols = _columns_of(cmap)
+    cols = cmap.source_columns()
     by_name = {str(s): s for s in cmap.expr.free_symbols}
     out = {cmap.name: raw}
     if not cols or cols[0] not in by_name:
@@ -437,5 +421,5 @@ def simulate_to_csv(model, out_path, **simulate_kwargs) -> SimulationResult:
 
 
 __all__ = ["InputSpec", "MANEUVERS", "SimulationResult", "const", "doublet", "multisine",
-           "parse_input_spec", "simulate", "simulate_to_csv", "step", "theta_vector",
+           "parse_input_spec", "simulate", "simulate_to_csv", "step",
            "three_two_one_one"]

@@ -56,6 +56,37 @@ def suggest(name: str, same_role: Iterable[str], others: Mapping[str, str] | Non
     return None
 
 
+def _same_quantity(name: str, cand: str) -> bool:
+    """Whether two column names can name the same quantity: names like ``dr_deg`` are
+    ``<quantity>_<unit>``, so a shared unit suffix alone (``p_deg``) is no likeness — the
+    leading parts must be alike (or the whole names nearly equal)."""
+    a, b = name.split("_", 1)[0], cand.split("_", 1)[0]
+    if a == b or difflib.SequenceMatcher(None, name, cand).ratio() >= 0.8:
+        return True
+    return bool(closest(a, [b])) and len(a) > 2
+
+
+def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str | None:
+    """Role-aware suggestion for a missing column ``name``.
+
+    Columns that the data map already reads for another channel (``taken``:
+    {column: "input `da`"}) are not offered as the missing one (a missing
+    rudder column ``dr_deg`` must not suggest the aileron's ``da_deg``); when
+    only such a column is similar, the hint says whose column it is.
+    """
+    taken = {c: who for c, who in (taken or {}).items() if c != name}
+    free = [h for h in header if h not in taken]
+    close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
+    if close:
+        return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
+    used = [c for c in closest(name, [h for h in header if h in taken], n=1)
+            if _same_quantity(name, c) or c[:1] == name[:1]]
+    if used:
+        return (f"no similar unused column ('{used[0]}' is already the column of "
+                f"{taken[used[0]]})")
+    return None
+
+
 def model_roles(model) -> dict[str, str]:
     """{name: "a state" | "an input" | ...} of a Model or SymbolicModel."""
     roles: dict[str, str] = {}
@@ -79,4 +110,4 @@ def unknown_name_error(name: str, role: str, model, *, option: str):
     return VsidgenError(msg + (f" — {hint}" if hint else "") + f"\n  hint: {role}s: {listing}")
 
 
-__all__ = ["closest", "model_roles", "suggest", "unknown_name_error"]
+__all__ = ["closest", "column_hint", "model_roles", "suggest", "unknown_name_error"]

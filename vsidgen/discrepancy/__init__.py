@@ -14,15 +14,16 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, NewParameter,
                    load_effects_module, model_info, propose, register_effect, registered_effects,
                    unregister_effect)
 from .locate import Evidence, LocateRecord, locate
+from . import catalogue  # noqa: F401  (the built-in effects register themselves)
 
-__all__ = ["Candidate", "DiagnoseOptions", "DiagnoseResult", "DiscrepancyError", "Effect",
+__all__ = ["Candidate", "DiagnoseResult", "DiscrepancyError", "Effect",
            "Evidence", "LocateRecord", "ModelInfo", "NewParameter", "NewState",
            "add_diagnose_parser", "load_effects_module", "locate", "model_info", "propose",
            "register_effect", "registered_effects", "run_diagnose", "unregister_effect"]
 
 
 def __getattr__(name):  # lazy: search pulls in the estimator (jax)
-    if name in ("run_diagnose", "DiagnoseResult", "DiagnoseOptions", "add_diagnose_parser",
+    if name in ("run_diagnose", "DiagnoseResult", "add_diagnose_parser",
                 "diagnose_command"):
         from . import search
         return getattr(search, name)

@@ -44,8 +44,9 @@ from typing import Any
 import sympy
 import yaml
 
-from ..errors import SpecError, VsidgenError
+from ..errors import VsidgenError
 from ..metadata import VariableNames
+from ..symbolic import compile_spec
 
 ENTRY_POINT_GROUP = "vsidgen.effects"
 
@@ -233,17 +234,11 @@ def spec_text(expr) -> str | None:
 def model_info(spec_path, *, dt: float | None = None) -> ModelInfo:
     """Summarise the spec at ``spec_path`` (``extends`` resolved) for the catalogue.
 
-    Uses the spec compiler (:func:`vsidgen.symbolic.compile_spec`) when it is
-    available; raises :class:`~vsidgen.errors.SpecError` for a bad spec.
+    Compiles it with :func:`vsidgen.symbolic.compile_spec`; raises
+    :class:`~vsidgen.errors.SpecError` for a bad spec.
     """
     spec_path = pathlib.Path(spec_path)
-    try:
-        from ..symbolic import compile_spec  # type: ignore
-    except ImportError:
-        compile_spec = None
-    if compile_spec is not None:
-        return _info_from_symbolic(compile_spec(spec_path), spec_path, dt)
-    return _info_from_yaml(spec_path, dt)  # pragma: no cover - bridge until the compiler lands
+    return _info_from_symbolic(compile_spec(spec_path), spec_path, dt)
 
 
 def info_from_model(model, *, dt: float | None = None) -> ModelInfo:
@@ -287,95 +282,6 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
 def _realify(e):
     """Replace every symbol by a real symbol of the same name (for name comparisons)."""
     return e.xreplace({s: sympy.Symbol(s.name, real=True) for s in e.free_symbols})
-
-
-# -- bridge: a minimal YAML reader used only while vsidgen.symbolic is absent -----------------
-
-def _load_yaml(path: pathlib.Path) -> dict:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise SpecError(f"cannot read spec: {err}", path=path) from None
-    if not isinstance(data, dict):
-        raise SpecError("a spec must be a mapping", path=path)
-    return data
-
-
-def merged_spec_dict(path) -> dict:
-    """The spec at ``path`` with ``extends`` resolved (structure only; for tests and the bridge)."""
-    path = pathlib.Path(path)
-    data = _load_yaml(path)
-    adds = []
-    if data.get("extends"):
-        parent = merged_spec_dict((path.parent / str(data["extends"])).resolve())
-        adds.extend(parent.pop("_add_terms", []))
-        merged = parent
-        for key in ("states", "inputs", "outputs", "constants", "parameters", "definitions",
-                    "drift", "observations"):
-            if data.get(key):
-                merged.setdefault(key, {}).update(data[key])
-        for key in ("noise", "data"):
-            if data.get(key):
-                base = merged.setdefault(key, {})
-                for k, v in data[key].items():
-                    if isinstance(v, dict) and isinstance(base.get(k), dict):
-                        base[k] = {**base[k], **v}
-                    else:
-                        base[k] = v
-        for key in ("name", "description", "integrator"):
-            if key in data:
-                merged[key] = data[key]
-    else:
-        merged = dict(data)
-    if data.get("add_terms"):
-        adds.append(data["add_terms"])
-    merged.pop("add_terms", None)
-    merged.pop("extends", None)
-    merged["_add_terms"] = adds
-    return merged
-
-
-def _info_from_yaml(path: pathlib.Path, dt) -> ModelInfo:  # pragma: no cover - bridge
-    from ..expr import parse_expression
-
-    d = merged_spec_dict(path)
-    names = {}
-    for key in ("states", "inputs", "parameters", "constants"):
-        for n in (d.get(key) or {}):
-            names[n] = sympy.Symbol(n, real=True)
-    defs_txt = {k: str(v) for k, v in (d.get("definitions") or {}).items()}
-    drift_txt = {k: str(v) for k, v in (d.get("drift") or {}).items()}
-    obs_txt = {k: str(v) for k, v in (d.get("observations") or {}).items()}
-    for adds in d["_add_terms"]:
-        for sect, target in (("definitions", defs_txt), ("drift", drift_txt),
-                             ("observations", obs_txt)):
-            for k, v in (adds.get(sect) or {}).items():
-                target[k] = f"({target[k]}) + ({v})"
-    for n in defs_txt:
-        names[n] = sympy.Symbol(n, real=True)
-    defs = {}
-    for n, t in defs_txt.items():
-        defs[n] = parse_expression(t, names)
-    def expand(e):
-        for _ in range(len(defs) + 1):
-            e2 = e.xreplace(defs)
-            if e2 == e:
-                break
-            e = e2
-        return e
-    def var(sect):
-        return tuple(VarInfo(n, (v or {}).get("unit"), (v or {}).get("description", ""))
-                     for n, v in (d.get(sect) or {}).items())
-    proc = ((d.get("noise") or {}).get("process") or {}).get("states")
-    states = var("states")
-    return ModelInfo(
-        spec_path=path, name=d.get("name", path.stem), states=states, inputs=var("inputs"),
-        outputs=var("outputs"), parameters=tuple(d.get("parameters") or {}),
-        constants=tuple(d.get("constants") or {}), definitions=tuple(defs_txt),
-        drift=drift_txt, observations=obs_txt,
-        drift_expanded={k: expand(parse_expression(t, names)) for k, t in drift_txt.items()},
-        observations_expanded={k: expand(parse_expression(t, names)) for k, t in obs_txt.items()},
-        process_states=tuple(proc) if proc else tuple(v.name for v in states), dt=dt)
 
 
 # ---------------------------------------------------------------------------
@@ -633,9 +539,11 @@ def load_effects_module(path) -> list[str]:
 
 
 def registered_effects(*, entry_points: bool = True) -> tuple[Effect, ...]:
-    """All registered effects (built-in catalogue first, then plugins)."""
-    from . import catalogue  # noqa: F401  (registers the built-ins)
+    """All registered effects (built-in catalogue first, then plugins).
 
+    The built-ins register themselves when :mod:`.catalogue` is imported, which the package
+    ``vsidgen.discrepancy`` does before any of its modules can be used.
+    """
     if entry_points and not _ENTRY_POINTS_LOADED:
         load_entry_points()
     return tuple(_REGISTRY.values())

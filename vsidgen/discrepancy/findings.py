@@ -25,13 +25,13 @@ findings.json (keys in this order)::
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import pathlib
 from collections.abc import Sequence
 
-from ..results import dumps, finite_or_none as _f, write_text_atomic
+from ..atomic import write_text_atomic
+from ..report import new_figure, png_data_uri
+from ..results import dumps, finite_or_none as _f
 
 
 def metrics_summary(st) -> dict:
@@ -304,14 +304,6 @@ def write_findings(out, doc, *, base, final, accepted) -> pathlib.Path:
 # report section
 # ---------------------------------------------------------------------------
 
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
 def _channels(finding, base) -> tuple[list[str], list[str]]:
     """(outputs, states) to plot for a finding."""
     kind, name = finding["target"].split(":", 1)
@@ -333,20 +325,15 @@ def _channels(finding, base) -> tuple[list[str], list[str]]:
 
 
 def plot_finding(finding, base, final) -> str | None:
-    """Before/after figure (base64 PNG) of the channels where the mismatch was found."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:  # pragma: no cover
-        return None
+    """Before/after figure (PNG data URI) of the channels where the mismatch was found."""
     outs, sts = _channels(finding, base)
     rows = [("out", o) for o in outs if o in base.model.output_names] + \
            [("eq", s) for s in sts if s in base.model.state_names]
     if not rows:
         return None
     sb, sf = base.signals[0], final.signals[0]
-    fig, axes = plt.subplots(len(rows), 1, figsize=(8, 2.4 * len(rows)), squeeze=False)
+    fig = new_figure(8, 2.4 * len(rows))
+    axes = fig.subplots(len(rows), 1, squeeze=False)
     for ax, (kind, name) in zip(axes[:, 0], rows):
         if kind == "out":
             j = base.model.output_names.index(name)
@@ -367,7 +354,8 @@ def plot_finding(finding, base, final) -> str | None:
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("t [s]")
     fig.suptitle(f"{finding['effect']} on {finding['target']} ({sb.record})", fontsize=9)
-    return _png(fig)
+    fig.tight_layout()
+    return png_data_uri(fig)
 
 
 def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ()) -> str:
@@ -423,7 +411,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             img = plot_finding(f, base, final)
             if img:
                 parts.append(f"<img alt='before/after {e(f['target'])}' "
-                             f"src='data:image/png;base64,{img}'/>")
+                             f"src='{img}'/>")
     rows = [(r["round"], t) for r in doc.get("rounds", []) for t in r.get("trials", [])]
     if rows:
         parts.append("<h3>Every candidate refitted</h3><table border='1' cellpadding='3'>"

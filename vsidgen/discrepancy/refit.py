@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
-import types
 from typing import Any
 
 import numpy as np
@@ -121,11 +120,7 @@ class RefitOutcome:
                 "compile_s": None if self.compile_s is None else round(self.compile_s, 2)}
 
 
-def _ns(decision):
-    return types.SimpleNamespace(decision=decision)
-
-
-def _noise_w(model, records, det_std, *, proc_std: dict, proc_G: dict, meas_std: dict):
+def noise_parameters(model, records, det_std, *, proc_std: dict, proc_G: dict, meas_std: dict):
     """Unconstrained noise parameters of ``model`` holding the given stds (layout of the estimator).
 
     proc_std: {state: std} (states absent get ``det_std``); proc_G: {(row, col): value}
@@ -149,7 +144,7 @@ def _noise_w(model, records, det_std, *, proc_std: dict, proc_G: dict, meas_std:
     return np.asarray(w, float)
 
 
-def _z0(model):
+def parameter_start(model):
     """Unconstrained start of the free parameters and the θ it maps to (the estimator's map)."""
     from ..estimator.core import ThetaMap
 
@@ -158,7 +153,10 @@ def _z0(model):
     return np.asarray(tm.z0, float), theta
 
 
-def _noise_of(fit, model) -> tuple[dict, dict, dict]:
+def noise_stds(fit, model) -> tuple[dict, dict, dict]:
+    """The noise of ``fit`` (a fit of ``model``) by name: process std per state (the diagonal
+    of G), off-diagonal G entries {(row state, column state): value}, measurement std per
+    output; the arguments :func:`noise_parameters` takes."""
     G = np.asarray(fit.G, float)
     names = model.state_names
     proc_std = dict(fit.process_std)
@@ -206,8 +204,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     base_idx = [names1.index(n) for n in names0]
     new_idx = [j for j, n in enumerate(names1) if n not in names0]
     n0, n1 = len(names0), len(names1)
-    F = transition(model1, integrator=getattr(model1, "integrator", "euler") or "euler",
-                   substeps=getattr(model1, "substeps", 1) or 1)
+    F = transition(model1, integrator=None, substeps=None)
     th = jnp.asarray(theta1)
     ni = np.asarray(new_idx)
 

@@ -188,43 +188,43 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
     import jax.numpy as jnp
 
-    from ..estimator.core import NoiseMap, ThetaMap, get_objective, get_transition, make_cfg
+    from ..dynamics import settings as transition_settings
+    from ..dynamics import transition
+    from ..estimator.core import NoiseMap, ThetaMap, get_objective, make_cfg
     from ..estimator.core import record_data
     from ..model import load_model
-    from .refit import _noise_of, _noise_w, stage0_start
-    from .search import _warm_parameters, write_spec
+    from .refit import noise_parameters, noise_stds, stage0_start
+    from .specwrite import warm_parameters, write_spec
 
     d, bnames = batch_spec_dict(cands, current.spec_path, name=name, path=path, info=info)
-    params = _warm_parameters(current)
+    params = warm_parameters(current.model, current.fit.theta)
     params.update(d.get("parameters") or {})
     d["parameters"] = params
     write_spec(path, "vsidgen diagnose score-test batch", d)
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
     base_fit = current.fit
-    integ = getattr(m, "integrator", "euler") or "euler"
-    sub = int(getattr(m, "substeps", 1) or 1)
-    F = get_transition(m, integ, sub)
+    integ, sub = transition_settings(m)
+    F = transition(m, integrator=integ, substeps=sub)
     tm = ThetaMap(m.parameters)
     nm = NoiseMap(m, records, deterministic_std=det_std)
     obj = get_objective(m, tm, nm, F, (integ, sub))
     cfg = make_cfg(tm, nm)
     theta = np.asarray(tm.theta(jnp.asarray(tm.z0)), float)
-    proc_std, offd, meas_std = _noise_of(base_fit, current.model)
+    proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     s = np.concatenate([np.asarray(tm.z0, float),
-                        _noise_w(m, records, det_std, proc_std=proc_std, proc_G=offd,
+                        noise_parameters(m, records, det_std, proc_std=proc_std, proc_G=offd,
                                  meas_std=meas_std)])
     new_states = [n for n in m.state_names if n not in current.model.state_names]
     if new_states:
         # the added states' assumed density is fitted first (θ, noise fixed: stage 0 of the
         # refit), so that the Hessian is taken at a stationary point of everything but the
         # new parameters
-        from ..estimator import FitOptions, smooth
-        from .refit import _ns
+        from ..estimator import FitOptions, WarmStart, smooth
         dec, G1, R1, _, _ = stage0_start(m, records, base_fit, current.model, theta, det_std)
         r0 = smooth(m, records, theta, {"G": G1, "R": R1},
                     options=FitOptions(max_iter=100, deterministic="quasi", deterministic_std=det_std,
-                                       warm_start=_ns(dec)))
+                                       warm_start=WarmStart.from_decision(dec)))
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in r0.decision["records"]]
     else:

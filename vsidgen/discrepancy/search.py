@@ -44,7 +44,6 @@ import dataclasses
 import enum
 import math
 import pathlib
-import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -56,63 +55,22 @@ from scipy import stats
 from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import StopReason as FitStopReason
+from ..estimator import WarmStart
 from ..limits import check_input_file
+from ..results import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
-
-
-@dataclasses.dataclass(frozen=True)
-class DiagnoseOptions:
-    """Options of :func:`run_diagnose` (all keyword, defaults shown).
-
-    Attributes:
-        max_rounds: maximum number of accepted effects (rounds of the search).
-        max_candidates: candidates refitted per round (the best-scoring ones).
-        alpha: family-wise significance level per round (Holm over the candidates tried).
-        min_score: minimum locate score (−log10 p) for a candidate to be refitted.
-        effects: restrict the catalogue to these effect ids (None: all registered).
-        max_iter: optimizer iteration limit of each fit.
-        screen: score-test pre-screen of the candidates that add no state (default off: see
-            :mod:`.score` for its cost and its failure on degenerate base optima).
-    """
-
-    max_rounds: int = 3
-    max_candidates: int = 8
-    alpha: float = 0.01
-    min_score: float = 1.0
-    effects: tuple[str, ...] | None = None
-    max_iter: int = 200
-    screen: bool = False
+from .fitstate import (FitState, conv_label, diag_options, evaluated, refit_converged, refit_warm,
+                       stage1_iterations)
+from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
 
 
 #: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
 #: two explanations below e³ ≈ 20, "not strong" on the Kass–Raftery scale) is reported as an
 #: alternative explanation and the finding is marked ambiguous
 AMBIGUITY_NATS = 3.0
-
-
-@dataclasses.dataclass(frozen=True)
-class FitState:
-    """A fitted model: spec, model, fit, evaluation signals (estimation and validation)."""
-
-    spec_path: pathlib.Path
-    model: Any
-    records: tuple
-    fit: Any
-    signals: tuple
-    vrecords: tuple = ()
-    vfit: Any = None
-    vsignals: tuple = ()
-
-    @property
-    def elbo(self) -> float:
-        return float(self.fit.elbo)
-
-    @property
-    def val_elbo(self) -> float | None:
-        return None if self.vfit is None else float(self.vfit.elbo)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -194,16 +152,6 @@ class DiagnoseResult:
     stop: StopReason = StopReason.COMPLETED
 
 
-def _f(v):
-    if v is None:
-        return None
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
-
-
 def _say(progress, msg):
     if progress is not None:
         progress(msg)
@@ -213,44 +161,19 @@ def _say(progress, msg):
 # fitting helpers
 # ---------------------------------------------------------------------------
 
-def _diag_options(max_iter, **kw):
-    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see refit.py)."""
-    from ..estimator import FitOptions
-    from .refit import REFIT_DETERMINISTIC_STD
-    kw.setdefault("deterministic", "quasi")
-    return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
-
-
-def _evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
-    """Evaluate a fit (and smooth the validation records with θ and noise fixed)."""
-    from ..estimator import smooth
-    from ..evaluation import evaluate
-
-    signals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                    for r, sm in zip(records, res.smoothers))
-    vfit, vsignals = None, ()
-    if vrecords:
-        vfit = smooth(model, list(vrecords), res.theta, res, options=_diag_options(max_iter))
-        vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
-                         for r, sm in zip(vrecords, vfit.smoothers))
-    return FitState(pathlib.Path(spec_path), model, tuple(records), res, signals, tuple(vrecords),
-                    vfit, vsignals)
-
-
 def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
              warm_theta: dict | None = None) -> FitState:
     """Load, fit, evaluate (and validate) one spec on the given record files."""
-    from ..data import load_record
+    from ..data import load_record, unique_names
     from ..estimator import fit
     from ..model import load_model
-    from ..pipeline import _unique_names
 
     model = load_model(spec_path, generated_dir=generated_dir)
-    records = tuple(_unique_names([load_record(model, p) for p in data]))
-    vrecords = tuple(_unique_names([load_record(model, p) for p in validate]))
+    records = tuple(unique_names([load_record(model, p) for p in data]))
+    vrecords = tuple(unique_names([load_record(model, p) for p in validate]))
     # the user's model: its own states without process noise are fitted in the exact limit
-    res = fit(model, list(records), options=_diag_options(max_iter, deterministic="limit"))
-    return _evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
+    res = fit(model, list(records), options=diag_options(max_iter, deterministic="limit"))
+    return evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 
 def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
@@ -259,27 +182,12 @@ def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
 
     _say(progress, f"base fit not converged ({st.fit.status}); continuing it")
     try:
-        res = fit(st.model, list(st.records), options=_diag_options(2 * max_iter, warm_start=st.fit))
+        res = fit(st.model, list(st.records), options=diag_options(2 * max_iter, warm_start=st.fit))
     except FitError:
         return st
     if res.elbo < st.elbo:
         return st
-    return _evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
-
-
-def refit_converged(res) -> bool:
-    """Converged by the estimator's typed stop reason (Newton decrement or gradient test)."""
-    reason = getattr(res, "stop_reason", None)
-    return bool(res.converged) if reason is None else reason.converged
-
-
-def conv_label(res) -> str:
-    return "converged" if refit_converged(res) else "NOT converged"
-
-
-def _stage1_iter(max_iter: int) -> int:
-    """Stage 1 only has to bring the new parameters near their optimum (stage 2 finishes)."""
-    return max(10, min(max_iter, 40))
+    return evaluated(st.spec_path, st.model, st.records, res, st.vrecords, max_iter=max_iter)
 
 
 def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib.Path,
@@ -291,8 +199,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     """
     from ..estimator import fit, smooth
     from ..model import load_model
-    from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, _noise_of, _noise_w, _ns,
-                        _z0, stage0_start, x0_entropy)
+    from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, noise_parameters, noise_stds,
+                        parameter_start, stage0_start, x0_entropy)
 
     t0 = time.perf_counter()
     out = RefitOutcome()
@@ -303,8 +211,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     write_candidate(c, current, info, p1, name + "_s1", fix_base=True)
     m1 = load_model(p1, generated_dir=generated_dir)
     new_states = [n for n in m1.state_names if n not in current.model.state_names]
-    z1, theta1 = _z0(m1)
-    proc_std, offd, meas_std = _noise_of(base_fit, current.model)
+    z1, theta1 = parameter_start(m1)
+    proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     decision0 = base_fit.decision
     warm = base_fit.decision is not None
     out.elbo_ref = current.elbo
@@ -314,7 +222,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             dec0, G1, R1, H0, notes = stage0_start(m1, records, base_fit, current.model, theta1, DET)
             out.notes += notes
             r0 = smooth(m1, records, theta1, {"G": G1, "R": R1},
-                        options=_diag_options(max_iter, warm_start=_ns(dec0)))
+                        options=diag_options(max_iter, warm_start=WarmStart.from_decision(dec0)))
             out.elbo_stage0, out.converged_stage0 = float(r0.elbo), bool(r0.converged)
             out.x0_entropy = H0
             out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
@@ -329,21 +237,21 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     opts1 = {}
     if warm:
         try:
-            s1 = np.concatenate([z1, _noise_w(m1, records, DET, proc_std=proc_std, proc_G=offd,
+            s1 = np.concatenate([z1, noise_parameters(m1, records, DET, proc_std=proc_std, proc_G=offd,
                                               meas_std=meas_std)])
-            opts1["warm_start"] = _ns({"s": s1, "records": decision0["records"]})
+            opts1["warm_start"] = WarmStart.from_decision({"s": s1, "records": decision0["records"]})
             out.warm = out.warm or "base"
         except (FitError, ValueError, KeyError) as err:
             out.notes.append(f"no warm start for stage 1 ({err})")
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter), **opts1))
+        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter), **opts1))
     except FitError as err:
         if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m1, records, options=_diag_options(_stage1_iter(max_iter)))
+        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter)))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     if not new_states and not opts1:
         out.elbo_ref = current.elbo
@@ -355,24 +263,24 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     m2 = load_model(path, generated_dir=generated_dir)
     opts2 = {}
     try:
-        z2, _ = _z0(m2)
-        ps, od, ms = _noise_of(res1, m1)
-        s2 = np.concatenate([z2, _noise_w(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-        opts2["warm_start"] = _ns({"s": s2, "records": res1.decision["records"]})
+        z2, _ = parameter_start(m2)
+        ps, od, ms = noise_stds(res1, m1)
+        s2 = np.concatenate([z2, noise_parameters(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
+        opts2["warm_start"] = WarmStart.from_decision({"s": s2, "records": res1.decision["records"]})
     except (FitError, ValueError, KeyError, TypeError) as err:
         out.notes.append(f"no warm start for stage 2 ({err})")
     try:
-        res2 = fit(m2, records, options=_diag_options(2 * max_iter, **opts2))
+        res2 = fit(m2, records, options=diag_options(2 * max_iter, **opts2))
     except FitError as err:
         if not opts2:
             raise
         out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res2 = fit(m2, records, options=_diag_options(2 * max_iter))
+        res2 = fit(m2, records, options=diag_options(2 * max_iter))
     if not res2.converged and getattr(res2, "stop_reason", None) in (FitStopReason.NO_PROGRESS,
                                                                      FitStopReason.INDEFINITE_HESSIAN):
         # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
         try:
-            res2b = fit(m2, records, options=_diag_options(max_iter, warm_start=res2))
+            res2b = fit(m2, records, options=diag_options(max_iter, warm_start=res2))
             if res2b.elbo >= res2.elbo:
                 out.notes.append(f"stage 2 restarted after a stall: {res2b.status}")
                 res2 = res2b
@@ -380,7 +288,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             out.notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
     if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
         out.notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
-    st = _evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
+    st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:
         out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
     out.state = st
@@ -399,7 +307,7 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
     import jax
     import jax.numpy as jnp
 
-    from ..simulate import theta_vector
+    from ..model import theta_vector
 
     m = st.model
     free = [i for i, p in enumerate(m.parameters) if not p.fixed]
@@ -426,40 +334,6 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
 PROJECTED_TOL = 0.05
 
 
-def write_spec(path: pathlib.Path, header: str, d: dict) -> pathlib.Path:
-    """Write a generated spec mapping ``d`` as YAML under a ``# header`` comment line."""
-    import yaml
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(f"# {header}\n" + yaml.safe_dump(d, sort_keys=False, width=100,
-                                                     allow_unicode=True), encoding="utf-8")
-    return path
-
-
-def _extends(spec_path, path: pathlib.Path) -> str:
-    """``extends:`` text of a spec written at ``path`` that extends ``spec_path``."""
-    import os
-    return os.path.relpath(pathlib.Path(spec_path).resolve(), path.resolve().parent)
-
-
-def _refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
-                iterations: int, max_iter: int) -> FitState:
-    """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
-    and assumed density (the same state layout) and the spec's parameter initial values."""
-    from ..estimator import fit
-    from ..model import load_model
-    from .refit import REFIT_DETERMINISTIC_STD as DET, _noise_of, _noise_w, _ns, _z0
-
-    m = load_model(path, generated_dir=generated_dir)
-    records = list(current.records)
-    z, _ = _z0(m)
-    ps, od, ms = _noise_of(source.fit, source.model)
-    s0 = np.concatenate([z, _noise_w(m, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=_diag_options(iterations, warm_start=_ns(
-        {"s": s0, "records": source.fit.decision["records"]})))
-    return _evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
-
-
 def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str, *,
                     generated_dir, max_iter: int) -> FitState:
     """The *current* model refitted from a candidate's optimum, its new terms removed.
@@ -475,15 +349,15 @@ def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str
     start. When it ends above the current ELBO, the current model has a better optimum,
     which becomes the reference of every candidate of the round.
     """
-    params = _warm_parameters(t.state)
+    params = warm_parameters(t.state.model, t.state.fit.theta)
     for q in t.candidate.parameters:
         params[q.name].update(initial=float(q.initial), fixed=True)
     write_spec(path, f"vsidgen diagnose: projected refit of {t.candidate.key}",
                {"name": name,
                 "description": f"{t.candidate.key} with its new terms at their nesting values "
                                "(the current model), started at the candidate's optimum",
-                "extends": _extends(t.spec_path, path), "parameters": params})
-    return _refit_warm(path, t.state, current, generated_dir=generated_dir,
+                "extends": extends_text(t.spec_path, path), "parameters": params})
+    return refit_warm(path, t.state, current, generated_dir=generated_dir,
                        iterations=2 * max_iter, max_iter=max_iter)
 
 
@@ -497,16 +371,16 @@ def rebase(better: FitState, current: FitState, path: pathlib.Path, name: str, *
     candidate's zeroed terms.
     """
     est = dict(zip(better.model.parameter_names, map(float, better.fit.theta)))
-    params = _warm_parameters(current)
+    params = warm_parameters(current.model, current.fit.theta)
     for k, v in params.items():
         if not v.get("fixed") and k in est and math.isfinite(est[k]):
-            v["initial"] = _clip(est[k], v.get("bounds"))
+            v["initial"] = clip_to_bounds(est[k], v.get("bounds"))
     write_spec(path, "vsidgen diagnose: the current model re-estimated (better optimum)",
                {"name": name,
                 "description": "the current model at a better optimum of its own parameters "
                                "and noise",
-                "extends": _extends(current.spec_path, path), "parameters": params})
-    return _refit_warm(path, better, current, generated_dir=generated_dir,
+                "extends": extends_text(current.spec_path, path), "parameters": params})
+    return refit_warm(path, better, current, generated_dir=generated_dir,
                        iterations=max_iter, max_iter=max_iter)
 
 
@@ -552,33 +426,6 @@ def model_info_of(st: FitState) -> ModelInfo:
     return dataclasses.replace(info, breaks=breaks)
 
 
-def _clip(x: float, bounds) -> float:
-    """``x`` clipped to a parameter's ``[lower, upper]`` bounds (``None`` = unbounded)."""
-    lo, hi = bounds or (None, None)
-    x = float(x) if lo is None else max(float(x), lo)
-    return x if hi is None else min(x, hi)
-
-
-def _warm_parameters(st: FitState) -> dict:
-    """Parameter entries of the current model with the estimates as initial values."""
-    out = {}
-    for p, v in zip(st.model.parameters, st.fit.theta):
-        d: dict[str, Any] = {"unit": p.unit if p.unit is not None else "1",
-                             "description": p.description or "",
-                             "initial": float(p.initial if p.fixed else v)}
-        if p.lower is not None or p.upper is not None:
-            d["bounds"] = [p.lower, p.upper]
-            d["initial"] = _clip(d["initial"], d["bounds"])
-        if p.fixed:
-            d["fixed"] = True
-        out[p.name] = d
-    return out
-
-
-def _safe(key: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_]+", "_", key).strip("_")[:60]
-
-
 def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.Path,
                     name: str, *, warm: bool = True, fix_base: bool = False,
                     new_initial: dict | None = None) -> pathlib.Path:
@@ -591,14 +438,14 @@ def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.P
 
     d = c.spec_dict(st.spec_path, name=name, candidate_path=path, info=info)
     if warm:
-        params = _warm_parameters(st)
+        params = warm_parameters(st.model, st.fit.theta)
         if fix_base:
             for v in params.values():
                 v["fixed"] = True
         new = d.get("parameters") or {}
         for k, v in new.items():
             if new_initial and k in new_initial and math.isfinite(new_initial[k]) and not v.get("fixed"):
-                v["initial"] = _clip(new_initial[k], v.get("bounds"))
+                v["initial"] = clip_to_bounds(new_initial[k], v.get("bounds"))
         params.update(new)
         d["parameters"] = params
     return write_spec(path, f"vsidgen diagnose candidate {c.key}\n# effect: {c.effect}; "
@@ -687,7 +534,7 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
     scores = {}
     if screen and current is not None and current.fit.decision is not None and every:
         scores = score_screen([c for _, c in every], current, info, workdir,
-                              f"{_safe(current.model.name)[:30]}_sc",
+                              f"{safe_name(current.model.name)[:30]}_sc",
                               generated_dir=generated_dir, det_std=REFIT_DETERMINISTIC_STD,
                               progress=progress)
     rows = []
@@ -905,10 +752,10 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                 "score): " if screen else "locate scores: ")
                      + ", ".join(f"{r['key']} {r['priority']:.3g}"
                                  for r in table[:max_candidates + 4] if r['priority'] is not None))
-                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{_safe(c.key)}.yaml"
+                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
                          for i, (_, _, c, _) in enumerate(ranked)]
                 tasks = [(c.key, (c, current, info, paths[i],
-                                  f"{_safe(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
+                                  f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter))
                          for i, (_, _, c, _) in enumerate(ranked)]
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
@@ -962,9 +809,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                             or not t.converged or not (t.p_value < alpha)):
                         continue
                     ppath = (out / "candidates"
-                             / f"r{rnd}_{i + 1:02d}_{_safe(t.candidate.key)}.projected.yaml")
+                             / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
                     ptasks.append((t.candidate.key, (t, current, ppath,
-                                                     f"{_safe(current.model.name)[:30]}_dg{rnd}_"
+                                                     f"{safe_name(current.model.name)[:30]}_dg{rnd}_"
                                                      f"{i + 1}p", gen, max_iter)))
                 if ptasks:
                     unfinished["projected_pending"] = [k for k, _ in ptasks]
@@ -996,7 +843,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     try:
                         rb = rebase(better, current,
                                     out / "candidates" / f"r{rnd}_00_current.yaml",
-                                    f"{_safe(current.model.name)[:30]}_dg{rnd}_0",
+                                    f"{safe_name(current.model.name)[:30]}_dg{rnd}_0",
                                     generated_dir=gen, max_iter=max_iter)
                         if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
                             better = rb
@@ -1117,7 +964,7 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
-    from ..cli import add_override_arguments
+    from ..overrides import add_override_arguments
 
     add_override_arguments(p)
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
@@ -1134,39 +981,17 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def terminate_as_interrupt():
-    """Context manager: SIGTERM raises KeyboardInterrupt (so a terminated run writes what it
-    has, as on Ctrl-C); the previous handler is restored on exit. No-op off the main thread."""
-    import contextlib
-    import signal
-    import threading
-
-    @contextlib.contextmanager
-    def cm():
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-
-        def handler(signum, frame):
-            raise KeyboardInterrupt(f"signal {signum}")
-
-        old = signal.signal(signal.SIGTERM, handler)
-        try:
-            yield
-        finally:
-            signal.signal(signal.SIGTERM, old)
-    return cm()
-
-
 def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; exit status 0 (completed) or 1 (stopped at the time
     limit; what was found is written). An interrupt (Ctrl-C, SIGTERM) writes the findings
     and propagates (status 130)."""
-    from ..cli import _enable_compilation_cache, overrides_of
+    from ..compilecache import enable_compilation_cache
+    from ..engine import terminate_as_interrupt
+    from ..overrides import overrides_of
     from ..progress import DiagnoseProgress
 
     ov = overrides_of(args)
-    _enable_compilation_cache()
+    enable_compilation_cache()
     progress = None if args.quiet else DiagnoseProgress(sys.stderr)
     try:
         with terminate_as_interrupt():

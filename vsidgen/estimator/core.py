@@ -47,43 +47,6 @@ from .. import precision  # noqa: F401  (float64, set once)
 LOG2PI = math.log(2.0 * math.pi)
 
 
-# --------------------------------------------------------------------------- transition
-def _transition(drift, integrator: str, substeps: int):
-    """Discrete transition mean F(x, u, p, dt): Euler (x + h f) or RK4, ``substeps`` steps of dt/substeps.
-
-    The input is held constant over the sample interval (zero-order hold).
-    """
-    if integrator not in ("euler", "rk4"):
-        raise FitError(f"unknown integrator '{integrator}' (use 'euler' or 'rk4')")
-    m = int(substeps)
-    if m < 1:
-        raise FitError(f"substeps must be >= 1, got {substeps}")
-
-    def F(x, u, p, dt):
-        h = dt / m
-        for _ in range(m):
-            if integrator == "euler":
-                x = x + h * drift(x, u, p)
-            else:
-                k1 = drift(x, u, p)
-                k2 = drift(x + 0.5 * h * k1, u, p)
-                k3 = drift(x + 0.5 * h * k2, u, p)
-                k4 = drift(x + h * k3, u, p)
-                x = x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
-        return x
-
-    return F
-
-
-def get_transition(model, integrator: str, substeps: int):
-    """Mean transition F(x, u, p, dt) from :func:`vsidgen.dynamics.transition` (private fallback if absent)."""
-    try:
-        from .. import dynamics
-    except ImportError:  # pragma: no cover - dynamics.py is part of the package
-        return _transition(model.drift, integrator, substeps)
-    return dynamics.transition(model, integrator=integrator, substeps=substeps)
-
-
 # --------------------------------------------------------------------------- small dense linear algebra
 # Unrolled Cholesky / triangular solve for the small (n ≲ 12) matrices of the
 # assumed density: plain arithmetic differentiates twice into a much smaller

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import enum
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
@@ -161,7 +160,8 @@ class FitOptions:
             reparametrisations (the units of every parameter) and, being a difference of
             log-likelihoods, means the same for every record length. See docs/estimator.md.
         xtol: stop (not converged) when the relative step falls below this.
-        warm_start: a previous FitResult of the same problem shape to start from.
+        warm_start: a :class:`WarmStart`, or a previous FitResult of the same problem
+            shape (its ``decision``), to start from.
         lambda0: initial Levenberg–Marquardt damping (Marquardt diagonal scaling).
         noise_start: starting point of the noise parameters (θ always starts at the
             spec's initial values): "data" (measurement std from the robust spread of
@@ -208,13 +208,36 @@ class FitOptions:
     deterministic_std: float = 1e-6
     limit_tol: float = 0.1
     xtol: float = 1e-13
-    warm_start: Any = None
+    warm_start: WarmStart | FitResult | None = None
     lambda0: float = 1e-3
     noise_start: str = "auto"
     stall_window: int = 10
     bucket: bool = True
     time_limit: float | None = None
     stall_rtol: float = 1e-8
+
+
+@dataclasses.dataclass(frozen=True)
+class WarmStart:
+    """A start for :func:`vsidgen.estimator.fit` of a problem of known shape, in place of the
+    fit's own initial guess.
+
+    ``shared`` holds the unconstrained decision variables shared by all records: the free
+    parameters (``ThetaMap`` coordinates) followed by the noise parameters (``NoiseMap``
+    coordinates); ``records`` per record the assumed density's means ``mu`` (N, nx) and its
+    covariance parameters ``r`` (log-diagonal d of Σ_cond, strict lower part of L, cross
+    matrix C). ``FitResult.decision`` holds the same for a finished fit.
+    """
+
+    shared: np.ndarray
+    records: tuple[tuple[np.ndarray, np.ndarray], ...]
+
+    @classmethod
+    def from_decision(cls, decision: dict) -> WarmStart:
+        """From the ``{"s": shared, "records": [{"mu", "r"}, ...]}`` layout of ``FitResult.decision``."""
+        return cls(shared=np.asarray(decision["s"], float),
+                   records=tuple((np.asarray(d["mu"], float), np.asarray(d["r"], float))
+                                 for d in decision["records"]))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,97 @@
+"""A fitted model as diagnose handles it (:class:`FitState`) and the fits that make one:
+the estimator options of diagnose's fits, evaluation (and validation smoothing), a refit
+warm-started from another fit, convergence by the estimator's typed stop reason."""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from typing import Any
+
+import numpy as np
+
+from ..estimator import WarmStart
+from .refit import REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
+
+
+@dataclasses.dataclass(frozen=True)
+class FitState:
+    """A fitted model: spec, model, fit, evaluation signals (estimation and validation)."""
+
+    spec_path: pathlib.Path
+    model: Any
+    records: tuple
+    fit: Any
+    signals: tuple
+    vrecords: tuple = ()
+    vfit: Any = None
+    vsignals: tuple = ()
+
+    @property
+    def elbo(self) -> float:
+        return float(self.fit.elbo)
+
+    @property
+    def val_elbo(self) -> float | None:
+        return None if self.vfit is None else float(self.vfit.elbo)
+
+
+def diag_options(max_iter, **kw):
+    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see refit.py)."""
+    from ..estimator import FitOptions
+    kw.setdefault("deterministic", "quasi")
+    return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
+
+
+def evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
+    """Evaluate a fit (and smooth the validation records with θ and noise fixed)."""
+    from ..estimator import smooth
+    from ..evaluation import evaluate
+
+    signals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
+                    for r, sm in zip(records, res.smoothers))
+    vfit, vsignals = None, ()
+    if vrecords:
+        vfit = smooth(model, list(vrecords), res.theta, res, options=diag_options(max_iter))
+        vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
+                         for r, sm in zip(vrecords, vfit.smoothers))
+    return FitState(pathlib.Path(spec_path), model, tuple(records), res, signals, tuple(vrecords),
+                    vfit, vsignals)
+
+
+def refit_converged(res) -> bool:
+    """Converged by the estimator's typed stop reason (Newton decrement or gradient test)."""
+    reason = getattr(res, "stop_reason", None)
+    return bool(res.converged) if reason is None else reason.converged
+
+
+def conv_label(res) -> str:
+    """"converged" or "NOT converged" (:func:`refit_converged`) for messages."""
+    return "converged" if refit_converged(res) else "NOT converged"
+
+
+def stage1_iterations(max_iter: int) -> int:
+    """Stage 1 only has to bring the new parameters near their optimum (stage 2 finishes)."""
+    return max(10, min(max_iter, 40))
+
+
+def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
+               iterations: int, max_iter: int) -> FitState:
+    """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
+    and assumed density (the same state layout) and the spec's parameter initial values."""
+    from ..estimator import fit
+    from ..model import load_model
+
+    m = load_model(path, generated_dir=generated_dir)
+    records = list(current.records)
+    z, _ = parameter_start(m)
+    ps, od, ms = noise_stds(source.fit, source.model)
+    s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
+                                             proc_G=od, meas_std=ms)])
+    res = fit(m, records, options=diag_options(iterations, warm_start=WarmStart.from_decision(
+        {"s": s0, "records": source.fit.decision["records"]})))
+    return evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
+
+
+__all__ = ["FitState", "conv_label", "diag_options", "evaluated", "refit_converged", "refit_warm",
+           "stage1_iterations"]
