@@ -15,6 +15,7 @@ vacuously.
 from __future__ import annotations
 
 import ast
+import functools
 import pathlib
 import re
 
@@ -67,6 +68,12 @@ def _sources(package: pathlib.Path) -> dict[str, tuple[pathlib.Path, str]]:
             for p in sorted(package.rglob("*.py"))}
 
 
+@functools.lru_cache(maxsize=None)
+def _parsed(text: str) -> ast.Module:
+    """The syntax tree of a source text (parsed once per text; the checks only read it)."""
+    return ast.parse(text)
+
+
 def _private(name: str) -> bool:
     return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
 
@@ -82,7 +89,7 @@ def analyse(package: pathlib.Path, top: str = "vsidgen", extra: dict | None = No
     for mod, text in sources.items():
         is_pkg = (package.parent / mod.replace(".", "/") / "__init__.py").exists()
         here = mod if is_pkg else mod.rpartition(".")[0]
-        tree = ast.parse(text)
+        tree = _parsed(text)
         module_aliases: set[str] = set()
 
         def add(target: str, line: int) -> None:
@@ -169,7 +176,7 @@ def _sets_x64(text: str) -> bool:
         return (isinstance(node, ast.Constant) and isinstance(node.value, str)
                 and node.value.lower() == "jax_enable_x64")
 
-    for node in ast.walk(ast.parse(text)):
+    for node in ast.walk(_parsed(text)):
         if isinstance(node, ast.Call) and node.args and is_name(node.args[0]):
             if not (isinstance(node.func, ast.Attribute) and node.func.attr in ("get", "getenv")):
                 return True

@@ -110,7 +110,7 @@ def rec():
 
 @pytest.fixture(scope="module")
 def fitted(rec):
-    return fit(model(), [rec])
+    return fit(model(), [rec], options=FitOptions(noise_start="data"))
 
 
 def test_smoothing_with_a_deterministic_state_matches_the_exact_smoother(rec):
@@ -189,7 +189,7 @@ def test_output_error_fit_matches_the_exact_output_error_estimate():
               parameters=tuple(Parameter(n) for n in ("a11", "a21", "a22", "b2")),
               process_noise=ProcessNoiseSpec(states=("x1", "x2"), estimate=False),
               measurement_noise=tuple(MeasurementNoiseSpec(o, floor=0.0) for o in ("y1", "y2")))
-    res = fit(m, [rec])
+    res = fit(m, [rec], options=FitOptions(noise_start="data"))
     assert res.converged, res.status
     lim = res.deterministic_limit
     assert res.deterministic_states == ("x1", "x2") and lim["reached"], lim
