@@ -66,6 +66,7 @@ def run_one(name: str, seed: int, max_iter: int = 200) -> dict:
             "within3": float(np.mean(np.abs(z) < 3.0)), "cover95": float(np.mean(np.abs(z) < 1.96)),
             "n_free": int(free.sum()), "z": [float(v) for v in z],
             "se_reliable": bool(res.std_errors_reliable),
+            "se_issues": [f.issue.value for f in res.std_error_flags],
             "warnings": [w["code"] for w in res.warnings],
             "elbo_per_sample": float(res.elbo) / n_est, "val_elbo_per_sample": float(vres.elbo) / n_val,
             "val_converged": bool(vres.converged), "val_iterations": int(vres.iterations),

@@ -48,6 +48,8 @@ def test_demo_fit_converges_and_recovers_truth(demo_fit):
         assert abs(res["noise"]["process_std"][name] / truth - 1) < 0.3
     corr = np.array(res["correlation"]["matrix"])
     assert corr.shape == (8, 8) and np.allclose(np.diag(corr), 1.0)
+    # a converged fit of an identifiable model carries no standard-error flag
+    assert res["std_errors_reliable"] is True and res["std_error_issues"] == []
 
 
 def test_demo_fit_writes_signals_and_validation_metrics(demo_fit):
@@ -160,7 +162,31 @@ def test_not_converged_is_reported(tmp_path, capsys):
     res = json.loads((out / "results.json").read_text())
     assert res["converged"] is False and res["status"]
     assert res["stop_reason"] == "iteration_limit" and res["std_errors_reliable"] is False
+    assert [i["code"] for i in res["std_error_issues"]][:1] == ["not_converged"]
+    assert "standard errors: UNRELIABLE — not_converged" in captured.out
     # the validation smoothing (two iterations from its start) is flagged in results.json and the CLI line
     assert res["validation"]["converged"] is False and res["validation"]["stop_reason"] == "iteration_limit"
     assert "validation smoothing: NOT CONVERGED" in captured.out
     assert "validation_not_converged" in [w["code"] for w in res["warnings"]]
+
+
+def test_parameters_entering_only_as_a_sum_are_flagged_in_results_cli_and_report(tmp_path, capsys):
+    """ZDE2 added to the alpha equation beside ZDE: only ZDE + ZDE2 is identifiable. results.json,
+    the CLI line and the report name the flag and both parameters."""
+    (tmp_path / "specs").mkdir()
+    spec = tmp_path / "specs" / "attas_sp_split.yaml"   # generated code goes to tmp_path/generated
+    spec.write_text(f"extends: {SPEC}\nname: attas_sp_split\n"
+                    "parameters:\n  ZDE2: {unit: 1/s, description: second elevator term}\n"
+                    "add_terms:\n  drift: {alpha: ZDE2*de}\n")
+    out = tmp_path / "res"
+    main(["fit", str(spec), str(DATA), "--out", str(out), "--report", "--noise-start", "data",
+          "--max-iter", "60"])
+    captured = capsys.readouterr()
+    res = json.loads((out / "results.json").read_text())
+    assert res["std_errors_reliable"] is False
+    flagged = [i for i in res["std_error_issues"]
+               if i["code"] in ("hessian_not_positive_definite", "near_singular_information")]
+    assert flagged and {"ZDE", "ZDE2"} <= set(flagged[0]["parameters"]), res["std_error_issues"]
+    assert "standard errors: UNRELIABLE" in captured.out and "ZDE2" in captured.out.split("UNRELIABLE")[1]
+    html = (out / "report.html").read_text()
+    assert flagged[0]["code"] in html and "ZDE2" in html

@@ -276,3 +276,18 @@ def test_readable_tex():
     assert _readable_tex(r"CD SBYM \bar{q}") == r"\mathrm{CD}\,\mathrm{SBYM}\,\bar{q}"
     assert _readable_tex(r"\frac{CDV V}{V_{0}}") == r"\frac{\mathrm{CDV}\,V}{V_{0}}"
     assert _readable_tex(r"\begin{cases} x \end{cases}").startswith(r"\begin{cases}")
+
+
+def test_standard_error_issues_are_listed_with_their_parameters(tmp_path):
+    d = write_results_dir(tmp_path / "fit", validation=False, warnings=False,
+                          std_errors_reliable=False, n_samples=100, n_outputs=1)
+    res = json.loads((d / "results.json").read_text())
+    res["std_error_issues"] = [{"code": "near_singular_information", "parameters": ["CD0", "CDV"],
+                                "detail": "corr(CD0, CDV) = +0.9995 (limit 0.999)",
+                                "message": "the information is nearly singular (CD0, CDV): fix one"}]
+    (d / "results.json").write_text(json.dumps(res))
+    src = write_report(d).read_text()
+    warn = src.split('id="warnings"')[1].split("</section>")[0]
+    assert "near_singular_information" in warn and "CD0, CDV" in warn
+    params = src.split('id="parameters"')[1].split("</table>")[0]
+    assert "the information is nearly singular (CD0, CDV): fix one" in params

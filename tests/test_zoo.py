@@ -4,7 +4,9 @@ The records come from hand-written numpy dynamics (benchmarks/zoo/models.py), no
 vsidgen's simulator or generated code; the truth is the simulator's parameter set. Checks:
 convergence by the estimator's own test, recovery within 3 standard errors, a converged
 validation smoothing whose ELBO per sample is close to the estimation ELBO per sample
-(same aircraft, same kind of record).
+(same aircraft, same kind of record); under ``-m slow``, the coverage of the 95 % intervals
+over many seeds (the fraction of |θ̂ − θ_true| / s.e. below 1.96; binomial acceptance region
+of the nominal 0.95) and no standard-error flag on converged fits of these identifiable models.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import zoo  # noqa: E402  (benchmarks/zoo.py)
 def _check(r):
     assert "error" not in r, r.get("error")
     assert r["converged"], r["status"]
+    assert r["se_issues"] == [], r["se_issues"]
     assert r["within3"] == 1.0, r["z"]
     assert r["val_converged"]
     assert abs(r["val_elbo_per_sample"] - r["elbo_per_sample"]) < 0.5, r
@@ -33,9 +36,30 @@ def test_zoo_short_period_in_turbulence_from_null_guesses():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["sp_oe", "lat4_nobeta"])
-@pytest.mark.xfail(strict=True, reason="measured: sp_oe (no process noise: quasi-deterministic states, "
-                                       "docs/estimator.md) and lat4_nobeta (indefinite Hessian) do not "
-                                       "converge from null guesses in 3 x 200 iterations")
-def test_zoo_models_not_yet_fitted_from_null_guesses(name):
+@pytest.mark.xfail(strict=True, reason="measured: lat4_nobeta (unmeasured sideslip with process noise) "
+                                       "reaches a degenerate local optimum from the unit process-noise start "
+                                       "(docs/estimator.md, 'Model zoo')")
+def test_zoo_unmeasured_sideslip_not_yet_fitted_from_null_guesses():
+    _check(zoo.run_one("lat4_nobeta", 1))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["sp3_pn", "lat4_pn", "lon4_pn", "sp_oe"])
+def test_zoo_models_from_null_guesses(name):
     _check(zoo.run_one(name, 1))
+
+
+@pytest.mark.slow
+def test_zoo_coverage_of_95_percent_intervals():
+    """12 seeds of sp_pn (60 parameter estimates): the fraction inside θ̂ ± 1.96 s.e. lies in
+    [0.88, 1.0], the region a binomial(60, 0.95) count falls in with probability > 0.99;
+    standard errors from the conditional curvature H_θθ⁻¹ (state path and noise held fixed)
+    or an estimate biased by more than a fraction of its s.e. would fall below it."""
+    import numpy as np
+
+    rows = [zoo.run_one("sp_pn", seed) for seed in range(1, 13)]
+    for r in rows:
+        assert "error" not in r and r["converged"], r
+    z = np.concatenate([np.asarray(r["z"]) for r in rows])
+    cover = float(np.mean(np.abs(z) < 1.96))
+    assert 0.88 <= cover <= 1.0, (cover, z)

@@ -379,6 +379,11 @@ def _cmd_fit(args) -> int:
         how = ("exact limit of vanishing process noise" if lim.get("reached")
                else "limit of vanishing process noise NOT reached" if lim else "quasi-deterministic")
         print(f"states without process noise: {', '.join(det)} ({how})")
+    issues = res.get("std_error_issues") or []
+    if res["parameters"] and not res.get("std_errors_reliable", True):
+        codes = ", ".join(f"{i['code']}" + (f" ({', '.join(i['parameters'])})" if i.get("parameters") else "")
+                          for i in issues) or "see warnings"
+        print(f"standard errors: UNRELIABLE — {codes}")
     val = res.get("validation") or {}
     val_ok = val.get("converged", True) is not False
     if val.get("elbo") is not None:

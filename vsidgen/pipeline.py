@@ -226,6 +226,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())],
         "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),
+        "std_error_issues": [f.to_json() for f in getattr(result, "std_error_flags", ())],
         "signals": {s.record: f"signals_{s.record}.csv" for s in signals + vsignals},
     }
 

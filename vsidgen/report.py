@@ -752,6 +752,7 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
         "versions": _versions(res),
         "warnings": warnings,
         "std_reliable": bool(res.get("std_errors_reliable", True)),
+        "std_issues": [i for i in (res.get("std_error_issues") or []) if isinstance(i, Mapping)],
         "parameters": _parameters(res, ref), "reference_label": ref_label,
         "has_reference": bool(ref) or any(
             math.isfinite(_num((p or {}).get("reference"))) for p in res["parameters"].values()

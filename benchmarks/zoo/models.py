@@ -215,4 +215,36 @@ LON4 = ZooModel(
     output_cols=(("V_fps", FT), ("alpha_deg", DEG), ("theta_deg", DEG), ("q_dps", DEG), ("az_g", G0)),
     description="longitudinal, nonlinear, 4 states, θ without process noise, accelerometer, ft/s and degrees, 20 Hz")
 
-MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4)}
+# ----------------------------------------------------------------------------- variants with noise on every state
+LAT4_PN = dataclasses.replace(
+    LAT4, name="lat4_pn", spec="lat4_pn.yaml", proc_std=(0.004, 0.03, 0.01, 0.002), dt=0.04, n=600,
+    description="lateral, linear, 4 states, process noise on every state, accelerometer, degrees/g, 25 Hz")
+
+KT = 1852.0 / 3600.0
+LON4_PN = dataclasses.replace(
+    LON4, name="lon4_pn", spec="lon4_pn.yaml", proc_std=(0.05, 0.003, 0.003, 0.01),
+    output_cols=(("V_kt", KT),) + LON4.output_cols[1:],
+    description="longitudinal, nonlinear, 4 states, process noise on every state, knots and degrees, 20 Hz")
+
+
+# ----------------------------------------------------------------------------- short period with attitude
+def _sp3_f(x, u, p):
+    a, q, th = x
+    return np.array([p["Za"] * a + p["Zq"] * q + p["Zde"] * u[0], p["Ma"] * a + p["Mq"] * q + p["Mde"] * u[0], q])
+
+
+def _sp3_h(x, u, p):
+    a, q, th = x
+    return np.array([a, q, th, -45.0 * (p["Za"] * a + (p["Zq"] - 1.0) * q + p["Zde"] * u[0])])
+
+
+SP3_PN = ZooModel(
+    name="sp3_pn", spec="sp3_pn.yaml",
+    truth={"Za": -1.0, "Zq": 0.95, "Zde": -0.08, "Ma": -6.0, "Mq": -2.0, "Mde": -10.0},
+    drift=_sp3_f, output=_sp3_h, x0=(0.0, 0.0, 0.0), proc_std=(0.003, 0.02, 0.002),
+    meas_std=(0.15 * DEG, 0.2 * DEG, 0.1 * DEG, 0.03 * G0), inputs=_lon_inputs, dt=0.025, n=480,
+    time_col="time_s", input_cols=(("elev_deg", DEG),),
+    output_cols=(("aoa_deg", DEG), ("q_dps", DEG), ("theta_deg", DEG), ("nz_g", G0)),
+    description="short period with attitude, linear, 3 states, process noise on every state, 40 Hz")
+
+MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN)}

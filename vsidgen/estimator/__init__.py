@@ -4,11 +4,11 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    FitOptions, FitResult, SmootherPath, StopReason, WarmStart
+    FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
 """
 
 from .fit import fit, measured_states, smooth
-from .results import FitOptions, FitResult, SmootherPath, StopReason, WarmStart
+from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "StopReason", "WarmStart", "fit", "measured_states",
-           "smooth"]
+__all__ = ["FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart",
+           "fit", "measured_states", "smooth"]

@@ -34,7 +34,7 @@ from ..dynamics import input_hold as transition_input_hold
 from ..dynamics import settings as transition_settings
 from ..dynamics import transition
 from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
-from .results import FitOptions, FitResult, SmootherPath, StopReason, WarmStart
+from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -222,13 +222,10 @@ class _Problem:
             Hg[np.ix_(ix, ix)] += np.asarray(b["Hbb"])
         return gg, Hg
 
-    def newton_step(self, blks, lam, dmus, dglob, frozen=None, delta=None):
-        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok).
-
-        ``frozen``: mask over s of variables whose step is prescribed (``delta``, default 0:
-        active floor bounds held fixed): the other variables get the (damped) Newton step
-        given these components (projected Newton step).
-        """
+    def schur(self, blks, lam, dmus, dglob):
+        """(factors, S, rhs): the state means eliminated record by record (block-tridiagonal
+        Cholesky of H_μμ + λD) and the Schur complement S over the border (all r and s) with
+        its right-hand side; None when a state-mean block is not positive definite."""
         facs = [self.obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
         if not all(bool(f["ok"]) for f in facs):
             return None
@@ -238,7 +235,19 @@ class _Problem:
             S[np.ix_(ix, ix)] += np.asarray(f["S"])
             rhs[ix] += np.asarray(f["rhs"])
         S += lam * np.diag(dglob)
-        S = 0.5 * (S + S.T)
+        return facs, 0.5 * (S + S.T), rhs
+
+    def newton_step(self, blks, lam, dmus, dglob, frozen=None, delta=None):
+        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok).
+
+        ``frozen``: mask over s of variables whose step is prescribed (``delta``, default 0:
+        active floor bounds held fixed): the other variables get the (damped) Newton step
+        given these components (projected Newton step).
+        """
+        sch = self.schur(blks, lam, dmus, dglob)
+        if sch is None:
+            return None
+        facs, S, rhs = sch
         if frozen is not None and np.any(frozen):
             k = self.nrec * self.obj.nq + np.nonzero(frozen)[0]
             dk = np.zeros(len(k)) if delta is None else np.asarray(delta, float)[np.nonzero(frozen)[0]]
@@ -581,30 +590,107 @@ def _uncertainty(P: _Problem, blks, s):
     info = {"pd": True, "cond": float("nan")}
     if nt == 0:
         return np.zeros((0, 0)), info
-    sol = P.newton_step(blks, 0.0, [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks],
-                        np.zeros(P.nglob))
-    if sol is None:
+    sch = P.schur(blks, 0.0, [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks],
+                  np.zeros(P.nglob))
+    if sch is None:
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
-    S = sol[3]
+    S = sch[1]
     d = np.diag(S)
     if np.any(d <= 0):
         info["pd"] = False
+        info["weak"] = [int(i) for i in np.nonzero(d[P.theta_idx] <= 0)[0]]
         return np.full((nt, nt), np.nan), info
     Ss = S / np.sqrt(np.outer(d, d))
-    ev = np.linalg.eigvalsh(Ss)
+    ev, V = np.linalg.eigh(Ss)
+    v = np.abs(V[P.theta_idx, 0])  # θ components of the least-determined direction
+    info["weak"] = [int(i) for i in np.nonzero(v >= 0.3 * v.max())[0]] if v.size and v.max() > 0.1 else []
+    try:
+        np.linalg.cholesky(Ss)
+    except np.linalg.LinAlgError:
+        ev = np.minimum(ev, 0.0)
     if ev[0] <= 0:
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
     info["cond"] = float(ev[-1] / ev[0])
-    w, V = np.linalg.eigh(Ss)
-    v = np.abs(V[P.theta_idx, 0])  # θ components of the least-determined direction
-    info["weak"] = [int(i) for i in np.nonzero(v >= 0.3 * v.max())[0]] if v.size and v.max() > 0.1 else []
     Sinv = np.linalg.inv(Ss) / np.sqrt(np.outer(d, d))
     cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
     J = P.tm.dtheta_dz(s[:nt])
     cov = cz * np.outer(J, J)
     return 0.5 * (cov + cov.T), info
+
+
+#: Stated limits of the near-singular-information test (docs/estimator.md): a pair of
+#: parameters correlated beyond this, or
+CORRELATION_LIMIT = 0.999
+#: a smallest eigenvalue of the parameters' correlation matrix below this (the standard
+#: error of some combination is 1/√λ ≥ 1000 times what it would be were the others known).
+EIGENVALUE_LIMIT = 1e-6
+#: z value of the two-sided 95 % interval (the bound test).
+Z95 = 1.959963984540054
+
+
+def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: bool, weak=(),
+                    stop_reason=None, limit=None) -> tuple[StdErrorFlag, ...]:
+    """Every reason the standard errors of a fit need attention, each only when its cause is present.
+
+    * ``NOT_CONVERGED``: the stop reason is not an optimum.
+    * ``DETERMINISTIC_LIMIT``: ``limit`` (the continuation record of the states without
+      process noise) says the limit of vanishing noise was not reached.
+    * ``HESSIAN_NOT_PD``: the Schur complement of the Hessian of −ELBO onto the free θ is
+      not positive definite; ``weak`` names the θ components of its least-determined direction.
+    * ``NEAR_SINGULAR``: with R = corr(θ̂) (unit free), some |R_ij| > ``CORRELATION_LIMIT``
+      (the pair is named) or λ_min(R) < ``EIGENVALUE_LIMIT`` (the parameters with
+      |v_i| ≥ 0.3 max|v| in its eigenvector v are named). Since λ_min(R) ≤ 1 − |R_ij|, a
+      pair beyond 0.999 is one such direction; strongly correlated parameters that are
+      not this close (HFB-320: max |R_ij| 0.974, λ_min 4e-5) have large but valid s.e.
+    * ``AT_BOUND``: |θ̂_i − bound| < 1.96 s.e._i for a free bounded θ_i: the symmetric 95 %
+      interval crosses the bound (the s.e. comes from dθ/dz of the bounding transform and
+      shrinks towards zero at the bound).
+
+    Args: names, theta, se, corr: free parameters' names, estimates, s.e., correlation;
+    kind/lo/hi: the :class:`~vsidgen.estimator.core.ThetaMap` bound kinds (0 none, 1 lower,
+    2 upper, 3 both) and bounds of the free parameters.
+    """
+    flags = []
+    if stop_reason is not None and not stop_reason.converged:
+        flags.append(StdErrorFlag(StdErrorIssue.NOT_CONVERGED, (), f"stop reason {stop_reason.value}"))
+    if limit is not None and not limit.get("reached", True):
+        flags.append(StdErrorFlag(StdErrorIssue.DETERMINISTIC_LIMIT, (),
+                                  f"states {', '.join(limit.get('states', ()))}"))
+    if not len(names):
+        return tuple(flags)
+    if not positive_definite:
+        flags.append(StdErrorFlag(StdErrorIssue.HESSIAN_NOT_PD, tuple(weak)))
+        return tuple(flags)
+    R = np.asarray(corr, float)
+    n = len(names)
+    if n > 1 and np.all(np.isfinite(R)):
+        A = np.abs(R - np.diag(np.diag(R)))
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n) if A[i, j] > CORRELATION_LIMIT]
+        ev, V = np.linalg.eigh(0.5 * (R + R.T))
+        if pairs:
+            involved = tuple(dict.fromkeys(names[k] for ij in pairs for k in ij))
+            detail = "; ".join(f"corr({names[i]}, {names[j]}) = {R[i, j]:+.4f}" for i, j in pairs)
+            flags.append(StdErrorFlag(StdErrorIssue.NEAR_SINGULAR, involved,
+                                      f"{detail} (limit {CORRELATION_LIMIT})"))
+        elif ev[0] < EIGENVALUE_LIMIT:
+            v = np.abs(V[:, 0])
+            involved = tuple(names[i] for i in np.nonzero(v >= 0.3 * v.max())[0])
+            flags.append(StdErrorFlag(StdErrorIssue.NEAR_SINGULAR, involved,
+                                      f"smallest eigenvalue of the correlation matrix {ev[0]:.2g} "
+                                      f"(limit {EIGENVALUE_LIMIT:g})"))
+    near = []
+    for i in range(n):
+        bounds = ([lo[i]] if kind[i] in (1, 3) else []) + ([hi[i]] if kind[i] in (2, 3) else [])
+        for b in bounds:
+            gap = abs(float(theta[i]) - float(b))
+            if not np.isfinite(se[i]) or gap < Z95 * se[i] or gap <= 1e-9 * max(abs(float(b)), 1.0):
+                near.append(f"{names[i]} = {float(theta[i]):.6g}, bound {float(b):.6g}, s.e. {float(se[i]):.3g}")
+                break
+    if near:
+        flags.append(StdErrorFlag(StdErrorIssue.AT_BOUND, tuple(x.split(" = ")[0] for x in near), "; ".join(near)))
+    return tuple(flags)
 
 
 def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
@@ -626,30 +712,31 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
     std_errors = np.full(npar, np.nan)
     corr = np.zeros((nt, nt))
     cov = np.zeros((nt, nt))
+    info = {"pd": True}
     if mode == "fit" and nt:
         cov, info = _uncertainty(P, blks, s)
-        if not info["pd"]:
-            warnings.append({"code": "hessian_not_positive_definite", "reliable": False,
-                             "message": "the Hessian of the negative ELBO is not positive definite at the "
-                                        "solution: standard errors are not available"})
-        elif info["cond"] > 1e12:
-            weak = [model.parameter_names[P.tm.free_idx[i]] for i in info.get("weak", [])]
-            named = (f"; the least-determined direction involves {', '.join(weak)}" if weak
-                     else "; the least-determined direction involves noise or assumed-density variables")
-            warnings.append({"code": "ill_conditioned", "reliable": False, "condition_number": info["cond"],
-                             "parameters": weak,
-                             "message": f"the curvature is badly conditioned (scaled condition number "
-                                        f"{info['cond']:.2g} > 1e12): some parameters are not identifiable"
-                                        f"{named} (fix one of them or add excitation)"})
         se = np.sqrt(np.abs(np.diag(cov)))
         std_errors[P.tm.free_idx] = se
         with np.errstate(all="ignore"):
             corr = cov / np.outer(se, se)
+    flags = ()
+    if mode == "fit":
+        free_names = [model.parameter_names[i] for i in P.tm.free_idx]
+        flags = std_error_flags(
+            free_names, theta[P.tm.free_idx], std_errors[P.tm.free_idx], corr,
+            kind=P.tm.kind, lo=P.tm.lo, hi=P.tm.hi, positive_definite=bool(info["pd"]),
+            weak=[free_names[i] for i in info.get("weak", [])], stop_reason=out["reason"],
+            limit=out.get("limit"))
+    for fl in flags:
+        # the stop reason and the deterministic limit have their own warnings below
+        if fl.issue not in (StdErrorIssue.NOT_CONVERGED, StdErrorIssue.DETERMINISTIC_LIMIT):
+            warnings.append({"code": fl.issue.value, "reliable": False, "parameters": list(fl.parameters),
+                             "message": f"standard errors: {fl.message}"})
     # floors
     for j, o in enumerate(model.output_names):
         fl = P.nm.meas_floor[j]
         if P.nm.meas_est[j] and fl > 0 and sig[j] <= 1.01 * fl:
-            warnings.append({"code": "noise_at_floor", "reliable": False, "channel": o, "kind": "measurement",
+            warnings.append({"code": "noise_at_floor", "reliable": True, "channel": o, "kind": "measurement",
                              "std": float(sig[j]), "floor": float(fl),
                              "message": f"measurement noise std of '{o}' ({sig[j]:.3g}) is at its floor "
                                         f"({fl:.3g}): the data resolution limits the noise estimate"})
@@ -658,7 +745,7 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         fl = P.nm.proc_floor[i]
         if fl > 0 and Gd[i] <= 1.01 * fl:
             nm = model.state_names[i]
-            warnings.append({"code": "noise_at_floor", "reliable": False, "channel": nm, "kind": "process",
+            warnings.append({"code": "noise_at_floor", "reliable": True, "channel": nm, "kind": "process",
                              "std": float(Gd[i]), "floor": float(fl),
                              "message": f"process noise std of '{nm}' ({Gd[i]:.3g}) is at its floor ({fl:.3g})"})
     lim = out.get("limit")
@@ -693,15 +780,13 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
             if res.size and sig[j] > 0:
                 ratio = float(np.sqrt(np.mean(res ** 2)) / sig[j])
                 if ratio > 5:
-                    warnings.append({"code": "state_far_from_measurement", "reliable": False,
+                    warnings.append({"code": "state_far_from_measurement", "reliable": True,
                                      "record": str(getattr(rec, "name", "")), "state": model.state_names[i],
                                      "output": model.output_names[j], "ratio": ratio,
                                      "message": f"record '{getattr(rec, 'name', '')}': smoothed state "
                                                 f"'{model.state_names[i]}' is {ratio:.1f} measurement std (RMS) "
                                                 f"from its direct measurement '{model.output_names[j]}'"})
-    reliable = not any(not w_.get("reliable", True) for w_ in warnings)
-    if mode != "fit":
-        reliable = False
+    reliable = mode == "fit" and not flags
     return FitResult(
         parameter_names=model.parameter_names, theta=theta, std_errors=std_errors, correlation=corr,
         free_mask=P.tm.free_mask.copy(), process_std=process_std, measurement_std=measurement_std,
@@ -714,6 +799,7 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         covariance=cov, optimizer=options.optimizer, stop_reason=reason,
         newton_decrement=float(out.get("decrement", float("nan"))),
         deterministic_states=tuple(n for n, z in zip(model.state_names, P.nm.noisy) if not z),
+        std_error_flags=tuple(flags),
         deterministic_limit=out.get("limit"))
 
 

@@ -54,6 +54,75 @@ _STOP_MESSAGES = {
 }
 
 
+class StdErrorIssue(enum.Enum):
+    """Why the standard errors of a fit need attention (typed; ``value`` is the stable code).
+
+    Each member is raised only when its cause is present (see :func:`std_error_issues` in
+    ``vsidgen.estimator.fit`` and docs/estimator.md): a converged fit of an identifiable
+    model with no parameter near a bound carries none, and its standard errors are the
+    square roots of diag [H⁻¹]_θθ (H the Hessian of −ELBO, noise and assumed densities
+    re-optimised: the Schur complement), whose 95 % intervals were measured to cover the
+    truth on the model zoo. ``message`` says what is wrong, ``action`` what to do.
+    """
+
+    NOT_CONVERGED = "not_converged"
+    HESSIAN_NOT_PD = "hessian_not_positive_definite"
+    NEAR_SINGULAR = "near_singular_information"
+    AT_BOUND = "parameter_at_bound"
+    DETERMINISTIC_LIMIT = "deterministic_limit_not_reached"
+
+    @property
+    def message(self) -> str:
+        return _SE_MESSAGES[self][0]
+
+    @property
+    def action(self) -> str:
+        return _SE_MESSAGES[self][1]
+
+
+_SE_MESSAGES = {
+    StdErrorIssue.NOT_CONVERGED: (
+        "the fit did not reach an optimum: the curvature there is not the information of an estimate",
+        "raise --max-iter, try another --noise-start or better initial values"),
+    StdErrorIssue.HESSIAN_NOT_PD: (
+        "the Hessian of −ELBO is not positive definite on the free parameters: no standard errors",
+        "some combination of parameters is not determined by the data: fix one of the parameters "
+        "named or fly a manoeuvre that separates them"),
+    StdErrorIssue.NEAR_SINGULAR: (
+        "the information is nearly singular: the data determine a combination of parameters, "
+        "not each of them",
+        "fix one of the parameters named (e.g. to a wind-tunnel value) or add a manoeuvre that "
+        "excites them separately"),
+    StdErrorIssue.AT_BOUND: (
+        "a parameter is within 1.96 standard errors of a bound: its symmetric 95 % interval crosses "
+        "the bound and the Gaussian interval is not valid",
+        "check the bound; if it is physical, fix the parameter at it or report a one-sided interval"),
+    StdErrorIssue.DETERMINISTIC_LIMIT: (
+        "the limit of vanishing process noise on the states without it was not reached: estimates and "
+        "standard errors are those of a small process noise on them",
+        "give those states process noise in the spec if the data need it"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class StdErrorFlag:
+    """One reason the standard errors need attention: the issue, the parameters involved, details."""
+
+    issue: StdErrorIssue
+    parameters: tuple[str, ...] = ()
+    detail: str = ""
+
+    @property
+    def message(self) -> str:
+        named = f" ({', '.join(self.parameters)})" if self.parameters else ""
+        detail = f"; {self.detail}" if self.detail else ""
+        return f"{self.issue.message}{named}{detail}: {self.issue.action}"
+
+    def to_json(self) -> dict:
+        return {"code": self.issue.value, "parameters": list(self.parameters), "detail": self.detail,
+                "message": self.message}
+
+
 @dataclasses.dataclass(frozen=True)
 class FitOptions:
     """Options of :func:`vsidgen.estimator.fit` and :func:`~vsidgen.estimator.smooth`.
@@ -197,7 +266,12 @@ class FitResult:
     ``theta`` holds all parameters in model order; ``std_errors`` the square
     roots of diag cov(θ_free) with cov = [H⁻¹]_θθ (H the Hessian of −ELBO in
     natural θ coordinates, all other variables marginalised), NaN for fixed
-    parameters; ``correlation`` is free × free.
+    parameters; ``correlation`` is free × free. ``std_error_flags`` lists every reason
+    (:class:`StdErrorIssue`) the standard errors need attention, and
+    ``std_errors_reliable`` is True exactly when a fit has none (always False for a
+    smoothing run, which has no standard errors). Noise at its floor and a smoothed state
+    far from its measurement are warnings about the noise model, not about the standard
+    errors (docs/estimator.md).
     """
 
     parameter_names: tuple[str, ...]
@@ -225,6 +299,7 @@ class FitResult:
     stop_reason: StopReason | None = None
     newton_decrement: float = float("nan")   # λ²/2 in nats at the returned point (NaN: H not PD)
     deterministic_states: tuple[str, ...] = ()
+    std_error_flags: tuple[StdErrorFlag, ...] = ()
     deterministic_limit: dict | None = None   # continuation record of the deterministic limit (see FitOptions)
 
     @property
