@@ -44,7 +44,7 @@ def test_zoo_unmeasured_sideslip_not_yet_fitted_from_null_guesses():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["sp3_pn", "lat4_pn", "lon4_pn", "sp_oe"])
+@pytest.mark.parametrize("name", ["sp3_pn", "lat4_pn", "lon4_pn", "sp_oe", "lat4"])
 def test_zoo_models_from_null_guesses(name):
     _check(zoo.run_one(name, 1))
 
