@@ -207,3 +207,12 @@ def test_output_error_fit_matches_the_exact_output_error_estimate():
     assert np.all(np.abs(res.theta - v[:4]) < 0.1 * se_ref), (res.theta, v[:4], se_ref)
     np.testing.assert_allclose(res.std_errors, se_ref, rtol=0.15)
     np.testing.assert_allclose([res.measurement_std[o] for o in ("y1", "y2")], sig, rtol=0.02)
+
+
+def test_a_warm_started_limit_fit_restarts_at_its_optimum(fitted, rec):
+    res = fit(model(), [rec], options=FitOptions(warm_start=fitted))
+    assert res.converged and res.deterministic_limit["reached"], res.status
+    first = res.deterministic_limit["stages"][0]
+    assert first["std"] == fitted.deterministic_limit["std"]     # starts where the previous limit ended
+    assert first["iterations"] <= 3, res.deterministic_limit["stages"]
+    np.testing.assert_allclose(res.theta, fitted.theta, atol=0.1 * float(np.min(fitted.std_errors)))

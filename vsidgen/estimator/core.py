@@ -225,12 +225,7 @@ class NoiseMap:
             self.fixed_G = self._fixed_factor()
         elif pn.estimate or relax:
             if not pn.estimate:  # process noise fixed in the spec: its stds stay fixed, on the diagonal
-                for i, s in enumerate(states):
-                    v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
-                    if v > 0:
-                        self.det[i] = v
-                    else:
-                        self.noisy[i] = False
+                self._fixed_spec_stds(pn, states)
             est = self.noisy.copy() if pn.estimate else np.zeros(nx, bool)
             if relax:
                 est |= ~self.noisy
@@ -251,12 +246,7 @@ class NoiseMap:
                 init += [0.0] * len(self.offdiag)
                 init_pd += [0.0] * len(self.offdiag)
         else:
-            for i, s in enumerate(states):
-                v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
-                if v > 0:
-                    self.det[i] = v
-                else:
-                    self.noisy[i] = False
+            self._fixed_spec_stds(pn, states)
             self.fixed_G = np.diag(self.det)
         self.n_proc = len(init)
         # measurement
@@ -298,6 +288,15 @@ class NoiseMap:
                       "unit": np.array(init + minit, float)}
         self.init = self.inits["data"]
         self.n = self.n_proc + self.n_meas
+
+    def _fixed_spec_stds(self, pn, states) -> None:
+        """Process noise fixed in the spec: a state's positive std goes on the diagonal; without one it is deterministic."""
+        for i, s in enumerate(states):
+            v = float(pn.std.get(s, 0.0) or 0.0) if self.noisy[i] else 0.0
+            if v > 0:
+                self.det[i] = v
+            else:
+                self.noisy[i] = False
 
     def _fixed_factor(self):
         """Cholesky factor of the given G Gᵀ, deterministic rows (all zero) replaced by ``det`` on the diagonal."""

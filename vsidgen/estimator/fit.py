@@ -884,17 +884,17 @@ LIMIT_MAX_STAGES = 8    # stages after the first (std down to 1e-8 of the first 
 def _relaxed_std(P0: _Problem, out0) -> np.ndarray:
     """Process-noise std the relaxed first stage estimated for the deterministic states (their order)."""
     nt = P0.tm.n_free
-    G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:]), {k: jnp.asarray(v) for k, v in P0.nm.arrays().items()}))
+    G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:])))
     return np.abs(np.diagonal(G))[P0.nm.deterministic]
 
 
 def _warm_limit_scale(P: _Problem, ws) -> np.ndarray:
-    """Starting std of a warm-started limit: the warm start's last stage, else the quasi std."""
+    """First-stage std of a warm-started limit: the std at which a previous limit fit ended (its decision
+    belongs to it), else the data scale of :func:`_smoothing_start_std`."""
     lim = getattr(ws, "deterministic_limit", None)
-    n = int(P.nm.deterministic.sum())
-    if lim is not None and len(lim.get("std", {})) == n:
-        return np.asarray(list(lim["std"].values()), float) / LIMIT_RATIO
-    return np.full(n, float(P.nm.det[P.nm.deterministic][0]) if n else 1.0) / LIMIT_RATIO
+    if lim is not None and len(lim.get("std", {})) == int(P.nm.deterministic.sum()):
+        return np.asarray(list(lim["std"].values()), float)
+    return _smoothing_start_std(P)
 
 
 def _smoothing_start_std(P: _Problem) -> np.ndarray:
@@ -1016,7 +1016,7 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
         iterations += int(out0["iterations"])
         record(0, eps, out0, None)
         status0 = out0["status"]
-    else:  # smoothing: first stage at the data scale
+    else:  # smoothing or a warm start: the first stage is P itself at ``eps``
         P.nm.set_deterministic_std(eps)
         P.cfg = make_cfg(P.tm, P.nm)
         o = _optimize(P, options, t0=t0)
