@@ -193,6 +193,14 @@ def _input_gains(info: ModelInfo, u: str) -> dict[str, str]:
     return gains
 
 
+def _driving_inputs(info: ModelInfo):
+    """(input, {state: gain text}) for every input that enters some state equation."""
+    for u in info.input_names:
+        gains = _input_gains(info, u)
+        if gains:
+            yield u, gains
+
+
 def _is_engine(u: str) -> bool:
     return any(k in u.lower() for k in ("thrust", "throttle", "thr", "engine", "power", "rpm", "pla"))
 
@@ -211,10 +219,7 @@ class _InputDynamics(Effect):
 
     def applies_to(self, info):
         out = []
-        for u in info.input_names:
-            gains = _input_gains(info, u)
-            if not gains:
-                continue
+        for u, gains in _driving_inputs(info):
             z = info.fresh(f"D_{u}_{self.state_prefix}")
             tau = info.fresh(f"D_{self.param_prefix}_{u}", taken=[z])
             lo = _lag_bounds(info, self.min_steps)
@@ -271,10 +276,7 @@ class TransportDelay(Effect):
 
     def applies_to(self, info):
         out = []
-        for u in info.input_names:
-            gains = _input_gains(info, u)
-            if not gains:
-                continue
+        for u, gains in _driving_inputs(info):
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
                 explanation=self.explain(input=u, delay="τ", spec_delay="τ"),
