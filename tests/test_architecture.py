@@ -44,6 +44,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: fit states", ("discrepancy.fitstate",)),
     ("diagnose: numerics and delay profiles", ("discrepancy.numerics", "discrepancy.delay")),
     ("diagnose: score test", ("discrepancy.score",)),
+    ("diagnose: gated round model", ("discrepancy.gated",)),
     ("diagnose: search", ("discrepancy.search",)),
     ("diagnose: package", ("discrepancy",)),
     ("command line", ("cli",)),

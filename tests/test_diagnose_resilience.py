@@ -80,7 +80,7 @@ class _Clock:
 def patched(monkeypatch, base_state):
     monkeypatch.setattr(search, "fit_spec", lambda *a, **k: base_state)
     monkeypatch.setattr(search, "projected_refit", lambda t, current, *a, **k: current)
-    from vsidgen.discrepancy import numerics
+    from vsidgen.discrepancy import gated, numerics
 
     # the integrator settings stage keeps the current setting without refitting
     monkeypatch.setattr(numerics, "run_numerics", lambda current, out, *, alpha, **k:
@@ -90,6 +90,8 @@ def patched(monkeypatch, base_state):
     def install(actions, clock=None):
         r = _Refits(actions, clock)
         monkeypatch.setattr(search, "staged_refit", r)
+        # the stand-ins replace the per-candidate refit: no candidate goes to the gated model
+        monkeypatch.setattr(gated, "gateable", lambda c: False)
         return r
     return install
 

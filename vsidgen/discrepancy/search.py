@@ -556,19 +556,34 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
 # the job
 # ---------------------------------------------------------------------------
 
-def _refit_task(c, current, info, path, name, generated_dir, max_iter):
-    """One candidate's staged refit (runs on an engine worker); (RefitOutcome, messages)."""
+def _refit_task(c, current, info, path, name, generated_dir, max_iter, group=None):
+    """One candidate's staged refit (runs on an engine worker); (RefitOutcome, messages).
+
+    ``group`` (a :class:`.gated.GatedGroup`): refit it as a fit of the round's gated model
+    (compiled once per process and round) and write its own spec at ``path``."""
     from .refit import compile_seconds
 
     msgs: list[str] = []
     c0 = compile_seconds()
-    ro = staged_refit(c, current, info, path, name, generated_dir=generated_dir,
-                      max_iter=max_iter, progress=msgs.append)
+    if group is None:
+        ro = staged_refit(c, current, info, path, name, generated_dir=generated_dir,
+                          max_iter=max_iter, progress=msgs.append)
+    else:
+        from .gated import candidate_spec, gated_refit
+
+        ro = gated_refit(c, current, group, path, generated_dir=generated_dir,
+                         max_iter=max_iter, progress=msgs.append)
+        candidate_spec(c, ro.state, current, info, path, name)
     return dataclasses.replace(ro, compile_s=compile_seconds() - c0), msgs
 
 
-def _projected_task(t, current, path, name, generated_dir, max_iter):
+def _projected_task(t, current, path, name, generated_dir, max_iter, group=None):
     """One trial's projected refit (runs on an engine worker); a FitState."""
+    if group is not None:
+        from .gated import gated_projected
+
+        return gated_projected(t.candidate, t.state, current, group, path,
+                               generated_dir=generated_dir, max_iter=max_iter)
     return projected_refit(t, current, path, name, generated_dir=generated_dir, max_iter=max_iter)
 
 
@@ -658,7 +673,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
                  effects_module=None, max_iter: int = 200, screen: bool = False,
                  time_limit: float | None = None, workers: int | None = 1,
-                 scheduler: str | None = None, numerics: bool = True,
+                 scheduler: str | None = None, numerics: bool = True, gated: bool = True,
                  progress: Callable[[str], None] | None = None,
                  overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
@@ -689,6 +704,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     integrator settings (rk4, sub-steps, first-order hold of the inputs; :mod:`.numerics`);
     a setting that removes a significant part of the mismatch is adopted for the rest of
     the run and reported as a modelling-numerics finding (``findings.json`` → ``numerics``).
+
+    ``gated`` (default): the candidates of a round that add no state are refitted as
+    fits of one gated model (:mod:`.gated`; compiled once per round and process, the other
+    candidates' terms fixed at their nesting values); ``False`` compiles every candidate's
+    own model (the reference path). Both give the same findings up to the optimizer's
+    tolerance.
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -743,12 +764,14 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                              catalogue=catalogue, max_iter=max_iter, screen=screen,
                              progress=progress, version=__version__,
                              build_document=build_document, write_findings=write_findings,
-                             time_limit=time_limit, engine=engine, numerics=numerics)
+                             time_limit=time_limit, engine=engine, numerics=numerics,
+                             gated=gated)
 
 
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
-                  write_findings, time_limit, engine, numerics=True) -> DiagnoseResult:
+                  write_findings, time_limit, engine, numerics=True,
+                  gated=True) -> DiagnoseResult:
     from ..engine import TaskStatus
     from .findings import write_findings_json
 
@@ -757,7 +780,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     deadline = None if time_limit is None else time.monotonic() + float(time_limit)
     options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
                "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
-               "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics}
+               "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics,
+               "gated": gated}
 
     def past_deadline() -> bool:
         return deadline is not None and time.monotonic() >= deadline
@@ -844,9 +868,21 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 # transport delays are profiled over a grid of delays (.delay), not refitted
                 profiled = [i for i, (_, _, c, _) in enumerate(ranked)
                             if c.info.get("profile") == "delay"]
+                # candidates that add no state share one compiled, gated model (.gated)
+                groups = {}
+                if gated:
+                    from .gated import gateable, gated_groups, write_gated_spec
+
+                    gcands = [c for i, (_, _, c, _) in enumerate(ranked)
+                              if i not in profiled and gateable(c)]
+                    for g, grp in enumerate(gated_groups(gcands)):
+                        gg = write_gated_spec(
+                            grp, current, info, out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
+                            f"{safe_name(current.model.name)[:30]}_dg{rnd}_g{g + 1}")
+                        groups.update({c.key: gg for c in grp})
                 tasks = [(c.key, (c, current, info, paths[i],
                                   f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
-                                  max_iter))
+                                  max_iter, groups.get(c.key)))
                          for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
@@ -922,7 +958,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                              / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
                     ptasks.append((t.candidate.key, (t, current, ppath,
                                                      f"{safe_name(current.model.name)[:30]}_dg{rnd}_"
-                                                     f"{i + 1}p", gen, max_iter)))
+                                                     f"{i + 1}p", gen, max_iter,
+                                                     groups.get(t.candidate.key))))
                 if ptasks:
                     unfinished["projected_pending"] = [k for k, _ in ptasks]
                     _say(progress, f"round {rnd}: projected refits of "
@@ -933,7 +970,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     break
                 projected = []
                 better = None
-                for (key, (_, _, ppath, _, _, _)), o in zip(ptasks, pouts):
+                for (key, (_, _, ppath, *_)), o in zip(ptasks, pouts):
                     if o.status is not TaskStatus.DONE:
                         projected.append({"key": key, "error": f"{o.status.value}: {o.error}"})
                         continue
@@ -974,6 +1011,17 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                + (f"; AMBIGUOUS with "
                                   f"{', '.join(t.candidate.key for t in best.alternatives)}"
                                   if best.alternatives else ""))
+                if best.candidate.key in groups:
+                    # the next round extends the accepted candidate's own spec and model
+                    ia = by_key[best.candidate.key][0]
+                    from .gated import adopt
+
+                    own = adopt(best.candidate, best.state, current, info, best.spec_path,
+                                f"{safe_name(current.model.name)[:30]}_dg{rnd}_{ia + 1}",
+                                generated_dir=gen, max_iter=max_iter)
+                    _say(progress, f"    {best.candidate.key} as its own spec: ELBO "
+                                   f"{own.elbo:.6g} (gated fit {best.state.elbo:.6g})")
+                    best = dataclasses.replace(best, state=own)
                 accepted.append((best, current, evidence))
                 current = best.state
                 evidence = locate_state(current)
@@ -1075,6 +1123,10 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-numerics", action="store_true",
                    help="do not test the integrator settings (rk4, sub-steps, first-order hold "
                         "of the inputs) before the physical candidates")
+    p.add_argument("--per-candidate-models", action="store_true",
+                   help="compile every candidate's own model (the reference path; by default "
+                        "the candidates that add no state are gated terms of one model per "
+                        "round, compiled once)")
     p.add_argument("--screen", action="store_true",
                    help="experimental: rank the candidates that add no state by a score "
                         "(Lagrange-multiplier) test at the current fit before refitting")
@@ -1116,6 +1168,7 @@ def diagnose_command(args) -> int:
                                screen=args.screen, time_limit=args.time_limit,
                                workers=args.workers, scheduler=args.scheduler, progress=progress,
                                numerics=not args.no_numerics,
+                               gated=not args.per_candidate_models,
                                overwrite=args.overwrite, overrides=ov)
     finally:
         if progress is not None:

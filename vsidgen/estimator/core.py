@@ -135,11 +135,15 @@ class ThetaMap:
         self.n_free = len(fi)
 
     def static_key(self):
-        return ("theta", tuple(self.free_idx.tolist()), len(self.full0))
+        """Shape of the map: which parameters are free is a run-time array (``arrays()``), so
+        problems of one model that free different parameters of the same count share the
+        compiled objective (diagnose's gated refits)."""
+        return ("theta", self.n_free, len(self.full0))
 
     def arrays(self):
         """Numeric configuration passed to the jitted objective (so compiled code is shared)."""
-        return {"full0": self.full0, "kind": self.kind.astype(float), "lo": self.lo, "hi": self.hi, "sc": self.sc}
+        return {"full0": self.full0, "kind": self.kind.astype(float), "lo": self.lo, "hi": self.hi, "sc": self.sc,
+                "free_idx": self.free_idx.astype(np.int32)}
 
     def theta(self, z, c=None):
         """All parameters θ from the free unconstrained z (``c``: arrays(), default this map's)."""
@@ -151,7 +155,7 @@ class ThetaMap:
               jnp.where(k == 1, lo + sc * ez,
               jnp.where(k == 2, hi - sc * ez,
                         lo + (hi - lo) * sig)))
-        return jnp.asarray(c["full0"]).at[self.free_idx].set(val)
+        return jnp.asarray(c["full0"]).at[c.get("free_idx", self.free_idx)].set(val)
 
     def dtheta_dz(self, z):
         z = np.asarray(z, float)
