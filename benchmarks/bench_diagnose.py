@@ -1,22 +1,30 @@
-"""Diagnose wall time against the number of workers, with the same-findings check.
+"""Diagnose wall time: gated model per round vs one model per candidate, and workers.
 
 Each configuration runs ``vsidgen diagnose`` in a fresh process (a fresh, empty persistent
-compilation cache per configuration unless ``--shared-cache``) and prints, per case and
-worker count: candidates examined, refits, compile time, wall time, workers, speed-up
-over 1 worker, and whether the findings (keys, and every refit's 2ΔELBO to 1e-6) equal
-those of the 1-worker run.
+compilation cache per configuration unless ``--shared-cache``), one after the other, and
+prints per path (``gated``: the candidates that add no state share one compiled model per
+round, the default; ``per-candidate``: ``--per-candidate-models``, every candidate compiles
+its own model) and worker count: candidates examined, refits, compile time, wall time, the
+phases (base fit and locate, modelling numerics, the rounds; from the time-stamped progress
+lines, written to ``WORK/<config>.log``), the load average (``uptime``) before and after,
+and whether the findings equal those of the first row (keys, and every refit's 2ΔELBO to
+1e-6 for the same path, to 0.1 across paths). The last lines give the per-candidate /
+gated wall-time ratio per worker count: on a shared machine that ratio, measured one run
+after the other, is the useful figure, not the absolute times.
 
 The default case is a 1,000-sample HFB-320-like record simulated from ``specs/hfb320.yaml``
 (θ at the Euler estimates of the real record, the real record's elevator and thrust
 histories resampled to 0.06 s, turbulence and sensor noise), written to ``--work``.
 
-    python benchmarks/bench_diagnose.py --workers 1 2 [N ...] [--max-candidates 8]
+    python benchmarks/bench_diagnose.py --workers 1 2 [N ...] [--paths gated per-candidate]
+        [-- --max-rounds 1]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import pathlib
 import subprocess
@@ -58,21 +66,54 @@ def make_hfb1000(path: pathlib.Path, *, n: int = 1000, seed: int = 7) -> pathlib
     return path
 
 
-def run_one(spec, data, out, workers, extra, cache) -> dict:
+def load_average() -> float:
+    """1-minute load average (what ``uptime`` prints first)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:  # pragma: no cover - not Unix
+        return float("nan")
+
+
+#: progress-line prefixes that start a phase (the rest of the run until the next one)
+PHASES = (("base fit + locate", "fitting the base model"),
+          ("numerics", "modelling numerics first"),
+          ("rounds", "round 1:"))
+
+
+def run_one(spec, data, out, workers, extra, cache, *, gated: bool, log: pathlib.Path) -> dict:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                VSIDGEN_CACHE_DIR=cache)
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(spec), *map(str, data),
-           "--out", str(out), "--workers", str(workers), "--quiet", *extra]
+           "--out", str(out), "--workers", str(workers), "--overwrite", *extra]
+    if not gated:
+        cmd.append("--per-candidate-models")
+    load0 = load_average()
     t0 = time.perf_counter()
-    p = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    starts: dict[str, float] = {}
+    with open(log, "w") as fh:
+        p = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True)
+        tail = []
+        for line in p.stdout:
+            t = time.perf_counter() - t0
+            fh.write(f"{t:8.1f} {line}")
+            tail = (tail + [line])[-60:]
+            for name, prefix in PHASES:
+                if name not in starts and line.lstrip().startswith(prefix):
+                    starts[name] = t
+        p.wait()
     wall = time.perf_counter() - t0
+    load1 = load_average()
     if p.returncode not in (0, 1):
-        raise SystemExit(f"diagnose failed ({p.returncode}): {' '.join(cmd)}\n{p.stderr[-3000:]}")
+        raise SystemExit(f"diagnose failed ({p.returncode}): {' '.join(cmd)}\n{''.join(tail)}")
+    marks = sorted(starts.items(), key=lambda kv: kv[1]) + [("end", wall)]
+    phases = {a: b_t - a_t for (a, a_t), (_, b_t) in zip(marks, marks[1:])}
     doc = json.loads((pathlib.Path(out) / "findings.json").read_text())
     trials = [t for r in doc["rounds"] for t in r.get("trials", ())]
     comp = doc.get("compile_s") or {}
     compile_s = (comp.get("this_process") or 0.0) + (comp.get("refits") or 0.0 if workers > 1 else 0.0)
-    return {"workers": workers, "wall_s": wall, "rounds": len(doc["rounds"]),
+    return {"path": "gated" if gated else "per-candidate", "phases": phases,
+            "load": (load0, load1), "workers": workers, "wall_s": wall, "rounds": len(doc["rounds"]),
             "candidates": sum(r.get("n_candidates") or r.get("n_examined") or 0
                               for r in doc["rounds"]),
             "refits": len(trials), "compile_s": compile_s,
@@ -81,11 +122,14 @@ def run_one(spec, data, out, workers, extra, cache) -> dict:
 
 
 def same(a: dict, b: dict) -> bool:
+    """Same findings and statistics: to 1e-6 (relative) on the same path, to 0.1 (2ΔELBO)
+    between the gated and the per-candidate path (the optimizer's tolerance)."""
     if a["findings"] != b["findings"] or set(a["stats"]) != set(b["stats"]):
         return False
     for k, v in a["stats"].items():
         w = b["stats"][k]
-        if (v is None) != (w is None) or (v is not None and abs(v - w) > 1e-6 * max(1.0, abs(v))):
+        tol = 1e-6 * max(1.0, abs(v or 0.0)) if a["path"] == b["path"] else 0.1
+        if (v is None) != (w is None) or (v is not None and abs(v - w) > tol):
             return False
     return True
 
@@ -93,6 +137,8 @@ def same(a: dict, b: dict) -> bool:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", nargs="+", type=int, default=[1, 2])
+    ap.add_argument("--paths", nargs="+", choices=("gated", "per-candidate"),
+                    default=["gated", "per-candidate"])
     ap.add_argument("--spec", default=None, help="spec (default: specs/hfb320.yaml, HFB-1000 record)")
     ap.add_argument("--data", nargs="+", default=None)
     ap.add_argument("--work", default=None, help="work folder (default: a temporary one)")
@@ -114,21 +160,36 @@ def main(argv=None) -> int:
     extra = [x for x in a.diagnose_args if x != "--"]
     rows = []
     for w in a.workers:
-        cache = str(work / ("cache" if a.shared_cache else f"cache_w{w}"))
-        r = run_one(spec, data, work / f"w{w}", w, extra, cache)
-        rows.append(r)
-        print(f"# {case}: workers {w}: {r['wall_s']:.1f} s", file=sys.stderr, flush=True)
+        for path in a.paths:
+            tag = f"{path}_w{w}"
+            cache = str(work / ("cache" if a.shared_cache else f"cache_{tag}"))
+            r = run_one(spec, data, work / tag, w, extra, cache, gated=path == "gated",
+                        log=work / f"{tag}.log")
+            rows.append(r)
+            print(f"# {case}: {path}, workers {w}: {r['wall_s']:.1f} s (load "
+                  f"{r['load'][0]:.1f} -> {r['load'][1]:.1f})", file=sys.stderr, flush=True)
     ref = rows[0]
     print(f"case: {case}; diagnose options: {' '.join(extra) or '(CLI defaults)'}; "
           f"{os.cpu_count()} CPUs")
-    print("| workers | rounds | candidates | refits | compile (s) | wall (s) | speed-up | "
-          "findings | same findings as 1st row |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| path | workers | rounds | candidates | refits | compile (s) | wall (s) | "
+          "base fit + locate / numerics / rounds (s) | load before → after | findings | "
+          "same findings as 1st row |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['workers']} | {r['rounds']} | {r['candidates']} | {r['refits']} | "
-              f"{r['compile_s']:.0f} | {r['wall_s']:.0f} | {ref['wall_s'] / r['wall_s']:.2f}× | "
+        ph = " / ".join(f"{r['phases'][n]:.0f}" if n in r["phases"] else "–" for n, _ in PHASES)
+        print(f"| {r['path']} | {r['workers']} | {r['rounds']} | {r['candidates']} | "
+              f"{r['refits']} | {r['compile_s']:.0f} | {r['wall_s']:.0f} | {ph} | "
+              f"{r['load'][0]:.1f} → {r['load'][1]:.1f} | "
               f"{', '.join(r['findings']) or 'none'}{'' if r['stop'] == 'completed' else ' (' + r['stop'] + ')'} | "
               f"{'yes' if same(ref, r) else 'NO'} |")
+    by = {(r["path"], r["workers"]): r for r in rows}
+    for w in a.workers:
+        g, s = by.get(("gated", w)), by.get(("per-candidate", w))
+        if g and s:
+            rs = (s["phases"].get("rounds", math.nan) / g["phases"]["rounds"]
+                  if g["phases"].get("rounds") else math.nan)
+            print(f"workers {w}: per-candidate / gated wall time {s['wall_s'] / g['wall_s']:.2f}x"
+                  f" (rounds only: {rs:.2f}x)")
     return 0 if all(same(ref, r) for r in rows) else 1
 
 

@@ -155,6 +155,45 @@ def _matrix(a, shape0, name, square=False) -> np.ndarray:
     return m
 
 
+_SCANS: dict = {}
+
+
+def _scans(model, F):
+    """Jitted free simulation ``y_sim(x0, U, V, p, T)`` and steady-state Kalman predictor
+    ``y_pred(x0, U, V, Y, K, p, T)`` of ``model`` with transition ``F``. θ, K and T are
+    arguments, so one compilation per model functions, setting and record length serves every
+    evaluation (diagnose evaluates each refit of a round's gated model)."""
+    key = (model.drift, model.output, F.key)
+    hit = _SCANS.get(key)
+    if hit is not None:
+        return hit
+    h = model.output
+
+    @jax.jit
+    def free_sim(x0, U, V, p, T):
+        def body(x, inp):
+            uk, vk = inp
+            return F(x, vk, p, T), h(x, uk, p)
+        _, ys = jax.lax.scan(body, x0, (U, V))
+        return ys
+
+    @jax.jit
+    def predictor(x0, U, V, Y, K, p, T):
+        def body(xp, inp):
+            uk, vk, yk = inp
+            yp = h(xp, uk, p)
+            innov = jnp.where(jnp.isnan(yk), 0.0, yk - yp)
+            xf = xp + K @ innov
+            return F(xf, vk, p, T), yp
+        _, yps = jax.lax.scan(body, x0, (U, V, Y))
+        return yps
+
+    if len(_SCANS) >= 32:
+        _SCANS.pop(next(iter(_SCANS)))
+    _SCANS[key] = (free_sim, predictor)
+    return free_sim, predictor
+
+
 def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
              substeps: int | None = None, input_hold: str | None = None) -> Signals:
     """Compute the four evaluation signals and their fit metrics for one record.
@@ -199,15 +238,9 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
 
     v_j = F.scan_inputs(u_j)  # step input per sample (the last one is never used)
 
-    @jax.jit
-    def free_sim(x0, U, V):
-        def body(x, inp):
-            uk, vk = inp
-            return F(x, vk, p, T), h(x, uk, p)
-        _, ys = jax.lax.scan(body, x0, (U, V))
-        return ys
-
-    y_sim = np.asarray(free_sim(mu_j[0], u_j, v_j))
+    free_sim, predictor = _scans(model, F)
+    Tj = jnp.asarray(T)
+    y_sim = np.asarray(free_sim(mu_j[0], u_j, v_j, p, Tj))
     if not np.isfinite(y_sim).all():
         k = int(np.flatnonzero(~np.isfinite(y_sim).all(axis=1))[0])
         warnings.append(f"free simulation diverged at sample {k} (t = {record.t[k]:.6g} s)")
@@ -227,20 +260,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
             warnings.append("steady-state Kalman filter unavailable (Riccati equation has no "
                             f"stabilising solution: {exc}); prediction signal = free simulation")
     if K is not None:
-        Kj = jnp.asarray(K)
-
-        @jax.jit
-        def predictor(x0, U, V, Y):
-            def body(xp, inp):
-                uk, vk, yk = inp
-                yp = h(xp, uk, p)
-                innov = jnp.where(jnp.isnan(yk), 0.0, yk - yp)
-                xf = xp + Kj @ innov
-                return F(xf, vk, p, T), yp
-            _, yps = jax.lax.scan(body, x0, (U, V, Y))
-            return yps
-
-        y_pred = np.asarray(predictor(mu_j[0], u_j, v_j, jnp.asarray(y)))
+        y_pred = np.asarray(predictor(mu_j[0], u_j, v_j, jnp.asarray(y), jnp.asarray(K), p, Tj))
     else:
         y_pred = y_sim.copy()
 

@@ -33,8 +33,9 @@ candidate's refit (the factorisation is cubic in the state dimension). They keep
 spec and compilation (:func:`.search.staged_refit`). Candidates whose new names collide go
 to separate groups (one compilation each).
 
-Only the accepted candidate of a round is re-fitted as its own spec (:func:`adopt`, warm
-from the gated optimum, which it reproduces): the next round extends that spec.
+The accepted candidate of a round becomes its own spec (:func:`adopt`): the gated fit
+configured for it is its fit (same likelihood, same free parameters), carried over without
+a new compilation; the next round extends that spec.
 """
 
 from __future__ import annotations
@@ -244,12 +245,44 @@ def candidate_spec(c: Candidate, st: FitState, current: FitState, info: ModelInf
                             f"target: {c.target}", d)
 
 
+def _restricted(fit, names_from, names_to):
+    """A FitResult of the gated model expressed in the parameters ``names_to`` (a subset that
+    holds every free parameter, in the same order): θ, standard errors and the free mask are
+    restricted; the free × free correlation and covariance, the noise, the assumed density
+    and the decision vector are those of the same free parameters and stay as they are."""
+    idx = [list(names_from).index(n) for n in names_to]
+    return dataclasses.replace(fit, parameter_names=tuple(names_to),
+                               theta=np.asarray(fit.theta)[idx],
+                               std_errors=np.asarray(fit.std_errors)[idx],
+                               free_mask=np.asarray(fit.free_mask)[idx])
+
+
 def adopt(c: Candidate, st: FitState, current: FitState, info: ModelInfo, path: pathlib.Path,
           name: str, *, generated_dir, max_iter: int) -> FitState:
-    """The accepted candidate as its own spec and model, fitted warm from its gated optimum
-    (the same point of the same likelihood, so the fit stops at once): the next round extends
-    this spec."""
+    """The accepted candidate as its own spec and model (the next round extends this spec).
+
+    The gated model configured for ``c`` *is* ``c``'s model (the other candidates' terms are
+    zero at their fixed nesting values), so its fit, evaluation signals and validation
+    smoothing are those of ``c``'s own spec, written with the estimates as initial values:
+    they are carried over with the other candidates' (fixed) parameters dropped, after
+    checking that both models free the same parameters in the same order. Otherwise ``c``'s
+    spec is fitted warm from the gated optimum (the same point, so the fit stops at once)."""
+    from ..model import load_model
+
     candidate_spec(c, st, current, info, path, name)
+    own = load_model(path, generated_dir=generated_dir)
+    gn, on = list(st.model.parameter_names), list(own.parameter_names)
+    free_g = [p.name for p in st.model.parameters if not p.fixed]
+    free_o = [p.name for p in own.parameters if not p.fixed]
+    fixed_g = {p.name: float(p.initial) for p in st.model.parameters if p.fixed}
+    same_fixed = all(math.isclose(float(p.initial), fixed_g.get(p.name, math.nan), rel_tol=1e-12,
+                                  abs_tol=1e-300) for p in own.parameters if p.fixed)
+    if (set(on) <= set(gn) and free_g == free_o and same_fixed
+            and own.state_names == st.model.state_names
+            and own.output_names == st.model.output_names):
+        vfit = None if st.vfit is None else _restricted(st.vfit, gn, on)
+        return dataclasses.replace(st, spec_path=pathlib.Path(path), model=own,
+                                   fit=_restricted(st.fit, gn, on), vfit=vfit)
     return refit_warm(path, st, current, generated_dir=generated_dir, iterations=max_iter,
                       max_iter=max_iter)
 
