@@ -875,11 +875,25 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
 
                     gcands = [c for i, (_, _, c, _) in enumerate(ranked)
                               if i not in profiled and gateable(c)]
+                    from .gated import gated_model
+
                     for g, grp in enumerate(gated_groups(gcands)):
-                        gg = write_gated_spec(
-                            grp, current, info, out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
-                            f"{safe_name(current.model.name)[:30]}_dg{rnd}_g{g + 1}")
+                        try:
+                            gg = write_gated_spec(
+                                grp, current, info,
+                                out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
+                                f"{safe_name(current.model.name)[:30]}_dg{rnd}_g{g + 1}")
+                            gated_model(gg, gen)  # its module is built once, before the refits
+                        except (SpecError, VsidgenError, ValueError, KeyError) as err:
+                            _say(progress, f"    gated model of {', '.join(c.key for c in grp)} "
+                                           f"not built ({str(err).splitlines()[0]}); their "
+                                           "refits compile their own models")
+                            continue
                         groups.update({c.key: gg for c in grp})
+                    if groups:
+                        _say(progress, f"round {rnd}: {len(groups)} candidates are gated terms of "
+                                       f"{len(set(groups.values()))} compiled model(s) "
+                                       "(the others compile their own)")
                 tasks = [(c.key, (c, current, info, paths[i],
                                   f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter, groups.get(c.key)))
