@@ -871,12 +871,10 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 # candidates that add no state share one compiled, gated model (.gated)
                 groups = {}
                 if gated:
-                    from .gated import gateable, gated_groups, write_gated_spec
+                    from .gated import gateable, gated_groups, gated_model, write_gated_spec
 
                     gcands = [c for i, (_, _, c, _) in enumerate(ranked)
                               if i not in profiled and gateable(c)]
-                    from .gated import gated_model
-
                     for g, grp in enumerate(gated_groups(gcands)):
                         try:
                             gg = write_gated_spec(
