@@ -601,8 +601,13 @@ class Objective:
         def ha(a, uk):
             return self.model.output(a[:n], uk, a[n:])
 
-        F_jac = jax.jacfwd(Fa)
-        h_jac = jax.jacfwd(ha)
+        def F_jac(a, uk):  # ∂F/∂(x, θ) (n, n+np): the chain rule through the generated f_x, f_p
+            Jx, Jp = self.F.jacobian(a[:n], uk, a[n:], dt)
+            return jnp.concatenate([Jx, Jp], axis=1)
+
+        def h_jac(a, uk):  # ∂h/∂(x, θ) (ny, n+np): the generated h_x, h_p
+            Hx, _, Hp = self.model.output_jacobian(a[:n], uk, a[n:])
+            return jnp.concatenate([Hx, Hp], axis=1)
         nza = n + npar
         nt = self.tm.n_free
         nb = self.nb
