@@ -8,12 +8,16 @@ cleared) with the persistent compilation cache off, so each pays its own compile
    ``(∂F/∂x, ∂F/∂p)`` (RK4, 2 sub-steps): the generated functions (chain rule for F)
    against ``jax.jacfwd`` of the generated ``drift``/``output``/``F``. Compile = first
    call minus a warm call; run = median of ``--repeat`` warm calls.
-2. **fits**: whole estimator fits (``vsidgen.estimator.fit``, CLI defaults) with the model's
+2. **blocks**: the estimator's gradient and Hessian blocks of one Newton iteration
+   (``_Problem.blocks``, the sigma-point assembly that forms ∂F/∂(x, θ) and ∂h/∂(x, θ) at
+   every point) for Euler and RK4 × 2, the two paths compiled once and then called
+   alternately (so a change of machine load hits both).
+3. **fits**: whole estimator fits (``vsidgen.estimator.fit``, CLI defaults) with the model's
    generated Jacobians and with the same model without them (``jacobians=None``: autodiff
    of F and h inside the Hessian assembly). Compile = JAX's compilation-duration events.
 
     python benchmarks/bench_jacobians.py                     # kernels + both default fits
-    python benchmarks/bench_jacobians.py --no-fits           # kernels only
+    python benchmarks/bench_jacobians.py --no-fits           # kernels and blocks only
 """
 
 from __future__ import annotations
@@ -92,6 +96,48 @@ def kernels(points: int, repeat: int) -> None:
         print(f"| {spec.stem} | " + " | ".join(cells) + " |")
 
 
+def blocks(cases, repeat: int) -> None:
+    """The estimator's derivative blocks (one call = one Newton iteration's assembly) with the
+    generated Jacobians and with autodiff, compiled once each, then called alternately."""
+    import jax
+    import numpy as np
+
+    from vsidgen.data import load_record
+    from vsidgen.estimator.fit import _Problem
+    from vsidgen.estimator.results import FitOptions
+    from vsidgen.model import load_model
+
+    print(f"## estimator blocks: compile s (first call minus a warm call); run s: median of {repeat} "
+          "alternating warm calls")
+    print("| case | integrator | generated: compile | generated: run | autodiff: compile | autodiff: run |")
+    print("|---|---|---|---|---|---|")
+    for label, spec, data in cases:
+        model = load_model(spec, generated_dir=ROOT / "generated", build=False)
+        records = [load_record(model, d) for d in data]
+        for integ, sub in (("euler", 1), ("rk4", 2)):
+            calls, comp = {}, {}
+            for name, m in (("generated", model), ("autodiff", dataclasses.replace(model, jacobians=None))):
+                _clear()
+                P = _Problem(m, records, FitOptions(integrator=integ, substeps=sub))
+                s, recs = P.initial(FitOptions())
+                fn = (lambda P=P, s=s, recs=recs: P.blocks(s, recs))
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn())
+                first = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn())
+                comp[name] = first - (time.perf_counter() - t0)
+                calls[name] = (fn, [])
+            for _ in range(repeat):
+                for name, (fn, times) in calls.items():
+                    t0 = time.perf_counter()
+                    jax.block_until_ready(fn())
+                    times.append(time.perf_counter() - t0)
+            med = {k: float(np.median(v[1])) for k, v in calls.items()}
+            print(f"| {label} | {integ} ×{sub} | {comp['generated']:.1f} | {med['generated']:.3f} | "
+                  f"{comp['autodiff']:.1f} | {med['autodiff']:.3f} |", flush=True)
+
+
 def fits(cases) -> None:
     import jax
 
@@ -124,6 +170,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=20)
     ap.add_argument("--no-kernels", action="store_true")
     ap.add_argument("--no-fits", action="store_true")
+    ap.add_argument("--no-blocks", action="store_true")
     ap.add_argument("--fit", nargs="*", default=None, help="fit cases by label prefix (default: all)")
     a = ap.parse_args(argv)
     import jax
@@ -131,8 +178,10 @@ def main(argv=None) -> int:
     from vsidgen import precision  # noqa: F401
     if not a.no_kernels:
         kernels(a.points, a.repeat)
+    cases = [c for c in FITS if a.fit is None or any(c[0].startswith(f) for f in a.fit)]
+    if not a.no_blocks:
+        blocks(cases, a.repeat)
     if not a.no_fits:
-        cases = [c for c in FITS if a.fit is None or any(c[0].startswith(f) for f in a.fit)]
         fits(cases)
     return 0
 
