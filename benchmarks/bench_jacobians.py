@@ -10,11 +10,12 @@ cleared) with the persistent compilation cache off, so each pays its own compile
    call minus a warm call; run = median of ``--repeat`` warm calls.
 2. **blocks**: the estimator's gradient and Hessian blocks of one Newton iteration
    (``_Problem.blocks``, the sigma-point assembly that forms ∂F/∂(x, θ) and ∂h/∂(x, θ) at
-   every point) for Euler and RK4 × 2, the two paths compiled once and then called
-   alternately (so a change of machine load hits both).
-3. **fits**: whole estimator fits (``vsidgen.estimator.fit``, CLI defaults) with the model's
-   generated Jacobians and with the same model without them (``jacobians=None``: autodiff
-   of F and h inside the Hessian assembly). Compile = JAX's compilation-duration events.
+   every point; ``core.POINT_JACOBIANS`` "generated" vs "autodiff") for Euler and RK4 × 2,
+   the two paths compiled once and then called alternately (so a change of machine load
+   hits both).
+3. **fits**: whole estimator fits (``vsidgen.estimator.fit``, CLI defaults) with the sigma-point
+   Jacobians of the Hessian assembly from the generated functions and by autodiff
+   (``vsidgen.estimator.core.POINT_JACOBIANS``). Compile = JAX's compilation-duration events.
 
     python benchmarks/bench_jacobians.py                     # kernels + both default fits
     python benchmarks/bench_jacobians.py --no-fits           # kernels and blocks only
@@ -23,7 +24,6 @@ cleared) with the persistent compilation cache off, so each pays its own compile
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import pathlib
 import statistics
@@ -103,6 +103,7 @@ def blocks(cases, repeat: int) -> None:
     import numpy as np
 
     from vsidgen.data import load_record
+    from vsidgen.estimator import core
     from vsidgen.estimator.fit import _Problem
     from vsidgen.estimator.results import FitOptions
     from vsidgen.model import load_model
@@ -116,9 +117,10 @@ def blocks(cases, repeat: int) -> None:
         records = [load_record(model, d) for d in data]
         for integ, sub in (("euler", 1), ("rk4", 2)):
             calls, comp = {}, {}
-            for name, m in (("generated", model), ("autodiff", dataclasses.replace(model, jacobians=None))):
+            for name in ("generated", "autodiff"):
                 _clear()
-                P = _Problem(m, records, FitOptions(integrator=integ, substeps=sub))
+                core.POINT_JACOBIANS = name
+                P = _Problem(model, records, FitOptions(integrator=integ, substeps=sub))
                 s, recs = P.initial(FitOptions())
                 fn = (lambda P=P, s=s, recs=recs: P.blocks(s, recs))
                 t0 = time.perf_counter()
@@ -142,7 +144,7 @@ def fits(cases) -> None:
     import jax
 
     from vsidgen.data import load_record
-    from vsidgen.estimator import FitOptions, fit
+    from vsidgen.estimator import FitOptions, core, fit
     from vsidgen.model import load_model
 
     total = [0.0]
@@ -154,11 +156,12 @@ def fits(cases) -> None:
     for label, spec, data in cases:
         model = load_model(spec, generated_dir=ROOT / "generated", build=False)
         records = [load_record(model, d) for d in data]
-        for name, m in (("generated", model), ("autodiff", dataclasses.replace(model, jacobians=None))):
+        for name in ("generated", "autodiff"):
             _clear()
+            core.POINT_JACOBIANS = name
             total[0] = 0.0
             t0 = time.perf_counter()
-            res = fit(m, records, options=FitOptions())
+            res = fit(model, records, options=FitOptions())
             wall = time.perf_counter() - t0
             print(f"| {label} | {name} | {total[0]:.1f} | {wall:.1f} | {res.iterations} | {res.elbo!r} |",
                   flush=True)
@@ -175,7 +178,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import jax
     jax.config.update("jax_enable_compilation_cache", False)
-    from vsidgen import precision  # noqa: F401
+    from vsidgen import precision  # noqa: F401  (float64 before any array is made)
     if not a.no_kernels:
         kernels(a.points, a.repeat)
     cases = [c for c in FITS if a.fit is None or any(c[0].startswith(f) for f in a.fit)]

@@ -143,8 +143,14 @@ def test_transition_jacobian_chain_rule_equals_jacfwd(pendulum, nonlinear, integ
                 _check(g, w, f"{model.name} {integrator}/{substeps}/{inputs}: dF/d{var}")
 
 
-def test_structured_hessian_exact_with_generated_jacobians(pendulum):
-    """The estimator's sigma-point blocks, built on the generated Jacobians, equal jax.hessian / jax.grad of the flat objective (which never calls them)."""
+@pytest.mark.slow
+def test_structured_hessian_exact_with_generated_jacobians(pendulum, monkeypatch):
+    """The estimator's sigma-point blocks built on the generated Jacobians (the alternative
+    ``core.POINT_JACOBIANS = "generated"`` that bench_jacobians measures) equal jax.hessian /
+    jax.grad of the flat objective (which never calls them)."""
+    from vsidgen.estimator import core
+
+    monkeypatch.setattr(core, "POINT_JACOBIANS", "generated")
     from vsidgen.estimator.fit import _Problem
     from vsidgen.estimator.linalg import btd_to_dense
     from vsidgen.estimator.results import FitOptions
@@ -156,7 +162,7 @@ def test_structured_hessian_exact_with_generated_jacobians(pendulum):
     rec = types.SimpleNamespace(name="p", path=None, t=np.arange(N) * dt, dt=dt, u=rng.normal(size=(N, 1)),
                                 y=y, input_names=("tq",), output_names=("th", "acc"))
     P = _Problem(pendulum, [rec], FitOptions(bucket=False))
-    assert P.obj.F.jac is not None
+    assert P.obj.point_jacobians == "generated" and P.obj.F.jac is not None
     s, recs = P.initial(FitOptions())
     s = s + 0.3 * rng.normal(size=s.shape)
     (m0, r0), = [(m + 0.2 * rng.normal(size=m.shape), r + 0.2 * rng.normal(size=r.shape)) for m, r in recs]
