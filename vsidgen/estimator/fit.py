@@ -843,7 +843,7 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     if options.optimizer == "structured-newton":
         out = _multistart(P, options, starts)
     elif options.optimizer == "trust-constr":
-        out = _optimize_trust_constr(P, options, starts[0])
+        out = _optimize_trust_constr(P, options, next((st for st in starts if st != "release"), "data"))
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
     return _finish(P, out, mode="fit", options=options)
