@@ -98,7 +98,7 @@ def kalman_loglik(theta, g, r, rec):
 
 @pytest.fixture(scope="module")
 def rec():
-    return record(400, seed=5)
+    return record(300, seed=5)
 
 
 @pytest.fixture(scope="module")
