@@ -69,7 +69,7 @@ def test_zoo_unmeasured_state_with_process_noise_from_null_guesses(name):
     r = zoo.run_one(name, 1)
     assert "error" not in r, r.get("error")
     assert r["converged"], r["status"]
-    assert "release start" in r["status"], r["status"]
+    assert "release (converged" in r["status"], r["status"]
     assert r["se_issues"] == [], r["se_issues"]
     assert r["val_converged"]
     assert abs(r["val_elbo_per_sample"] - r["elbo_per_sample"]) < 0.5, r
