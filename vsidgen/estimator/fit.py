@@ -1220,10 +1220,6 @@ def _release_start(P: _Problem, options: FitOptions, t0) -> dict | None:
                       f"{leg2['iterations']} it.)")
     out["history"] = tuple(leg1["history"]) + tuple(leg2["history"]) + tuple(out["history"])
     out["iterations"] = int(out["iterations"]) + int(leg1["iterations"]) + int(leg2["iterations"])
-    out["release"] = {"states": held_names, "start_std": dict(zip(held_names, map(float, eps0))),
-                      "limit_std": dict(zip(held_names, map(float, end))), "limit_reached": bool(lim["reached"]),
-                      "held_elbo": -_negelbo(leg2), "held_converged": bool(leg2["converged"]),
-                      "held_iterations": int(leg1["iterations"]) + int(leg2["iterations"])}
     return out
 
 
