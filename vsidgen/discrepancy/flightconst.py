@@ -170,27 +170,41 @@ def _speed_of(doc: Mapping, fname: str, record: str | None) -> Sourced | None:
     return found[0][1]
 
 
+def _column(path: pathlib.Path, names: Sequence[str]) -> tuple[str, np.ndarray] | None:
+    """(name, values) of the first of ``names`` that is a column of the CSV file, else None.
+    Unreadable files and non-numeric cells give None (the airspeed is then looked up
+    elsewhere; the record itself is checked where it is loaded)."""
+    import csv
+
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            header = next(csv.reader(fh), [])
+            header = [h.strip() for h in header]
+            col = next((c for c in names if c in header), None)
+            if col is None:
+                return None
+            j = header.index(col)
+            vals = []
+            for row in csv.reader(fh):
+                if len(row) > j and row[j].strip():
+                    vals.append(float(row[j]))
+    except (OSError, UnicodeDecodeError, ValueError, csv.Error):
+        return None
+    return col, np.asarray(vals, float)
+
+
 def record_airspeed(records: Sequence[Any], *, mapped_column: str | None = None) -> Sourced | None:
     """Mean true airspeed over the records' airspeed column (m/s), or None."""
-    from ..data import _read_block, _read_header
-
     vals, names, col_used = [], [], None
+    cols = ([mapped_column] if mapped_column else []) + list(_SPEED_COLUMNS)
     for r in records:
         path = getattr(r, "path", None)
         if path is None or pathlib.Path(path).suffix.lower() != ".csv":
             continue
-        try:
-            header = _read_header(pathlib.Path(path))
-        except Exception:  # noqa: BLE001 - an unreadable record has no airspeed column
+        got = _column(pathlib.Path(path), cols)
+        if got is None:
             continue
-        cols = ([mapped_column] if mapped_column else []) + list(_SPEED_COLUMNS)
-        col = next((c for c in cols if c in header), None)
-        if col is None:
-            continue
-        try:
-            v = _read_block(pathlib.Path(path), header, [header.index(col)])[:, 0]
-        except Exception:  # noqa: BLE001
-            continue
+        col, v = got
         v = v[np.isfinite(v)]
         if v.size:
             vals.append(v)
