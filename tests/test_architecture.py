@@ -28,7 +28,7 @@ PACKAGE = ROOT / "vsidgen"
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("vsidgen", "errors", "precision", "limits", "atomic", "suggest", "metadata",
                     "compilecache", "progress", "engine")),
-    ("spec", ("expr", "units", "dataunits", "spec", "symbolic", "overrides")),
+    ("spec", ("expr", "units", "dataunits", "spec", "typedspec", "symbolic", "overrides")),
     ("codegen", ("codegen",)),
     ("model", ("model", "dynamics")),
     ("data", ("formats", "data", "datacheck", "simulate")),

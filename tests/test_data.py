@@ -163,6 +163,39 @@ def test_truncated_row(tmp_path):
     assert err.sample == 5 and err.column == "alpha_rad"
 
 
+def test_row_with_extra_values(tmp_path):
+    """A decimal comma (or an unquoted comma) gives a row more fields than the header: the
+    columns would shift silently, so it is an error naming the row and the file line."""
+    rows = _good_rows()
+    rows[9] = [rows[9][0], "0,09", rows[9][2], rows[9][3]]
+    err = _err(tmp_path, rows)
+    assert err.sample == 9 and "5 fields but the header has 4" in str(err)
+    assert "file line 11" in str(err) and "decimal comma" in str(err)
+
+
+def test_trailing_empty_field_and_quoted_comma_accepted(tmp_path):
+    rows = _good_rows()
+    path = tmp_path / "t.csv"
+    path.write_text(",".join(HEADER) + "\n" + "".join(",".join(r) + ",\n" for r in rows))
+    r = load_record(_m(), path)
+    ref = load_record(_m(), _write(tmp_path / "ref.csv", HEADER, rows))
+    assert np.array_equal(r.y, ref.y) and np.array_equal(r.u, ref.u)
+    q = tmp_path / "q.csv"
+    q.write_text('"time","de_rad","alpha_rad","q_radps","note"\n'
+                 + "".join(",".join(rw) + ',"a, b"\n' for rw in rows))
+    rq = load_record(_m(), q)
+    assert np.array_equal(rq.y, ref.y)
+
+
+def test_long_gap_named_where_it_is(tmp_path):
+    """A long gap inflates the mean period; the step that breaks the grid is the gap, with the
+    number of missing samples, not the first regular step."""
+    t = [0.1 * k for k in range(100)] + [0.1 * k for k in range(160, 260)]
+    rows = [[repr(tk), "0", "1", "2"] for tk in t]
+    err = _err(tmp_path, rows)
+    assert err.sample == 100 and "gap of 6.1 s" in str(err) and "60 samples missing" in str(err)
+
+
 @pytest.mark.parametrize("case", ["duplicate", "backwards", "gap", "short", "rate_change"])
 def test_bad_time(tmp_path, case):
     t = [0.1 * k for k in range(200)]

@@ -210,12 +210,35 @@ def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
                     path=path, column=missing, sample=sample,
                     hint=f"file line {sample + 2} is truncated or uses another delimiter "
                          "(vsidgen reads comma-separated files)")
+            if len(row) > len(header) and any(c.strip() for c in row[len(header):]):
+                raise DataError(
+                    f"row has {len(row)} fields but the header has {len(header)}",
+                    path=path, sample=sample,
+                    hint=f"file line {sample + 2} has extra values: a decimal comma, or a comma "
+                         "inside a value that is not quoted? (vsidgen reads comma-separated files "
+                         "with a decimal point)")
             rows.append([_parse_cell(row[j], path, header[j], sample) for j in idx])
             sample += 1
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), len(idx))
 
 
+def _uneven_rows(path: pathlib.Path, n_header: int) -> bool:
+    """True when a data line has more delimiters than the header (with non-empty extra
+    fields, or quotes that need the exact reader): the exact parser then names the row."""
+    with open(path, encoding="utf-8-sig") as fh:
+        for line in fh:
+            if line.strip():
+                break
+        for line in fh:
+            if line.count(",") >= n_header and (line.rstrip("\r\n").rstrip(", \t").count(",")
+                                                 >= n_header or '"' in line):
+                return True
+    return False
+
+
 def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.ndarray:
+    if _uneven_rows(path, len(header)):
+        return _slow_parse(path, header, idx)
     try:
         with open(path, encoding="utf-8-sig") as fh:
             # skip leading blank lines and the header
@@ -324,14 +347,21 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
             f"{fmt_number(MIN_DT)} s to {fmt_number(MAX_DT)} s",
             path=path, column=column, sample=1,
             hint="the time column must be in seconds; convert it (or map another column)")
-    dev = np.abs(steps - dt)
-    tol = JITTER * dt
+    # each step against the median step (a gap inflates the mean period, which would blame
+    # the first regular step instead of the gap)
+    typical = float(np.median(steps))
+    dev = np.abs(steps - typical)
+    tol = JITTER * typical
     if (dev > tol).any():
         k = int(np.argmax(dev > tol)) + 1
-        kind = "gap" if steps[k - 1] > dt else "short step"
+        step = float(steps[k - 1])
+        kind = "gap" if step > typical else "short step"
+        n_lost = round(step / typical) - 1
+        lost = (f", about {n_lost} sample{'s' if n_lost != 1 else ''} missing"
+                if step > 1.5 * typical else "")
         raise DataError(
-            f"non-uniform sampling: {kind} of {steps[k - 1]:.6g} s before this sample "
-            f"(mean period {dt:.6g} s, tolerance ±{100 * JITTER:.0f} %)",
+            f"non-uniform sampling: {kind} of {step:.6g} s before this sample{lost} "
+            f"(median period {typical:.6g} s, tolerance ±{100 * JITTER:.0f} %)",
             path=path, column=column, sample=k,
             hint="vsidgen needs uniformly sampled records: split the file at gaps "
                  "or resample it to a uniform grid")

@@ -247,4 +247,54 @@ SP3_PN = ZooModel(
     output_cols=(("aoa_deg", DEG), ("q_dps", DEG), ("theta_deg", DEG), ("nz_g", G0)),
     description="short period with attitude, linear, 3 states, process noise on every state, 40 Hz")
 
-MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN)}
+
+# ----------------------------------------------------------------------------- coupled lon + lat, 8 states
+SIX8_V0 = 60.0
+SIX8_TRUTH = {"Xu": -0.04, "Xa": 4.0, "Zu": -0.3, "Za": -1.3, "Zde": -0.12, "Mu": 0.003, "Ma": -7.0,
+              "Mq": -2.8, "Mde": -11.0, **LAT_TRUTH}
+
+
+def _six8_f(x, u, p):
+    uu, a, q, th, beta, pr, r, phi = x
+    de, da, dr = u
+    V0 = SIX8_V0
+    return np.array([
+        p["Xu"] * uu + p["Xa"] * a - G0 * th,
+        p["Zu"] * uu / V0 + p["Za"] * a + p["Zde"] * de + q,
+        p["Mu"] * uu + p["Ma"] * a + p["Mq"] * q + p["Mde"] * de,
+        q,
+        p["Yb"] * beta + p["Ydr"] * dr - r + G0 / V0 * phi,
+        p["Lb"] * beta + p["Lp"] * pr + p["Lr"] * r + p["Lda"] * da + p["Ldr"] * dr,
+        p["Nb"] * beta + p["Np"] * pr + p["Nr"] * r + p["Nda"] * da + p["Ndr"] * dr,
+        pr,
+    ])
+
+
+def _six8_h(x, u, p):
+    uu, a, q, th, beta, pr, r, phi = x
+    de, da, dr = u
+    V0 = SIX8_V0
+    az = -V0 * (p["Zu"] * uu / V0 + p["Za"] * a + p["Zde"] * de)
+    ay = V0 * (p["Yb"] * beta + p["Ydr"] * dr)
+    return np.array([V0 + uu, a, q, th, beta, pr, r, phi, az, ay])
+
+
+def _six8_inputs(t, rng):
+    de = _lon_inputs(t, rng)[:, 0]
+    lat = _lat_inputs()(t - 12.0, rng)
+    return np.column_stack([de, lat])
+
+
+SIX8 = ZooModel(
+    name="six8", spec="six8.yaml", truth=SIX8_TRUTH, drift=_six8_f, output=_six8_h,
+    x0=(0.0,) * 8, proc_std=(0.2, 0.003, 0.02, 0.0, 0.004, 0.03, 0.01, 0.0),
+    meas_std=(0.15, 0.15 * DEG, 0.2 * DEG, 0.1 * DEG, 0.2 * DEG, 0.3 * DEG, 0.2 * DEG, 0.2 * DEG,
+              0.02 * G0, 0.01 * G0),
+    inputs=_six8_inputs, dt=0.02, n=2000, time_col="t",
+    input_cols=(("elev_deg", DEG), ("ail_deg", DEG), ("rud_deg", DEG)),
+    output_cols=(("ias_kt", KT), ("aoa_deg", DEG), ("q_dps", DEG), ("theta_deg", DEG), ("aos_deg", DEG),
+                 ("p_dps", DEG), ("r_dps", DEG), ("phi_deg", DEG), ("nz_g", G0), ("ny_g", G0)),
+    description="coupled longitudinal + lateral, linear, 8 states, θ and φ without process noise, "
+                "knots, degrees and g through units, 50 Hz")
+
+MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN, SIX8)}

@@ -315,7 +315,7 @@ def drift_sensitivities(st: FitState) -> dict[str, np.ndarray]:
     if not free:
         return {}
     p = jnp.asarray(theta_vector(m, st.fit.theta))
-    jac = jax.jit(jax.vmap(jax.jacfwd(m.drift, argnums=2), in_axes=(0, 0, None)))
+    jac = jax.jit(jax.vmap(lambda x, u, th: m.drift_jacobian(x, u, th)[2], in_axes=(0, 0, None)))
     blocks = []
     for sig, rec in zip(st.signals, st.records):
         X = jnp.asarray(np.asarray(sig.x_smooth, float)[:-1])
