@@ -59,8 +59,8 @@ def implied_measurement_std(ref: dict, csv: pathlib.Path) -> dict:
     th = jnp.array([fem["parameters"][p.name]["value"] for p in m.parameters])
     x0 = jnp.asarray([106.023, 0.111685, 0.104887, -0.00332659])  # reference 'numerics': fixed x0
     u0 = jnp.asarray(rec.u[0])
-    J = np.asarray(jax.jacfwd(lambda x: m.drift(x, u0, th))(x0))
-    C = np.asarray(jax.jacfwd(lambda x: m.output(x, u0, th))(x0))
+    J = np.asarray(m.drift_jacobian(x0, u0, th)[0])
+    C = np.asarray(m.output_jacobian(x0, u0, th)[0])
     T = float(rec.dt)
     A = sl.expm(J * T)
     F = np.diag([fem["process_noise_F_diag"][n] for n in m.state_names])

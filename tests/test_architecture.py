@@ -28,7 +28,7 @@ PACKAGE = ROOT / "vsidgen"
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("vsidgen", "errors", "precision", "limits", "atomic", "suggest", "metadata",
                     "compilecache", "progress", "engine")),
-    ("spec", ("expr", "units", "dataunits", "spec", "symbolic", "overrides")),
+    ("spec", ("expr", "units", "dataunits", "spec", "typedspec", "symbolic", "overrides")),
     ("codegen", ("codegen",)),
     ("model", ("model", "dynamics")),
     ("data", ("formats", "data", "datacheck", "simulate")),
@@ -40,6 +40,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: leaves", ("discrepancy.base", "discrepancy.specwrite")),
     ("diagnose: locate", ("discrepancy.locate",)),
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
+    ("diagnose: flight conditions", ("discrepancy.flightconst",)),
     ("diagnose: findings and refit", ("discrepancy.findings", "discrepancy.refit")),
     ("diagnose: fit states", ("discrepancy.fitstate",)),
     ("diagnose: numerics and delay profiles", ("discrepancy.numerics", "discrepancy.delay")),

@@ -356,7 +356,8 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
         k = int(np.argmax(dev > tol)) + 1
         step = float(steps[k - 1])
         kind = "gap" if step > typical else "short step"
-        lost = (f", about {round(step / typical) - 1} samples missing"
+        n_lost = round(step / typical) - 1
+        lost = (f", about {n_lost} sample{'s' if n_lost != 1 else ''} missing"
                 if step > 1.5 * typical else "")
         raise DataError(
             f"non-uniform sampling: {kind} of {step:.6g} s before this sample{lost} "

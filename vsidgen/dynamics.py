@@ -41,6 +41,21 @@ with the *step input* ``v_k = u_k`` (zoh) or ``v_k = (u_k, u_{k+1})`` concatenat
 The noise enters as a single increment ``√T G w_k`` per sample in all cases (the
 Euler–Maruyama diffusion term); integrator and hold only change the mean. The
 transition is pure ``jax.numpy``: it can be jitted, vmapped and differentiated.
+
+**Jacobian of the discrete map** (:meth:`Transition.jacobian`): ``(∂F/∂x, ∂F/∂p)``
+composed from the continuous Jacobians ``f_x = ∂f/∂x``, ``f_p = ∂f/∂p`` (the generated
+``drift_jac_x``/``drift_jac_p`` of a model from a spec) by the chain rule through the
+same steps. With the tangent ``Z = [∂z/∂x, ∂z/∂p]`` (n × (n + n_p), ``Z_0 = [I, 0]``)
+and ``D(z, u, Y) = f_x(z, u) Y + [0, f_p(z, u)]``, the derivative of ``f`` along a
+tangent ``Y`` of its argument:
+
+* Euler: ``Z_{j+1} = Z_j + h D(z_j, u(s_j), Z_j)``;
+* RK4: ``K_1 = D(z, u_1, Z)``, ``K_2 = D(z + ½h k_1, u_m, Z + ½h K_1)``,
+  ``K_3 = D(z + ½h k_2, u_m, Z + ½h K_2)``, ``K_4 = D(z + h k_3, u_4, Z + h K_3)``,
+  ``Z^+ = Z + (h/6)(K_1 + 2K_2 + 2K_3 + K_4)``,
+
+with the stage points and inputs of ``F`` itself, so the result is the exact derivative
+of ``F`` (tests compare it with ``jax.jacfwd`` of ``F``).
 """
 
 from __future__ import annotations
@@ -86,9 +101,18 @@ class Transition:
     integrator: str
     substeps: int
     inputs: str
+    #: ``(x, v, p, dt) -> (∂F/∂x (n, n), ∂F/∂p (n, np))`` (module docstring)
+    jac: Callable | None = None
 
     def __call__(self, x, v, p, dt):
         return self.fn(x, v, p, dt)
+
+    def jacobian(self, x, v, p, dt):
+        """``(∂F/∂x, ∂F/∂p)`` at ``(x, v, p, dt)``, shapes (n, n) and (n, np)."""
+        if self.jac is None:
+            import jax
+            return jax.jacfwd(self.fn, argnums=(0, 2))(x, v, p, dt)
+        return self.jac(x, v, p, dt)
 
     @property
     def key(self) -> tuple:
@@ -119,10 +143,67 @@ class Transition:
         return xp.concatenate([v, last], axis=0)
 
 
+def _stage_inputs(v, inputs: str, m: int, j: int, rk4: bool):
+    """Inputs of sub-step ``j``: ``(u(s_j),)`` (Euler) or ``(u(s_j), u(s_j + 1/(2m)), u(s_{j+1}))`` (RK4)."""
+    if inputs == "zoh":
+        return (v,) * (3 if rk4 else 1)
+    nu = v.shape[-1] // 2
+    u0, du = v[:nu], v[nu:] - v[:nu]
+    if not rk4:
+        return (u0 + (j / m) * du,)
+    return u0 + (j / m) * du, u0 + (j / m + 0.5 / m) * du, u0 + ((j + 1) / m) * du
+
+
+def transition_jacobian(drift: Callable, drift_jacobian: Callable, *, integrator: str = "euler",
+                        substeps: int = 1, inputs: str = "zoh") -> Callable:
+    """``J(x, v, p, dt) -> (∂F/∂x, ∂F/∂p)`` of the transition of :func:`transition_fn`, by the
+    chain rule through its sub-steps from ``drift_jacobian(x, u, p) -> (f_x, f_u, f_p)``
+    (formulas in the module docstring)."""
+    integrator, m, inputs = _check(integrator, substeps, inputs)
+    rk4 = integrator == "rk4"
+
+    def J(x, v, p, dt):
+        z = jnp.asarray(x)
+        n = z.shape[0]
+        Z = jnp.concatenate([jnp.eye(n, dtype=z.dtype), jnp.zeros((n, p.shape[0]), z.dtype)], axis=1)
+
+        def D(zz, uu, Y):
+            fx, _, fp = drift_jacobian(zz, uu, p)
+            return fx @ Y + jnp.concatenate([jnp.zeros((n, n), fx.dtype), fp], axis=1)
+
+        h = dt / m
+        for j in range(m):
+            if not rk4:
+                (u1,) = _stage_inputs(v, inputs, m, j, False)
+                Z = Z + h * D(z, u1, Z)
+                z = z + h * drift(z, u1, p)
+                continue
+            u1, um, u4 = _stage_inputs(v, inputs, m, j, True)
+            k1 = drift(z, u1, p)
+            K1 = D(z, u1, Z)
+            z2, Z2 = z + 0.5 * h * k1, Z + 0.5 * h * K1
+            k2 = drift(z2, um, p)
+            K2 = D(z2, um, Z2)
+            z3, Z3 = z + 0.5 * h * k2, Z + 0.5 * h * K2
+            k3 = drift(z3, um, p)
+            K3 = D(z3, um, Z3)
+            z4, Z4 = z + h * k3, Z + h * K3
+            k4 = drift(z4, u4, p)
+            K4 = D(z4, u4, Z4)
+            z = z + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            Z = Z + (h / 6.0) * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
+        return Z[:, :n], Z[:, n:]
+
+    return J
+
+
 def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int = 1,
-                  inputs: str = "zoh") -> Transition:
+                  inputs: str = "zoh", drift_jacobian: Callable | None = None) -> Transition:
     """Build the :class:`Transition` ``F(x, v, p, dt)`` from a bare drift ``f(x, u, p)``.
 
+    ``drift_jacobian(x, u, p) -> (f_x, f_u, f_p)`` (e.g. :meth:`vsidgen.model.Model.drift_jacobian`)
+    gives the transition its Jacobian by the chain rule (:func:`transition_jacobian`);
+    without it :meth:`Transition.jacobian` differentiates ``F`` by forward-mode autodiff.
     See the module docstring for the formulas.
     """
     integrator, m, inputs = _check(integrator, substeps, inputs)
@@ -173,7 +254,9 @@ def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int =
 
     F.__doc__ = (f"Mean transition F(x, v, p, dt): {integrator}, {m} substep(s), "
                  f"inputs {inputs} (see vsidgen.dynamics).")
-    return Transition(F, integrator, m, inputs)
+    jac = None if drift_jacobian is None else transition_jacobian(
+        drift, drift_jacobian, integrator=integrator, substeps=m, inputs=inputs)
+    return Transition(F, integrator, m, inputs, jac)
 
 
 def settings(model, *, integrator: str | None = None, substeps: int | None = None) -> tuple[str, int]:
@@ -199,7 +282,9 @@ def transition(model, *, integrator: str | None = "euler", substeps: int | None 
     """Discrete mean transition ``F(x, v, p, dt)`` of ``model``.
 
     Args:
-        model: a :class:`vsidgen.model.Model` (``model.drift``; its ``integrator``,
+        model: a :class:`vsidgen.model.Model` (``model.drift``; with generated
+            ``model.jacobians`` they give :meth:`Transition.jacobian` by the chain rule,
+            else it is autodiff of ``F``; its ``integrator``,
             ``substeps`` and ``input_hold`` fill the arguments given as ``None``).
         integrator: ``"euler"`` (Euler–Maruyama mean ``x + dt f``) or ``"rk4"``.
         substeps: number ``m >= 1`` of equal sub-steps ``dt/m`` per sample.
@@ -211,8 +296,10 @@ def transition(model, *, integrator: str | None = "euler", substeps: int | None 
     """
     integrator, substeps = settings(model, integrator=integrator, substeps=substeps)
     return transition_fn(model.drift, integrator=integrator, substeps=substeps,
-                         inputs=input_hold(model, inputs))
+                         inputs=input_hold(model, inputs),
+                         drift_jacobian=(model.drift_jacobian
+                                         if getattr(model, "jacobians", None) is not None else None))
 
 
 __all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "input_hold", "settings", "transition",
-           "transition_fn"]
+           "transition_fn", "transition_jacobian"]

@@ -11,7 +11,8 @@ covariance), with the mean transition ``F`` of :mod:`vsidgen.dynamics`:
 3. **one-step predictions of the steady-state Kalman filter** for ``θ*``. As
    in the filter-error method, the system is linearised once, at the first
    sample: ``A = ∂F/∂x (μ_0, u_0, θ*)``, ``H = ∂h/∂x (μ_0, u_0, θ*)``
-   (``jax.jacfwd``), ``Q = T G Gᵀ``. The predicted covariance ``P`` solves the
+   (the generated Jacobians: ``h_x`` directly, ``F_x`` composed from ``f_x`` by the
+   chain rule, :meth:`vsidgen.dynamics.Transition.jacobian`), ``Q = T G Gᵀ``. The predicted covariance ``P`` solves the
    discrete algebraic Riccati equation
 
    .. math:: P = A P Aᵀ − A P Hᵀ (H P Hᵀ + R)^{-1} H P Aᵀ + Q
@@ -214,8 +215,8 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
 
     # steady-state Kalman filter, linearised at the first sample
     x0, u0, v0 = mu_j[0], u_j[0], v_j[0]
-    A = np.asarray(jax.jacfwd(lambda x: F(x, v0, p, T))(x0))
-    H = np.asarray(jax.jacfwd(lambda x: h(x, u0, p))(x0))
+    A = np.asarray(F.jacobian(x0, v0, p, T)[0])
+    H = np.asarray(model.output_jacobian(x0, u0, p)[0])
     Q = T * G @ G.T
     K = None
     try:

@@ -16,12 +16,42 @@ from .metadata import (DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSp
 
 
 @dataclasses.dataclass(frozen=True)
+class Jacobians:
+    """The generated first derivatives of the drift ``f`` and the output ``h``.
+
+    Each takes one sample ``(x, u, p)`` like ``f`` and ``h`` and returns a matrix:
+    ``drift_x = ∂f/∂x`` (nx, nx), ``drift_u = ∂f/∂u`` (nx, nu), ``drift_p = ∂f/∂p`` (nx, np),
+    ``output_x = ∂h/∂x`` (ny, nx), ``output_u = ∂h/∂u`` (ny, nu), ``output_p = ∂h/∂p`` (ny, np),
+    derived symbolically by :mod:`vsidgen.codegen` (definitions expanded).
+    """
+
+    drift_x: Callable
+    drift_u: Callable
+    drift_p: Callable
+    output_x: Callable
+    output_u: Callable
+    output_p: Callable
+
+    @classmethod
+    def of_module(cls, module: types.ModuleType) -> "Jacobians":
+        """The six ``drift_jac_*`` / ``output_jac_*`` functions of a generated module."""
+        return cls(drift_x=module.drift_jac_x, drift_u=module.drift_jac_u, drift_p=module.drift_jac_p,
+                   output_x=module.output_jac_x, output_u=module.output_jac_u,
+                   output_p=module.output_jac_p)
+
+
+@dataclasses.dataclass(frozen=True)
 class Model(VariableNames):
     """Everything the estimator needs to know about a model.
 
     ``drift(x, u, p)`` and ``output(x, u, p)`` take one sample (1-D arrays;
     ``p`` holds all parameters in ``parameters`` order, fixed ones included)
     and return jnp arrays of shape (nx,) and (ny,).
+
+    ``jacobians`` holds their generated first derivatives (:class:`Jacobians`) when the
+    model comes from a spec; :meth:`drift_jacobian` and :meth:`output_jacobian` are what
+    every first derivative of ``f`` or ``h`` at run time goes through (forward-mode
+    autodiff of ``drift``/``output`` for a model built from bare functions).
     """
 
     name: str
@@ -41,6 +71,23 @@ class Model(VariableNames):
     symbolic: Any = None                 # SymbolicModel when loaded from a spec
     module: types.ModuleType | None = None
     module_path: pathlib.Path | None = None
+    jacobians: Jacobians | None = None
+
+    def drift_jacobian(self, x, u, p):
+        """``(∂f/∂x, ∂f/∂u, ∂f/∂p)`` at one sample, shapes (nx, nx), (nx, nu), (nx, np)."""
+        if self.jacobians is None:
+            import jax
+            return jax.jacfwd(self.drift, argnums=(0, 1, 2))(x, u, p)
+        j = self.jacobians
+        return j.drift_x(x, u, p), j.drift_u(x, u, p), j.drift_p(x, u, p)
+
+    def output_jacobian(self, x, u, p):
+        """``(∂h/∂x, ∂h/∂u, ∂h/∂p)`` at one sample, shapes (ny, nx), (ny, nu), (ny, np)."""
+        if self.jacobians is None:
+            import jax
+            return jax.jacfwd(self.output, argnums=(0, 1, 2))(x, u, p)
+        j = self.jacobians
+        return j.output_x(x, u, p), j.output_u(x, u, p), j.output_p(x, u, p)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
@@ -132,5 +179,5 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
         measurement_noise=symbolic.measurement_noise, data=symbolic.data,
         integrator=symbolic.integrator, substeps=symbolic.substeps,
         input_hold=getattr(symbolic, "input_hold", "zoh"), symbolic=symbolic,
-        module=module, module_path=module_path,
+        module=module, module_path=module_path, jacobians=Jacobians.of_module(module),
     )

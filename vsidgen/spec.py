@@ -3,8 +3,9 @@
 :func:`load_spec` reads a spec (and the specs it ``extends``) into a
 :class:`RawSpec`: an ordered tree of :class:`YNode` that remembers the file,
 line and column of every key and value, so that later validation errors point
-into the file that contains the offending text. No model semantics here (see
-:mod:`vsidgen.symbolic`).
+into the file that contains the offending text. No model semantics here:
+:mod:`vsidgen.typedspec` reads the merged tree once into the typed spec that
+:mod:`vsidgen.symbolic` compiles.
 
 Merge rules for ``extends`` (child onto parent): entries of ``states``,
 ``inputs``, ``outputs``, ``constants``, ``parameters``, ``definitions``,

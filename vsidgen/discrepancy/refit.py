@@ -217,8 +217,10 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
         zl, zs = jax.lax.scan(step, z0, (mu[:-1], F.step_inputs(u)))
         return jnp.concatenate([zs, zl[None]], axis=0)
 
-    jacF = jax.jit(jax.vmap(jax.jacfwd(lambda x, u, dt: F(x, u, th, dt)), in_axes=(0, 0, None)))
-    jacf = jax.jacfwd(lambda x, u: model1.drift(x, u, th))
+    jacF = jax.jit(jax.vmap(lambda x, u, dt: F.jacobian(x, u, th, dt)[0], in_axes=(0, 0, None)))
+
+    def jacf(x, u):
+        return model1.drift_jacobian(x, u, th)[0]
     recs = []
     H0 = 0.0
     notes = []

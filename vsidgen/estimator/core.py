@@ -423,6 +423,13 @@ def curvature_vars(fn, na: int, nu: int, *, points: int = 3, seed: int = 0):
 
 
 # --------------------------------------------------------------------------- objective
+#: how the Hessian assembly forms ∂F/∂(x, θ) and ∂h/∂(x, θ) at every sigma point: "autodiff"
+#: (jax.jacfwd through the generated drift/output) or "generated" (Transition.jacobian, the
+#: chain rule through the generated f_x, f_p; Model.output_jacobian). autodiff: as fast to run,
+#: faster to compile on HFB-320, fits bit-identical to before (docs/performance.md)
+POINT_JACOBIANS = "autodiff"
+
+
 class Objective:
     """Negative ELBO pieces for one problem (model + options); jitted per record shape."""
 
@@ -431,6 +438,7 @@ class Objective:
         self.tm = theta_map
         self.nm = noise_map
         self.F = F
+        self.point_jacobians = POINT_JACOBIANS
         n = model.nx
         self.n = n
         self.nl = n * (n - 1) // 2
@@ -610,8 +618,17 @@ class Objective:
         def ha(a, uk):
             return self.model.output(a[:n], uk, a[n:])
 
-        F_jac = jax.jacfwd(Fa)
-        h_jac = jax.jacfwd(ha)
+        if self.point_jacobians == "generated":
+            def F_jac(a, uk):  # chain rule through the generated f_x, f_p
+                Jx, Jp = self.F.jacobian(a[:n], uk, a[n:], dt)
+                return jnp.concatenate([Jx, Jp], axis=1)
+
+            def h_jac(a, uk):  # the generated h_x, h_p
+                Hx, _, Hp = self.model.output_jacobian(a[:n], uk, a[n:])
+                return jnp.concatenate([Hx, Hp], axis=1)
+        else:
+            F_jac = jax.jacfwd(Fa)
+            h_jac = jax.jacfwd(ha)
         nza = n + npar
         nt = self.tm.n_free
         nb = self.nb
@@ -792,7 +809,7 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     fixed values) reuses the compiled code. Keyed on the model's functions,
     dimensions, integrator and the static index structure of the maps.
     """
-    key = (model.drift, model.output, model.nx, model.nu, model.ny, model.np, key_extra,
+    key = (model.drift, model.output, POINT_JACOBIANS, model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
     obj = _OBJECTIVES.get(key)
