@@ -40,6 +40,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: leaves", ("discrepancy.base", "discrepancy.specwrite")),
     ("diagnose: locate", ("discrepancy.locate",)),
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
+    ("diagnose: flight conditions", ("discrepancy.flightconst",)),
     ("diagnose: findings and refit", ("discrepancy.findings", "discrepancy.refit")),
     ("diagnose: fit states", ("discrepancy.fitstate",)),
     ("diagnose: numerics and delay profiles", ("discrepancy.numerics", "discrepancy.delay")),

@@ -92,6 +92,54 @@ def test_adopted_setting_in_findings_summary_and_report_agree():
     assert numerics_text(NumericsResult(cur, 100.0, (), 0.01).to_json()) == ""
 
 
+class _FakeEngine:
+    """Runs nothing: each numerics refit returns a state with the ELBO gain given per setting."""
+
+    def __init__(self, gains):
+        self.gains, self.asked = gains, []
+
+    def run(self, fn, tasks, deadline=None):
+        from vsidgen.engine import TaskOutcome, TaskStatus
+        out = []
+        for key, args in tasks:
+            self.asked.append(key)
+            fit = types.SimpleNamespace(converged=True, stop_reason=None)
+            st = types.SimpleNamespace(elbo=100.0 + self.gains[key], fit=fit)
+            out.append(TaskOutcome(key, TaskStatus.DONE, st))
+        return out
+
+
+def _run(tmp_path, gains):
+    from vsidgen.discrepancy.numerics import run_numerics
+    model = types.SimpleNamespace(integrator="euler", substeps=1, input_hold="zoh", name="m")
+    current = types.SimpleNamespace(model=model, elbo=100.0)
+    eng = _FakeEngine(gains)
+    res = run_numerics(current, tmp_path, alpha=0.01, generated_dir=None, max_iter=10, engine=eng)
+    return res, eng
+
+
+def test_most_accurate_setting_first_and_the_rest_only_when_it_is_significant(tmp_path):
+    """With m = 4 settings Holm adopts nothing unless the largest 2ΔELBO clears χ²₁ at α/4:
+    the most accurate setting (rk4, first-order hold) is refitted first and, when it stays
+    below that level, the three coarser ones are not refitted; the decision is unchanged."""
+    labels = [s.label for s in numerics_settings(NumericsSetting("euler", 1, "zoh"))]
+    strictest = float(stats.chi2.isf(0.01 / 4, 1))
+    low = {k: 0.5 * 0.9 * strictest for k in labels}
+    res, eng = _run(tmp_path, low)
+    assert eng.asked == ["rk4x1_foh"]
+    assert res.adopted is None
+    verdicts = {t.setting.label: t.verdict for t in res.trials}
+    assert verdicts.pop("rk4x1_foh") is NumericsVerdict.NOT_SIGNIFICANT
+    assert set(verdicts.values()) == {NumericsVerdict.NOT_TRIED}
+    assert {t["verdict"] for t in res.to_json()["trials"]} == {"not_significant", "not_tried"}
+    # significant: every setting is refitted and the cheapest within 0.5 nats is adopted
+    high = {"rk4x1_foh": 50.0, "rk4x1_zoh": 20.0, "eulerx4_foh": 49.9, "eulerx4_zoh": 10.0}
+    res, eng = _run(tmp_path, high)
+    assert sorted(eng.asked) == sorted(labels) and eng.asked[0] == "rk4x1_foh"
+    assert res.adopted is not None and res.adopted.setting.label in ("rk4x1_foh", "eulerx4_foh")
+    assert not any(t.verdict is NumericsVerdict.NOT_TRIED for t in res.trials)
+
+
 @pytest.mark.slow
 def test_null_record_from_continuous_time_adopts_interpolated_inputs(tmp_path):
     """The independent simulator's null short-period record (continuous time, elevator moving

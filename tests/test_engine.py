@@ -109,3 +109,26 @@ def test_existing_cluster_by_scheduler_address():
             assert not eng.serial and lc.scheduler_address in eng.describe()
             out = eng.run(_square, [("a", (5,)), ("b", (6,))])
             assert [o.value for o in out] == [25, 36]
+
+
+def test_close_survives_a_shutdown_that_times_out():
+    """A local cluster whose worker is still busy with a task cancelled at the deadline can
+    time out while shutting down; the run's results are on disk by then, so closing the engine
+    must not turn that into an error (it did: 'internal error: TimeoutError' after
+    --time-limit)."""
+    calls = []
+
+    class Slow:
+        def __init__(self, name):
+            self.name = name
+
+        def close(self, timeout=None):
+            calls.append((self.name, timeout))
+            raise TimeoutError("workers did not stop in time")
+
+    eng = Engine(workers=2)
+    eng.client, eng.cluster = Slow("client"), Slow("cluster")
+    eng.close()
+    assert [c for c, _ in calls] == ["client", "cluster"]
+    assert all(t is not None and t > 0 for _, t in calls)
+    assert eng.client is None and eng.cluster is None

@@ -319,10 +319,12 @@ def _add_fit(sub):
     p.add_argument("--max-iter", type=int, default=200)
     p.add_argument("--init-states", choices=("measured", "zero"), default="measured",
                    help="initial state-path mean: measured states where possible, or zero")
-    p.add_argument("--noise-start", choices=("auto", "data", "data-meas", "unit"), default="auto",
+    p.add_argument("--noise-start", choices=("auto", "release", "data", "data-meas", "unit"), default="auto",
                    help="starting noise levels: from the data's sample-to-sample spread, or "
-                        "std = 1 ('unit', the paper's); auto tries them in turn until one "
-                        "converges (θ always starts at the spec's null guesses)")
+                        "std = 1 ('unit', the paper's), or 'release' (unmeasured states with "
+                        "process noise first held deterministic, then released); auto tries "
+                        "them all and keeps the best converged one (θ always starts at the "
+                        "spec's null guesses)")
     p.add_argument("--report", action="store_true", help="also write DIR/report.html")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty DIR that is not a vsidgen results directory "

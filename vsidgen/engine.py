@@ -43,6 +43,8 @@ WORKER_ENV = {
 
 #: how often a task is retried after its worker process died (local clusters)
 WORKER_DEATH_RETRIES = 1
+#: seconds to wait for a client / local cluster to shut down before giving up on it
+CLOSE_TIMEOUT_S = 20
 
 
 class TaskStatus(enum.Enum):
@@ -185,11 +187,21 @@ class Engine:
         self.close()
 
     def close(self) -> None:
+        """Disconnect, and stop a local cluster. Shutting down can time out while a worker is
+        still busy with a task cancelled at a deadline; everything the run found is already on
+        disk by then, so a slow shutdown is not an error of the run (the worker processes of a
+        local cluster are terminated with it)."""
         if self.client is not None:
-            self.client.close()
+            try:
+                self.client.close(timeout=CLOSE_TIMEOUT_S)
+            except (TimeoutError, OSError, RuntimeError):
+                pass
             self.client = None
         if self.cluster is not None:
-            self.cluster.close()
+            try:
+                self.cluster.close(timeout=CLOSE_TIMEOUT_S)
+            except (TimeoutError, OSError, RuntimeError):
+                pass
             self.cluster = None
 
     def run(self, fn: Callable, tasks: Sequence[tuple[str, tuple]], *,

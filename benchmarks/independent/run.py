@@ -54,7 +54,7 @@ TRUE_LABELS = {
     ("hfb", "missing_CLde"): {("missing_derivative", "drift:alpha")},
     ("hfb", "lift_stall"): {("nonlinear_aero", "drift:alpha")},
     ("hfb", "gust"): {("unmodelled_wind", None)},
-    ("sp", "phugoid"): {("missing_dynamics", None)},
+    ("sp", "phugoid"): {("speed_dynamics", None), ("missing_dynamics", None)},
     ("sp", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
     ("lat", "beta_vane"): {("sensor_position", "output:beta")},
 }
@@ -63,7 +63,7 @@ ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "alpha_vane": "sensor_position", "az_position": "sensor_position",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
                  "missing_CLde": "missing_derivative", "lift_stall": "nonlinear_aero",
-                 "gust": "unmodelled_wind", "phugoid": "missing_dynamics",
+                 "gust": "unmodelled_wind", "phugoid": "speed_dynamics",
                  "beta_vane": "sensor_position"}
 UNIT = {"de_delay": "s", "de_lag": "s", "alpha_vane": "m", "az_position": "m",
         "q_bias": "rad/s", "alpha_scale": "1", "missing_CLde": "1/rad", "lift_stall": "1/rad",

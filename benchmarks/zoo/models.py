@@ -247,6 +247,32 @@ SP3_PN = ZooModel(
     output_cols=(("aoa_deg", DEG), ("q_dps", DEG), ("theta_deg", DEG), ("nz_g", G0)),
     description="short period with attitude, linear, 3 states, process noise on every state, 40 Hz")
 
+# ----------------------------------------------------------------------------- longitudinal, no alpha vane
+def _lon4_now_f(x, u, p):
+    uu, w, q, th = x
+    de = u[0]
+    return np.array([
+        p["Xu"] * uu + p["Xw"] * w - G0 * th,
+        p["Zu"] * uu + p["Zw"] * w + 50.0 * q + p["Zde"] * de,
+        p["Mw"] * w + p["Mq"] * q + p["Mde"] * de,
+        q,
+    ])
+
+
+def _lon4_now_h(x, u, p):
+    uu, w, q, th = x
+    return np.array([uu, q, th, p["Zu"] * uu + p["Zw"] * w + p["Zde"] * u[0]])
+
+
+LON4_NOW = ZooModel(
+    name="lon4_now", spec="lon4_now.yaml",
+    truth={"Xu": -0.04, "Xw": 0.1, "Zu": -0.35, "Zw": -2.0, "Zde": -6.0, "Mw": -0.15, "Mq": -3.0, "Mde": -12.0},
+    drift=_lon4_now_f, output=_lon4_now_h, x0=(0.0, 0.0, 0.0, 0.0), proc_std=(0.05, 0.1, 0.01, 0.002),
+    meas_std=(0.15, 0.2 * DEG, 0.15 * DEG, 0.03 * G0), inputs=_lon_inputs, dt=0.05, n=600, time_col="t",
+    input_cols=(("de_deg", DEG),),
+    output_cols=(("du_kt", KT), ("q_dps", DEG), ("theta_deg", DEG), ("az_g", G0)),
+    description="longitudinal, linear, 4 states, unmeasured vertical velocity with process noise, knots/deg/g, 20 Hz")
+
 
 # ----------------------------------------------------------------------------- coupled lon + lat, 8 states
 SIX8_V0 = 60.0
@@ -297,4 +323,4 @@ SIX8 = ZooModel(
     description="coupled longitudinal + lateral, linear, 8 states, θ and φ without process noise, "
                 "knots, degrees and g through units, 50 Hz")
 
-MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN, SIX8)}
+MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN, SIX8, LON4_NOW)}

@@ -102,6 +102,11 @@ class ModelInfo(VariableNames):
     dt: float | None = None
     #: break points of flow angles/inputs seen in the data: {name: (("hinge", b), ("hingelo", b))}
     breaks: Mapping[str, tuple[tuple[str, float], ...]] = dataclasses.field(default_factory=dict)
+    #: the spec's constant values by name
+    constant_values: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    #: trim airspeed, gravity and sensor positions from the records and the aircraft's
+    #: constants file (:func:`.flightconst.flight_conditions`); None when not looked up
+    flight: Any = None
 
     @property
     def names(self) -> frozenset[str]:
@@ -272,6 +277,7 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         inputs=_vars(sym.inputs), outputs=outputs,
         parameters=tuple(p.name for p in sym.parameters),
         constants=tuple(c.name for c in sym.constants),
+        constant_values={c.name: float(c.value) for c in sym.constants},
         definitions=tuple(n for n, _ in sym.definitions),
         drift=drift_txt, observations=obs_txt,
         drift_expanded={v.name: _realify(e) for v, e in zip(states, drift_exp)},

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
                    spec_text)
+from .locate import SPEED_REGRESSOR
 
 
 def _drift_unit(info: ModelInfo, state: str) -> str:
@@ -379,56 +380,166 @@ def airspeed_name(info: ModelInfo) -> str | None:
 
 
 
+_AXES = ("x", "y", "z")
+
+
+def _arm_terms(arm: str, axis: str, rates: dict[str, str | None],
+               rdots: dict[str, str | None]) -> list[str]:
+    """Spec-text terms of the specific-force change along body ``axis`` per metre of lever
+    arm along ``arm``: the ``axis`` component of ``ω̇ × e + ω × (ω × e)`` (``e`` the unit
+    vector of ``arm``; ω = (p, q, r), rates the model lacks are zero, ω̇ from their drifts).
+
+    ``ω̇ × e``: x-arm (0, ṙ, −q̇), y-arm (−ṙ, 0, ṗ), z-arm (q̇, −ṗ, 0);
+    ``ω × (ω × e) = ω (ω·e) − e |ω|²``: x-arm (−(q²+r²), pq, pr), y-arm (pq, −(p²+r²), qr),
+    z-arm (pr, qr, −(p²+q²)).
+    """
+    i, j = _AXES.index(arm), _AXES.index(axis)
+    w = [rates.get(k) for k in "pqr"]
+    wd = [rdots.get(k) for k in "pqr"]
+    out = []
+    # ω̇ × e, component j: ε_{j k i} ω̇_k  (e = unit vector i)
+    for k in range(3):
+        eps = _levi(j, k, i)
+        if eps and wd[k]:
+            out.append(("" if eps > 0 else "-") + _paren(wd[k]))
+    # ω (ω·e) − e |ω|²: ω_j ω_i − δ_ij Σ ω_k²
+    if i != j:
+        if w[i] and w[j]:
+            out.append(f"{w[j]}*{w[i]}")
+    else:
+        for k in range(3):
+            if k != i and w[k]:
+                out.append(f"-{w[k]}**2")
+    return out
+
+
+def _levi(a: int, b: int, c: int) -> int:
+    return (a - b) * (b - c) * (c - a) // 2
+
+
+#: (measured axis, rate) -> arm of the accelerometer candidates named by that rate:
+#: az − x q̇, ax + z q̇, ay + x ṙ, ay − z ṗ, az + y ṗ (x ahead, y right, z below the CG)
+_ARM_OF_RATE = {("z", "q"): "x", ("x", "q"): "z", ("y", "r"): "x", ("y", "p"): "z",
+                ("z", "p"): "y"}
+_WHERE = {"x": "ahead of the CG (body x)", "y": "right of the CG (body y)",
+          "z": "below the CG (body z)"}
+
+
 @register_effect
 class SensorPosition(Effect):
     id = "sensor_position"
     title = "sensor position offset"
     explanation = ("The {output} sensor is not at the centre of gravity: {what}. The residual of "
-                   "{output} follows {signal}.")
+                   "{output} follows {signal}.{reference}")
     doc = "Flow-angle vanes and accelerometers away from the centre of gravity."
 
     #: vane lever arms: (angle, rate) -> (sign of the term, what the distance is). Local air
     #: velocity at r from the CG is v + ω × r: a vane x ahead sees w − q x (α − x q/V) and
     #: v + r x (β + x r/V); a vane h above the CG (z = −h) sees v + p h (β + h p/V).
-    _VANE = {("alpha", "q"): ("-", "ahead of the CG (body x)"),
-             ("beta", "r"): ("", "ahead of the CG (body x)"),
-             ("beta", "p"): ("", "above the CG (−body z)")}
+    _VANE = {("alpha", "q"): ("-", "ahead of the CG (body x)", "x", 1.0),
+             ("beta", "r"): ("", "ahead of the CG (body x)", "x", 1.0),
+             ("beta", "p"): ("", "above the CG (−body z)", "z", -1.0)}
 
-    #: accelerometer lever arms: (axis, rate) -> (sign, distance); specific force at r from
-    #: the CG is a + ω̇ × r (+ ω × (ω × r), second order): az − x q̇, ax + z q̇, ay + x ṙ,
-    #: ay − z ṗ, az + y ṗ (x ahead, y right, z below the CG)
-    _ARM = {("z", "q"): ("-", "ahead of the CG (body x)"),
-            ("x", "q"): ("", "below the CG (body z)"),
-            ("y", "r"): ("", "ahead of the CG (body x)"),
-            ("y", "p"): ("-", "below the CG (body z)"),
-            ("z", "p"): ("", "right of the CG (body y)")}
+    @staticmethod
+    def _reference(info, sensor, axis, sign):
+        """Text comparing with the aircraft constants' position of ``sensor``, and the value."""
+        fl = info.flight
+        pos = None if fl is None else fl.sensors.get(sensor)
+        if pos is None:
+            return "", None
+        v = sign * pos[_AXES.index(axis)]
+        src = fl.constants_file.name if fl.constants_file is not None else "aircraft constants"
+        return (f" The aircraft constants ({src}) put the {sensor} at {v:.4g} m on this axis "
+                f"(x, y, z from the CG = {pos[0]:g}, {pos[1]:g}, {pos[2]:g} m)."), v
 
-    def _vane(self, info, o, r, p, kind, speed):
-        sign, where = self._VANE[(kind, r.lower())]
+    def _vane(self, info, o, r, p, kind, speed, speed_source):
+        sign, where, axis, axsign = self._VANE[(kind, r.lower())]
         if speed is not None:
+            ref, refv = self._reference(info, "noseboom", axis, axsign)
             what = (f"a flow vane {p} m {where} sees the induced angle "
-                    f"{sign or '+'}{p}·{r}/{speed} of the rotation {r} (local air velocity v + ω × r, "
-                    f"with the model's airspeed {speed})")
+                    f"{sign or '+'}{p}·{r}/V of the rotation {r} (local air velocity v + ω × r; "
+                    f"V = {speed}, {speed_source})")
             return Candidate(
                 effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
-                explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
+                explanation=self.explain(output=o, what=what, signal=f"the rate {r}",
+                                         reference=ref),
                 parameters=(NewParameter(p, "m", f"{o} vane distance {where}"),),
                 add_terms={"observations": {o: f"{sign}{p}*{r}/{speed}"}},
-                info={"output": o, "regressor": f"rate:{r}", "airspeed": speed})
+                info={"output": o, "regressor": f"rate:{r}", "airspeed": speed,
+                      "airspeed_source": speed_source, "reference_m": refv})
         what = (f"a flow vane ahead of/above the CG sees an induced angle proportional to the "
                 f"{r} rate ({p} = {'−' if sign == '-' else ''}distance {where} / airspeed, in s; "
-                f"the model has no airspeed state or constant to express it in metres)")
+                f"neither the model nor the records nor the aircraft constants give an airspeed "
+                f"to express it in metres)")
         return Candidate(
             effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
-            explanation=self.explain(output=o, what=what, signal=f"the rate {r}"),
+            explanation=self.explain(output=o, what=what, signal=f"the rate {r}", reference=""),
             parameters=(NewParameter(p, "s", f"{o} vane position / airspeed ({r})"),),
             add_terms={"observations": {o: f"{p}*{r}"}},
             info={"output": o, "regressor": f"rate:{r}", "airspeed": None})
+
+    def _accel(self, info, o, axis, arm, key_suffix, regressor):
+        rates = {k: None for k in "pqr"}
+        rdots = {k: None for k in "pqr"}
+        for s in info.rate_states():
+            rates[s.lower()] = s
+            rdots[s.lower()] = info.drift.get(s) or None
+        terms = _arm_terms(arm, axis, rates, rdots)
+        if not terms:
+            return None
+        p = info.fresh(f"D_ARM_{o}_{arm}" if key_suffix.startswith("arm_") else
+                       f"D_ARM_{o}_{key_suffix}")
+        unit = (info.unit(o) or "").replace(" ", "")
+        g, _ = _gravity(info)
+        body = " + ".join(terms).replace("+ -", "- ")
+        term = f"{p}*({body})" + (f"/{g!r}" if unit == "g" else "")
+        ref, refv = self._reference(info, "accelerometer", arm, 1.0)
+        what = (f"an accelerometer {p} m {_WHERE[arm]} measures, besides the CG's specific "
+                f"force, the tangential and centripetal accelerations of the rotation, "
+                f"{p}·({body}){'/g' if unit == 'g' else ''} (the {axis} component of "
+                f"ω̇ × r + ω × (ω × r))")
+        return Candidate(
+            effect=self.id, key=f"{self.id}:{o}:{key_suffix}", target=f"output:{o}",
+            explanation=self.explain(output=o, what=what,
+                                     signal=(f"the angular acceleration d{regressor}/dt"
+                                             if regressor else "the squared rates"),
+                                     reference=ref),
+            parameters=(NewParameter(p, "m", f"{o} accelerometer distance {_WHERE[arm]}"),),
+            add_terms={"observations": {o: term}},
+            info={"output": o, "regressor": f"accel:{regressor}" if regressor else None,
+                  "arm": arm, "reference_m": refv})
+
+    def _generic_accel(self, info, o, rates):
+        """An acceleration channel of unknown axis (``an``, ``nz``): a lever arm times each
+        angular acceleration, sign and axis left to the estimate."""
+        out = []
+        g_unit = (info.unit(o) or "").strip() == "g"
+        g, _ = _gravity(info)
+        for r in rates:
+            rdot = info.drift.get(r)
+            if not rdot:
+                continue
+            p = info.fresh(f"D_ARM_{o}_{r}")
+            term = f"{p}*{_paren(rdot)}" + (f"/{g!r}" if g_unit else "")
+            what = (f"an accelerometer at a lever arm {p} m from the CG measures the tangential "
+                    f"acceleration {p}·d{r}/dt{'/g' if g_unit else ''} (ω̇ × r)")
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
+                explanation=self.explain(output=o, what=what,
+                                         signal=f"the angular acceleration d{r}/dt", reference=""),
+                parameters=(NewParameter(p, "m", f"{o} accelerometer lever arm from the CG"),),
+                add_terms={"observations": {o: term}},
+                info={"output": o, "regressor": f"accel:{r}"}))
+        return out
 
     def applies_to(self, info):
         out = []
         rates = info.rate_states()
         speed = airspeed_name(info)
+        speed_source = f"the model's {speed}" if speed else ""
+        if speed is None and info.flight is not None and info.flight.airspeed is not None:
+            speed = repr(round(float(info.flight.airspeed.value), 4))
+            speed_source = info.flight.airspeed.source
         for o in info.output_names:
             ms = info.measured_state(o)
             kind = None
@@ -440,36 +551,35 @@ class SensorPosition(Effect):
                 kind = "accel"
             if kind is None:
                 continue
-            for r in rates:
-                rl = r.lower()
-                if kind in ("alpha", "beta"):
+            if kind in ("alpha", "beta"):
+                for r in rates:
+                    rl = r.lower()
                     if (kind == "alpha" and rl != "q") or (kind == "beta" and rl not in ("p", "r")):
                         continue
                     p = info.fresh(f"D_POS_{o}_{r}")
-                    out.append(self._vane(info, o, r, p, kind, speed))
-                else:
-                    rdot = info.drift.get(r)
-                    if not rdot:
-                        continue
-                    p = info.fresh(f"D_ARM_{o}_{r}")
-                    axis = o.lower()[-1] if o.lower().startswith("a") else None
-                    sign, where = self._ARM.get((axis, rl), ("", "lever arm from the CG"))
-                    g_unit = (info.unit(o) or "").strip() == "g"
-                    term = f"{sign}{p}*{_paren(rdot)}" + ("/9.80665" if g_unit else "")
-                    what = (f"an accelerometer {p} m {where} measures the tangential "
-                            f"acceleration {sign}{p}·d{r}/dt{'/g' if g_unit else ''} of the "
-                            f"angular acceleration (ω̇ × r)")
-                    out.append(Candidate(
-                        effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
-                        explanation=self.explain(output=o, what=what,
-                                                 signal=f"the angular acceleration d{r}/dt"),
-                        parameters=(NewParameter(p, "m", f"{o} accelerometer distance {where}"),),
-                        add_terms={"observations": {o: term}},
-                        info={"output": o, "regressor": f"accel:{r}"}))
+                    out.append(self._vane(info, o, r, p, kind, speed, speed_source))
+                continue
+            axis = o.lower()[-1] if o.lower().startswith("a") and o.lower()[-1] in _AXES \
+                else None
+            if axis is None:
+                out.extend(self._generic_accel(info, o, rates))
+                continue
+            for r in rates:
+                arm = _ARM_OF_RATE.get((axis, r.lower()))
+                if arm is None or not info.drift.get(r):
+                    continue
+                c = self._accel(info, o, axis, arm, r, r)
+                if c is not None:
+                    out.append(c)
+            # the arm along the measured axis itself: only the centripetal −ℓ(ω_k² + ω_l²)
+            c = self._accel(info, o, axis, axis, f"arm_{axis}", None)
+            if c is not None:
+                out.append(c)
         return out
 
     def score(self, c, ev):
-        return ev.output_score(c.info["output"], c.info["regressor"])
+        reg = c.info.get("regressor")
+        return ev.output_score(c.info["output"], reg) if reg else 0.0
 
 
 @register_effect
@@ -562,6 +672,105 @@ class MissingDynamics(Effect):
         return max(0.0, ev.state_score(s, reg) - 0.5 * lin)
 
 
+def _speed_value(info: ModelInfo) -> tuple[str | None, str]:
+    """(spec text of the trim airspeed V₀ in m/s, where it came from): the model's own
+    airspeed state/constant, else the flight conditions' number (record mean or the aircraft
+    constants file), else (None, reason)."""
+    own = airspeed_name(info)
+    if own is not None:
+        return own, f"the model's {own}"
+    fl = info.flight
+    if fl is not None and fl.airspeed is not None:
+        return repr(round(float(fl.airspeed.value), 4)), fl.airspeed.source
+    return None, "no airspeed in the model, the records or the aircraft constants"
+
+
+def _gravity(info: ModelInfo) -> tuple[float, str]:
+    fl = info.flight
+    if fl is not None and fl.gravity is not None:
+        return float(fl.gravity.value), fl.gravity.source
+    for k, v in info.constant_values.items():
+        if k.lower() in ("g", "g0"):
+            return float(v), f"spec constant {k}"
+    return 9.80665, "standard gravity"
+
+
+@register_effect
+class SpeedDynamics(Effect):
+    id = "speed_dynamics"
+    title = "speed (phugoid) dynamics missing"
+    explanation = ("The short-period model holds the airspeed constant, but the aircraft "
+                   "trades height for speed along its flight path (the phugoid): the speed "
+                   "perturbation {dV} (m/s) changes lift ({zv}, into the {alpha} equation{az}) "
+                   "and pitching moment ({mv}, into the {q} equation). Added as the standard "
+                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − g·{gam} "
+                   "(drag/thrust change with speed and with {alpha}, gravity along the path) "
+                   "with the flight-path-angle perturbation d{gam}/dt = {q} − d{alpha}/dt "
+                   "(= θ − α kinematically, without the air-mass part of {alpha}); "
+                   "g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} ({v_source}).")
+    doc = ("The speed degree of freedom a short-period (α, q) model leaves out: states ΔV and "
+           "Δγ, ΔV̇ = X_V ΔV + X_α α − g Δγ, Δγ̇ = q − α̇, α̇ += Z_V ΔV, q̇ += M_V ΔV "
+           "(a vertical accelerometer += V₀ Z_V ΔV), with g and V₀ from the spec, the "
+           "records or the aircraft constants.")
+
+    def applies_to(self, info):
+        a = info.flow_angle("alpha")
+        q = next((s for s in info.rate_states() if s.lower() == "q"), None)
+        if a is None or q is None:
+            return []
+        own = airspeed_name(info)
+        if own is not None and own in info.state_names:
+            return []        # the model has a speed state already
+        if any(s.lower() in ("v", "u", "vt", "vtas", "tas") for s in info.state_names):
+            return []
+        dv = info.fresh("D_dV")
+        gam = info.fresh("D_dgamma", taken=[dv])
+        xv, xa, zv, mv = (info.fresh(n, taken=[dv, gam]) for n in
+                          ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
+        g, g_source = _gravity(info)
+        v0, v_source = _speed_value(info)
+        au = info.unit(a) or "rad"
+        qu = info.unit(q) or "rad/s"
+        params = (
+            NewParameter(xv, "1/s", "X_V: speed damping (drag and thrust change with speed)"),
+            NewParameter(xa, f"(m/s^2)/({au})", f"X_alpha: speed derivative of {a} "
+                                                 "(lift tilt / induced drag)"),
+            NewParameter(zv, f"({au})/m", f"Z_V: change of d{a}/dt with speed (lift), per m/s"),
+            NewParameter(mv, f"({qu})/m", f"M_V: change of d{q}/dt with speed, per m/s"))
+        obs = {}
+        for o in info.output_names:
+            if o.lower() in ("az", "a_z") and v0 is not None:
+                unit = (info.unit(o) or "").replace(" ", "")
+                if unit in ("m/s^2", "m/s**2"):
+                    obs[o] = f"{v0}*{zv}*{dv}"
+                elif unit == "g":
+                    obs[o] = f"{v0}*{zv}*{dv}/{g!r}"
+        adds = {"drift": {a: f"{zv}*{dv}", q: f"{mv}*{dv}"}}
+        if obs:
+            adds["observations"] = obs
+        states = (
+            NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*{gam}", "m/s",
+                     "airspeed perturbation from trim (phugoid)"),
+            NewState(gam, f"{q} - ({info.drift[a]}) - {zv}*{dv}", au,
+                     "flight-path-angle perturbation (inertial θ − α)"))
+        return [Candidate(
+            effect=self.id, key=f"{self.id}:{a}:{q}", target=f"drift:{a}",
+            explanation=self.explain(dV=dv, gam=gam, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
+                                     g=g, g_source=g_source,
+                                     v0=(f"{v0} m/s" if v0 and v0[0].isdigit() else v0 or "—"),
+                                     v_source=v_source,
+                                     az=(f" and the vertical accelerometer {', '.join(obs)}"
+                                         if obs else "")),
+            parameters=params, states=states, add_terms=adds,
+            info={"states": (a, q), "regressor": SPEED_REGRESSOR, "gravity": g,
+                  "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source})]
+
+    def score(self, c, ev):
+        """The equation errors of α and q follow the kinematic speed perturbation
+        (:func:`.locate.speed_proxy`)."""
+        return max(ev.state_score(s, SPEED_REGRESSOR) for s in c.info["states"])
+
+
 @register_effect
 class UnmodelledWind(Effect):
     id = "unmodelled_wind"
@@ -606,5 +815,5 @@ class UnmodelledWind(Effect):
 
 BUILTIN_EFFECTS = ("missing_derivative", "nonlinear_aero", "unsteady_aero", "control_delay",
                    "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
-                   "missing_dynamics", "unmodelled_wind")
+                   "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 

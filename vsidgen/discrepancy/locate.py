@@ -562,7 +562,47 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
                 reg[f"lp:{i}"] = lowpass(U[:, j], dt, LOWPASS_TAU, seg)
                 # signature of a short lag/delay of the input: lowpass(u, 3T) − u
                 reg[f"lag:{i}"] = lowpass(U[:, j], dt, 3 * dt, seg) - U[:, j]
+        sp = speed_proxy(state_names, X, dt, seg)
+        if sp is not None:
+            reg[SPEED_REGRESSOR] = sp
     return reg
+
+
+#: locate regressor of the speed (phugoid) motion a short-period model leaves out
+SPEED_REGRESSOR = "speed:kin"
+
+_SPEED_STATE_NAMES = ("v", "vt", "vtas", "tas", "u", "va", "airspeed", "v_tas", "vel")
+
+
+def speed_proxy(state_names: Sequence[str], X: np.ndarray, dt: float,
+                seg: Sequence[slice]) -> np.ndarray | None:
+    """Shape of the airspeed perturbation a short-period model leaves out, from kinematics.
+
+    Along the flight path gravity changes the speed as ``ΔV̇ = −g Δγ`` (plus drag and thrust
+    terms), and the flight-path angle is ``γ = θ − α`` with ``θ̇ = q``. Per segment:
+    ``θ_k = Σ_{i<k} q_i T``, ``Δγ = γ − mean(γ)`` (the trim path angle is unknown),
+    ``ΔV_k ∝ −Σ_{i<k} Δγ_i T`` minus its mean (the scale ``g`` and the sign do not matter to a
+    correlation). Returns None unless the model has an angle-of-attack state, a pitch rate
+    ``q`` and no speed state.
+    """
+    low = [s.lower() for s in state_names]
+    if any(s in _SPEED_STATE_NAMES for s in low) or "q" not in low:
+        return None
+    ja = next((j for j, s in enumerate(low) if FLOW_ANGLE_NAMES.get(s) == "alpha"), None)
+    if ja is None:
+        return None
+    jq = low.index("q")
+    out = np.zeros(X.shape[0])
+    for s in seg:
+        a, q = X[s, ja], X[s, jq]
+        if len(a) < 3 or not (np.all(np.isfinite(a)) and np.all(np.isfinite(q))):
+            continue
+        theta = np.concatenate([[0.0], np.cumsum(q[:-1]) * dt])
+        gam = theta - a
+        gam = gam - gam.mean()
+        dv = -np.concatenate([[0.0], np.cumsum(gam[:-1]) * dt])
+        out[s] = dv - dv.mean()
+    return out if np.ptp(out) > 0 else None
 
 
 #: time constant (s) of the low-passed regressors ``lp:<v>`` (signature of a missing slow mode)

@@ -24,6 +24,15 @@ largest ELBO is adopted (within 0.5 nats of it: the one with the fewest drift ev
 per sample, then the larger ELBO). The
 adopted setting is a *modelling-numerics finding* ("use integrator: {...}"), reported
 apart from the physical findings; the rest of the run (and the final spec) uses it.
+
+Order. The most accurate setting (the most drift evaluations per sample; RK4 and the
+first-order hold first among equals) is refitted alone first. Holm's procedure adopts nothing
+unless the largest statistic clears its strictest level, χ²₁ at α/m; a coarser setting's
+discretisation lies between the current one and the most accurate, so it explains less of a
+discretisation mismatch. When the most accurate setting converges below that level the other
+m − 1 settings are therefore not refitted (verdict ``not_tried``; each would cost a
+compilation of its own) and the decision is the one the whole family would give. Otherwise
+every setting is refitted and decided as above.
 """
 
 from __future__ import annotations
@@ -48,6 +57,7 @@ class NumericsVerdict(enum.Enum):
     SIGNIFICANT = "significant"          # above its threshold, but another setting was better
     NOT_SIGNIFICANT = "not_significant"
     NOT_CONVERGED = "not_converged"
+    NOT_TRIED = "not_tried"              # the most accurate setting was not significant
     FAILED = "failed"
 
 
@@ -176,10 +186,12 @@ def explanation(current: NumericsSetting, trial: NumericsTrial) -> str:
             f"Use `{s.text}` in the spec; the physical search continues with it.")
 
 
-def decide(trials, elbo_current: float, alpha: float) -> tuple[list[NumericsTrial], NumericsTrial | None]:
-    """Thresholds (χ²₁ at Holm levels), verdicts and the adopted trial (see module docstring)."""
-    m = len(trials)
-    order = sorted(range(m), key=lambda i: -(trials[i].statistic
+def decide(trials, elbo_current: float, alpha: float, *,
+           family: int | None = None) -> tuple[list[NumericsTrial], NumericsTrial | None]:
+    """Thresholds (χ²₁ at Holm levels over ``family`` settings, default all trials), verdicts
+    and the adopted trial (see module docstring)."""
+    m = len(trials) if family is None else max(int(family), len(trials))
+    order = sorted(range(len(trials)), key=lambda i: -(trials[i].statistic
                                              if trials[i].state is not None
                                              and math.isfinite(trials[i].statistic) else -math.inf))
     out = list(trials)
@@ -247,23 +259,56 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
         paths[s.label] = (s, p)
         tasks.append((s.label, (s, current, p, f"{safe_name(current.model.name)[:30]}_num{i + 1}",
                                 generated_dir, max_iter)))
-    if progress is not None and tasks:
-        progress("modelling numerics first: refitting with " + ", ".join(s.text for s in settings))
     t0 = time.perf_counter()
-    outcomes = engine.run(_numerics_task, tasks, deadline=deadline) if tasks else []
+
+    def refit(batch):
+        got = []
+        for o in (engine.run(_numerics_task, batch, deadline=deadline) if batch else []):
+            s, p = paths[o.key]
+            if o.status is not TaskStatus.DONE:
+                got.append(NumericsTrial(s, p, error=f"{o.status.value}: {o.error}",
+                                         wall_s=o.wall_s))
+                continue
+            st = o.value
+            got.append(NumericsTrial(s, p, st, 2.0 * (st.elbo - current.elbo),
+                                     converged=refit_converged(st.fit), wall_s=o.wall_s))
+        return got
+
+    m = len(tasks)
+    first = max(range(m), key=lambda i: (settings[i].cost, settings[i].method == "rk4",
+                                         settings[i].inputs == "foh"), default=None)
     trials = []
-    for o in outcomes:
-        s, p = paths[o.key]
-        if o.status is not TaskStatus.DONE:
-            trials.append(NumericsTrial(s, p, error=f"{o.status.value}: {o.error}",
-                                        wall_s=o.wall_s))
-            continue
-        st = o.value
-        trials.append(NumericsTrial(s, p, st, 2.0 * (st.elbo - current.elbo),
-                                    converged=refit_converged(st.fit), wall_s=o.wall_s))
-    trials, adopted = decide(trials, current.elbo, alpha)
+    if first is not None and m > 1:
+        if progress is not None:
+            progress(f"modelling numerics first: refitting with the most accurate setting, "
+                     f"{settings[first].text}")
+        trials = refit([tasks[first]])
+        t = trials[0]
+        strictest = float(stats.chi2.isf(alpha / m, 1))
+        if t.state is not None and t.converged and not t.statistic > strictest:
+            trials += [NumericsTrial(settings[i], paths[settings[i].label][1],
+                                     verdict=NumericsVerdict.NOT_TRIED)
+                       for i in range(m) if i != first]
+        else:
+            rest = [tk for i, tk in enumerate(tasks) if i != first]
+            if progress is not None:
+                progress("modelling numerics: refitting with " + ", ".join(
+                    settings[i].text for i in range(m) if i != first))
+            trials += refit(rest)
+    else:
+        if progress is not None and tasks:
+            progress("modelling numerics first: refitting with " + ", ".join(s.text for s in settings))
+        trials = refit(tasks)
+    tried = [t for t in trials if t.verdict is not NumericsVerdict.NOT_TRIED]
+    skipped = [t for t in trials if t.verdict is NumericsVerdict.NOT_TRIED]
+    decided, adopted = decide(tried, current.elbo, alpha, family=m)
+    trials = list(decided) + skipped
     if progress is not None:
         for t in trials:
+            if t.verdict is NumericsVerdict.NOT_TRIED:
+                progress(f"    {t.setting.text}: not tried (the most accurate setting was not "
+                         "significant)")
+                continue
             progress(f"    {t.setting.text}: 2ΔELBO {t.statistic:.4g} (threshold "
                      f"{t.threshold:.4g}) {t.verdict.value}" + (f" [{t.error}]" if t.error else ""))
         progress((f"modelling numerics: {adopted.setting.text} adopted" if adopted is not None

@@ -60,6 +60,7 @@ from ..limits import check_input_file
 from ..results import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
+from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
 from .fitstate import (FitState, conv_label, diag_options, evaluated, refit_converged, refit_warm,
@@ -427,7 +428,7 @@ def model_info_of(st: FitState) -> ModelInfo:
             breaks[s] = tuple(break_points(X[:, j]))
     for j, u in enumerate(m.input_names):
         breaks[u] = tuple(break_points(U[:, j]))
-    return dataclasses.replace(info, breaks=breaks)
+    return dataclasses.replace(info, breaks=breaks, flight=flight_conditions_of(info, st.records))
 
 
 def write_candidate(c: Candidate, st: FitState, info: ModelInfo, path: pathlib.Path,

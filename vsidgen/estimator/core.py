@@ -195,7 +195,10 @@ class NoiseMap:
     (start at 0). States without process noise (``deterministic``) get the fixed
     diagonal ``deterministic_std`` (a scalar or one value per state; the estimator
     drives it to the deterministic limit, see :mod:`vsidgen.estimator.fit`), or, with
-    ``relax``, an estimated one like a noisy state's (the first stage of that limit).
+    ``relax``, an estimated one like a noisy state's (the first stage of that limit;
+    those states are ``relaxed``). ``hold`` (state indices): noisy states treated as
+    deterministic in this problem (the first leg of the release start of an unmeasured
+    state, :func:`vsidgen.estimator.fit._release_start`); they are never relaxed.
     Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
     Starting values (``inits``): the spec's std where given; otherwise "unit":
     exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =
@@ -204,7 +207,7 @@ class NoiseMap:
     """
 
     def __init__(self, model, records, *, deterministic_std, fixed_G=None, fixed_R=None,
-                 state_outputs=None, relax: bool = False):
+                 state_outputs=None, relax: bool = False, hold=()):
         nx, ny = model.nx, model.ny
         self.nx, self.ny = nx, ny
         states = model.state_names
@@ -214,6 +217,10 @@ class NoiseMap:
             if s not in states:
                 raise FitError(f"process noise names unknown state '{s}'")
         self.noisy = np.array([s in noisy_names for s in states], bool)
+        held = np.zeros(nx, bool)
+        held[list(hold)] = True
+        self.noisy &= ~held
+        self.relaxed = np.zeros(nx, bool)
         self.det = np.broadcast_to(np.asarray(deterministic_std, float), (nx,)).copy()
         self.proc_floor = np.array([float(pn.floor.get(s, 0.0)) if self.noisy[i] else 0.0
                                     for i, s in enumerate(states)])
@@ -232,7 +239,8 @@ class NoiseMap:
                 self._fixed_spec_stds(pn, states)
             est = self.noisy.copy() if pn.estimate else np.zeros(nx, bool)
             if relax:
-                est |= ~self.noisy
+                self.relaxed = ~self.noisy & ~held
+                est |= self.relaxed
             self.proc_est_idx = np.nonzero(est)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)
@@ -311,13 +319,14 @@ class NoiseMap:
 
     @property
     def deterministic(self) -> np.ndarray:
-        """Mask of the states without process noise (in the spec, or zero rows of a given G)."""
-        return ~self.noisy
+        """Mask of the states without process noise (in the spec, zero rows of a given G, or held) that
+        are not relaxed: their std is the fixed ``det``."""
+        return ~self.noisy & ~self.relaxed
 
     def set_deterministic_std(self, std) -> None:
         """Set the diagonal std of the deterministic states (one value per such state, state order)."""
         std = np.asarray(std, float)
-        self.det[~self.noisy] = std
+        self.det[self.deterministic] = std
         if self._G_given is not None:
             self.fixed_G = self._fixed_factor()
         elif self.fixed_G is not None:

@@ -122,8 +122,11 @@ class _Problem:
     """Everything fixed during one optimisation: maps, objective, records, layout."""
 
     def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None,
-                 relax: bool = False):
+                 relax: bool = False, hold=()):
         self.model = model
+        self.relax = relax
+        #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
+        self.noise_scaled_start = False
         self.records = _check_records(model, records)
         self.integrator, self.substeps = transition_settings(
             model, integrator=options.integrator, substeps=options.substeps)
@@ -132,7 +135,8 @@ class _Problem:
                        inputs=self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax)
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax,
+                           hold=hold)
         self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
         self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
@@ -162,13 +166,15 @@ class _Problem:
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
         pairs = measured_states(self.model)
         r0 = np.zeros(self.obj.nq)  # Σ_cond = Σ_marg = I
-        if self.nm.fixed_G is not None and self.tm.n_free == 0:
+        if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
             # smoothing with known noise (validation mode): start the assumed density at the
             # prior's conditional covariance, Σ_cond = diag(T G Gᵀ), C = 0. With Σ = I the
             # sigma points of a nonlinear model lie ±√(2n) state units away (radians for an
             # angle), and the smoother can stop in a far, non-physical stationary point.
+            # The release start does the same at its start noise (Σ = I is not unit free).
             T = float(np.mean([float(r.dt) for r in self.records]))
-            G = np.asarray(self.nm.fixed_G, float)
+            G = np.asarray(self.nm.fixed_G if self.nm.fixed_G is not None
+                           else self.nm.G(jnp.asarray(self.nm.inits[start])), float)
             r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
         recs = [(_initial_mu(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
         return s, recs
@@ -463,7 +469,8 @@ def newton_decrement(P: "_Problem", blks, gs, gmus, grs, active) -> float:
     return 0.5 * max(lam2, 0.0)
 
 
-AUTO_STARTS = ("data", "data-meas", "unit")
+AUTO_STARTS = ("release", "data", "data-meas", "unit")
+NOISE_STARTS = ("release", "data", "data-meas", "unit")
 
 
 def _negelbo(out) -> float:
@@ -476,8 +483,8 @@ def _starts(options: FitOptions):
     st = options.noise_start
     if st == "auto":
         return list(AUTO_STARTS)
-    if st not in ("data", "data-meas", "unit"):
-        raise FitError(f"noise_start must be 'auto', 'data', 'data-meas' or 'unit', got '{st}'")
+    if st not in NOISE_STARTS:
+        raise FitError(f"noise_start must be 'auto', 'release', 'data', 'data-meas' or 'unit', got '{st}'")
     return [st]
 
 
@@ -836,7 +843,7 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     if options.optimizer == "structured-newton":
         out = _multistart(P, options, starts)
     elif options.optimizer == "trust-constr":
-        out = _optimize_trust_constr(P, options, starts[0])
+        out = _optimize_trust_constr(P, options, next((st for st in starts if st != "release"), "data"))
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")
     return _finish(P, out, mode="fit", options=options)
@@ -846,6 +853,13 @@ def _multistart(P: _Problem, options: FitOptions, starts) -> dict:
     """Run every noise start (stalled ones abandoned early) and return the best converged output."""
     t0 = time.perf_counter()
     tried = []
+    if "release" in starts:
+        starts = [st for st in starts if st != "release"]
+        out = _release_start(P, options, t0)
+        if out is not None:
+            tried.append(("release", out))
+        elif not starts:
+            starts = ["data"]  # nothing to release: the release start is the data start
     for i, start in enumerate(starts):
         # every start is run: a converged start is a local optimum, and another start
         # may reach a higher one (multi-start, the best converged ELBO is kept). A start
@@ -885,7 +899,7 @@ def _relaxed_std(P0: _Problem, out0) -> np.ndarray:
     """Process-noise std the relaxed first stage estimated for the deterministic states (their order)."""
     nt = P0.tm.n_free
     G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:])))
-    return np.abs(np.diagonal(G))[P0.nm.deterministic]
+    return np.abs(np.diagonal(G))[P0.nm.relaxed]
 
 
 def _warm_limit_scale(P: _Problem, ws) -> np.ndarray:
@@ -1096,6 +1110,116 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
     out["status"] = out["status"] + "; " + what + (f"; first stage: {status0}" if status0 else "")
     out["history"] = tuple(history)
     out["iterations"] = iterations
+    return out
+
+
+def _drift_scale(P: _Problem, idx) -> np.ndarray:
+    """Data scale of the process-noise std of states ``idx``: √T · rms_k f_i(μ⁰_k, u_k, θ⁰).
+
+    f is the drift at the initial state means μ⁰ (measured states from their outputs,
+    unmeasured ones 0), the inputs and the initial θ, over every sample of every record:
+    the rate at which the model, as given, moves the state along the data. A process noise
+    whose increment over one sample (σ√T) equals that movement (f T) has σ = f √T, the same
+    construction as a measured state's data start (spread of its sample differences / √T).
+    It is in the state's own units (deg/√s for a state in degrees), so a start built on it
+    does not depend on them. 0 where the drift of the state vanishes at the start.
+    """
+    pairs = measured_states(P.model)
+    T = float(np.mean([float(r.dt) for r in P.records]))
+    p0 = jnp.asarray(P.tm.theta(jnp.asarray(P.tm.z0)))
+    drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))
+    sq, n = np.zeros(len(idx)), 0
+    for rec in P.records:
+        mu0 = _initial_mu(P.model, rec, pairs, "measured")
+        f = np.asarray(drift(jnp.asarray(mu0), jnp.asarray(np.asarray(rec.u, float)), p0), float)[:, idx]
+        fin = np.all(np.isfinite(f), axis=1)
+        sq += np.sum(f[fin] ** 2, axis=0)
+        n += int(fin.sum())
+    return np.sqrt(sq / max(n, 1)) * math.sqrt(T)
+
+
+def _release_start(P: _Problem, options: FitOptions, t0) -> dict | None:
+    """The "release" noise start: unmeasured states with process noise, first held deterministic.
+
+    An unmeasured state i with an estimated process-noise std has no data scale of its own,
+    and its noise can absorb any channel it enters: a sideslip with free (or merely large)
+    process noise reproduces the lateral accelerometer exactly while that channel's
+    measurement std collapses. Its std is therefore reached by a homotopy from the
+    deterministic side, in three legs, each warm-started from the previous one:
+
+    1. *Hold, noise fixed.* θ and the assumed densities are fitted with every noise std
+       fixed at its "data" start (measurement σ_j = spread of output j's sample
+       differences / √2, a measured state's process std = that spread / √T) and the
+       unmeasured states held deterministic in the exact limit of vanishing process noise
+       (:func:`_deterministic_limit`): the first stage holds their std at the data scale
+       ε⁰_i = √T · rms f_i of :func:`_drift_scale` (the assumed density starting at
+       Σ_cond = T diag(G Gᵀ), C = 0), then ε ← ε/10 per stage until the limit is reached.
+       With the noise fixed no std can collapse, and in the limit the held state cannot
+       absorb a channel.
+    2. *Hold, noise free.* The other noise parameters are estimated from their data start,
+       the held states' std kept where the limit ended.
+    3. *Release.* The held states' stds are freed from where the limit ended, and the
+       optimizer raises them as far as the data ask.
+
+    Every quantity the path uses is unit free (nats, standard errors, log-stds, Newton
+    steps) or in the state's own units (f_i, μ_i, Σ_cond, the stds), so the iterates are
+    the same for a state expressed in other units (tests/test_release_start.py).
+    Returns the release leg's output (with every leg's iterations and history counted),
+    or None when there is no such state or its drift vanishes at the start.
+    """
+    if P.nm.fixed_G is not None or P.nm.deterministic.any() or P.tm.n_free == 0:
+        return None
+    pairs = measured_states(P.model)
+    held = [int(i) for i in P.nm.proc_est_idx if int(i) not in pairs]
+    if not held:
+        return None
+    eps0 = _drift_scale(P, held)
+    if not np.all(np.isfinite(eps0) & (eps0 > 0)):
+        return None
+    names = P.model.state_names
+    Ph = _Problem(P.model, P.records, options, relax=P.relax, hold=held)
+    w_data = Ph.nm.inits["data"]
+    Gd = np.diag(np.diagonal(np.asarray(Ph.nm.G(jnp.asarray(w_data)), float))).copy()
+    Gd[held, held] = 0.0
+    Rd = np.diag(np.asarray(Ph.nm.sigma(jnp.asarray(w_data)), float) ** 2)
+    # leg 1: noise fixed at the data start, held states to the deterministic limit
+    Pa = _Problem(P.model, P.records, options, fixed_G=Gd, fixed_R=Rd)
+    Pa.noise_scaled_start = True
+    leg1 = _deterministic_limit(Pa, None, None, eps0, options, t0)
+    lim = leg1["limit"]
+    end = np.asarray([lim["std"][n] for n in (names[i] for i in np.nonzero(Pa.nm.deterministic)[0])], float)
+    # leg 2: the other noise free, held states at the limit's std
+    Ph.nm.set_deterministic_std(end)
+    Ph.cfg = make_cfg(Ph.tm, Ph.nm)
+    nt = P.tm.n_free
+    s2 = np.concatenate([np.asarray(leg1["s"], float)[:nt], w_data])
+    leg2 = _optimize(Ph, options, t0=t0, resume=dict(s=s2, recs=leg1["recs"], lam=float(options.lambda0),
+                                                      history=[{}], iterations=0))
+    # leg 3: release; P's process-noise parameters: held ones where the limit ended, new off-diagonal ones 0
+    sh = np.asarray(leg2["s"], float)
+    wh = {int(i): sh[nt + a] for a, i in enumerate(Ph.nm.proc_est_idx)}
+    w = []
+    for i in P.nm.proc_est_idx:
+        i = int(i)
+        if i in wh:
+            w.append(wh[i])
+        else:
+            e = float(Ph.nm.det[i])
+            gap = e - P.nm.proc_floor[i]
+            w.append(math.log(gap if gap > 0 else e))
+    off_h = {ab: sh[nt + len(Ph.nm.proc_est_idx) + k] for k, ab in enumerate(Ph.nm.offdiag)}
+    w += [off_h.get(ab, 0.0) for ab in P.nm.offdiag]
+    s3 = np.concatenate([sh[:nt], np.asarray(w, float), sh[nt + Ph.nm.n_proc:]])
+    out = _optimize(P, options, t0=t0, resume=dict(s=s3, recs=leg2["recs"], lam=float(options.lambda0),
+                                                    history=[{}], iterations=0))
+    held_names = [names[i] for i in held]
+    out["status"] += (f" (release start: {', '.join(held_names)} held deterministic first: noise fixed, "
+                      f"{'limit reached' if lim['reached'] else 'limit NOT reached'} after "
+                      f"{len(lim['stages']) - 1} stage(s), {leg1['iterations']} it.; noise free, "
+                      f"{'converged' if leg2['converged'] else 'not converged'}, ELBO {-_negelbo(leg2):.6g}, "
+                      f"{leg2['iterations']} it.)")
+    out["history"] = tuple(leg1["history"]) + tuple(leg2["history"]) + tuple(out["history"])
+    out["iterations"] = int(out["iterations"]) + int(leg1["iterations"]) + int(leg2["iterations"])
     return out
 
 

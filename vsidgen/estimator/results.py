@@ -169,8 +169,13 @@ class FitOptions:
             spec's initial values): "data" (measurement std from the robust spread of
             the sample-to-sample differences, process std of measured states from the
             same spread / √T), "data-meas" (measurement std from the data, process std
-            1), "unit" (all std 1 above their floors) or "auto" (default: try every one
-            of them, in this order; the converged start with the highest ELBO is
+            1), "unit" (all std 1 above their floors), "release" (for unmeasured states
+            with estimated process noise: those states first held deterministic in the
+            exact limit with every other std fixed at its "data" start, then the other
+            noise freed, then their stds released from where the limit ended; see
+            docs/estimator.md; the "data" start where there is no such state) or "auto"
+            (default: try every one of them, "release" first where it applies, then the
+            others in the order above; the converged start with the highest ELBO is
             returned, else the highest ELBO of all; ``iterations`` and ``history`` count
             all starts). A converged start is a local optimum, not necessarily the best:
             on HFB-320 the "data" and "data-meas" starts converge at ELBO 14890.77, 73.9

@@ -1,0 +1,311 @@
+"""Physical candidates with the aircraft's flight conditions: the speed (phugoid) dynamics a
+short-period model leaves out, flow vanes in metres with the record's airspeed, and
+accelerometer lever arms with the full rigid-body kinematics.
+
+References are independent of the candidates' terms: numpy cross products for the
+accelerometer kinematics, a numpy simulation (RK4 on a 10× finer grid, inputs varying
+between samples) of the exact vane geometry α_vane = atan2(V sin α − x q, V cos α), and the
+textbook linear longitudinal equations for the speed candidate. The real-record tests are slow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pathlib
+import textwrap
+
+import numpy as np
+import pytest
+import sympy
+
+from vsidgen.discrepancy.base import model_info, propose
+from vsidgen.discrepancy.catalogue import SpeedDynamics, _arm_terms
+from vsidgen.discrepancy.flightconst import flight_conditions, flight_conditions_of
+from vsidgen.expr import parse_expression
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ATTAS = ROOT / "specs" / "attas_sp.yaml"
+TOTTER = ROOT / "specs" / "totter_sp.yaml"
+G = 9.80665
+
+
+class _Rec:
+    def __init__(self, path):
+        self.path = pathlib.Path(path)
+
+
+def _write_csv(path, cols: dict[str, np.ndarray]):
+    names = list(cols)
+    data = np.column_stack([cols[n] for n in names])
+    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.12g")
+
+
+# ---------------------------------------------------------------------------
+# flight conditions
+# ---------------------------------------------------------------------------
+
+def test_flight_conditions_from_record_and_constants_file(tmp_path):
+    (tmp_path / "plane.constants.yaml").write_text(textwrap.dedent("""\
+        aircraft: Test plane
+        data_files: [plane_a.csv]
+        gravity: {g_ftps2: 32.174}
+        geometry: {noseboom_wrt_cg_m: {x: 7.5, y: 0.0, z: -0.2}}
+        reference_models: {sp: {Vo_ftps: 200.0}}
+        """))
+    t = np.arange(50) * 0.1
+    _write_csv(tmp_path / "plane_a.csv", {"t_s": t, "v_mps": 60.0 + 0.1 * np.sin(t)})
+    _write_csv(tmp_path / "plane_b.csv", {"t_s": t, "de_rad": 0 * t})
+    fc = flight_conditions([_Rec(tmp_path / "plane_a.csv")])
+    assert fc.aircraft == "Test plane"
+    assert fc.airspeed.value == pytest.approx(np.mean(60.0 + 0.1 * np.sin(t)), rel=1e-12)
+    assert "v_mps" in fc.airspeed.source
+    assert fc.gravity.value == pytest.approx(32.174 * 0.3048, rel=1e-12)
+    assert fc.sensors["noseboom"] == (7.5, 0.0, -0.2)
+    # no airspeed column: the constants file's trim speed (found by the file's stem)
+    fb = flight_conditions([_Rec(tmp_path / "plane_b.csv")])
+    assert fb.airspeed.value == pytest.approx(200.0 * 0.3048, rel=1e-12)
+    # a spec constant g wins; a model with its own airspeed needs no number
+    fs = flight_conditions([_Rec(tmp_path / "plane_a.csv")], spec_constants={"g": 9.81},
+                           own_speed="V")
+    assert fs.gravity.value == 9.81 and fs.airspeed is None
+    # nothing known: standard gravity, no airspeed
+    fn = flight_conditions([])
+    assert fn.gravity.value == G and fn.airspeed is None
+
+
+# ---------------------------------------------------------------------------
+# accelerometer kinematics against numpy cross products
+# ---------------------------------------------------------------------------
+
+def test_accelerometer_arm_terms_are_the_rigid_body_kinematics():
+    rng = np.random.default_rng(0)
+    w, wd = rng.normal(size=3), rng.normal(size=3)
+    sym = {n: sympy.Symbol(n, real=True) for n in ("p", "q", "r", "pd", "qd", "rd")}
+    vals = dict(zip(("p", "q", "r", "pd", "qd", "rd"), [*w, *wd]))
+    axes = "xyz"
+    for i, arm in enumerate(axes):
+        e = np.eye(3)[i]
+        ref = np.cross(wd, e) + np.cross(w, np.cross(w, e))
+        for j, axis in enumerate(axes):
+            terms = _arm_terms(arm, axis, {"p": "p", "q": "q", "r": "r"},
+                               {"p": "pd", "q": "qd", "r": "rd"})
+            got = sum(float(parse_expression(tx, sym).xreplace(
+                {sym[k]: v for k, v in vals.items()})) for tx in terms)
+            assert got == pytest.approx(ref[j], abs=1e-12), (arm, axis, terms)
+    # a longitudinal model (q only): ax reads −x q² from an arm ahead, az reads −x q̇
+    assert _arm_terms("x", "x", {"q": "q"}, {"q": "qd"}) == ["-q**2"]
+    assert _arm_terms("x", "z", {"q": "q"}, {"q": "qd"}) == ["-(qd)"]
+
+
+# ---------------------------------------------------------------------------
+# vane in metres with the record's airspeed (the spec has none)
+# ---------------------------------------------------------------------------
+
+def _smooth_input(t, dt, seed):
+    """A 3-2-1-1 multistep with rounded edges plus a small doublet train: varies between
+    samples (no zero-order hold in the truth)."""
+    steps = np.zeros_like(t)
+    edges = [(1.0, 4.0, 1.0), (4.0, 6.0, -1.0), (6.0, 7.0, 1.0), (7.0, 8.0, -1.0)]
+    for a, b, s in edges:
+        steps += s * (0.5 * (np.tanh((t - a) / 0.08) - np.tanh((t - b) / 0.08)))
+    rng = np.random.default_rng(seed)
+    return 0.03 * steps + 0.004 * np.sin(2 * math.pi * 0.7 * t + rng.uniform(0, 6.28))
+
+
+def _rk4(f, x0, t_fine, u_of_t):
+    X = np.empty((len(t_fine), len(x0)))
+    x = np.array(x0, float)
+    h = t_fine[1] - t_fine[0]
+    for k, tk in enumerate(t_fine):
+        X[k] = x
+        k1 = f(x, u_of_t(tk))
+        k2 = f(x + 0.5 * h * k1, u_of_t(tk + 0.5 * h))
+        k3 = f(x + 0.5 * h * k2, u_of_t(tk + 0.5 * h))
+        k4 = f(x + h * k3, u_of_t(tk + h))
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return X
+
+
+SP = dict(Za=-1.2, Zde=-0.15, Ma=-4.0, Mq=-1.5, Mde=-6.0)
+
+#: short-period model with the kinematic q term of the α equation (coefficient 1) and no
+#: airspeed. With a free Z_q (attas_sp) a vane offset is not identifiable: α' = α − k q
+#: maps the model onto itself (Z_α − k M_α, 1 + Z_q + k(Z_α − M_q) − k² M_α, ...).
+SP_SPEC = textwrap.dedent("""\
+    name: sp_kin
+    states:
+      alpha: {unit: rad}
+      q: {unit: rad/s}
+    inputs:
+      de: {unit: rad}
+    outputs:
+      alpha: {unit: rad}
+      q: {unit: rad/s}
+    parameters:
+      Z0: {unit: rad/s}
+      Za: {unit: 1/s}
+      Zde: {unit: 1/s}
+      M0: {unit: rad/s^2}
+      Ma: {unit: 1/s^2}
+      Mq: {unit: 1/s}
+      Mde: {unit: 1/s^2}
+    drift:
+      alpha: Z0 + Za*alpha + q + Zde*de
+      q: M0 + Ma*alpha + Mq*q + Mde*de
+    observations:
+      alpha: alpha
+      q: q
+    noise:
+      process: {states: [alpha, q], structure: diagonal, estimate: true}
+      measurement:
+        alpha: {floor: auto}
+        q: {floor: auto}
+    data:
+      time: t_s
+      inputs: {de: de_rad}
+      outputs: {alpha: alpha_rad, q: q_radps}
+    """)
+
+
+def _fit_candidate(cand, base_spec, info, csv, tmp_path):
+    from vsidgen.data import load_record
+    from vsidgen.estimator import FitOptions, fit
+    from vsidgen.model import load_model
+
+    p = tmp_path / "cand.yaml"
+    p.write_text(cand.spec_yaml(base_spec, name="cand_phys", candidate_path=p, info=info)
+                 + "integrator: {method: rk4, substeps: 1, inputs: foh}\n")
+    m = load_model(p, generated_dir=tmp_path / "gen")
+    rec = load_record(m, csv)
+    res = fit(m, [rec], options=FitOptions(deterministic="quasi", deterministic_std=1e-3))
+    return m, res
+
+
+def _estimate(m, res, name):
+    i = list(m.parameter_names).index(name)
+    return float(res.theta[i]), float(res.std_errors[i])
+
+
+def test_alpha_vane_offset_recovered_in_metres_from_exact_geometry(tmp_path):
+    dt, n, V, x_vane = 0.04, 400, 80.0, 12.0
+    t = np.arange(n) * dt
+    sub = 10
+    t_f = np.arange(n * sub) * (dt / sub)
+
+    def u_of(tt):
+        return _smooth_input(np.asarray(tt), dt, 1)
+
+    def f(x, u):
+        a, q = x
+        return np.array([SP["Za"] * a + q + SP["Zde"] * u, SP["Ma"] * a + SP["Mq"] * q
+                         + SP["Mde"] * u])
+
+    X = _rk4(f, [0.0, 0.0], t_f, u_of)[::sub]
+    a, q = X[:, 0] + 0.05, X[:, 1]              # trim α 0.05 rad
+    rng = np.random.default_rng(7)
+    a_vane = np.arctan2(V * np.sin(a) - x_vane * q, V * np.cos(a))
+    csv = tmp_path / "vane_rec.csv"
+    _write_csv(csv, {"t_s": t, "de_rad": u_of(t),
+                     "alpha_rad": a_vane + 4e-4 * rng.normal(size=n),
+                     "q_radps": q + 1e-3 * rng.normal(size=n),
+                     "v_mps": V + 0.2 * rng.normal(size=n)})
+    spec = tmp_path / "sp_kin.yaml"
+    spec.write_text(SP_SPEC)
+    info = model_info(spec, dt=dt)
+    info = dataclasses.replace(info, flight=flight_conditions_of(info, [_Rec(csv)]))
+    cand = next(c for c in propose(info) if c.key == "sensor_position:alpha:q")
+    (p,) = cand.parameters
+    assert p.unit == "m" and "v_mps" in cand.info["airspeed_source"]
+    m, res = _fit_candidate(cand, spec, info, csv, tmp_path)
+    est, se = _estimate(m, res, p.name)
+    assert res.converged, res.status
+    assert abs(est - x_vane) < 3 * se and se < 0.1 * x_vane, (est, se)
+
+
+# ---------------------------------------------------------------------------
+# the speed (phugoid) dynamics
+# ---------------------------------------------------------------------------
+
+def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
+    """Its equations, with Δγ = θ − α, are the textbook linear longitudinal model."""
+    from vsidgen.symbolic import compile_spec
+
+    info = model_info(TOTTER, dt=0.01)
+    (c,) = SpeedDynamics().applies_to(info)
+    assert c.effect == "speed_dynamics" and c.key == "speed_dynamics:alpha:q"
+    units = {p.name: p.unit for p in c.parameters}
+    assert units == {"D_XV": "1/s", "D_Xalpha": "(m/s^2)/(rad)", "D_ZV": "(rad)/m",
+                     "D_MV": "(rad/s)/m"}
+    assert all(p.initial == 0.0 and not p.fixed for p in c.parameters)
+    path = tmp_path / "speed.yaml"
+    path.write_text(c.spec_yaml(TOTTER, name="speed", candidate_path=path, info=info))
+    sym = compile_spec(path)
+    names = [v.name for v in sym.states]
+    drift = dict(zip(names, sym.drift_expanded()))
+    obs = dict(zip([v.name for v in sym.outputs], sym.observations_expanded()))
+    s = {x.name: x for e in list(drift.values()) + list(obs.values()) for x in e.free_symbols}
+    a, q, de, dV, gam = (s[k] for k in ("alpha", "q", "de", "D_dV", "D_dgamma"))
+    Z0, Za, Zde, Vo = (s[k] for k in ("Z0", "Za", "Zde", "Vo"))
+    XV, Xa, ZV, MV = (s[k] for k in ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
+    M0, Ma, Mq, Mde, az0 = (s[k] for k in ("M0", "Ma", "Mq", "Mde", "az0"))
+    hand_alpha = Z0 + Za * a + q + Zde * de + ZV * dV
+    g = sympy.Float(G, 15)
+    assert sympy.simplify(drift["alpha"] - hand_alpha) == 0
+    assert sympy.simplify(drift["q"] - (M0 + Ma * a + Mq * q + Mde * de + MV * dV)) == 0
+    assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * gam)) == 0
+    # flight-path angle: γ̇ = θ̇ − α̇ = q − α̇
+    assert sympy.simplify(drift["D_dgamma"] - (q - hand_alpha)) == 0
+    # vertical specific force Z/m = V₀(α̇ − q) without the bias: gains V₀ Z_V ΔV
+    assert sympy.simplify(obs["az"] - (Vo * (Za * a + Zde * de + ZV * dV) + az0)) == 0
+
+
+def test_speed_candidate_needs_alpha_and_q_and_no_speed_state():
+    lat = model_info(ROOT / "specs" / "attas_lat.yaml", dt=0.04)
+    assert SpeedDynamics().applies_to(lat) == []
+    hfb = model_info(ROOT / "specs" / "hfb320.yaml", dt=0.1)     # has a V state
+    assert SpeedDynamics().applies_to(hfb) == []
+
+
+# ---------------------------------------------------------------------------
+# real records (slow; the records are not in the repository)
+# ---------------------------------------------------------------------------
+
+def _diagnose(spec, records, out, **kw):
+    import json
+
+    from vsidgen.discrepancy import run_diagnose
+
+    run_diagnose(spec, records, out=out, max_rounds=1, numerics=False, workers=1, **kw)
+    return json.loads((out / "findings.json").read_text())
+
+
+@pytest.mark.slow
+def test_twin_otter_short_period_names_the_missing_speed_dynamics(flight_data_dir, tmp_path):
+    doc = _diagnose(TOTTER, [flight_data_dir / "totter_lon_9752ed20.csv"], tmp_path / "d",
+                    effects=["speed_dynamics"], max_candidates=1, min_score=0.0)
+    (f,) = doc["findings"]
+    assert f["key"] == "speed_dynamics:alpha:q" and f["title"] == "speed (phugoid) dynamics missing"
+    ev = f["evidence"]
+    assert ev["statistic"] > ev["threshold"] and ev["converged"]
+    par = f["parameters"]
+    assert par["D_ZV"]["unit"] == "(rad)/m"
+    # lift grows with speed: Z_V < 0 (textbook −2g/V₀² ≈ −0.006 rad/m at 56.5 m/s)
+    assert par["D_ZV"]["estimate"] < 0
+    assert doc["final"]["elbo"] > doc["base"]["elbo"]
+
+
+@pytest.mark.slow
+def test_attas_alpha_vane_on_the_noseboom(flight_data_dir, tmp_path):
+    """With the accelerometer (which fixes the inertial α̇ − q) the α vane's position comes
+    out in metres ahead of the CG near the noseboom of attas.constants.yaml (13.08 m); the
+    finding holds on the validation record."""
+    spec = ROOT / "benchmarks" / "real_records" / "attas_sp_az.yaml"
+    doc = _diagnose(spec, [flight_data_dir / "attas_elv1.csv"], tmp_path / "d",
+                    validate=[flight_data_dir / "attas_elv2.csv"],
+                    effects=["sensor_position"], max_candidates=2)
+    f = next(f for f in doc["findings"] if f["key"] == "sensor_position:alpha:q")
+    x = f["parameters"]["D_POS_alpha_q"]
+    assert x["unit"] == "m" and 9.0 < x["estimate"] < 15.0 and x["std_error"] < 1.0
+    assert "13.08" in f["explanation"]
+    assert f["evidence"]["validation_elbo_after"] > f["evidence"]["validation_elbo_before"]
