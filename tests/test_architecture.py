@@ -35,7 +35,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.fit",
                    "estimator")),
     ("evaluation", ("evaluation",)),
-    ("results", ("results", "report")),
+    ("results", ("resultsdir", "report")),
     ("fit job", ("pipeline", "fleet")),
     ("diagnose: leaves", ("discrepancy.base", "discrepancy.specwrite")),
     ("diagnose: locate", ("discrepancy.locate",)),

@@ -96,7 +96,7 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     from .atomic import write_text_atomic
     from .engine import Engine, TaskStatus
     from .model import default_generated_dir, load_model
-    from .results import dumps
+    from .resultsdir import dumps
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")

@@ -22,7 +22,7 @@ from .model import Model, load_model
 from .overrides import Overrides, apply_overrides
 from .atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
 from .limits import check_input_file
-from .results import dumps, finite_or_none, signals_table
+from .resultsdir import dumps, finite_or_none, signals_table
 
 
 @dataclasses.dataclass(frozen=True)

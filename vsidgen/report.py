@@ -41,7 +41,7 @@ import numpy as np
 from .atomic import write_text_atomic
 from .errors import VsidgenError
 from .limits import check_input_file
-from .results import contained_file, read_results
+from .resultsdir import contained_file, read_results
 
 __all__ = ["new_figure", "parse_reference", "png_data_uri", "write_report", "SIGNAL_STYLE",
            "STRONG_CORRELATION"]

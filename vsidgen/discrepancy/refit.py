@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ..results import finite_or_none as _f
+from ..resultsdir import finite_or_none as _f
 
 #: process-noise std (state unit/√s) of the states the candidates add without process
 #: noise (lags, delays, modes). Small against any physical signal (over a 0.15 s lag it

@@ -53,7 +53,7 @@ import pathlib
 import numpy as np
 from scipy import stats
 
-from ..results import finite_or_none
+from ..resultsdir import finite_or_none
 
 
 @dataclasses.dataclass(frozen=True)

@@ -57,7 +57,7 @@ from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import StopReason as FitStopReason
 from ..estimator import WarmStart
 from ..limits import check_input_file
-from ..results import finite_or_none as _f
+from ..resultsdir import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .flightconst import flight_conditions_of
