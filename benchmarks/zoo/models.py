@@ -323,4 +323,7 @@ SIX8 = ZooModel(
     description="coupled longitudinal + lateral, linear, 8 states, θ and φ without process noise, "
                 "knots, degrees and g through units, 50 Hz")
 
-MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN, SIX8, LON4_NOW)}
+SIX8_RK4 = dataclasses.replace(SIX8, name="six8_rk4", spec="six8_rk4.yaml",
+                               description=SIX8.description + "; RK4")
+
+MODELS = {m.name: m for m in (SP_PN, SP_OE, LAT4_NOBETA, LON4, LAT4, LAT4_PN, LON4_PN, SP3_PN, SIX8, LON4_NOW, SIX8_RK4)}
