@@ -43,6 +43,37 @@ def diag_options(max_iter, **kw):
     return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
 
 
+def fit_stage2(model, records, res1, *, max_iter: int, notes: list, warm_start=None):
+    """Stage 2 of a staged refit: every parameter free, from stage 1's optimum ``res1``.
+
+    A rejected ``warm_start`` falls back to a cold start; a Levenberg–Marquardt stall (no
+    progress or an indefinite Hessian) gets one restart from where it stopped; a stage 2 that
+    ends below stage 1 is noted (it nests stage 1). Each event is appended to ``notes``."""
+    from ..errors import FitError
+    from ..estimator import StopReason, fit
+
+    opts = {} if warm_start is None else {"warm_start": warm_start}
+    try:
+        res2 = fit(model, records, options=diag_options(2 * max_iter, **opts))
+    except FitError as err:
+        if not opts:
+            raise
+        notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
+        res2 = fit(model, records, options=diag_options(2 * max_iter))
+    if not res2.converged and getattr(res2, "stop_reason", None) in (StopReason.NO_PROGRESS,
+                                                                     StopReason.INDEFINITE_HESSIAN):
+        try:
+            res2b = fit(model, records, options=diag_options(max_iter, warm_start=res2))
+            if res2b.elbo >= res2.elbo:
+                notes.append(f"stage 2 restarted after a stall: {res2b.status}")
+                res2 = res2b
+        except FitError as err:
+            notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
+    if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
+        notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
+    return res2
+
+
 def evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
     """Evaluate a fit (and smooth the validation records with θ and noise fixed)."""
     from ..estimator import smooth

@@ -49,10 +49,9 @@ import time
 import numpy as np
 
 from ..errors import FitError
-from ..estimator import StopReason as FitStopReason
 from ..estimator import WarmStart
 from .base import Candidate, ModelInfo
-from .fitstate import FitState, diag_options, evaluated, refit_warm, stage1_iterations
+from .fitstate import FitState, diag_options, evaluated, fit_stage2, refit_warm, stage1_iterations
 from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, noise_parameters, noise_stds,
                     parameter_start)
 from .specwrite import clip_to_bounds, warm_parameters, write_spec
@@ -197,30 +196,13 @@ def gated_refit(c: Candidate, current: FitState, group: GatedGroup, path: pathli
     # ---- stage 2: everything of c free from stage 1's estimates
     est1 = {n: float(v) for n, v in zip(m1.parameter_names, res1.theta) if n in own}
     m2 = configured(gm, group.base_names, own, est1, free_base=True)
-    opts2 = {}
+    ws2 = None
     try:
         z2, _ = parameter_start(m2)
-        opts2["warm_start"] = _warm(m2, records, res1, m1, z2)
+        ws2 = _warm(m2, records, res1, m1, z2)
     except (FitError, ValueError, KeyError, TypeError) as err:
         out.notes.append(f"no warm start for stage 2 ({err})")
-    try:
-        res2 = fit(m2, records, options=diag_options(2 * max_iter, **opts2))
-    except FitError as err:
-        if not opts2:
-            raise
-        out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res2 = fit(m2, records, options=diag_options(2 * max_iter))
-    if not res2.converged and getattr(res2, "stop_reason", None) in (
-            FitStopReason.NO_PROGRESS, FitStopReason.INDEFINITE_HESSIAN):
-        try:
-            res2b = fit(m2, records, options=diag_options(max_iter, warm_start=res2))
-            if res2b.elbo >= res2.elbo:
-                out.notes.append(f"stage 2 restarted after a stall: {res2b.status}")
-                res2 = res2b
-        except FitError as err:
-            out.notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
-    if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
-        out.notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
+    res2 = fit_stage2(m2, records, res1, max_iter=max_iter, notes=out.notes, warm_start=ws2)
     out.state = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     out.wall_s = time.perf_counter() - t0
     return out

@@ -54,7 +54,6 @@ from scipy import stats
 
 from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
-from ..estimator import StopReason as FitStopReason
 from ..estimator import WarmStart
 from ..limits import check_input_file
 from ..resultsdir import finite_or_none as _f
@@ -63,7 +62,7 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_mod
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
-from .fitstate import (FitState, conv_label, diag_options, evaluated, refit_converged, refit_warm,
+from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2, refit_converged, refit_warm,
                        stage1_iterations)
 from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
 
@@ -262,33 +261,15 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     est1 = dict(zip(m1.parameter_names, map(float, res1.theta)))
     write_candidate(c, current, info, path, name, new_initial=est1)
     m2 = load_model(path, generated_dir=generated_dir)
-    opts2 = {}
+    ws2 = None
     try:
         z2, _ = parameter_start(m2)
         ps, od, ms = noise_stds(res1, m1)
         s2 = np.concatenate([z2, noise_parameters(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-        opts2["warm_start"] = WarmStart.from_decision({"s": s2, "records": res1.decision["records"]})
+        ws2 = WarmStart.from_decision({"s": s2, "records": res1.decision["records"]})
     except (FitError, ValueError, KeyError, TypeError) as err:
         out.notes.append(f"no warm start for stage 2 ({err})")
-    try:
-        res2 = fit(m2, records, options=diag_options(2 * max_iter, **opts2))
-    except FitError as err:
-        if not opts2:
-            raise
-        out.notes.append(f"stage-2 warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res2 = fit(m2, records, options=diag_options(2 * max_iter))
-    if not res2.converged and getattr(res2, "stop_reason", None) in (FitStopReason.NO_PROGRESS,
-                                                                     FitStopReason.INDEFINITE_HESSIAN):
-        # Levenberg–Marquardt stalled (damping grew): one restart from where it stopped
-        try:
-            res2b = fit(m2, records, options=diag_options(max_iter, warm_start=res2))
-            if res2b.elbo >= res2.elbo:
-                out.notes.append(f"stage 2 restarted after a stall: {res2b.status}")
-                res2 = res2b
-        except FitError as err:
-            out.notes.append(f"stage-2 restart failed ({str(err).splitlines()[0]})")
-    if res2.elbo < res1.elbo - 1e-6 * max(1.0, abs(res1.elbo)):
-        out.notes.append(f"stage 2 ended below stage 1 (ELBO {res2.elbo:.6g} < {res1.elbo:.6g})")
+    res2 = fit_stage2(m2, records, res1, max_iter=max_iter, notes=out.notes, warm_start=ws2)
     st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:
         out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
