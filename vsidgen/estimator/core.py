@@ -414,7 +414,7 @@ def curvature_vars(fn, na: int, nu: int, *, points: int = 3, seed: int = 0):
     if not _smooth_jaxpr(jx.jaxpr):
         return None
     rng = np.random.default_rng(seed)
-    hes = jax.jit(jax.hessian(fn))
+    hes = jax.jit(jax.hessian(fn), compiler_options=compiler_options())
     mask = np.zeros(na, bool)
     for _ in range(points):
         a = rng.normal(size=na) * rng.uniform(0.3, 3.0)
@@ -432,6 +432,17 @@ def curvature_vars(fn, na: int, nu: int, *, points: int = 3, seed: int = 0):
 #: chain rule through the generated f_x, f_p; Model.output_jacobian). autodiff: as fast to run,
 #: faster to compile on HFB-320, fits bit-identical to before (docs/performance.md)
 POINT_JACOBIANS = "autodiff"
+
+#: XLA options of the objective's jitted functions on the CPU backend. XLA-CPU's default MLIR
+#: fusion emitters spend ~1.8x the backend compile time of its elemental IR emitters on the
+#: Hessian-block assembly (~500 small kernels for HFB-320), with the same run time and
+#: bit-identical results (docs/performance.md, ``benchmarks/bench_compile.py --options``).
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def compiler_options() -> dict | None:
+    """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults)."""
+    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
 
 
 class Objective:
@@ -458,10 +469,11 @@ class Objective:
         self.kv_F = curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu)
         self.kv_h = curvature_vars(lambda a, u: model.output(a[:n], u, a[n:]), na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
-        self._blocks = jax.jit(self._blocks_impl)
-        self._value = jax.jit(self._value_impl)
-        self._factor = jax.jit(self._factor_impl)
-        self._back = jax.jit(self._back_impl)
+        opts = compiler_options()
+        self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
+        self._value = jax.jit(self._value_impl, compiler_options=opts)
+        self._factor = jax.jit(self._factor_impl, compiler_options=opts)
+        self._back = jax.jit(self._back_impl, compiler_options=opts)
 
     # -- unpacking
     def unpack_s(self, s, cfg):
@@ -813,7 +825,8 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     fixed values) reuses the compiled code. Keyed on the model's functions,
     dimensions, integrator and the static index structure of the maps.
     """
-    key = (model.drift, model.output, POINT_JACOBIANS, model.nx, model.nu, model.ny, model.np, key_extra,
+    key = (model.drift, model.output, POINT_JACOBIANS, tuple(sorted((compiler_options() or {}).items())),
+           model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
     obj = _OBJECTIVES.get(key)
