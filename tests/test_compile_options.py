@@ -2,7 +2,7 @@
 
 On the CPU backend the objective's functions are compiled with
 ``vsidgen.estimator.core.CPU_COMPILER_OPTIONS`` (XLA-CPU's elemental IR emitters instead of
-its MLIR fusion emitters: the Hessian blocks compile ~1.5x faster, docs/performance.md). The
+its MLIR fusion emitters: the Hessian blocks compile 1.4–1.8x faster, docs/performance.md). The
 tests check that the options reach every jitted function (an option XLA does not know must
 make each of them fail to compile), that other backends keep XLA's defaults, and that the
 blocks, value and factorisation equal those compiled with XLA's defaults to rounding, and
