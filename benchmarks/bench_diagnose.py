@@ -17,7 +17,10 @@ The default case is a 1,000-sample HFB-320-like record simulated from ``specs/hf
 histories resampled to 0.06 s, turbulence and sensor noise), written to ``--work``.
 
     python benchmarks/bench_diagnose.py --workers 1 2 [N ...] [--paths gated per-candidate]
-        [-- --max-rounds 1]
+        [--xla-defaults] [-- --max-rounds 1]
+
+``--xla-defaults`` compiles with XLA's default options instead of vsidgen's
+``CPU_COMPILER_OPTIONS`` (through a ``sitecustomize`` on the child processes' ``PYTHONPATH``).
 """
 
 from __future__ import annotations
@@ -80,8 +83,20 @@ PHASES = (("base fit + locate", "fitting the base model"),
           ("rounds", "round 1:"))
 
 
-def run_one(spec, data, out, workers, extra, cache, *, gated: bool, log: pathlib.Path) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+def xla_defaults_dir(work: pathlib.Path) -> pathlib.Path:
+    """A folder whose ``sitecustomize`` empties ``CPU_COMPILER_OPTIONS`` in every Python process
+    started with it on ``PYTHONPATH`` (the diagnose process and its dask workers): XLA's defaults."""
+    d = work / "xla_defaults"
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "sitecustomize.py").write_text("import vsidgen.estimator.core as _core\n"
+                                        "_core.CPU_COMPILER_OPTIONS = {}\n")
+    return d
+
+
+def run_one(spec, data, out, workers, extra, cache, *, gated: bool, log: pathlib.Path,
+            pre_path: pathlib.Path | None = None) -> dict:
+    path = [str(pre_path)] if pre_path else []
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path + [str(ROOT), os.environ.get("PYTHONPATH", "")]),
                VSIDGEN_CACHE_DIR=cache)
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(spec), *map(str, data),
            "--out", str(out), "--workers", str(workers), "--overwrite", *extra]
@@ -144,6 +159,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", default=None, help="work folder (default: a temporary one)")
     ap.add_argument("--shared-cache", action="store_true",
                     help="one persistent compilation cache for all configurations")
+    ap.add_argument("--xla-defaults", action="store_true",
+                    help="compile with XLA's default options instead of vsidgen's CPU_COMPILER_OPTIONS")
     ap.add_argument("diagnose_args", nargs=argparse.REMAINDER,
                     help="after --: extra diagnose options, e.g. -- --max-rounds 1")
     a = ap.parse_args(argv)
@@ -161,16 +178,16 @@ def main(argv=None) -> int:
     rows = []
     for w in a.workers:
         for path in a.paths:
-            tag = f"{path}_w{w}"
+            tag = f"{path}_w{w}" + ("_xla_defaults" if a.xla_defaults else "")
             cache = str(work / ("cache" if a.shared_cache else f"cache_{tag}"))
             r = run_one(spec, data, work / tag, w, extra, cache, gated=path == "gated",
-                        log=work / f"{tag}.log")
+                        log=work / f"{tag}.log", pre_path=xla_defaults_dir(work) if a.xla_defaults else None)
             rows.append(r)
             print(f"# {case}: {path}, workers {w}: {r['wall_s']:.1f} s (load "
                   f"{r['load'][0]:.1f} -> {r['load'][1]:.1f})", file=sys.stderr, flush=True)
     ref = rows[0]
     print(f"case: {case}; diagnose options: {' '.join(extra) or '(CLI defaults)'}; "
-          f"{os.cpu_count()} CPUs")
+          f"{os.cpu_count()} CPUs; compiler options: {'XLA defaults' if a.xla_defaults else 'vsidgen'}")
     print("| path | workers | rounds | candidates | refits | compile (s) | wall (s) | "
           "base fit + locate / numerics / rounds (s) | load before → after | findings | "
           "same findings as 1st row |")
