@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..dynamics import input_hold as transition_input_hold
-from ..dynamics import settings as transition_settings
-from ..dynamics import transition
+from ..model.dynamics import input_hold as transition_input_hold
+from ..model.dynamics import settings as transition_settings
+from ..model.dynamics import transition
 from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
