@@ -6,7 +6,9 @@
   or read as an attribute of, another vsidgen module;
 * no import against the pipeline: a module imports only modules of its own stage or of an
   earlier one (``STAGES`` below, the order of docs/architecture.md); every module has a stage;
-* ``jax_enable_x64`` is set only in ``vsidgen/precision.py``.
+* ``jax_enable_x64`` is set only in ``vsidgen/precision.py``;
+* the layout shows the pipeline: only the foundation modules and ``cli`` are flat, every other
+  stage lives in one subpackage, and a subpackage's stages follow each other.
 
 Each rule is also checked against a deliberately bad module, so that none of them passes
 vacuously.
@@ -58,6 +60,9 @@ def _full(name: str) -> str:
 
 
 STAGE_OF = {_full(m): i for i, (_, mods) in enumerate(STAGES) for m in mods}
+
+#: the flat modules of the package besides the foundation (and ``vsidgen/__init__.py``)
+FLAT = ("cli",)
 
 
 def _module_name(path: pathlib.Path, package: pathlib.Path) -> str:
@@ -177,6 +182,31 @@ def against_pipeline(edges: dict[str, dict[str, int]]) -> list[str]:
             if m in STAGE_OF and t in STAGE_OF and STAGE_OF[t] > STAGE_OF[m]]
 
 
+def layout_problems(modules, stages=STAGES, flat=FLAT) -> list[str]:
+    """Where the package layout does not read as the pipeline: a flat top-level module that is
+    neither a foundation module nor in ``flat``; a stage after the foundation whose modules
+    are not all in one top-level subpackage (``cli`` excepted); a subpackage whose stages are
+    not consecutive."""
+    allowed = {_full(m) for m in stages[0][1]} | {_full(m) for m in flat}
+    packages = {m.rpartition(".")[0] for m in modules}
+    problems = [f"{m} is a flat module outside the foundation" for m in sorted(modules)
+                if m.count(".") == 1 and m not in allowed and m not in packages]
+    seen: list[str] = []
+    for name, mods in stages[1:]:
+        if all(m in flat for m in mods):
+            continue
+        tops = {m.split(".")[0] for m in mods}
+        if len(tops) != 1:
+            problems.append(f"stage {name!r} spans the subpackages {sorted(tops)}")
+            continue
+        top = tops.pop()
+        if top in seen and seen[-1] != top:
+            problems.append(f"subpackage {top!r} holds stage {name!r} after another subpackage's")
+        if not seen or seen[-1] != top:
+            seen.append(top)
+    return problems
+
+
 def _sets_x64(text: str) -> bool:
     """Whether the source switches x64 on: a call whose first argument is the option name
     (``jax.config.update("jax_enable_x64", ...)``, ``os.environ.setdefault("JAX_ENABLE_X64",
@@ -227,6 +257,10 @@ def test_imports_follow_the_pipeline():
     assert against_pipeline(edges) == []
 
 
+def test_layout_reads_as_the_pipeline():
+    assert layout_problems(set(_sources(PACKAGE))) == []
+
+
 def test_x64_switched_on_only_in_precision():
     assert x64_outside_precision(PACKAGE) == []
     assert _sets_x64((PACKAGE / "precision.py").read_text(encoding="utf-8"))
@@ -264,6 +298,17 @@ def test_checks_fail_on_bad_imports():
     assert x64_outside_precision(PACKAGE, extra={
         "vsidgen/data/formats.py": "import os\nos.environ['JAX_ENABLE_X64'] = '1'\n"}
         ) == ["vsidgen/data/formats.py"]
+
+
+def test_layout_check_fails_on_a_flat_or_split_stage():
+    modules = set(_sources(PACKAGE))
+    assert layout_problems(modules | {"vsidgen.simulate"}) == [
+        "vsidgen.simulate is a flat module outside the foundation"]
+    split = tuple((n, ("data.formats", "records") if n == "data" else mods) for n, mods in STAGES)
+    assert layout_problems(modules, split) == ["stage 'data' spans the subpackages ['data', 'records']"]
+    back = STAGES[:3] + (("late spec", ("spec.late",)),) + STAGES[3:]
+    assert layout_problems(modules, back) == [
+        "subpackage 'spec' holds stage 'late spec' after another subpackage's"]
 
 
 #: one bad module source per rule (it replaces the module's own source in the analysis)
