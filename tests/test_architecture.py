@@ -32,7 +32,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("codegen", ("codegen",)),
     ("model", ("model", "dynamics")),
     ("data", ("formats", "data", "datacheck", "simulate")),
-    ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.fit",
+    ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.problem", "estimator.fit",
                    "estimator")),
     ("evaluation", ("evaluation",)),
     ("results", ("resultsdir", "report")),

@@ -5,10 +5,14 @@ Public API::
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
     FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
+    Problem(model, records, options)    # decision-vector layout, objective, reduced Newton system
+    Layout, ReducedSystem, Gradient, parameter_start
 """
 
 from .fit import fit, measured_states, smooth
+from .problem import Gradient, Layout, Problem, ReducedSystem, parameter_start
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart",
-           "fit", "measured_states", "smooth"]
+__all__ = ["FitOptions", "FitResult", "Gradient", "Layout", "Problem", "ReducedSystem", "SmootherPath",
+           "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "fit", "measured_states", "parameter_start",
+           "smooth"]
