@@ -206,6 +206,23 @@ class Layout:
         return v[o + self.nrec * self.nq:], list(zip(mus, rs))
 
 
+def split_density(r, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d, L, C) of one record's assumed-density parameters r = (d, strict-lower L row by row, vec C)
+    for n states: Σ_cond = L diag(eᵈ) Lᵀ (L unit lower triangular), C the cross factor."""
+    r = np.asarray(r, float)
+    nl = n * (n - 1) // 2
+    L = np.eye(n)
+    L[np.tril_indices(n, -1)] = r[n:n + nl]
+    return r[:n].copy(), L, r[n + nl:].reshape(n, n).copy()
+
+
+def join_density(d, L, C) -> np.ndarray:
+    """r = (d, strict-lower L, vec C), the inverse of :func:`split_density`."""
+    n = len(d)
+    return np.concatenate([np.asarray(d, float), np.asarray(L, float)[np.tril_indices(n, -1)],
+                           np.asarray(C, float).ravel()])
+
+
 @dataclasses.dataclass(frozen=True)
 class ReducedSystem:
     """The Newton system with the state means eliminated (module docstring): ``S`` (symmetric,
