@@ -37,6 +37,7 @@ import functools
 import math
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -286,8 +287,11 @@ class Problem:
 
     @functools.cached_property
     def obj(self):
-        """The compiled objective (shared between problems of the same structure, built on first use)."""
-        obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps))
+        """The compiled objective (shared between problems of the same structure), built on first use;
+        its construction evaluates the model at sample points (curvature structure), eagerly even
+        when the first use is inside a JAX trace (:meth:`flat_value` under ``jax.hessian``)."""
+        with jax.ensure_compile_time_eval():
+            obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps))
         if (obj.nq, obj.ng) != (self.layout.nq, self.layout.ng):
             raise FitError("objective layout differs from the problem's")
         return obj
