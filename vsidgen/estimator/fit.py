@@ -1,21 +1,22 @@
 """fit() and smooth(): the structured Newton (Levenberg–Marquardt) maximisation of the ELBO.
 
-Decision vector: shared s = [z (free θ, unconstrained), noise parameters] and,
-per record, the state means μ (N×n) and assumed-density parameters
-r = (d, strict-lower L, C). Each iteration
+Decision vector, objective and the reduced Newton system: :class:`vsidgen.estimator.problem.Problem`
+(shared s = [z (free θ, unconstrained), noise parameters] and, per record, the state means μ
+(N×n) and assumed-density parameters r = (d, strict-lower L, C)). Each iteration
+(:func:`_optimize`)
 
-1. computes value, gradient and Hessian blocks of −ELBO per record
-   (``jax.vmap(jax.hessian(...))`` over pairs and nodes, one jit per record shape),
-2. solves (H + λ D) Δ = −∇ with D = Marquardt diagonal scaling: μ is eliminated
-   record by record with an O(N) block-tridiagonal Cholesky, the border
-   (all r and s) through its Schur complement,
-3. accepts the step when the actual / predicted reduction ratio ρ > 1e-4 and
-   updates λ (Nielsen's rule); a failed Cholesky (indefinite H + λD) or a
-   rejected step increases λ.
-
-It stops on the relative gradient (see :class:`FitOptions` ``gtol``): converged;
-or on no progress (step below ``xtol``, λ overflow, predicted reduction below
-rounding): not converged, with a status saying so.
+1. measures the iterate (:func:`_lm_measure`): value, gradient and Hessian blocks of −ELBO per
+   record (exact sigma-point assembly, one jit per record shape), relative gradient and Newton
+   decrement;
+2. stops (:func:`_lm_terminate`) on the Newton decrement with a positive-definite Hessian or the
+   relative gradient (see :class:`FitOptions` ``decrement_tol``, ``gtol``): converged; or on a
+   limit;
+3. otherwise (:func:`_lm_step`) solves (H + λ D) Δ = −∇ with D = Marquardt diagonal scaling: μ is
+   eliminated record by record with an O(N) block-tridiagonal Cholesky, the border (all r and s)
+   through its Schur complement; accepts the step when the actual / predicted reduction ratio
+   ρ > ACCEPT_RATIO and updates λ (Nielsen's rule); a failed Cholesky (indefinite H + λD) or a
+   rejected step increases λ. No progress (step below ``xtol``, λ overflow, predicted reduction
+   below rounding) stops, not converged, with a status saying so.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np
 from ..errors import FitError
 from .core import diff_scale
 from .problem import Gradient, Problem, initial_means, measured_states
-from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
+from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
 
