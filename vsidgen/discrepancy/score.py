@@ -53,7 +53,7 @@ import pathlib
 import numpy as np
 from scipy import stats
 
-from ..resultsdir import finite_or_none
+from ..report import finite_or_none
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,10 +9,11 @@ Public API::
     Layout, ReducedSystem, Gradient, parameter_start, split_density, join_density
 """
 
-from .fit import fit, measured_states, smooth
-from .problem import Gradient, Layout, Problem, ReducedSystem, join_density, parameter_start, split_density
+from .fit import fit, smooth
+from .problem import (DirectMeasurement, Gradient, Layout, Problem, ReducedSystem, direct_measurements, join_density,
+                      measured_states, parameter_start, split_density)
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
-__all__ = ["FitOptions", "FitResult", "Gradient", "Layout", "Problem", "ReducedSystem", "SmootherPath",
-           "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "fit", "join_density", "measured_states",
-           "parameter_start", "smooth", "split_density"]
+__all__ = ["DirectMeasurement", "FitOptions", "FitResult", "Gradient", "Layout", "Problem", "ReducedSystem",
+           "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "direct_measurements", "fit",
+           "join_density", "measured_states", "parameter_start", "smooth", "split_density"]

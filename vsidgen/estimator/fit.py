@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import Gradient, Problem, initial_means, measured_states
+from .problem import Gradient, Problem, direct_measurements, initial_means, measured_states
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -580,7 +580,7 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         warnings.append({"code": code, "reliable": False, "stop_reason": reason.value,
                          "message": f"{reason.message}: {out['status']}"})
     # smoothers and state-vs-measurement check
-    pairs = measured_states(model)
+    pairs = direct_measurements(model)
     smoothers = []
     for rec, (m, r) in zip(P.records, recs):
         Sc, C, Sm, _ = P.obj.cov_factors(jnp.asarray(r))
@@ -588,8 +588,9 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         smoothers.append(SmootherPath(name=str(getattr(rec, "name", "")), mu=np.asarray(m).copy(),
                                       cov_marg=Sm @ Sm.T, cov_cond=Sc @ Sc.T, cross=C))
         y = np.asarray(rec.y, float)
-        for i, j in pairs.items():
-            res = m[:, i] - y[:, j]
+        for i, dm in pairs.items():
+            j = dm.output
+            res = dm.offset + dm.gain * m[:, i] - y[:, j]
             res = res[np.isfinite(res)]
             if res.size and sig[j] > 0:
                 ratio = float(np.sqrt(np.mean(res ** 2)) / sig[j])
@@ -725,11 +726,11 @@ def _smoothing_start_std(P: Problem) -> np.ndarray:
     sample-to-sample differences / √T (the random-walk rate the record allows); an
     unmeasured one 1 (state unit/√s).
     """
-    pairs = measured_states(P.model)
+    pairs = direct_measurements(P.model)
     T = float(np.mean([float(r.dt) for r in P.records]))
     out = []
     for i in np.nonzero(P.nm.deterministic)[0]:
-        v = diff_scale(P.records, pairs[i]) / math.sqrt(T) if i in pairs else 0.0
+        v = diff_scale(P.records, pairs[i].output) / abs(pairs[i].gain) / math.sqrt(T) if i in pairs else 0.0
         out.append(v if v > 0 else 1.0)
     return np.asarray(out, float)
 
@@ -929,7 +930,7 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     It is in the state's own units (deg/√s for a state in degrees), so a start built on it
     does not depend on them. 0 where the drift of the state vanishes at the start.
     """
-    pairs = measured_states(P.model)
+    pairs = direct_measurements(P.model)
     T = float(np.mean([float(r.dt) for r in P.records]))
     p0 = jnp.asarray(P.tm.theta(jnp.asarray(P.tm.z0)))
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))

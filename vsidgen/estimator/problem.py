@@ -41,9 +41,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..dynamics import input_hold as transition_input_hold
-from ..dynamics import settings as transition_settings
-from ..dynamics import transition
+from ..model.dynamics import input_hold as transition_input_hold
+from ..model.dynamics import settings as transition_settings
+from ..model.dynamics import transition
 from ..errors import FitError
 from .core import NoiseMap, ThetaMap, bucket_length, get_objective, make_cfg, record_data
 from .results import FitOptions, FitResult, WarmStart
@@ -51,44 +51,111 @@ from .results import FitOptions, FitResult, WarmStart
 from .. import precision  # noqa: F401  (float64, set once)
 
 
-def measured_states(model) -> dict[int, int]:
-    """{state index: output index} for outputs that are exactly a state.
+@dataclasses.dataclass(frozen=True)
+class DirectMeasurement:
+    """Output ``output`` measures one state directly: y = offset + gain · x_i.
 
-    Uses ``model.symbolic.observations`` (expression is a state symbol) when a
-    symbolic model is attached, else checks h_j(x, u, θ₀) == x_i numerically
-    at three random points.
+    ``gain`` ≠ 0 and ``offset`` are numbers during the fit (spec constants and fixed
+    parameters allowed, estimated parameters not), so the state is known from the
+    measurement up to its noise: x_i = (y − offset)/gain.
     """
-    pairs: dict[int, int] = {}
+
+    output: int
+    gain: float = 1.0
+    offset: float = 0.0
+
+    def state_of(self, y):
+        """The state a measured value stands for: (y − offset)/gain."""
+        return (y - self.offset) / self.gain
+
+
+def _affine_in(e, x, const_values) -> tuple[float, float] | None:
+    """(gain, offset) when ``e`` is offset + gain·x with numeric gain ≠ 0 and offset, else None."""
+    import sympy
+
+    e = e.xreplace(const_values)
+    if e.free_symbols != {x}:
+        return None
+    try:
+        poly = sympy.Poly(e, x)
+    except sympy.PolynomialError:
+        return None
+    if poly.degree() != 1:
+        return None
+    k, c = (float(v) for v in (poly.coeff_monomial(x), poly.coeff_monomial(1)))
+    if not (math.isfinite(k) and math.isfinite(c) and k != 0.0):
+        return None
+    return k, c
+
+
+def direct_measurements(model) -> dict[int, DirectMeasurement]:
+    """{state index: DirectMeasurement} for outputs that measure one state directly.
+
+    An output y_j = c + k·x_i with numbers k ≠ 0 and c (the state itself, the state in
+    other units such as ``57.29578*alpha``, or a trim value plus a perturbation such as
+    ``V0 + u`` with ``V0`` a spec constant or a fixed parameter) measures x_i directly: the
+    measured values give the state's start μ_i = (y_j − c)/k and its data scale (spread of
+    y_j's sample differences / |k|). The first such output of a state is taken.
+
+    Uses ``model.symbolic.observations`` (definitions expanded, constants and fixed
+    parameters substituted) when a symbolic model is attached, else tests h numerically:
+    y_j must be the same affine function of x_i at random states and inputs, for two
+    vectors of the estimated parameters.
+    """
+    out: dict[int, DirectMeasurement] = {}
     sym = model.symbolic
     if sym is not None:
         try:
-            obs = sym.observations_expanded() if hasattr(sym, "observations_expanded") else sym.observations
-            for j, e in enumerate(obs):
+            fixed = {p.name: float(p.initial) for p in model.parameters if p.fixed}
+            consts = dict(sym.constant_values())
+            consts.update({p.symbol: fixed[p.name] for p in sym.parameters if p.name in fixed})
+            for j, e in enumerate(sym.observations_expanded()):
                 for i, st in enumerate(sym.states):
-                    if e == st.symbol:
-                        pairs.setdefault(i, j)
-            return pairs
+                    kc = _affine_in(e, st.symbol, consts)
+                    if kc is not None:
+                        out.setdefault(i, DirectMeasurement(j, *kc))
+            return out
         except Exception:  # fall back to the numerical test
-            pairs = {}
+            out = {}
+    return _direct_measurements_numerical(model)
+
+
+def _direct_measurements_numerical(model) -> dict[int, DirectMeasurement]:
     rng = np.random.default_rng(12345)
-    p = jnp.asarray([float(q.initial) for q in model.parameters], float)
-    ok = np.ones((model.ny, model.nx), bool)
-    for _ in range(3):
-        x = rng.normal(size=model.nx) * 0.7 + 0.3
-        u = rng.normal(size=model.nu)
-        with np.errstate(all="ignore"):
-            h = np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), p), float)
-        ok &= np.abs(h[:, None] - x[None, :]) <= 1e-12 * (1 + np.abs(x[None, :]))
+    p0 = np.asarray([float(q.initial) for q in model.parameters], float)
+    out: dict[int, DirectMeasurement] = {}
+    npts = 4
+    X = rng.normal(size=(npts, model.nx)) * 0.7 + 0.3
+    U = rng.normal(size=(npts, model.nu))
+    free = np.array([not q.fixed for q in model.parameters], bool)
+    P = [p0, p0 + free * rng.normal(size=p0.shape) * 0.1]
+    with np.errstate(all="ignore"):
+        H = np.array([[np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(p)), float)
+                       for x, u in zip(X, U)] for p in P])  # (2, npts, ny)
     for j in range(model.ny):
         for i in range(model.nx):
-            if ok[j, i]:
-                pairs.setdefault(i, j)
-    return pairs
+            x = X[:, i]
+            h = H[0, :, j]
+            if not np.all(np.isfinite(H[:, :, j])) or x[1] == x[0]:
+                continue
+            k = (h[1] - h[0]) / (x[1] - x[0])
+            c = h[0] - k * x[0]
+            pred = c + k * x
+            tol = 1e-12 * (1 + np.abs(H[:, :, j]))
+            if k != 0 and np.all(np.abs(H[:, :, j] - pred[None, :]) <= tol):
+                out.setdefault(i, DirectMeasurement(j, float(k), float(c)))
+    return out
+
+
+def measured_states(model) -> dict[int, int]:
+    """{state index: output index} for outputs that measure a state directly (:func:`direct_measurements`)."""
+    return {i: m.output for i, m in direct_measurements(model).items()}
 
 
 def initial_means(model, rec, pairs, how: str) -> np.ndarray:
-    """Starting state means (N, nx) of a record: ``how`` = "measured" (a state measured directly by
-    output j follows y_j, NaN samples interpolated; other states 0) or "zero"."""
+    """Starting state means (N, nx) of a record: ``how`` = "measured" (a state measured directly,
+    ``pairs``: :func:`direct_measurements`, starts at (y − offset)/gain, NaN samples interpolated;
+    other states 0) or "zero"."""
     N = np.asarray(rec.y).shape[0]
     mu = np.zeros((N, model.nx))
     if how == "zero":
@@ -97,8 +164,8 @@ def initial_means(model, rec, pairs, how: str) -> np.ndarray:
         raise FitError(f"init_states must be 'measured' or 'zero', got '{how}'")
     y = np.asarray(rec.y, float)
     k = np.arange(N)
-    for i, j in pairs.items():
-        col = y[:, j]
+    for i, dm in pairs.items():
+        col = dm.state_of(y[:, dm.output])
         fin = np.isfinite(col)
         if fin.any():
             mu[:, i] = np.interp(k, k[fin], col[fin])
@@ -268,7 +335,7 @@ class Problem:
         self.F = transition(model, integrator=self.integrator, substeps=self.substeps, inputs=self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax,
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=direct_measurements(model), relax=relax,
                            hold=hold)
         self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
@@ -356,7 +423,7 @@ class Problem:
                 return s, recs
             raise FitError("warm_start result does not match this problem's shape")
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
-        pairs = measured_states(self.model)
+        pairs = direct_measurements(self.model)
         r0 = np.zeros(self.layout.nq)  # Σ_cond = Σ_marg = I
         if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
             # smoothing with known noise (validation mode): start the assumed density at the
