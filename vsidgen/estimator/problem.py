@@ -28,6 +28,10 @@ so that the damped Newton step (H + λD) Δ = −g is Δb = S⁻¹ rhs and
 Δμ_i = −A_i⁻¹ (g_μ_i + W_i Δb) (:meth:`Problem.back_substitute`). With λ = 0, S is the Hessian
 of the profile f(b) = min_μ f(μ, b) to second order, so ½ rhsᵀ S⁻¹ rhs is half the Newton
 decrement over all variables.
+
+Start (:meth:`Problem.initial`): θ at the spec's initial values, the noise at one of the noise
+starts, μ of a state measured directly by an output y = c + k·x (:func:`direct_measurements`)
+at (y − c)/k, other states 0.
 """
 
 from __future__ import annotations
