@@ -159,13 +159,13 @@ def options(a) -> int:
     jax.config.update("jax_enable_compilation_cache", False)
     from vsidgen.data import load_record
     from vsidgen.estimator import FitOptions
-    from vsidgen.estimator.fit import _Problem
+    from vsidgen.estimator import Problem
     from vsidgen.model import load_model
 
     model = load_model(a.spec)
     records = [load_record(model, p) for p in a.data]
     opts = FitOptions()
-    P = _Problem(model, records, opts)
+    P = Problem(model, records, opts)
     s, recs = P.initial(opts, "unit")
     m, r = recs[0]
     L = P.padded[0]

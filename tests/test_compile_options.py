@@ -19,7 +19,7 @@ from test_estimator import _pend_problem
 
 from vsidgen.estimator import FitOptions
 from vsidgen.estimator import core
-from vsidgen.estimator.fit import _Problem
+from vsidgen.estimator import Problem
 
 
 def _point(P, seed=0):
@@ -40,9 +40,9 @@ def test_every_objective_jit_compiles_with_the_cpu_options(monkeypatch):
     model, rec = _pend_problem()
     monkeypatch.setattr(core, "CPU_COMPILER_OPTIONS", {"xla_no_such_option_for_vsidgen": True})
     with pytest.raises(Exception, match="xla_no_such_option_for_vsidgen"):
-        _Problem(model, [rec], FitOptions(bucket=False))  # the curvature probe's jit
+        Problem(model, [rec], FitOptions(bucket=False)).obj  # the curvature probe's jit
     monkeypatch.setattr(core, "curvature_vars", lambda *a, **k: None)  # no probe: general path
-    P = _Problem(model, [rec], FitOptions(bucket=False))
+    P = Problem(model, [rec], FitOptions(bucket=False))
     s, recs = _point(P)
     (m, r), = recs
     args = (jnp.asarray(m), jnp.asarray(r), jnp.asarray(s), P.data[0], P.cfg)
@@ -66,7 +66,7 @@ def test_cpu_options_equal_xla_defaults(monkeypatch):
     out = {}
     for label, opts in (("vsidgen", ours), ("xla", {})):
         monkeypatch.setattr(core, "CPU_COMPILER_OPTIONS", dict(opts))
-        P = _Problem(model, [rec], FitOptions(bucket=False))  # the objective cache keys on the options
+        P = Problem(model, [rec], FitOptions(bucket=False))  # the objective cache keys on the options
         s, recs = _point(P)
         b = P.blocks(s, recs)[0]
         fac = P.obj.factor(b, jnp.ones(recs[0][0].shape), 1e-3)
