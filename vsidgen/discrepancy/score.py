@@ -30,7 +30,8 @@ whose gain is still zero, e.g. the lag of an α̇ term with zero gain) carries n
 information at the null (Davies' problem): such parameters are held at their
 nesting values and not counted in the degrees of freedom. New noise parameters
 (a wind state's intensity at its vanishing start) are held likewise; a candidate
-with nothing testable left gets ``None`` (its locate score decides).
+with nothing testable left gets ``None`` and is ranked after every tested one, by its
+locate score (:class:`.search.Ranked`).
 
 
 Candidates that add states. The added states are embedded at the nesting point as in
@@ -117,7 +118,7 @@ def _names(c) -> set:
             | set((c.definitions or {}).keys()))
 
 
-def batches(candidates, *, max_states: int = 8) -> list[list]:
+def batches(candidates, *, max_states: int = 2) -> list[list]:
     """Group screenable candidates: all that add no state in one batch; those that add
     states in batches of at most ``max_states`` added states."""
     plain = [c for c in candidates if not c.states]
@@ -435,43 +436,81 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     return out
 
 
-def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
-           det_std: float, include_states: bool = True, progress=None) -> dict:
-    """Score-screen every screenable candidate: {key: ScoreResult} (see the module docstring).
-
-    ``include_states`` (default True): also screen candidates that add states (unsteady
-    aerodynamics, missing modes, speed dynamics, delays and lags as states, wind): their
-    batches (at most 8 added states each) need a compilation each, no smoothing run (see
-    "Candidates that add states" in the module docstring).
+def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: str, *,
+                 generated_dir, det_std: float) -> dict:
+    """Score statistics of one batch (a task of :func:`screen`, also on an engine worker).
 
     A small batch (≤ 8) that fails to build or evaluate is split into single candidates
-    once; a candidate that still fails gets ``statistic None`` and a note (its locate
-    score then decides).
+    once; a candidate that still fails gets ``statistic None`` and a note.
     """
     from ..errors import FitError, SpecError, VsidgenError
 
-    todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
-    out: dict = {}
     errs = (SpecError, FitError, VsidgenError, ValueError, ArithmeticError,
             np.linalg.LinAlgError, KeyError)
+    out: dict = {}
 
-    def run(group, tag):
+    def run(grp, t):
         try:
-            out.update(screen_batch(group, current, info, workdir / f"{tag}.yaml",
-                                    f"{name}_{tag}", generated_dir=generated_dir, det_std=det_std))
+            out.update(screen_batch(grp, current, info, workdir / f"{t}.yaml", f"{name}_{t}",
+                                    generated_dir=generated_dir, det_std=det_std))
             return True
         except errs as err:
-            if len(group) == 1 or len(group) > 8:
-                for c in group:
+            if len(grp) == 1 or len(grp) > 8:
+                for c in grp:
                     out[c.key] = ScoreResult(None, 0, None,
                                              note=f"failed: {str(err).splitlines()[0][:200]}")
                 return True
             return False
 
-    for i, group in enumerate(batches(todo)):
-        if progress is not None:
-            progress(f"    score screen: batch {i + 1} ({len(group)} candidates)")
-        if not run(group, f"b{i + 1}"):
-            for j, c in enumerate(group):
-                run([c], f"b{i + 1}_{j + 1}")
+    if not run(group, tag):
+        for j, c in enumerate(group):
+            run([c], f"{tag}_{j + 1}")
     return out
+
+
+def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
+           det_std: float, include_states: bool = True, progress=None, engine=None,
+           deadline: float | None = None) -> dict:
+    """Score-screen every screenable candidate: {key: ScoreResult} (see the module docstring).
+
+    ``include_states`` (default True): also screen candidates that add states (unsteady
+    aerodynamics, missing modes, speed dynamics, delays and lags as states, wind): their
+    batches (at most two added states each: the compilation of the block assembly grows
+    steeply with the number of states — a batch of seven candidates with eight added states
+    had not compiled after 10 min on the loaded 2-core machine) need a compilation each, no
+    smoothing run (see "Candidates that add states" in the module docstring).
+
+    ``engine`` (:class:`vsidgen.engine.Engine`, entered): the batches are its tasks, run in
+    parallel on its workers (``deadline``: :func:`time.monotonic` instant after which no
+    batch starts); without one they run here, one after another. A batch that fails
+    (:func:`screen_group`) or is not run leaves its candidates without a statistic (a note
+    says why): they are ranked after the tested ones.
+    """
+    todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
+    groups = batches(todo)
+    out: dict = {}
+    if progress is not None:
+        progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
+                 f"({sum(1 for c in todo if c.states)} add states)")
+    tasks = [(f"b{i + 1}", (group, current, info, workdir, f"b{i + 1}", name))
+             for i, group in enumerate(groups)]
+    if engine is None or engine.serial:
+        for key, args in tasks:
+            out.update(screen_group(*args, generated_dir=generated_dir, det_std=det_std))
+        return out
+    from ..engine import TaskStatus
+
+    outcomes = engine.run(_screen_task, [(k, a + (generated_dir, det_std)) for k, a in tasks],
+                          deadline=deadline)
+    for (key, args), oc in zip(tasks, outcomes):
+        if oc.status is TaskStatus.DONE:
+            out.update(oc.value)
+        else:
+            for c in args[0]:
+                out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
+    return out
+
+
+def _screen_task(group, current, info, workdir, tag, name, generated_dir, det_std):
+    return screen_group(group, current, info, workdir, tag, name, generated_dir=generated_dir,
+                        det_std=det_std)

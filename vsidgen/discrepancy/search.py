@@ -6,10 +6,14 @@ One round:
    evaluate the four signals; :func:`~.locate.locate` the mismatch;
 2. every registered effect proposes candidates for the model
    (:func:`~.base.propose`); each is scored against the locate evidence, and every
-   screenable candidate also gets a score (Lagrange-multiplier) statistic at the
-   current optimum (:mod:`.score`, no refit). The screening priority is the score
-   test's −log10 p where it applies, else the locate score; the ``max_candidates``
-   best with priority ≥ ``min_score`` are written as specs that ``extend`` the
+   screenable candidate — with or without added states — also gets a score
+   (Lagrange-multiplier) statistic at the current optimum (:mod:`.score`, no refit).
+   All tested candidates are ranked on one scale, the score test's p-value; those
+   without a statistic come after them, by locate score (:class:`Ranked`). The
+   locate statistics say *where* the mismatch is; the score test decides *what* is
+   refitted (:func:`choose_refits`: first the best candidate of every effect class ×
+   target that clears ``α/m``, then the rest in rank order, ``max_candidates`` in
+   all, priority ≥ ``min_score``). They are written as specs that ``extend`` the
    current spec (``DIR/candidates/r<round>_<i>_<key>.yaml``; the current parameter
    estimates become their initial values — warm start) and refitted;
 3. significance: the likelihood-ratio-type statistic
@@ -578,13 +582,14 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
 def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effect],
                       current: FitState | None, *, max_candidates: int, min_score: float,
                       screen: bool, alpha: float = 0.01, workdir: pathlib.Path | None = None,
-                      generated_dir=None, progress=None):
+                      generated_dir=None, progress=None, engine=None,
+                      deadline: float | None = None):
     """(selected [(priority, locate score, Candidate, ScoreResult|None)], n examined, table).
 
     Every candidate gets its locate score; with ``screen`` every screenable one also gets
     its score statistic at the current fit (:func:`.score.screen`, candidates that add
-    states included). The table ranks them by :meth:`Ranked.sort_key`; the refitted ones
-    are chosen by :func:`choose_refits`.
+    states included; its batches run on ``engine``'s workers when given). The table ranks
+    them by :meth:`Ranked.sort_key`; the refitted ones are chosen by :func:`choose_refits`.
     """
     from .refit import REFIT_DETERMINISTIC_STD
     from .score import screen as score_screen
@@ -596,7 +601,7 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
         scores = score_screen([c for _, c in every], current, info, workdir,
                               f"{safe_name(current.model.name)[:30]}_sc",
                               generated_dir=generated_dir, det_std=REFIT_DETERMINISTIC_STD,
-                              progress=progress)
+                              progress=progress, engine=engine, deadline=deadline)
     rows = sorted((Ranked(c, loc, scores.get(c.key)) for loc, c in every),
                   key=Ranked.sort_key)
     chosen = choose_refits(rows, max_candidates=max_candidates, min_score=min_score,
@@ -909,7 +914,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 ranked, n_examined, table = select_candidates(
                     info, evidence, catalogue, current, max_candidates=max_candidates,
                     min_score=min_score, screen=screen, alpha=alpha,
-                    workdir=out / "screen" / f"r{rnd}", generated_dir=gen, progress=progress)
+                    workdir=out / "screen" / f"r{rnd}", generated_dir=gen, progress=progress,
+                    engine=engine, deadline=deadline)
                 if not ranked:
                     rounds.append({"round": rnd, "base_spec": str(current.spec_path),
                                    "base_elbo": current.elbo, "trials": [],
@@ -1188,7 +1194,8 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.01,
                    help="family-wise significance level per round (default 0.01)")
     p.add_argument("--min-score", type=float, default=1.0,
-                   help="minimum locate score (-log10 p) to refit a candidate (default 1)")
+                   help="minimum priority to refit a candidate: -log10 p of its score test, "
+                        "or its locate score where it has no score statistic (default 1)")
     p.add_argument("--effects", nargs="+", default=None, metavar="ID",
                    help="restrict the catalogue to these effect ids")
     p.add_argument("--effects-module", action="append", default=None, metavar="PATH.py",
