@@ -19,7 +19,8 @@ findings.json (keys in this order)::
      "final_spec": "path", "base": {"elbo", "metrics"}, "final": {"elbo", "metrics"},
      "locate": {evidence of the base fit}, "rounds": [...],
      "unfinished_round": null | {"round", "base_spec", "base_elbo", "n_candidates",
-                                 "refitted": [trial...], "pending": [key...]},
+                                 "refitted": [trial...], "pending": [key...],
+                                 "screen": [the round's ranking, as rounds[].screen]},
      "stop": {"reason": "completed" | "time_limit" | "interrupted" | "running",
               "time_limit_s"},
      "report": "diagnose.html", "wall_time_s": ...}

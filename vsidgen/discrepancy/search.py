@@ -967,7 +967,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                               "base_elbo": current.elbo, "n_candidates": n_examined,
-                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked]}
+                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
+                              "screen": table}
                 checkpoint(StopReason.RUNNING, report=False)
                 _say(progress, f"round {rnd}: refitting {len(tasks)} candidates "
                                f"({engine.describe()}): " + ", ".join(k for k, _ in tasks))
