@@ -964,7 +964,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                   f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter, groups.get(c.key)))
                          for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
-                by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
+                # a trial carries the candidate's locate score (findings: locate_score) and its
+                # score test (score_test); the priority that ranked it is in the round's screen
+                by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                               "base_elbo": current.elbo, "n_candidates": n_examined,
                               "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
@@ -1008,7 +1010,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     i, score, c, sr = by_key[o.key]
                     trials.append(_trial_of(o, c, score, sr, paths[i], current))
                 for i in profiled:
-                    score, _, c, sr = ranked[i]
+                    _, score, c, sr = ranked[i]
                     _say(progress, f"round {rnd}: {c.key}: profiling the delay over a grid")
                     t = delay_trial(c, score, current, paths[i],
                                      f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}",
