@@ -208,7 +208,7 @@ def _reduced_system(obj, blks, idx, nglob, lam=1e-10):
     return S, rhs
 
 
-def nesting_reach(model, base_states, new_states, new_params, X, U, theta):
+def nesting_reach(model, new_states, new_params, X, U, theta):
     """(informative new parameters, added states that reach the data) at the nesting point.
 
     Structural zeros of the model's exact Jacobians along the embedded path ``X`` (inputs
@@ -370,7 +370,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     if new_states:
         ni = [m.state_names.index(z) for z in new_states]
         informative, reach = nesting_reach(
-            m, current.model.state_names, new_states, sorted(new_par & set(gpos)),
+            m, new_states, sorted(new_par & set(gpos)),
             np.concatenate([mu for mu, _ in recs]),
             np.concatenate([np.asarray(r.u, float) for r in records]), theta)
         Gd = np.abs(np.diag(np.asarray(nm.G(jnp.asarray(s[nt:]), cfg["noise"]), float)))
