@@ -47,7 +47,7 @@ def make_hfb1000(path: pathlib.Path, *, n: int = 1000, seed: int = 7) -> pathlib
 
     from vsidgen.data import load_record
     from vsidgen.model import load_model
-    from vsidgen.simulate import simulate_to_csv
+    from vsidgen.data.simulate import simulate_to_csv
 
     model = load_model(ROOT / "specs" / "hfb320.yaml")
     real = load_record(model, FLIGHT / "hfb320_1_10.csv")

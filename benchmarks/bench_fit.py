@@ -24,7 +24,7 @@ is cleared before each fit and the persistent compilation cache is not used.
 
 Cases: HFB-320 and ATTAS short period (real flight data from ../shared/data/flight;
 skipped with a message when absent) and synthetic ATTAS short-period records of N samples
-(vsidgen.simulate.simulate, specs/attas_sp.yaml, dt = 0.04 s, repeated 3-2-1-1 + doublet
+(vsidgen.data.simulate.simulate, specs/attas_sp.yaml, dt = 0.04 s, repeated 3-2-1-1 + doublet
 manoeuvres, process and measurement noise).
 
     python benchmarks/bench_fit.py                 # hfb320, attas_sp, synthetic 1e3..1e6
@@ -60,7 +60,7 @@ def synthetic_record(model, n: int, seed: int = 1):
     import numpy as np
 
     from vsidgen.data import Record
-    from vsidgen.simulate import simulate
+    from vsidgen.data.simulate import simulate
 
     dt = 0.04
     t = np.arange(n) * dt

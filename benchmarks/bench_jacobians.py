@@ -67,7 +67,7 @@ def kernels(points: int, repeat: int) -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from vsidgen.dynamics import transition
+    from vsidgen.model.dynamics import transition
     from vsidgen.model import load_model
 
     print(f"## kernels: jit(vmap) over {points} samples; compile s / run ms (median of {repeat})")

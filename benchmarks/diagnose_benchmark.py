@@ -116,7 +116,7 @@ def write_base(name: str, work: pathlib.Path) -> pathlib.Path:
 
 
 def maneuver(t, seed):
-    from vsidgen.simulate import doublet, three_two_one_one
+    from vsidgen.data.simulate import doublet, three_two_one_one
     return (three_two_one_one(t, amplitude=0.03, start=2.0, unit=0.4)
             + doublet(t, amplitude=0.02, start=12.0, width=1.0 + 0.1 * seed))
 
@@ -142,7 +142,7 @@ def hfb_trim(model, theta: dict):
 
 
 def hfb_maneuver(t, seed, de0):
-    from vsidgen.simulate import doublet, three_two_one_one
+    from vsidgen.data.simulate import doublet, three_two_one_one
     return de0 + (three_two_one_one(t, amplitude=0.02, start=2.0, unit=0.6)
                   + doublet(t, amplitude=0.015, start=14.0, width=1.2 + 0.1 * seed))
 
@@ -151,7 +151,7 @@ def make_case(case: Case, work: pathlib.Path, *, seeds=(1,), duration: float | N
               dt: float | None = None, validate_seed: int | None = None):
     """Write base spec, truth spec and data; returns (base_spec, data, validate, truth_theta)."""
     from vsidgen.model import load_model
-    from vsidgen.simulate import simulate_to_csv
+    from vsidgen.data.simulate import simulate_to_csv
 
     work.mkdir(parents=True, exist_ok=True)
     hfb = case.base == "hfb320"

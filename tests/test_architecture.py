@@ -6,7 +6,9 @@
   or read as an attribute of, another vsidgen module;
 * no import against the pipeline: a module imports only modules of its own stage or of an
   earlier one (``STAGES`` below, the order of docs/architecture.md); every module has a stage;
-* ``jax_enable_x64`` is set only in ``vsidgen/precision.py``.
+* ``jax_enable_x64`` is set only in ``vsidgen/precision.py``;
+* the layout shows the pipeline: only the foundation modules and ``cli`` are flat, every other
+  stage lives in one subpackage, and a subpackage's stages follow each other.
 
 Each rule is also checked against a deliberately bad module, so that none of them passes
 vacuously.
@@ -28,15 +30,16 @@ PACKAGE = ROOT / "vsidgen"
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("vsidgen", "errors", "precision", "limits", "atomic", "suggest", "metadata",
                     "compilecache", "progress", "engine")),
-    ("spec", ("expr", "units", "dataunits", "spec", "typedspec", "symbolic", "overrides")),
-    ("codegen", ("codegen",)),
-    ("model", ("model", "dynamics")),
-    ("data", ("formats", "data", "datacheck", "simulate")),
+    ("spec", ("spec.expr", "spec.units", "spec.dataunits", "spec.load", "spec.typed",
+              "spec.symbolic", "spec.overrides", "spec")),
+    ("codegen", ("codegen.jaxmodule", "codegen")),
+    ("model", ("model.runtime", "model.dynamics", "model")),
+    ("data", ("data.formats", "data.records", "data.check", "data.simulate", "data")),
     ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.fit",
                    "estimator")),
-    ("evaluation", ("evaluation",)),
-    ("results", ("resultsdir", "report")),
-    ("fit job", ("pipeline", "fleet")),
+    ("evaluation", ("evaluation.signals", "evaluation")),
+    ("report", ("report.resultsdir", "report.html", "report")),
+    ("fit job", ("fitjob.run", "fitjob.fleet", "fitjob")),
     ("diagnose: leaves", ("discrepancy.base", "discrepancy.specwrite")),
     ("diagnose: locate", ("discrepancy.locate",)),
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
@@ -57,6 +60,9 @@ def _full(name: str) -> str:
 
 
 STAGE_OF = {_full(m): i for i, (_, mods) in enumerate(STAGES) for m in mods}
+
+#: the flat modules of the package besides the foundation (and ``vsidgen/__init__.py``)
+FLAT = ("cli",)
 
 
 def _module_name(path: pathlib.Path, package: pathlib.Path) -> str:
@@ -83,7 +89,11 @@ def _private(name: str) -> bool:
 
 def analyse(package: pathlib.Path, top: str = "vsidgen", extra: dict | None = None):
     """Import edges {module: {module: first line}} and private-name uses [(module, line, text)]
-    of the package at ``package`` (``extra``: {module name: source} added to it)."""
+    of the package at ``package`` (``extra``: {module name: source} added to it).
+
+    ``from P import m`` with ``m`` a submodule of ``P`` is an edge to ``P.m`` alone: the
+    package ``P`` itself runs for every import of one of its submodules, so, as for
+    ``from P.m import x``, it is no edge of its own."""
     sources = {m: t for m, (_, t) in _sources(package).items()}
     sources.update(extra or {})
     modules = set(sources)
@@ -108,7 +118,8 @@ def analyse(package: pathlib.Path, top: str = "vsidgen", extra: dict | None = No
                     target = node.module or ""
                 if target.split(".")[0] != top:
                     continue
-                add(target, node.lineno)
+                if not all(f"{target}.{alias.name}" in modules for alias in node.names):
+                    add(target, node.lineno)
                 for alias in node.names:
                     sub = f"{target}.{alias.name}"
                     if sub in modules:
@@ -171,6 +182,31 @@ def against_pipeline(edges: dict[str, dict[str, int]]) -> list[str]:
             if m in STAGE_OF and t in STAGE_OF and STAGE_OF[t] > STAGE_OF[m]]
 
 
+def layout_problems(modules, stages=STAGES, flat=FLAT) -> list[str]:
+    """Where the package layout does not read as the pipeline: a flat top-level module that is
+    neither a foundation module nor in ``flat``; a stage after the foundation whose modules
+    are not all in one top-level subpackage (``cli`` excepted); a subpackage whose stages are
+    not consecutive."""
+    allowed = {_full(m) for m in stages[0][1]} | {_full(m) for m in flat}
+    packages = {m.rpartition(".")[0] for m in modules}
+    problems = [f"{m} is a flat module outside the foundation" for m in sorted(modules)
+                if m.count(".") == 1 and m not in allowed and m not in packages]
+    seen: list[str] = []
+    for name, mods in stages[1:]:
+        if all(m in flat for m in mods):
+            continue
+        tops = {m.split(".")[0] for m in mods}
+        if len(tops) != 1:
+            problems.append(f"stage {name!r} spans the subpackages {sorted(tops)}")
+            continue
+        top = tops.pop()
+        if top in seen and seen[-1] != top:
+            problems.append(f"subpackage {top!r} holds stage {name!r} after another subpackage's")
+        if not seen or seen[-1] != top:
+            seen.append(top)
+    return problems
+
+
 def _sets_x64(text: str) -> bool:
     """Whether the source switches x64 on: a call whose first argument is the option name
     (``jax.config.update("jax_enable_x64", ...)``, ``os.environ.setdefault("JAX_ENABLE_X64",
@@ -221,6 +257,10 @@ def test_imports_follow_the_pipeline():
     assert against_pipeline(edges) == []
 
 
+def test_layout_reads_as_the_pipeline():
+    assert layout_problems(set(_sources(PACKAGE))) == []
+
+
 def test_x64_switched_on_only_in_precision():
     assert x64_outside_precision(PACKAGE) == []
     assert _sets_x64((PACKAGE / "precision.py").read_text(encoding="utf-8"))
@@ -237,33 +277,45 @@ def test_architecture_doc_lists_every_module():
 BAD = {
     # dynamics (model stage) reaching into the estimator (later) through a private name,
     # inside a function (a function-local import is still a dependency)
-    "vsidgen.dynamics": "def f():\n    from .estimator.fit import _Problem\n    return _Problem\n",
+    "vsidgen.model.dynamics": "def f():\n    from ..estimator.fit import _Problem\n    return _Problem\n",
     # and the estimator importing dynamics: with the line above, a cycle
-    "vsidgen.estimator.linalg": "from .. import dynamics\n\ndef g():\n    return dynamics._check\n",
-    "vsidgen.simulate": "import jax\njax.config.update('jax_enable_x64', True)\n",
+    "vsidgen.estimator.linalg": "from ..model import dynamics\n\ndef g():\n    return dynamics._check\n",
+    "vsidgen.data.simulate": "import jax\njax.config.update('jax_enable_x64', True)\n",
 }
 
 
 def test_checks_fail_on_bad_imports():
     edges, private = analyse(PACKAGE, extra=BAD)
     comps = cycles(edges)
-    assert any({"vsidgen.dynamics", "vsidgen.estimator.fit"} <= set(c) for c in comps), comps
-    assert ("vsidgen.dynamics", 2, "from vsidgen.estimator.fit import _Problem") in private
+    assert any({"vsidgen.model.dynamics", "vsidgen.estimator.fit"} <= set(c) for c in comps), comps
+    assert ("vsidgen.model.dynamics", 2, "from vsidgen.estimator.fit import _Problem") in private
     assert ("vsidgen.estimator.linalg", 4, "dynamics._check") in private
     bad = against_pipeline(edges)
-    assert any(b.startswith("vsidgen.dynamics (stage 'model') imports vsidgen.estimator.fit")
+    assert any(b.startswith("vsidgen.model.dynamics (stage 'model') imports vsidgen.estimator.fit")
                for b in bad), bad
-    assert x64_outside_precision(PACKAGE, extra={"vsidgen/simulate.py": BAD["vsidgen.simulate"]}
-                                 ) == ["vsidgen/simulate.py"]
     assert x64_outside_precision(PACKAGE, extra={
-        "vsidgen/formats.py": "import os\nos.environ['JAX_ENABLE_X64'] = '1'\n"}) == ["vsidgen/formats.py"]
+        "vsidgen/data/simulate.py": BAD["vsidgen.data.simulate"]}) == ["vsidgen/data/simulate.py"]
+    assert x64_outside_precision(PACKAGE, extra={
+        "vsidgen/data/formats.py": "import os\nos.environ['JAX_ENABLE_X64'] = '1'\n"}
+        ) == ["vsidgen/data/formats.py"]
+
+
+def test_layout_check_fails_on_a_flat_or_split_stage():
+    modules = set(_sources(PACKAGE))
+    assert layout_problems(modules | {"vsidgen.simulate"}) == [
+        "vsidgen.simulate is a flat module outside the foundation"]
+    split = tuple((n, ("data.formats", "records") if n == "data" else mods) for n, mods in STAGES)
+    assert layout_problems(modules, split) == ["stage 'data' spans the subpackages ['data', 'records']"]
+    back = STAGES[:3] + (("late spec", ("spec.late",)),) + STAGES[3:]
+    assert layout_problems(modules, back) == [
+        "subpackage 'spec' holds stage 'late spec' after another subpackage's"]
 
 
 #: one bad module source per rule (it replaces the module's own source in the analysis)
 ONE_RULE = {
     "cycle": {"vsidgen.errors": "from . import suggest\n"},          # suggest imports errors
-    "private": {"vsidgen.cli": "from .data import _read_header\n"},
-    "direction": {"vsidgen.codegen": "from . import report\n"},      # report does not import codegen
+    "private": {"vsidgen.cli": "from .data.records import _read_header\n"},
+    "direction": {"vsidgen.codegen.jaxmodule": "from ..report import html\n"},  # html does not import codegen
 }
 
 

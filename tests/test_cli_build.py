@@ -8,8 +8,8 @@ import pytest
 
 from vsidgen.cli import main
 from vsidgen.errors import SpecError
-from vsidgen.datacheck import check_first_sample
-from vsidgen.symbolic import compile_spec
+from vsidgen.data.check import check_first_sample
+from vsidgen.spec import compile_spec
 
 SPECS = pathlib.Path(__file__).parent / "specs"
 

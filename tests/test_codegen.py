@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import sympy
 
-from vsidgen.codegen import build, embedded_hash, generate
+from vsidgen.codegen.jaxmodule import build, embedded_hash, generate
 from vsidgen.model import load_model
-from vsidgen.symbolic import compile_spec
+from vsidgen.spec import compile_spec
 
 jax.config.update("jax_enable_x64", True)
 

@@ -22,9 +22,9 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from vsidgen.codegen import comment_text, docstring_text, generate, py_literal
+from vsidgen.codegen.jaxmodule import comment_text, docstring_text, generate, py_literal
 from vsidgen.errors import SpecError
-from vsidgen.symbolic import GENERATED_MODULE_NAMES, compile_spec, valid_name
+from vsidgen.spec.symbolic import GENERATED_MODULE_NAMES, compile_spec, valid_name
 
 SPEC = """\
 name: esc

@@ -151,7 +151,7 @@ def _write(c, base, tmp_path, info):
 
 @pytest.mark.parametrize("spec", [ATTAS, HFB], ids=["attas_sp", "hfb320"])
 def test_every_effect_instantiates_a_compilable_spec(spec, tmp_path):
-    from vsidgen.symbolic import compile_spec
+    from vsidgen.spec import compile_spec
 
     info = model_info(spec, dt=0.04)
     info = dataclasses.replace(info, breaks={"alpha": (("hinge", 0.05), ("hingelo", -0.01)),
@@ -204,7 +204,7 @@ def test_candidate_nests_the_base_model():
         subs = {sympy.Symbol(p.name, real=True): p.initial for p in c.parameters}
         for sect, eqs in c.add_terms.items():
             for _, text in eqs.items():
-                from vsidgen.expr import parse_expression
+                from vsidgen.spec.expr import parse_expression
                 ns = {n: sympy.Symbol(n, real=True) for n in info.names | {p.name for p in c.parameters}}
                 e = parse_expression(text, ns)
                 assert sympy.simplify(e.xreplace(subs)).is_zero, c.key

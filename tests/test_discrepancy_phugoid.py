@@ -22,7 +22,7 @@ import sympy
 from vsidgen.discrepancy.base import model_info, propose
 from vsidgen.discrepancy.catalogue import SpeedDynamics, _arm_terms
 from vsidgen.discrepancy.flightconst import flight_conditions, flight_conditions_of
-from vsidgen.expr import parse_expression
+from vsidgen.spec.expr import parse_expression
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 ATTAS = ROOT / "specs" / "attas_sp.yaml"
@@ -229,7 +229,7 @@ def test_alpha_vane_offset_recovered_in_metres_from_exact_geometry(tmp_path):
 
 def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
     """Its equations, with Δγ = θ − α, are the textbook linear longitudinal model."""
-    from vsidgen.symbolic import compile_spec
+    from vsidgen.spec import compile_spec
 
     info = model_info(TOTTER, dt=0.01)
     (c,) = SpeedDynamics().applies_to(info)

@@ -22,7 +22,7 @@ def _candidate(spec, key):
 
 
 def _observation(spec, cand, output, tmp_path):
-    from vsidgen.symbolic import compile_spec
+    from vsidgen.spec import compile_spec
 
     p = tmp_path / "cand.yaml"
     p.write_text(cand.spec_yaml(spec, name="cand_pos", candidate_path=p))

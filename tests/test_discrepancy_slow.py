@@ -104,7 +104,7 @@ def test_score_screen_is_exact_per_batch_and_quiet_on_clean_data(tmp_path):
     from vsidgen.discrepancy.score import screen, screen_batch
     from vsidgen.discrepancy.search import fit_spec, model_info_of
     from vsidgen.model import load_model
-    from vsidgen.simulate import doublet, simulate_to_csv, three_two_one_one
+    from vsidgen.data.simulate import doublet, simulate_to_csv, three_two_one_one
 
     m = load_model(ROOT / 'specs' / 'attas_sp.yaml', generated_dir=tmp_path / "gen")
     t = np.arange(0, 12.0, 0.04)

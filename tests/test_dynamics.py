@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from vsidgen.dynamics import transition, transition_fn
+from vsidgen.model.dynamics import transition, transition_fn
 from vsidgen.errors import VsidgenError
 from vsidgen.metadata import Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model

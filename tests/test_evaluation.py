@@ -12,7 +12,7 @@ from vsidgen.data import Record
 from vsidgen.evaluation import evaluate, fit_metrics
 from vsidgen.metadata import Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
-from vsidgen.simulate import simulate, three_two_one_one
+from vsidgen.data.simulate import simulate, three_two_one_one
 
 A = np.array([[-0.8, 1.0], [-5.0, -2.0]])
 B = np.array([[0.0], [-8.0]])

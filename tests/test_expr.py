@@ -9,9 +9,9 @@ import pytest
 import sympy
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from vsidgen import expr as expr_module
+from vsidgen.spec import expr as expr_module
 from vsidgen.errors import SpecError
-from vsidgen.expr import Interp, InterpSlope, parse_expression, parse_expression_free
+from vsidgen.spec.expr import Interp, InterpSlope, parse_expression, parse_expression_free
 
 NS = {n: sympy.Symbol(n, real=True) for n in ("alpha", "V", "q", "de", "y", "lambda")}
 a, V, q = NS["alpha"], NS["V"], NS["q"]
@@ -127,7 +127,7 @@ def _boom(*args, **kwargs):  # pragma: no cover - must never run
 
 @contextlib.contextmanager
 def _guarded():
-    """During parsing: os.system, eval/exec in vsidgen.expr and imports of os/subprocess fail."""
+    """During parsing: os.system, eval/exec in vsidgen.spec.expr and imports of os/subprocess fail."""
     real_import = builtins.__import__
 
     def guarded_import(name, *args, **kwargs):

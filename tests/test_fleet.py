@@ -16,7 +16,7 @@ RECS = [ROOT / "data" / "attas_sp_synthetic.csv", ROOT / "data" / "attas_sp_synt
 def test_fleet_on_two_workers_matches_single_fits_and_isolates_a_bad_record(tmp_path, capsys,
                                                                             monkeypatch):
     from vsidgen.cli import main
-    from vsidgen.pipeline import run_fit
+    from vsidgen.fitjob import run_fit
 
     monkeypatch.setenv("VSIDGEN_CACHE_DIR", "")
     bad = tmp_path / "bad.csv"

@@ -11,7 +11,7 @@ import pytest
 from vsidgen.cli import main
 from vsidgen.data import load_record
 from vsidgen.errors import DataError, SpecError
-from vsidgen.symbolic import compile_spec
+from vsidgen.spec import compile_spec
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 SPEC = ROOT / "specs" / "attas_sp.yaml"
@@ -193,7 +193,7 @@ def test_degree_columns_declared_in_degrees_give_the_radian_estimates(tmp_path, 
 
 
 def test_unit_conversions_against_textbook_factors(tmp_path):
-    from vsidgen.dataunits import conversion
+    from vsidgen.spec.dataunits import conversion
 
     assert conversion("deg", "rad") == pytest.approx((DEG, 0.0), rel=1e-15)
     assert conversion("ft", "m")[0] == pytest.approx(0.3048, rel=1e-15)

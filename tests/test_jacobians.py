@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vsidgen.dynamics import transition
+from vsidgen.model.dynamics import transition
 from vsidgen.model import load_model
 
 jax.config.update("jax_enable_x64", True)

@@ -10,9 +10,9 @@ import pytest
 
 from vsidgen.cli import main
 from vsidgen.errors import VsidgenError
-from vsidgen.overrides import Method, apply_overrides, parse_overrides
+from vsidgen.spec.overrides import Method, apply_overrides, parse_overrides
 from vsidgen.suggest import closest, suggest
-from vsidgen.symbolic import compile_spec
+from vsidgen.spec import compile_spec
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 SPEC = ROOT / "specs" / "attas_sp.yaml"
@@ -151,7 +151,7 @@ def test_show_prints_parameter_descriptions(capsys):
 
 
 def test_diagnose_override_spec_equals_the_overrides(tmp_path):
-    from vsidgen.overrides import write_override_spec
+    from vsidgen.spec.overrides import write_override_spec
 
     ov = parse_overrides(fix=["MQ=-2.5"], init=["ZAL=-0.5"], method="output-error")
     path = write_override_spec(SPEC, ov, tmp_path)

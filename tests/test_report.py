@@ -13,7 +13,7 @@ import pytest
 
 from report_fixture import OUTPUTS, STATES, write_results_dir
 from vsidgen.errors import VsidgenError
-from vsidgen.report import _autocorrelation, _ljung_box, _readable_tex, write_report
+from vsidgen.report.html import _autocorrelation, _ljung_box, _readable_tex, write_report
 
 REFERENCE = {
     "description": "test reference",

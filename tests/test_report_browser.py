@@ -66,8 +66,8 @@ def test_console_capture_detects_errors(tmp_path):
         "content=\"default-src 'none'; img-src data:; script-src 'unsafe-inline'\"></head>"
         "<body data-figures-expected=\"1\"><img data-figure=\"x\" src=\"http://example.invalid/a.png\">"
         "<script>console.error('deliberate'); throw new Error('boom');</script>"
-        "<script>" + (pathlib.Path(__file__).resolve().parent.parent / "vsidgen" / "templates" /
-                      "report_check.js.j2").read_text() + "</script></body></html>")
+        "<script>" + (pathlib.Path(__file__).resolve().parent.parent / "vsidgen" / "report" /
+                      "templates" / "report_check.js.j2").read_text() + "</script></body></html>")
     attrs, console = _load(exe, tmp_path, bad, "bad")
     text = "\n".join(console)
     assert "deliberate" in text and "boom" in text and "Content Security Policy" in text

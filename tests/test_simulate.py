@@ -14,7 +14,7 @@ from vsidgen.data import load_record
 from vsidgen.errors import VsidgenError
 from vsidgen.metadata import ChannelMap, DataSpec, Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
-from vsidgen.simulate import (MANEUVERS, doublet, multisine, parse_input_spec, simulate,
+from vsidgen.data.simulate import (MANEUVERS, doublet, multisine, parse_input_spec, simulate,
                               simulate_to_csv, step, three_two_one_one)
 
 

@@ -5,7 +5,7 @@ import textwrap
 import pytest
 
 from vsidgen.errors import SpecError
-from vsidgen.symbolic import compile_spec
+from vsidgen.spec import compile_spec
 
 GOOD = """\
 name: mini

@@ -15,7 +15,7 @@ import pytest
 from vsidgen.data import delay_input, load_record
 from vsidgen.discrepancy.delay import delay_grid, delay_p_value, hold_lag, parabola_vertex
 from vsidgen.errors import SpecError
-from vsidgen.symbolic import compile_spec
+from vsidgen.spec import compile_spec
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

@@ -1,5 +1,5 @@
-"""The typed, located spec (vsidgen.typedspec): read once, immutable, every value located;
-the compiler (vsidgen.symbolic) works on it alone."""
+"""The typed, located spec (vsidgen.spec.typed): read once, immutable, every value located;
+the compiler (vsidgen.spec.symbolic) works on it alone."""
 
 import ast
 import dataclasses
@@ -7,10 +7,10 @@ import pathlib
 
 import pytest
 
-from vsidgen import spec as spec_module
+from vsidgen.spec import load as spec_module
 from vsidgen.errors import SpecError
-from vsidgen.symbolic import GENERATOR_VERSION, compile_spec, compile_typed
-from vsidgen.typedspec import Located, read_spec
+from vsidgen.spec.symbolic import GENERATOR_VERSION, compile_spec, compile_typed
+from vsidgen.spec.typed import Located, read_spec
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -64,10 +64,10 @@ def test_compile_spec_is_compile_of_the_typed_spec_read_once(spec, monkeypatch):
 
 def test_compiler_reads_no_yaml():
     """symbolic compiles the typed spec: it imports neither the YAML reader nor yaml."""
-    tree = ast.parse((ROOT / "vsidgen" / "symbolic.py").read_text())
+    tree = ast.parse((ROOT / "vsidgen" / "spec" / "symbolic.py").read_text())
     imported = {(n.module or "") for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
     imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-    assert "spec" not in imported and "yaml" not in imported and "vsidgen.spec" not in imported
+    assert "load" not in imported and "yaml" not in imported and "vsidgen.spec.load" not in imported
 
 
 def test_compile_error_points_into_the_expression_text(tmp_path):

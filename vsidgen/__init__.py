@@ -1,6 +1,6 @@
 """vsidgen: aircraft system identification from YAML model specs.
 
-Pipeline (one module each, data flowing one way)::
+Pipeline (one subpackage per stage, data flowing one way; docs/architecture.md)::
 
     compile_spec(path) -> SymbolicModel          # spec -> validated sympy model
     build(spec_paths) -> [BuildResult]           # generated/<name>.py (JAX, symbolic Jacobians)
@@ -22,14 +22,14 @@ __version__ = "0.2.0"
 from .errors import DataError, SpecError, SpecWarning, VsidgenError  # noqa: E402
 
 _LAZY = {
-    "compile_spec": "symbolic", "SymbolicModel": "symbolic",
+    "compile_spec": "spec", "SymbolicModel": "spec",
     "build": "codegen",
     "Model": "model", "load_model": "model",
     "Record": "data", "load_record": "data",
     "fit": "estimator", "smooth": "estimator", "FitOptions": "estimator", "FitResult": "estimator",
     "evaluate": "evaluation", "Signals": "evaluation",
-    "simulate": "simulate",
-    "run_fit": "pipeline",
+    "simulate": "data.simulate",
+    "run_fit": "fitjob",
     "write_report": "report",
     "run_diagnose": "discrepancy",
 }

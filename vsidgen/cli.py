@@ -17,7 +17,7 @@ import sys
 
 from .compilecache import enable_compilation_cache
 from .errors import VsidgenError
-from .overrides import add_override_arguments, overrides_of, read_estimates
+from .spec.overrides import add_override_arguments, overrides_of, read_estimates
 
 
 def _print_warnings(warnings) -> None:
@@ -43,7 +43,7 @@ def _add_build(subparsers) -> None:
 def _cmd_build(args) -> int:
     from .codegen import build_model, display_path
     from .model import default_generated_dir
-    from .symbolic import compile_spec
+    from .spec import compile_spec
 
     for spec in args.specs:
         symbolic = compile_spec(spec)
@@ -74,8 +74,8 @@ def _add_check(subparsers) -> None:
 
 
 def _cmd_check(args) -> int:
-    from .datacheck import check_record
-    from .symbolic import compile_spec
+    from .data.check import check_record
+    from .spec import compile_spec
 
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
@@ -110,7 +110,7 @@ def _cmd_show(args) -> int:
     import sympy
 
     from .errors import printable
-    from .symbolic import compile_spec
+    from .spec import compile_spec
 
     m = compile_spec(args.spec)
     if args.latex:
@@ -239,13 +239,13 @@ def _cmd_simulate(args) -> int:
 
     rec = None
     if args.inputs_from:
-        from .symbolic import compile_spec
+        from .spec import compile_spec
 
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
     enable_compilation_cache()
     from .model import load_model
-    from .simulate import parse_input_spec, simulate_to_csv
+    from .data.simulate import parse_input_spec, simulate_to_csv
 
     model = load_model(args.spec)
     theta = {}
@@ -337,7 +337,7 @@ def _add_fit(sub):
 
 
 def _cmd_fit(args) -> int:
-    from .pipeline import run_fit
+    from .fitjob import run_fit
 
     if args.max_iter < 1:
         raise VsidgenError(f"--max-iter must be >= 1, got {args.max_iter}")
@@ -471,7 +471,7 @@ def _add_diagnose(sub):
 
 
 def _add_fleet(sub):
-    from .fleet import add_fleet_parser
+    from .fitjob import add_fleet_parser
 
     add_fleet_parser(sub)
 

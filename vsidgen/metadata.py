@@ -1,7 +1,7 @@
 """Metadata of a model kept apart from values (dynamax habit).
 
 These records describe names, units, bounds, fixed flags, noise structure and
-the data mapping. They are produced by :mod:`vsidgen.symbolic` from a spec and
+the data mapping. They are produced by :mod:`vsidgen.spec.symbolic` from a spec and
 consumed by the runtime :class:`vsidgen.model.Model`, the data loader and the
 estimator. Numeric values being estimated live in the estimator, not here.
 """
@@ -112,7 +112,7 @@ class ChannelMap:
     conversion and scale/offset are applied to the expression's value).
     ``unit`` is the unit the data map declares for the column (None: the
     column is taken to be in the spec's unit) and ``(a, b) = unit_conversion``
-    converts it to the spec's unit (:mod:`vsidgen.dataunits`).
+    converts it to the spec's unit (:mod:`vsidgen.spec.dataunits`).
     """
 
     name: str

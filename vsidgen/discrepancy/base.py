@@ -46,7 +46,7 @@ import yaml
 
 from ..errors import VsidgenError
 from ..metadata import VariableNames
-from ..symbolic import compile_spec
+from ..spec import compile_spec
 
 ENTRY_POINT_GROUP = "vsidgen.effects"
 
@@ -239,7 +239,7 @@ def spec_text(expr) -> str | None:
 def model_info(spec_path, *, dt: float | None = None) -> ModelInfo:
     """Summarise the spec at ``spec_path`` (``extends`` resolved) for the catalogue.
 
-    Compiles it with :func:`vsidgen.symbolic.compile_spec`; raises
+    Compiles it with :func:`vsidgen.spec.symbolic.compile_spec`; raises
     :class:`~vsidgen.errors.SpecError` for a bad spec.
     """
     spec_path = pathlib.Path(spec_path)

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 
 from ..atomic import write_text_atomic
 from ..report import new_figure, png_data_uri
-from ..resultsdir import dumps, finite_or_none as _f
+from ..report import dumps, finite_or_none as _f
 
 
 def metrics_summary(st) -> dict:

@@ -2,7 +2,7 @@
 
 The estimator integrates the model over each sample with a chosen method (Euler or RK4),
 a number of sub-steps and an input hold between samples (zero-order: inputs held; first
-order: inputs interpolated linearly; :mod:`vsidgen.dynamics`). An aircraft integrates in
+order: inputs interpolated linearly; :mod:`vsidgen.model.dynamics`). An aircraft integrates in
 continuous time with inputs that move between samples, so a coarse setting leaves a
 mismatch of its own: Euler with held inputs lags the continuous response by about half a
 sample, which the physics catalogue would otherwise name a time skew, an α̇ term or an

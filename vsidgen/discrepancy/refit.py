@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ..resultsdir import finite_or_none as _f
+from ..report import finite_or_none as _f
 
 #: process-noise std (state unit/√s) of the states the candidates add without process
 #: noise (lags, delays, modes). Small against any physical signal (over a 0.15 s lag it
@@ -197,7 +197,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     import jax
     import jax.numpy as jnp
 
-    from ..dynamics import transition
+    from ..model.dynamics import transition
 
     names0 = list(base_model.state_names)
     names1 = list(model1.state_names)

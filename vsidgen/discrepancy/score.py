@@ -78,7 +78,7 @@ import pathlib
 import numpy as np
 from scipy import stats
 
-from ..resultsdir import finite_or_none
+from ..report import finite_or_none
 
 
 @dataclasses.dataclass(frozen=True)
@@ -309,8 +309,8 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
     import jax.numpy as jnp
 
-    from ..dynamics import settings as transition_settings
-    from ..dynamics import transition
+    from ..model.dynamics import settings as transition_settings
+    from ..model.dynamics import transition
     from ..estimator.core import NoiseMap, ThetaMap, get_objective, make_cfg
     from ..estimator.core import record_data
     from ..model import load_model

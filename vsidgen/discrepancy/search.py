@@ -60,7 +60,7 @@ from ..atomic import plan_output_dir, print_recovered, results_in_place
 from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import WarmStart
 from ..limits import check_input_file
-from ..resultsdir import finite_or_none as _f
+from ..report import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
                    load_effects_module, propose, registered_effects)
 from .flightconst import flight_conditions_of
@@ -747,7 +747,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     ``out`` with a manifest (:func:`vsidgen.atomic.results_in_place`): ``out`` is
     checked before any computation, and a non-empty directory that is not a
     vsidgen results directory needs ``overwrite`` (its other files are kept).
-    ``overrides`` (:class:`vsidgen.overrides.Overrides`, from ``--fix`` etc.):
+    ``overrides`` (:class:`vsidgen.spec.overrides.Overrides`, from ``--fix`` etc.):
     the fits use ``out/overrides.yaml``, a spec that extends ``spec`` with them.
 
     Nothing found is lost: ``findings.json`` is rewritten (atomically) after every
@@ -808,18 +808,18 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
     print_recovered(plan)
     from ..data import load_record
-    from ..symbolic import compile_spec
+    from ..spec import compile_spec
 
     symbolic = compile_spec(spec)  # bad records are refused before any fit
     if overrides is not None and not overrides.empty:
-        from ..overrides import apply_overrides
+        from ..spec.overrides import apply_overrides
 
         apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
     with results_in_place(plan, command="diagnose") as out:
         if overrides is not None and not overrides.empty:
-            from ..overrides import write_override_spec
+            from ..spec.overrides import write_override_spec
 
             spec = write_override_spec(spec, overrides, out)
         return _run_diagnose(spec, data, validate=validate, out=out, max_rounds=max_rounds,
@@ -1215,7 +1215,7 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
                    help="rank every candidate by the p-value of its score (Lagrange-multiplier) "
                         "statistic at the current fit before refitting (default; "
                         "--no-screen: by the locate score only)")
-    from ..overrides import add_override_arguments
+    from ..spec.overrides import add_override_arguments
 
     add_override_arguments(p)
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
@@ -1238,7 +1238,7 @@ def diagnose_command(args) -> int:
     and propagates (status 130)."""
     from ..compilecache import enable_compilation_cache
     from ..engine import terminate_as_interrupt
-    from ..overrides import overrides_of
+    from ..spec.overrides import overrides_of
     from ..progress import DiagnoseProgress
 
     ov = overrides_of(args)

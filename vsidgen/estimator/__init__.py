@@ -7,8 +7,8 @@ Public API::
     FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
 """
 
-from .fit import fit, measured_states, smooth
+from .fit import DirectMeasurement, direct_measurements, fit, measured_states, smooth
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
-__all__ = ["FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart",
-           "fit", "measured_states", "smooth"]
+__all__ = ["DirectMeasurement", "FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart",
+           "direct_measurements", "fit", "measured_states", "smooth"]

@@ -248,7 +248,7 @@ class NoiseMap:
                 init.append(v)
                 if not s0 > 0 and state_outputs and i in state_outputs:
                     dt = float(np.mean([float(r.dt) for r in records]))
-                    sd = diff_scale(records, state_outputs[i]) / math.sqrt(dt)
+                    sd = diff_scale(records, state_outputs[i].output) / abs(state_outputs[i].gain) / math.sqrt(dt)
                     if sd > self.proc_floor[i]:
                         v = math.log(sd - self.proc_floor[i])
                 init_pd.append(v)

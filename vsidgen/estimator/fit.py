@@ -30,9 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..dynamics import input_hold as transition_input_hold
-from ..dynamics import settings as transition_settings
-from ..dynamics import transition
+from ..model.dynamics import input_hold as transition_input_hold
+from ..model.dynamics import settings as transition_settings
+from ..model.dynamics import transition
 from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
@@ -40,39 +40,105 @@ from .. import precision  # noqa: F401  (float64, set once)
 
 
 # --------------------------------------------------------------------------- helpers
-def measured_states(model) -> dict[int, int]:
-    """{state index: output index} for outputs that are exactly a state.
+@dataclasses.dataclass(frozen=True)
+class DirectMeasurement:
+    """Output ``output`` measures one state directly: y = offset + gain · x_i.
 
-    Uses ``model.symbolic.observations`` (expression is a state symbol) when a
-    symbolic model is attached, else checks h_j(x, u, θ₀) == x_i numerically
-    at three random points.
+    ``gain`` ≠ 0 and ``offset`` are numbers during the fit (spec constants and fixed
+    parameters allowed, estimated parameters not), so the state is known from the
+    measurement up to its noise: x_i = (y − offset)/gain.
     """
-    pairs: dict[int, int] = {}
+
+    output: int
+    gain: float = 1.0
+    offset: float = 0.0
+
+    def state_of(self, y):
+        """The state a measured value stands for: (y − offset)/gain."""
+        return (y - self.offset) / self.gain
+
+
+def _affine_in(e, x, const_values) -> tuple[float, float] | None:
+    """(gain, offset) when ``e`` is offset + gain·x with numeric gain ≠ 0 and offset, else None."""
+    import sympy
+
+    e = e.xreplace(const_values)
+    if e.free_symbols != {x}:
+        return None
+    try:
+        poly = sympy.Poly(e, x)
+    except sympy.PolynomialError:
+        return None
+    if poly.degree() != 1:
+        return None
+    k, c = (float(v) for v in (poly.coeff_monomial(x), poly.coeff_monomial(1)))
+    if not (math.isfinite(k) and math.isfinite(c) and k != 0.0):
+        return None
+    return k, c
+
+
+def direct_measurements(model) -> dict[int, DirectMeasurement]:
+    """{state index: DirectMeasurement} for outputs that measure one state directly.
+
+    An output y_j = c + k·x_i with numbers k ≠ 0 and c (the state itself, the state in
+    other units such as ``57.29578*alpha``, or a trim value plus a perturbation such as
+    ``V0 + u`` with ``V0`` a spec constant or a fixed parameter) measures x_i directly: the
+    measured values give the state's start μ_i = (y_j − c)/k and its data scale (spread of
+    y_j's sample differences / |k|). The first such output of a state is taken.
+
+    Uses ``model.symbolic.observations`` (definitions expanded, constants and fixed
+    parameters substituted) when a symbolic model is attached, else tests h numerically:
+    y_j must be the same affine function of x_i at random states and inputs, for two
+    vectors of the estimated parameters.
+    """
+    out: dict[int, DirectMeasurement] = {}
     sym = model.symbolic
     if sym is not None:
         try:
-            obs = sym.observations_expanded() if hasattr(sym, "observations_expanded") else sym.observations
-            for j, e in enumerate(obs):
+            fixed = {p.name: float(p.initial) for p in model.parameters if p.fixed}
+            consts = dict(sym.constant_values())
+            consts.update({p.symbol: fixed[p.name] for p in sym.parameters if p.name in fixed})
+            for j, e in enumerate(sym.observations_expanded()):
                 for i, st in enumerate(sym.states):
-                    if e == st.symbol:
-                        pairs.setdefault(i, j)
-            return pairs
+                    kc = _affine_in(e, st.symbol, consts)
+                    if kc is not None:
+                        out.setdefault(i, DirectMeasurement(j, *kc))
+            return out
         except Exception:  # fall back to the numerical test
-            pairs = {}
+            out = {}
+    return _direct_measurements_numerical(model)
+
+
+def _direct_measurements_numerical(model) -> dict[int, DirectMeasurement]:
     rng = np.random.default_rng(12345)
-    p = jnp.asarray([float(q.initial) for q in model.parameters], float)
-    ok = np.ones((model.ny, model.nx), bool)
-    for _ in range(3):
-        x = rng.normal(size=model.nx) * 0.7 + 0.3
-        u = rng.normal(size=model.nu)
-        with np.errstate(all="ignore"):
-            h = np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), p), float)
-        ok &= np.abs(h[:, None] - x[None, :]) <= 1e-12 * (1 + np.abs(x[None, :]))
+    p0 = np.asarray([float(q.initial) for q in model.parameters], float)
+    out: dict[int, DirectMeasurement] = {}
+    npts = 4
+    X = rng.normal(size=(npts, model.nx)) * 0.7 + 0.3
+    U = rng.normal(size=(npts, model.nu))
+    free = np.array([not q.fixed for q in model.parameters], bool)
+    P = [p0, p0 + free * rng.normal(size=p0.shape) * 0.1]
+    with np.errstate(all="ignore"):
+        H = np.array([[np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(p)), float)
+                       for x, u in zip(X, U)] for p in P])  # (2, npts, ny)
     for j in range(model.ny):
         for i in range(model.nx):
-            if ok[j, i]:
-                pairs.setdefault(i, j)
-    return pairs
+            x = X[:, i]
+            h = H[0, :, j]
+            if not np.all(np.isfinite(H[:, :, j])) or x[1] == x[0]:
+                continue
+            k = (h[1] - h[0]) / (x[1] - x[0])
+            c = h[0] - k * x[0]
+            pred = c + k * x
+            tol = 1e-12 * (1 + np.abs(H[:, :, j]))
+            if k != 0 and np.all(np.abs(H[:, :, j] - pred[None, :]) <= tol):
+                out.setdefault(i, DirectMeasurement(j, float(k), float(c)))
+    return out
+
+
+def measured_states(model) -> dict[int, int]:
+    """{state index: output index} for outputs that measure a state directly (:func:`direct_measurements`)."""
+    return {i: m.output for i, m in direct_measurements(model).items()}
 
 
 def _initial_mu(model, rec, pairs, how: str) -> np.ndarray:
@@ -84,8 +150,8 @@ def _initial_mu(model, rec, pairs, how: str) -> np.ndarray:
         raise FitError(f"init_states must be 'measured' or 'zero', got '{how}'")
     y = np.asarray(rec.y, float)
     k = np.arange(N)
-    for i, j in pairs.items():
-        col = y[:, j]
+    for i, dm in pairs.items():
+        col = dm.state_of(y[:, dm.output])
         fin = np.isfinite(col)
         if fin.any():
             mu[:, i] = np.interp(k, k[fin], col[fin])
@@ -135,7 +201,7 @@ class _Problem:
                        inputs=self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=measured_states(model), relax=relax,
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=direct_measurements(model), relax=relax,
                            hold=hold)
         self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
         self.cfg = make_cfg(self.tm, self.nm)
@@ -164,7 +230,7 @@ class _Problem:
                 return s, recs
             raise FitError("warm_start result does not match this problem's shape")
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
-        pairs = measured_states(self.model)
+        pairs = direct_measurements(self.model)
         r0 = np.zeros(self.obj.nq)  # Σ_cond = Σ_marg = I
         if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
             # smoothing with known noise (validation mode): start the assumed density at the
@@ -773,7 +839,7 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         warnings.append({"code": code, "reliable": False, "stop_reason": reason.value,
                          "message": f"{reason.message}: {out['status']}"})
     # smoothers and state-vs-measurement check
-    pairs = measured_states(model)
+    pairs = direct_measurements(model)
     smoothers = []
     for rec, (m, r) in zip(P.records, recs):
         Sc, C, Sm, _ = P.obj.cov_factors(jnp.asarray(r))
@@ -781,8 +847,9 @@ def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         smoothers.append(SmootherPath(name=str(getattr(rec, "name", "")), mu=np.asarray(m).copy(),
                                       cov_marg=Sm @ Sm.T, cov_cond=Sc @ Sc.T, cross=C))
         y = np.asarray(rec.y, float)
-        for i, j in pairs.items():
-            res = m[:, i] - y[:, j]
+        for i, dm in pairs.items():
+            j = dm.output
+            res = dm.offset + dm.gain * m[:, i] - y[:, j]
             res = res[np.isfinite(res)]
             if res.size and sig[j] > 0:
                 ratio = float(np.sqrt(np.mean(res ** 2)) / sig[j])
@@ -918,11 +985,11 @@ def _smoothing_start_std(P: _Problem) -> np.ndarray:
     sample-to-sample differences / √T (the random-walk rate the record allows); an
     unmeasured one 1 (state unit/√s).
     """
-    pairs = measured_states(P.model)
+    pairs = direct_measurements(P.model)
     T = float(np.mean([float(r.dt) for r in P.records]))
     out = []
     for i in np.nonzero(P.nm.deterministic)[0]:
-        v = diff_scale(P.records, pairs[i]) / math.sqrt(T) if i in pairs else 0.0
+        v = diff_scale(P.records, pairs[i].output) / abs(pairs[i].gain) / math.sqrt(T) if i in pairs else 0.0
         out.append(v if v > 0 else 1.0)
     return np.asarray(out, float)
 
@@ -1124,7 +1191,7 @@ def _drift_scale(P: _Problem, idx) -> np.ndarray:
     It is in the state's own units (deg/√s for a state in degrees), so a start built on it
     does not depend on them. 0 where the drift of the state vanishes at the start.
     """
-    pairs = measured_states(P.model)
+    pairs = direct_measurements(P.model)
     T = float(np.mean([float(r.dt) for r in P.records]))
     p0 = jnp.asarray(P.tm.theta(jnp.asarray(P.tm.z0)))
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))

@@ -131,7 +131,7 @@ class FitOptions:
         integrator: "euler" | "rk4"; None → ``model.integrator``.
         substeps: integration substeps per sample; None → ``model.substeps``.
         input_hold: "zoh" | "foh", inputs held or interpolated linearly between samples
-            (:mod:`vsidgen.dynamics`); None → ``model.input_hold``.
+            (:mod:`vsidgen.model.dynamics`); None → ``model.input_hold``.
         max_iter: iteration limit of the optimizer.
         gtol: convergence tolerance on the *relative gradient*
             ``max_i |∂(−L)/∂v_i| · max(|v_i|, 1) / max(|L|, 1)`` over the whole

@@ -35,7 +35,7 @@ from collections.abc import Mapping
 
 import sympy
 
-from .errors import SpecError
+from ..errors import SpecError
 
 MAX_LENGTH = 2000
 MAX_DEPTH = 64
@@ -195,7 +195,7 @@ def _make_error(text, message, *, path, line, column, offset, length, hint=None)
 
 def did_you_mean(name: str, candidates) -> str | None:
     """A 'did you mean `x`?' hint for ``name`` among ``candidates`` (or None)."""
-    from .suggest import closest
+    from ..suggest import closest
 
     close = closest(name, sorted(candidates))
     if close:

@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import VsidgenError
-from .metadata import (DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable,
+from ..errors import VsidgenError
+from ..metadata import (DataSpec, MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable,
                        VariableNames)
 
 
@@ -159,9 +159,9 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
     Raises:
         SpecError: invalid spec, or stale module with ``build=False``.
     """
-    from .codegen import build_model, is_up_to_date
-    from .errors import SpecError
-    from .symbolic import compile_spec
+    from ..codegen import build_model, is_up_to_date
+    from ..errors import SpecError
+    from ..spec import compile_spec
 
     symbolic = compile_spec(spec_path)
     out_dir = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec_path)

@@ -11,7 +11,7 @@ such as degC). The spec's ``scale``/``offset`` are applied after the
 conversion, in the spec's unit. Units are parsed by pint with two aviation
 conventions: ``g`` is the standard acceleration of gravity (9.80665 m/s², the
 unit of load factors; write ``gram`` for grams) and ``^`` is a power. Angles
-(``rad``, ``deg``) are dimensionless, as in SI and :mod:`vsidgen.units`, so
+(``rad``, ``deg``) are dimensionless, as in SI and :mod:`vsidgen.spec.units`, so
 ``deg`` converts to ``rad`` and to ``1``; ``ft`` does not convert to ``rad``
 (a dimension error located at the ``unit:`` entry of the spec).
 

@@ -1,7 +1,7 @@
 """Maneuver generators and stochastic simulation of a model (synthetic records).
 
 Simulation model (same discretisation as the estimator, see
-:mod:`vsidgen.dynamics`):
+:mod:`vsidgen.model.dynamics`):
 
 .. math::
 
@@ -43,12 +43,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .data import write_csv
-from .dynamics import transition
-from .errors import VsidgenError
-from .model import theta_vector
+from .records import write_csv
+from ..model.dynamics import transition
+from ..errors import VsidgenError
+from ..model import theta_vector
 
-from . import precision  # noqa: F401  (float64, set once)
+from .. import precision  # noqa: F401  (float64, set once)
 
 
 # --------------------------------------------------------------------------- maneuvers
@@ -294,7 +294,7 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
         x0: (nx,) array or dict state -> value.
         process_std: dict state -> std of G (state-unit/√s); default no process noise.
         measurement_std: dict output -> std; default no measurement noise.
-        integrator, substeps: mean transition, see :func:`vsidgen.dynamics.transition`
+        integrator, substeps: mean transition, see :func:`vsidgen.model.dynamics.transition`
             (``None`` = the model's choice).
         input_hold: "zoh" | "foh", inputs held or interpolated linearly between the
             samples of ``t`` (``None`` = the model's choice).
@@ -407,7 +407,7 @@ def simulate_to_csv(model, out_path, **simulate_kwargs) -> SimulationResult:
     res = simulate(model, **simulate_kwargs)
     maps_in = {c.name: c for c in model.data.inputs}
     maps_out = {c.name: c for c in model.data.outputs}
-    from .metadata import ChannelMap
+    from ..metadata import ChannelMap
 
     columns: dict[str, np.ndarray] = {model.data.time: res.t}
     for names, maps, values in ((model.input_names, maps_in, res.u),

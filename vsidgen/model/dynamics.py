@@ -66,8 +66,8 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from . import precision  # noqa: F401  (float64, set once)
-from .errors import VsidgenError
+from .. import precision  # noqa: F401  (float64, set once)
+from ..errors import VsidgenError
 
 INTEGRATORS = ("euler", "rk4")
 #: input reconstruction between samples: zero-order hold, first-order hold (linear)
@@ -253,7 +253,7 @@ def transition_fn(drift: Callable, *, integrator: str = "euler", substeps: int =
             return z
 
     F.__doc__ = (f"Mean transition F(x, v, p, dt): {integrator}, {m} substep(s), "
-                 f"inputs {inputs} (see vsidgen.dynamics).")
+                 f"inputs {inputs} (see vsidgen.model.dynamics).")
     jac = None if drift_jacobian is None else transition_jacobian(
         drift, drift_jacobian, integrator=integrator, substeps=m, inputs=inputs)
     return Transition(F, integrator, m, inputs, jac)

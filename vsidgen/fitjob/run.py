@@ -14,15 +14,15 @@ from typing import Any
 
 import numpy as np
 
-from . import __version__
-from .codegen import display_path
-from .data import Record, load_record, unique_names, write_csv
-from .errors import VsidgenError
-from .model import Model, load_model
-from .overrides import Overrides, apply_overrides
-from .atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
-from .limits import check_input_file
-from .resultsdir import dumps, finite_or_none, signals_table
+from .. import __version__
+from ..codegen import display_path
+from ..data import Record, load_record, unique_names, write_csv
+from ..errors import VsidgenError
+from ..model import Model, load_model
+from ..spec.overrides import Overrides, apply_overrides
+from ..atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
+from ..limits import check_input_file
+from ..report import dumps, finite_or_none, signals_table
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,7 +64,7 @@ def _record_info(rec: Record) -> dict[str, Any]:
 
 
 def _evaluate_all(model, records, fit, *, integrator, substeps):
-    from .evaluation import evaluate  # imports jax: not needed to refuse bad arguments
+    from ..evaluation import evaluate  # imports jax: not needed to refuse bad arguments
 
     signals = []
     for rec, sm in zip(records, fit.smoothers):
@@ -97,8 +97,8 @@ def _fit_located(fit, model, records, options):
     absurd sample: the message names the sample farthest from its channel's bulk
     (:func:`most_extreme_sample`) instead of an internal error.
     """
-    from .data import most_extreme_sample, fmt_number
-    from .errors import DataError, FitError
+    from ..data.records import most_extreme_sample, fmt_number
+    from ..errors import DataError, FitError
 
     try:
         return fit(model, records, options=options)
@@ -127,7 +127,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
 
     Validation records (``validate``) are smoothed with θ and the noise fixed at
     the estimates (the paper's validation mode) and evaluated separately.
-    ``overrides`` (:mod:`vsidgen.overrides`: fixed, freed and initial parameter
+    ``overrides`` (:mod:`vsidgen.spec.overrides`: fixed, freed and initial parameter
     values, output-error method) change the spec's parameter records for this
     fit and are recorded in ``results.json``.
 
@@ -144,18 +144,18 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         check_input_file(p, what="data file")
     ref_path = None
     if reference is not None:
-        from .report import parse_reference
+        from ..report import parse_reference
         ref_path = parse_reference(reference)[2]
     plan = plan_output_dir(out, overwrite=overwrite,
                            reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
     print_recovered(plan)
-    from .symbolic import compile_spec
+    from ..spec import compile_spec
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
     records = unique_names([load_record(symbolic, p) for p in data])
     vrecords = unique_names([load_record(symbolic, p) for p in validate])
-    from .estimator import FitOptions, fit, smooth
+    from ..estimator import FitOptions, fit, smooth
 
     model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
     integrator = integrator or model.integrator
@@ -238,6 +238,6 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                       signals_table(s, model.state_names, model.output_names, mu_std))
         write_text_atomic(tmp / "results.json", dumps(results))
         if report:
-            from .report import write_report
+            from ..report import write_report
             write_report(tmp, reference=reference, display_dir=out)
     return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult)

@@ -3,7 +3,7 @@
 For one record (time stamps ``t_k``, sample period ``T``, inputs ``u_k``,
 measurements ``y_k``), the estimate ``θ*``, the smoother mean ``μ_k`` and the
 noise matrices ``G`` (process, ``dx = f dt + G dW``) and ``R`` (measurement
-covariance), with the mean transition ``F`` of :mod:`vsidgen.dynamics`:
+covariance), with the mean transition ``F`` of :mod:`vsidgen.model.dynamics`:
 
 1. **smoother outputs** ``ŷ_k = h(μ_k, u_k, θ*)``;
 2. **free simulation** from ``x_0 = μ_0`` with ``θ*`` and no noise:
@@ -12,7 +12,7 @@ covariance), with the mean transition ``F`` of :mod:`vsidgen.dynamics`:
    in the filter-error method, the system is linearised once, at the first
    sample: ``A = ∂F/∂x (μ_0, u_0, θ*)``, ``H = ∂h/∂x (μ_0, u_0, θ*)``
    (the generated Jacobians: ``h_x`` directly, ``F_x`` composed from ``f_x`` by the
-   chain rule, :meth:`vsidgen.dynamics.Transition.jacobian`), ``Q = T G Gᵀ``. The predicted covariance ``P`` solves the
+   chain rule, :meth:`vsidgen.model.dynamics.Transition.jacobian`), ``Q = T G Gᵀ``. The predicted covariance ``P`` solves the
    discrete algebraic Riccati equation
 
    .. math:: P = A P Aᵀ − A P Hᵀ (H P Hᵀ + R)^{-1} H P Aᵀ + Q
@@ -55,11 +55,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from .dynamics import transition
-from .errors import VsidgenError
-from .model import theta_vector
+from ..model.dynamics import transition
+from ..errors import VsidgenError
+from ..model import theta_vector
 
-from . import precision  # noqa: F401  (float64, set once)
+from .. import precision  # noqa: F401  (float64, set once)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -1,6 +1,6 @@
 """Code generation: SymbolicModel -> readable JAX module ``generated/<name>.py``.
 
-The module (template ``vsidgen/templates/model.py.j2``) defines ``drift(x, u, p)`` and
+The module (template ``vsidgen/codegen/templates/model.py.j2``) defines ``drift(x, u, p)`` and
 ``output(x, u, p)`` that unpack x, u, p into named locals and compute the
 spec's definitions in order, plus the Jacobians ``drift_jac_x/u/p`` and
 ``output_jac_x/u/p`` derived symbolically (sympy, on the definition-expanded
@@ -44,16 +44,16 @@ import sympy
 from sympy.printing.numpy import JaxPrinter
 from sympy.printing.precedence import precedence
 
-from .atomic import write_text_atomic
-from .errors import SpecError
-from .symbolic import GENERATED_MODULE_NAMES, GENERATOR_VERSION, SymbolicModel, compile_spec
+from ..atomic import write_text_atomic
+from ..errors import SpecError
+from ..spec import GENERATED_MODULE_NAMES, GENERATOR_VERSION, SymbolicModel, compile_spec
 
 __all__ = ["GENERATOR_VERSION", "BuildResult", "Code", "generate", "build", "build_model",
            "embedded_hash", "is_up_to_date", "template_dir", "safe_names", "py_literal",
            "comment_text", "docstring_text", "identifier", "recorded_spec_path"]
 
 #: names the generated module defines or imports without a leading ``_``; a spec name
-#: may not be one of these (:func:`vsidgen.symbolic.compile_spec` says so with its location)
+#: may not be one of these (:func:`vsidgen.spec.symbolic.compile_spec` says so with its location)
 RESERVED = GENERATED_MODULE_NAMES
 
 
@@ -129,8 +129,8 @@ def _finalize(value):
 
 
 def template_dir() -> pathlib.Path:
-    """The templates shipped inside the package (``vsidgen/templates``; the repository's
-    top-level ``templates`` is a link to it), so an installed wheel can generate code."""
+    """The templates shipped inside the package (``vsidgen/codegen/templates``), so an
+    installed wheel can generate code."""
     return pathlib.Path(__file__).resolve().parent / "templates"
 
 

@@ -1,6 +1,6 @@
 """``vsidgen fleet``: one spec fitted to many records, each on its own, in parallel.
 
-Every record is an independent ``vsidgen fit`` (:func:`vsidgen.pipeline.run_fit`) writing
+Every record is an independent ``vsidgen fit`` (:func:`vsidgen.fitjob.run.run_fit`) writing
 its own results directory ``DIR/<record>/``; the fits run on the task engine
 (:mod:`vsidgen.engine`: serially, on a local ``dask.distributed`` cluster of all cores, or
 on an existing cluster). ``DIR/fleet.json`` lists every record with a typed
@@ -18,7 +18,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
-from .errors import VsidgenError
+from ..errors import VsidgenError
 
 
 class FleetStatus(enum.Enum):
@@ -71,7 +71,7 @@ def _dir_names(paths: Sequence[str]) -> list[str]:
 
 def _fit_one(spec: str, data: str, out: str, generated_dir: str | None, kwargs: dict) -> dict:
     """One record's fit (runs on an engine worker); a small summary, never the arrays."""
-    from .pipeline import run_fit
+    from .run import run_fit
 
     try:
         job = run_fit(spec, [data], out=out, generated_dir=generated_dir, **kwargs)
@@ -93,10 +93,10 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     every local core) or the cluster at ``scheduler``. The spec is compiled once here
     first (a bad spec is an error before any fit starts).
     """
-    from .atomic import write_text_atomic
-    from .engine import Engine, TaskStatus
-    from .model import default_generated_dir, load_model
-    from .resultsdir import dumps
+    from ..atomic import write_text_atomic
+    from ..engine import Engine, TaskStatus
+    from ..model import default_generated_dir, load_model
+    from ..report import dumps
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")
@@ -164,7 +164,7 @@ def add_fleet_parser(subparsers):
     p.add_argument("spec", help="model spec (YAML)")
     p.add_argument("data", nargs="+", help="records (CSV), one fit each")
     p.add_argument("--out", required=True, help="output directory (one results folder per record)")
-    from .engine import add_engine_arguments
+    from ..engine import add_engine_arguments
 
     add_engine_arguments(p, what="record fits")
     p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
@@ -177,8 +177,8 @@ def add_fleet_parser(subparsers):
 
 
 def fleet_command(args) -> int:
-    from .compilecache import enable_compilation_cache
-    from .engine import terminate_as_interrupt
+    from ..compilecache import enable_compilation_cache
+    from ..engine import terminate_as_interrupt
 
     enable_compilation_cache()
     progress = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))

@@ -4,8 +4,8 @@
 :class:`RawSpec`: an ordered tree of :class:`YNode` that remembers the file,
 line and column of every key and value, so that later validation errors point
 into the file that contains the offending text. No model semantics here:
-:mod:`vsidgen.typedspec` reads the merged tree once into the typed spec that
-:mod:`vsidgen.symbolic` compiles.
+:mod:`vsidgen.spec.typed` reads the merged tree once into the typed spec that
+:mod:`vsidgen.spec.symbolic` compiles.
 
 Merge rules for ``extends`` (child onto parent): entries of ``states``,
 ``inputs``, ``outputs``, ``constants``, ``parameters``, ``definitions``,
@@ -32,7 +32,7 @@ from typing import Any
 
 import yaml
 
-from .errors import SpecError
+from ..errors import SpecError
 from .expr import did_you_mean, parse_expression, parse_expression_free
 
 TOP_LEVEL_KEYS = ("name", "description", "extends", "integrator", "states", "inputs", "outputs",

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import VsidgenError
-from .limits import check_input_file
+from ..errors import VsidgenError
+from ..limits import check_input_file
 
 
 def finite_or_none(v: Any) -> float | None:

@@ -5,7 +5,7 @@ time histories (format: docs/architecture.md, "Results directory") and writes
 one self-contained ``DIR/report.html``: figures are PNG images embedded as
 ``data:`` URIs, equations are typeset with matplotlib's mathtext (no MathJax,
 no CDN), the page loads nothing from the network (a Content-Security-Policy
-forbids it). The page is rendered from ``vsidgen/templates/report.html.j2``.
+forbids it). The page is rendered from ``vsidgen/report/templates/report.html.j2``.
 
 Content: run summary and warnings; parameter table with standard errors,
 relative standard errors, bounds and reference values; correlation heat map
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import write_text_atomic
-from .errors import VsidgenError
-from .limits import check_input_file
+from ..atomic import write_text_atomic
+from ..errors import VsidgenError
+from ..limits import check_input_file
 from .resultsdir import contained_file, read_results
 
 __all__ = ["new_figure", "parse_reference", "png_data_uri", "write_report", "SIGNAL_STYLE",
@@ -73,7 +73,7 @@ FIG_DPI = 100
 
 
 def _templates_dir() -> pathlib.Path:
-    """The templates shipped inside the package (``vsidgen/templates``)."""
+    """The templates shipped inside the package (``vsidgen/report/templates``)."""
     return pathlib.Path(__file__).resolve().parent / "templates"
 
 

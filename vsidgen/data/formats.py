@@ -29,7 +29,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .errors import DataError
+from ..errors import DataError
 
 SUPPORTED = ("CSV (comma-separated text with one header row of column names), "
              "MATLAB .mat v4/v5/v7 (scipy.io.loadmat) and v7.3 (HDF5, h5py)")
@@ -253,7 +253,7 @@ def _resolve(variables, ref: str, path, named, taken=None) -> np.ndarray:
                             column=ref, hint="give one name per column of the matrix")
         return matrix[:, j]
     if v is None:
-        from .suggest import column_hint
+        from ..suggest import column_hint
 
         hint = column_hint(ref, _names_of(variables), taken)
         if not (hint and hint.startswith("did you mean")):

@@ -1,7 +1,7 @@
 """Flight records: CSV or MATLAB files -> :class:`Record` (t, u, y) through the spec's data map.
 
 File formats and how a MAT file's variables are named in the data map:
-:mod:`vsidgen.formats`; units declared in the data map: :mod:`vsidgen.dataunits`.
+:mod:`vsidgen.data.formats`; units declared in the data map: :mod:`vsidgen.spec.dataunits`.
 
 A record is one contiguous, uniformly sampled time history. Each model input
 and output is read through a :class:`vsidgen.metadata.ChannelMap`:
@@ -59,12 +59,12 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .atomic import atomic_text_file
-from .dataunits import plausibility_warnings
-from .errors import DataError, VsidgenError
+from ..atomic import atomic_text_file
+from ..spec.dataunits import plausibility_warnings
+from ..errors import DataError, VsidgenError
 from .formats import DataFormat, detect_format, read_mat_columns
-from .limits import check_input_file
-from .suggest import column_hint
+from ..limits import check_input_file
+from ..suggest import column_hint
 
 MIN_SAMPLES = 10
 JITTER = 0.05
@@ -91,7 +91,7 @@ class Record:
         y: (N, ny) outputs, float64; NaN = missing sample.
         input_names, output_names: channel (model input/output) names.
         t_raw: (N,) the original time stamps.
-        warnings: :class:`vsidgen.dataunits.DataWarning` records (value ranges
+        warnings: :class:`vsidgen.spec.dataunits.DataWarning` records (value ranges
             implausible for a channel's unit), empty when none.
     """
 
@@ -385,7 +385,7 @@ def load_record(model, path, *, name: str | None = None) -> Record:
         model: a :class:`vsidgen.model.Model` or a SymbolicModel (uses
             ``data``, input and output names).
         path: CSV file with one header row, comma separated, or a MATLAB .mat
-            file (:mod:`vsidgen.formats`).
+            file (:mod:`vsidgen.data.formats`).
         name: record name; default the file stem.
 
     Returns:

@@ -27,8 +27,8 @@ import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from .errors import VsidgenError
-from .metadata import ProcessNoiseSpec
+from ..errors import VsidgenError
+from ..metadata import ProcessNoiseSpec
 
 
 class Method(enum.Enum):
@@ -112,7 +112,7 @@ def apply_overrides(model, ov: Overrides):
         VsidgenError: an unknown parameter name (with a role-aware suggestion) or
             a value outside the parameter's bounds.
     """
-    from .suggest import unknown_name_error
+    from ..suggest import unknown_name_error
 
     if ov.empty:
         return model
@@ -186,7 +186,7 @@ def add_override_arguments(p) -> None:
 
 
 def overrides_of(args):
-    """The :class:`vsidgen.overrides.Overrides` of parsed fit/diagnose arguments."""
+    """The :class:`vsidgen.spec.overrides.Overrides` of parsed fit/diagnose arguments."""
     return parse_overrides(fix=args.fix, free=args.free, init=args.init,
                            init_from=args.init_from, method=args.method)
 
@@ -201,7 +201,7 @@ def write_override_spec(spec_path, ov: Overrides, out_dir) -> pathlib.Path:
     ``vsidgen diagnose`` fits this spec instead of ``spec_path``, so the base fit
     and every candidate (which ``extends`` the base) carry the overrides.
     """
-    from .atomic import write_text_atomic
+    from ..atomic import write_text_atomic
     from .symbolic import compile_spec
 
     sym = compile_spec(spec_path)

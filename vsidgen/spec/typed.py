@@ -1,12 +1,12 @@
 """The typed, immutable, located spec: the YAML read once into declarations, equations,
 add-terms, noise and data map.
 
-:func:`read_spec` loads a spec with everything it ``extends`` (:func:`vsidgen.spec.load_spec`)
+:func:`read_spec` loads a spec with everything it ``extends`` (:func:`vsidgen.spec.load.load_spec`)
 and checks its *structure*: the allowed keys of every mapping, that every value has the
 right kind (a mapping, a list, a number, a true/false, a text), that names are valid and
 not reserved. The result, :class:`Spec`, holds plain Python values, each kept with its
 place in the file (:class:`Located`: path, line, column of the value and of its key, the
-source lines shown under a message), so that :mod:`vsidgen.symbolic`, which compiles it to
+source lines shown under a message), so that :mod:`vsidgen.spec.symbolic`, which compiles it to
 sympy and checks its *meaning* (names declared once, expressions, definition cycles, noise
 and data maps against the declarations, units), reports every problem at the text that
 causes it without reading YAML itself. Expressions stay text here: parsing them needs the
@@ -22,9 +22,9 @@ import re
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
-from .errors import SpecError
+from ..errors import SpecError
 from .expr import FUNCTIONS, did_you_mean
-from .spec import RawSpec, YNode, keys_check, load_spec
+from .load import RawSpec, YNode, keys_check, load_spec
 
 T = TypeVar("T")
 
@@ -503,7 +503,7 @@ def _data(node: YNode) -> DataDecl:
 
 
 def parse(raw: RawSpec, *, generator_version: str) -> Spec:
-    """The typed spec of a merged :class:`vsidgen.spec.RawSpec` (structure checked).
+    """The typed spec of a merged :class:`vsidgen.spec.load.RawSpec` (structure checked).
 
     Raises:
         SpecError: a key, kind or value that the spec language does not allow.
@@ -552,7 +552,7 @@ def parse(raw: RawSpec, *, generator_version: str) -> Spec:
 
 
 def read_spec(path, *, generator_version: str) -> Spec:
-    """:func:`parse` of :func:`vsidgen.spec.load_spec` ``(path)``: a spec file read once."""
+    """:func:`parse` of :func:`vsidgen.spec.load.load_spec` ``(path)``: a spec file read once."""
     return parse(load_spec(path), generator_version=generator_version)
 
 

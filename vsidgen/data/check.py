@@ -1,7 +1,7 @@
 """A data record checked against a compiled spec (``vsidgen check SPEC --data DATA``).
 
 The spec stage knows nothing of data files; this module, in the data stage, takes a
-:class:`vsidgen.symbolic.SymbolicModel` and a record and checks that the record can be fitted:
+:class:`vsidgen.spec.symbolic.SymbolicModel` and a record and checks that the record can be fitted:
 columns named by the data map are present, time is uniform, and the drift and outputs are finite
 at every sample where the directly measured states are present.
 """
@@ -16,14 +16,14 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .data import load_record
-from .errors import DataError, Location, SpecError, SpecWarning
-from .expr import did_you_mean
+from .records import load_record
+from ..errors import DataError, Location, SpecError, SpecWarning
+from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
-from .limits import check_input_file
-from .metadata import ChannelMap
-from .suggest import column_hint
-from .symbolic import SymbolicModel
+from ..limits import check_input_file
+from ..metadata import ChannelMap
+from ..suggest import column_hint
+from ..spec import SymbolicModel
 
 __all__ = ["check_first_sample", "check_record", "read_first_row"]
 

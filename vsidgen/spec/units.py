@@ -23,7 +23,7 @@ from sympy.physics.units.definitions.dimension_definitions import (
     amount_of_substance, current, length, mass, temperature, time,
 )
 
-from .errors import SpecError
+from ..errors import SpecError
 from .expr import Interp, InterpSlope, parse_expression
 
 ONE = Dimension(1)

@@ -1,11 +1,11 @@
 """SymbolicModel: a validated spec as sympy expressions.
 
 :func:`compile_spec` reads a spec once into the typed, located
-:class:`vsidgen.typedspec.Spec` (structure checked there) and compiles it: every
-expression parsed with the safe parser (:mod:`vsidgen.expr`) in the namespace of the
+:class:`vsidgen.spec.typed.Spec` (structure checked there) and compiles it: every
+expression parsed with the safe parser (:mod:`vsidgen.spec.expr`) in the namespace of the
 declared names, the model validated (names declared once, equations, definition
 cycles, noise and data map against the declarations) and dimensional consistency
-checked (:mod:`vsidgen.units`). The model is
+checked (:mod:`vsidgen.spec.units`). The model is
 
     dx/dt = f(x, u, θ)     (``drift``, one expression per state)
     y     = h(x, u, θ)     (``observations``, one per output)
@@ -23,13 +23,13 @@ from typing import Any
 
 import sympy
 
-from .errors import Location, SpecError, SpecWarning
+from ..errors import Location, SpecError, SpecWarning
 from .expr import did_you_mean, parse_expression, parse_expression_free
-from .metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Parameter,
+from ..metadata import (ChannelMap, Constant, DataSpec, MeasurementNoiseSpec, Parameter,
                        ProcessNoiseSpec, Variable)
-from .typedspec import (GENERATED_MODULE_NAMES, ChannelDecl, Equation, Located, Spec, read_spec,
+from .typed import (GENERATED_MODULE_NAMES, ChannelDecl, Equation, Located, Spec, read_spec,
                         valid_name)
-from . import __version__
+from .. import __version__
 from . import units as _units
 
 #: the generated modules record it; a new vsidgen version rebuilds them
@@ -66,7 +66,7 @@ class SymbolicModel:
     integrator: str
     substeps: int
     warnings: tuple[SpecWarning, ...] = ()
-    #: input hold between samples of the transition: "zoh" | "foh" (:mod:`vsidgen.dynamics`)
+    #: input hold between samples of the transition: "zoh" | "foh" (:mod:`vsidgen.model.dynamics`)
     input_hold: str = "zoh"
     #: "drift:V" / "observations:V" / "definitions:qbar" -> where the equation is written
     locations: Mapping[str, Location] = dataclasses.field(default_factory=dict, compare=False)
@@ -228,7 +228,7 @@ def compile_spec(path) -> SymbolicModel:
 
 
 def compile_typed(spec: Spec) -> SymbolicModel:
-    """Compile a typed spec (:func:`vsidgen.typedspec.read_spec`) to a :class:`SymbolicModel`.
+    """Compile a typed spec (:func:`vsidgen.spec.typed.read_spec`) to a :class:`SymbolicModel`.
 
     Raises:
         SpecError: a name declared twice, an expression that does not parse or names an

@@ -1,0 +1,18 @@
+"""Data stage: flight records through a spec's data map, record checks and simulation.
+
+Modules::
+
+    formats   CSV and MATLAB .mat files, column references
+    records   files -> Record (t, u, y) through the data map; data errors; resolution
+    check     ``vsidgen check --data``: a whole record checked against a compiled spec
+    simulate  manoeuvre generators and stochastic simulation (synthetic records)
+
+Public API (what later stages use)::
+
+    load_record(model, path) -> Record
+    resolution, unique_names, delay_input, write_csv
+"""
+
+from .records import Record, delay_input, load_record, resolution, unique_names, write_csv
+
+__all__ = ["Record", "delay_input", "load_record", "resolution", "unique_names", "write_csv"]
