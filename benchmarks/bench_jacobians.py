@@ -9,7 +9,7 @@ cleared) with the persistent compilation cache off, so each pays its own compile
    against ``jax.jacfwd`` of the generated ``drift``/``output``/``F``. Compile = first
    call minus a warm call; run = median of ``--repeat`` warm calls.
 2. **blocks**: the estimator's gradient and Hessian blocks of one Newton iteration
-   (``_Problem.blocks``, the sigma-point assembly that forms ∂F/∂(x, θ) and ∂h/∂(x, θ) at
+   (``Problem.blocks``, the sigma-point assembly that forms ∂F/∂(x, θ) and ∂h/∂(x, θ) at
    every point; ``core.POINT_JACOBIANS`` "generated" vs "autodiff") for Euler and RK4 × 2,
    the two paths compiled once and then called alternately (so a change of machine load
    hits both).
@@ -104,7 +104,7 @@ def blocks(cases, repeat: int) -> None:
 
     from vsidgen.data import load_record
     from vsidgen.estimator import core
-    from vsidgen.estimator.fit import _Problem
+    from vsidgen.estimator import Problem
     from vsidgen.estimator.results import FitOptions
     from vsidgen.model import load_model
 
@@ -120,7 +120,7 @@ def blocks(cases, repeat: int) -> None:
             for name in ("generated", "autodiff"):
                 _clear()
                 core.POINT_JACOBIANS = name
-                P = _Problem(model, records, FitOptions(integrator=integ, substeps=sub))
+                P = Problem(model, records, FitOptions(integrator=integ, substeps=sub))
                 s, recs = P.initial(FitOptions())
                 fn = (lambda P=P, s=s, recs=recs: P.blocks(s, recs))
                 t0 = time.perf_counter()

@@ -35,7 +35,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("codegen", ("codegen.jaxmodule", "codegen")),
     ("model", ("model.runtime", "model.dynamics", "model")),
     ("data", ("data.formats", "data.records", "data.check", "data.simulate", "data")),
-    ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.fit",
+    ("estimator", ("estimator.linalg", "estimator.results", "estimator.core", "estimator.problem", "estimator.fit",
                    "estimator")),
     ("evaluation", ("evaluation.signals", "evaluation")),
     ("report", ("report.resultsdir", "report.html", "report")),

@@ -15,7 +15,7 @@ from test_estimator import lin_model, make_record
 
 from vsidgen.estimator import FitOptions, fit
 from vsidgen.estimator.core import bucket_length
-from vsidgen.estimator.fit import _Problem
+from vsidgen.estimator import Problem
 
 
 def test_bucket_ladder_padding_at_most_one_eighth():
@@ -35,7 +35,7 @@ def test_padded_objective_gradient_equal_unpadded():
     rng = np.random.default_rng(1)
     out = {}
     for bucket in (False, True):
-        P = _Problem(model, [rec], FitOptions(bucket=bucket))
+        P = Problem(model, [rec], FitOptions(bucket=bucket))
         s, recs = P.initial(FitOptions())
         r2 = np.random.default_rng(0)
         s = s + 0.2 * r2.normal(size=s.shape)
@@ -79,7 +79,7 @@ def test_records_in_one_bucket_compile_once(lengths):
     model = lin_model(floor=1e-9)  # a model object of its own: its Objective is not shared with other tests
     opts = FitOptions(noise_start="data", max_iter=30)
     res = fit(model, [make_record(lengths[0], seed=6)], options=opts)
-    P = _Problem(model, [make_record(lengths[0], seed=6)], opts)
+    P = Problem(model, [make_record(lengths[0], seed=6)], opts)
     before = dict(P.obj.traces)
     assert before.get("blocks", 0) >= 1 and before.get("factor", 0) >= 1
     res2 = fit(model, [make_record(lengths[1], seed=7)], options=opts)

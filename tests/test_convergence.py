@@ -15,7 +15,8 @@ import pytest
 
 from tests.test_estimator import C_OUT, lin_model, make_record
 from vsidgen.estimator import FitOptions, StopReason, fit
-from vsidgen.estimator.fit import _Problem, _relgrad, newton_decrement
+from vsidgen.estimator import Problem
+from vsidgen.estimator.fit import _relgrad, newton_decrement
 from vsidgen.metadata import Parameter
 from vsidgen.model import Model
 
@@ -40,7 +41,7 @@ def _scaled_model():
 
 
 def _decrement_and_relgrad(model, rec, s, recs):
-    P = _Problem(model, [rec], FitOptions())
+    P = Problem(model, [rec], FitOptions())
     blks = P.blocks(s, recs)
     f = float(sum(float(b["f"]) for b in blks))
     gg, _ = P.gather(blks)

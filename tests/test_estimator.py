@@ -21,7 +21,7 @@ import scipy.optimize
 
 from vsidgen.errors import FitError
 from vsidgen.estimator import FitOptions, WarmStart, fit, smooth
-from vsidgen.estimator.fit import _Problem
+from vsidgen.estimator import Problem
 from vsidgen.estimator.linalg import btd_solve, btd_to_dense
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
@@ -291,7 +291,7 @@ def test_structured_hessian_and_newton_step_equal_dense():
     model = lin_model(structure="full")
     r1 = make_record(6, seed=2, name="a")
     r2 = make_record(5, seed=3, name="b")
-    P = _Problem(model, [r1, r2], FitOptions())
+    P = Problem(model, [r1, r2], FitOptions())
     s, recs = P.initial(FitOptions())
     rng = np.random.default_rng(0)
     s = s + 0.3 * rng.normal(size=s.shape)
@@ -381,7 +381,7 @@ def test_bad_input_raises_fit_error(rec400):
 
 def _dense_vs_structured(model, recs_in, chunk=None, seed=0, integrator="euler", substeps=1,
                          input_hold=None):
-    P = _Problem(model, recs_in, FitOptions(integrator=integrator, substeps=substeps, bucket=False,
+    P = Problem(model, recs_in, FitOptions(integrator=integrator, substeps=substeps, bucket=False,
                                             input_hold=input_hold))
     if chunk is not None:
         P.obj.chunk = chunk

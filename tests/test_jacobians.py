@@ -151,7 +151,7 @@ def test_structured_hessian_exact_with_generated_jacobians(pendulum, monkeypatch
     from vsidgen.estimator import core
 
     monkeypatch.setattr(core, "POINT_JACOBIANS", "generated")
-    from vsidgen.estimator.fit import _Problem
+    from vsidgen.estimator import Problem
     from vsidgen.estimator.linalg import btd_to_dense
     from vsidgen.estimator.results import FitOptions
 
@@ -161,7 +161,7 @@ def test_structured_hessian_exact_with_generated_jacobians(pendulum, monkeypatch
     y[2, 1] = np.nan
     rec = types.SimpleNamespace(name="p", path=None, t=np.arange(N) * dt, dt=dt, u=rng.normal(size=(N, 1)),
                                 y=y, input_names=("tq",), output_names=("th", "acc"))
-    P = _Problem(pendulum, [rec], FitOptions(bucket=False))
+    P = Problem(pendulum, [rec], FitOptions(bucket=False))
     assert P.obj.point_jacobians == "generated" and P.obj.F.jac is not None
     s, recs = P.initial(FitOptions())
     s = s + 0.3 * rng.normal(size=s.shape)

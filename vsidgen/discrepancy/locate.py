@@ -786,7 +786,18 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
     if not records:
         raise ValueError("locate needs at least one record")
     dt = float(np.median(np.concatenate([np.diff(r.t) for r in records])))
-    # state equations: arrays of length N-1 per record
+    states = _state_evidence(records, state_names, input_names, process_std, dt, alpha=alpha,
+                             min_share=min_share, window_s=window_s, nuisance=nuisance)
+    outputs = _output_evidence(records, state_names, input_names, output_names, measurement_std, dt,
+                               alpha=alpha, min_share=min_share, window_s=window_s)
+    return Evidence(states, outputs, dt, alpha)
+
+
+def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha, min_share, window_s,
+                    nuisance) -> dict[str, StateEvidence]:
+    """Per state equation: the equation error e = ẋ_fd − f(x̂) (records concatenated, last sample of
+    each dropped) tested against every state regressor (partial correlations given ``nuisance``),
+    stepwise selection, whiteness and low-frequency share, and its windows of excess error."""
     seg_s = _segments([len(r.t) - 1 for r in records])
     X = _concat(records, "x_smooth", trim=True)
     U = _concat(records, "u", trim=True)
@@ -832,7 +843,14 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         states[s] = StateEvidence(s, int(np.isfinite(e).sum()), rms, float(level), g,
                                   float(intensity), lf, lb, float(share), selected,
                                   tuple(tests), flagged, tuple(wins[:5]), bins)
-    # outputs
+    return states
+
+
+def _output_evidence(records, state_names, input_names, output_names, measurement_std, dt, *, alpha,
+                     min_share, window_s) -> dict[str, OutputEvidence]:
+    """Per output: the smoothed and predicted residuals tested for a bias, a scale error, a rate
+    term and rate/acceleration offsets of the rate states (:func:`_output_tests`), a lag, and
+    windows of the simulation residual."""
     seg_o = _segments([len(r.t) for r in records])
     Ym = _concat(records, "y_meas")
     Ys = _concat(records, "y_smooth")
@@ -851,25 +869,7 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
         ys = Ys[:, j]
         res_s = Ym[:, j] - ys
         res_p = Ym[:, j] - Yp[:, j]
-        best: dict[str, RegressorStat] = {}
-
-        def test(name, r):
-            a = corr_test(res_s, r, seg_o, name=name)
-            b = corr_test(res_p, r, seg_o, name=name)
-            st = a if a.log10_p() <= b.log10_p() else b
-            best[name] = st.with_factor(2.0)
-            return best[name]
-
-        regs = {"bias": np.ones_like(ys), "scale": ys, "rate": Ys_dot[:, j]}
-        regs.update({f"rate:{s}": Xs[:, k] for s, k in rates})
-        regs.update({f"accel:{s}": Xs_dot[:, k] for s, k in rates})
-        bias = test("bias", np.ones_like(ys))
-        scale = test("scale", ys)
-        rate = test("rate", Ys_dot[:, j]) if np.nanstd(Ys_dot[:, j]) > 0 else None
-        offs = []
-        for s, k in rates:
-            offs.append(test(f"rate:{s}", Xs[:, k]))
-            offs.append(test(f"accel:{s}", Xs_dot[:, k]))
+        bias, scale, rate, offs, regs = _output_tests(res_s, res_p, ys, Ys_dot[:, j], Xs, Xs_dot, rates, seg_o)
         lag = float(np.mean([xcorr_lag(Ym[sg, j], ys[sg], dt) for sg in seg_o]))
         m = 3 + len(offs)
         tests = [t_ for t_ in (bias, scale, rate, *offs) if t_ is not None]
@@ -888,7 +888,31 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
             bool(sig) and share >= min_share, tuple(wins[:5]),
             10.0 ** (wl := ljung_box_log10p(
                 _remove(res_p, [regs[t_.name] for t_ in sig if t_.name in regs]), seg_o)), wl)
-    return Evidence(states, outputs, dt, alpha)
+    return outputs
+
+
+def _output_tests(res_s, res_p, ys, ys_dot, Xs, Xs_dot, rates, seg_o):
+    """One output's regressor tests: each regressor against the smoothed and the predicted
+    residual, the more significant kept with a factor 2 (two looks). Returns (bias, scale, rate
+    (None when ŷ is constant), [rate:s, accel:s per rate state], {name: regressor})."""
+
+    def test(name, r):
+        a = corr_test(res_s, r, seg_o, name=name)
+        b = corr_test(res_p, r, seg_o, name=name)
+        st = a if a.log10_p() <= b.log10_p() else b
+        return st.with_factor(2.0)
+
+    regs = {"bias": np.ones_like(ys), "scale": ys, "rate": ys_dot}
+    regs.update({f"rate:{s}": Xs[:, k] for s, k in rates})
+    regs.update({f"accel:{s}": Xs_dot[:, k] for s, k in rates})
+    bias = test("bias", np.ones_like(ys))
+    scale = test("scale", ys)
+    rate = test("rate", ys_dot) if np.nanstd(ys_dot) > 0 else None
+    offs = []
+    for s, k in rates:
+        offs.append(test(f"rate:{s}", Xs[:, k]))
+        offs.append(test(f"accel:{s}", Xs_dot[:, k]))
+    return bias, scale, rate, offs, regs
 
 
 def _remove(e: np.ndarray, cols: list[np.ndarray]) -> np.ndarray:

@@ -126,31 +126,17 @@ def noise_parameters(model, records, det_std, *, proc_std: dict, proc_G: dict, m
     proc_std: {state: std} (states absent get ``det_std``); proc_G: {(row, col): value}
     off-diagonal entries by state names; meas_std: {output: std}.
     """
-    from ..estimator.core import NoiseMap
+    from ..estimator import FitOptions, Problem
 
-    nm = NoiseMap(model, records, deterministic_std=det_std)
-    names = model.state_names
-    w = []
-    for i in nm.proc_est_idx:
-        s = float(proc_std.get(names[i], det_std)) - float(nm.proc_floor[i])
-        w.append(math.log(max(s, 1e-300)))
-    for a, b in nm.offdiag:
-        w.append(float(proc_G.get((names[a], names[b]), 0.0)))
-    for j in nm.meas_est_idx:
-        s = float(meas_std[model.output_names[j]]) - float(nm.meas_floor[j])
-        w.append(math.log(max(s, 1e-300)))
-    if len(w) != nm.n:
-        raise ValueError("noise layout mismatch")
-    return np.asarray(w, float)
+    P = Problem(model, records, FitOptions(deterministic_std=det_std))
+    return P.noise_vector(proc_std=proc_std, proc_G=proc_G, meas_std=meas_std, default_std=det_std)
 
 
 def parameter_start(model):
     """Unconstrained start of the free parameters and the θ it maps to (the estimator's map)."""
-    from ..estimator.core import ThetaMap
+    from ..estimator import parameter_start as start
 
-    tm = ThetaMap(model.parameters)
-    theta = np.asarray(tm.theta(tm.z0), float)
-    return np.asarray(tm.z0, float), theta
+    return start(model)
 
 
 def noise_stds(fit, model) -> tuple[dict, dict, dict]:
@@ -171,11 +157,9 @@ def noise_stds(fit, model) -> tuple[dict, dict, dict]:
 
 def _embed_r(r0, n0, n1, base_idx, new_idx, d_new, c_new):
     """Assumed-density parameters (d, strict-lower L, C) of n0 states embedded in n1 states."""
-    r0 = np.asarray(r0, float)
-    nl0 = n0 * (n0 - 1) // 2
-    d0, l0, c0 = r0[:n0], r0[n0:n0 + nl0], r0[n0 + nl0:].reshape(n0, n0)
-    L0 = np.eye(n0)
-    L0[np.tril_indices(n0, -1)] = l0
+    from ..estimator import join_density, split_density
+
+    d0, L0, c0 = split_density(r0, n0)
     d1 = np.zeros(n1)
     L1 = np.eye(n1)
     C1 = np.zeros((n1, n1))
@@ -186,7 +170,7 @@ def _embed_r(r0, n0, n1, base_idx, new_idx, d_new, c_new):
     for k, j in enumerate(new_idx):
         d1[j] = d_new[k]
         C1[j, j] = c_new[k]
-    return np.concatenate([d1, L1[np.tril_indices(n1, -1)], C1.ravel()])
+    return join_density(d1, L1, C1)
 
 
 def stage0_start(model1, records, base_fit, base_model, theta1, det_std):

@@ -189,23 +189,22 @@ def batch_spec_dict(cands, base_spec, *, name, path, info) -> tuple[dict, dict]:
     return d, names
 
 
-def _reduced_system(obj, blks, idx, nglob, lam=1e-10):
-    """Global Schur complement S (μ eliminated, tiny Marquardt damping) and reduced rhs."""
-    import jax.numpy as jnp
+#: relative Marquardt damping of the score system: keeps the elimination of the state means and the
+#: Cholesky factor of the global system defined where a curvature vanishes at the nesting point
+SCORE_DAMPING = 1e-10
 
+
+def _reduced_system(problem, blks, lam=SCORE_DAMPING):
+    """Global Schur complement S (μ eliminated, :meth:`~vsidgen.estimator.Problem.reduced_system`) and
+    reduced rhs, with the tiny Marquardt damping λ·max(|diag|, 1e-300) on every diagonal."""
     dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
             for b in blks]
-    facs = [obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
-    if not all(bool(f["ok"]) for f in facs):
+    red = problem.reduced_system(blks, lam=lam, dmus=dmus)
+    if red is None:
         return None, None
-    S = np.zeros((nglob, nglob))
-    rhs = np.zeros(nglob)
-    for ix, f in zip(idx, facs):
-        S[np.ix_(ix, ix)] += np.asarray(f["S"])
-        rhs[ix] += np.asarray(f["rhs"])
-    S = 0.5 * (S + S.T)
+    S = red.S
     S += lam * np.diag(np.maximum(np.abs(np.diag(S)), 1e-300))
-    return S, rhs
+    return S, red.rhs
 
 
 def nesting_reach(model, new_states, new_params, X, U, theta):
@@ -307,14 +306,9 @@ def added_state_r_index(n: int, added) -> list[int]:
 def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generated_dir,
                  det_std: float) -> dict:
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
-    import jax.numpy as jnp
-
-    from ..model.dynamics import settings as transition_settings
-    from ..model.dynamics import transition
-    from ..estimator.core import NoiseMap, ThetaMap, get_objective, make_cfg
-    from ..estimator.core import record_data
+    from ..estimator import FitOptions, Problem
     from ..model import load_model
-    from .refit import noise_parameters, noise_stds, stage0_start
+    from .refit import noise_stds, stage0_start
     from .specwrite import warm_parameters, write_spec
 
     d, bnames = batch_spec_dict(cands, current.spec_path, name=name, path=path, info=info)
@@ -325,17 +319,13 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
     base_fit = current.fit
-    integ, sub = transition_settings(m)
-    F = transition(m, integrator=integ, substeps=sub)
-    tm = ThetaMap(m.parameters)
-    nm = NoiseMap(m, records, deterministic_std=det_std)
-    obj = get_objective(m, tm, nm, F, (integ, sub))
-    cfg = make_cfg(tm, nm)
-    theta = np.asarray(tm.theta(jnp.asarray(tm.z0)), float)
+    # the model's own integrator, sub-steps and input hold; records unpadded
+    P = Problem(m, records, FitOptions(deterministic_std=det_std, bucket=False))
+    z0 = P.parameter_start()
+    theta = P.theta(z0)
     proc_std, offd, meas_std = noise_stds(base_fit, current.model)
-    s = np.concatenate([np.asarray(tm.z0, float),
-                        noise_parameters(m, records, det_std, proc_std=proc_std, proc_G=offd,
-                                 meas_std=meas_std)])
+    s = np.concatenate([z0, P.noise_vector(proc_std=proc_std, proc_G=offd, meas_std=meas_std,
+                                           default_std=det_std)])
     new_states = [n for n in m.state_names if n not in current.model.state_names]
     if new_states:
         # the added states embedded at the nesting point as in stage 0 of the refit (means
@@ -348,40 +338,36 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     else:
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in base_fit.decision["records"]]
-    data = [record_data(r) for r in records]
-    sj = jnp.asarray(s)
-    blks = [obj.blocks(jnp.asarray(mu), jnp.asarray(r), sj, dd, cfg)
-            for (mu, r), dd in zip(recs, data)]
-    nrec, nq, ng = len(records), obj.nq, obj.ng
-    nglob = nrec * nq + ng
-    idx = [np.concatenate([np.arange(i * nq, (i + 1) * nq), nrec * nq + np.arange(ng)])
-           for i in range(nrec)]
-    free_names = [m.parameters[i].name for i in tm.free_idx]
-    gpos = {n: nrec * nq + j for j, n in enumerate(free_names)}
-    nt = tm.n_free
-    new_noise = [nrec * nq + nt + a for a, i in enumerate(nm.proc_est_idx)
-                 if m.state_names[i] in new_states]
+    blks = P.blocks(s, recs)
+    nglob = P.layout.nglob
+    free_names = P.free_names
+    gpos = {n: int(j) for n, j in zip(free_names, P.layout.theta_index)}
+    new_noise = [j for j in (P.process_noise_index(n) for n in new_states) if j is not None]
     new_par = {bnames[c.key][p.name] for c in cands for p in c.parameters if not p.fixed}
-    Hdiag = np.zeros(nglob)
-    for ix, b in zip(idx, blks):
-        Hdiag[ix] += np.diag(np.asarray(b["Hbb"]))
+    Hdiag = np.diag(P.gather(blks)[1])
     informative = set(new_par)
     held_r: set = set()
     if new_states:
+        import jax.numpy as jnp
+
+        lay = P.layout
         ni = [m.state_names.index(z) for z in new_states]
         informative, reach = nesting_reach(
             m, new_states, sorted(new_par & set(gpos)),
             np.concatenate([mu for mu, _ in recs]),
             np.concatenate([np.asarray(r.u, float) for r in records]), theta)
-        Gd = np.abs(np.diag(np.asarray(nm.G(jnp.asarray(s[nt:]), cfg["noise"]), float)))
-        cols = [nq + gpos[q] - nrec * nq for q in sorted(new_par & set(gpos))]
-        ncols = list(nq + nt + np.arange(nm.n))
+        Gd = np.abs(np.diag(np.asarray(P.nm.G(jnp.asarray(s[lay.n_theta:]), P.cfg["noise"]),
+                                       float)))
+        # columns of a record's border block (r_i, then the shared vector)
+        cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
+        ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
         inert = [m.state_names.index(z) for z in new_states if z not in reach]
         blks = [condition_added_states(b, ni, 1.0 / (float(r.dt) * Gd[ni] ** 2), inert, cols,
                                        ncols)
                 for b, r in zip(blks, records)]
-        held_r = {i * nq + j for i in range(nrec) for j in added_state_r_index(obj.n, ni)}
-    S, rhs = _reduced_system(obj, blks, idx, nglob)
+        held_r = {int(lay.r_index(i)[j]) for i in range(lay.nrec)
+                  for j in added_state_r_index(m.nx, ni)}
+    S, rhs = _reduced_system(P, blks)
     out = {}
     if S is None:
         for c in cands:
@@ -402,7 +388,8 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
 
     a0 = solve0(rhs[rest])
     gain0 = 0.5 * float(rhs[rest] @ a0)
-    dth = tm.dtheta_dz(np.asarray(tm.z0, float))
+    dth = P.theta_jacobian(z0)
+    free_idx = [m.parameter_names.index(n) for n in free_names]
     for c in cands:
         names = [p.name for p in c.parameters if not p.fixed and bnames[c.key][p.name] in gpos]
         bn = bnames[c.key]
@@ -430,7 +417,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
         step = {}
         for n, dzn in zip(tested, dz):
             j = free_names.index(bn[n])
-            step[n] = float(theta[tm.free_idx[j]] + dth[j] * dzn)
+            step[n] = float(theta[free_idx[j]] + dth[j] * dzn)
         out[c.key] = ScoreResult(stat, len(tested), float(stats.chi2.sf(stat, len(tested))),
                                  tuple(tested), tuple(held), gain0 + 0.5 * stat, gain0, step)
     return out

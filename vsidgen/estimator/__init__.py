@@ -5,10 +5,15 @@ Public API::
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
     FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
+    Problem(model, records, options)    # decision-vector layout, objective, reduced Newton system
+    Layout, ReducedSystem, Gradient, parameter_start, split_density, join_density
 """
 
-from .fit import DirectMeasurement, direct_measurements, fit, measured_states, smooth
+from .fit import fit, smooth
+from .problem import (DirectMeasurement, Gradient, Layout, Problem, ReducedSystem, direct_measurements, join_density,
+                      measured_states, parameter_start, split_density)
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
 
-__all__ = ["DirectMeasurement", "FitOptions", "FitResult", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart",
-           "direct_measurements", "fit", "measured_states", "smooth"]
+__all__ = ["DirectMeasurement", "FitOptions", "FitResult", "Gradient", "Layout", "Problem", "ReducedSystem",
+           "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "direct_measurements", "fit",
+           "join_density", "measured_states", "parameter_start", "smooth", "split_density"]

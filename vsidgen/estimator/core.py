@@ -32,6 +32,7 @@ free θ (unconstrained coordinates) and noise parameters. Its Hessian over
 from __future__ import annotations
 
 import collections
+import functools
 import math
 
 import jax
@@ -598,18 +599,33 @@ class Objective:
         """
         self.traces["blocks"] += 1
         u, y, m, dt, wp, wn, n_true = data
-        N, n = mu.shape  # N: padded length; n_true: number of real samples (traced)
-        nq = self.nq
+        N = mu.shape[0]  # N: padded length; n_true: number of real samples (traced)
+        c = self._point_context(r, s, cfg, dt)
+        pa, pr = self._chunked(functools.partial(self._pair_term, c), [mu[:-1], mu[1:], step_inputs(self.F, u)],
+                               N - 1, wp)
+        na, nr = self._chunked(functools.partial(self._node_term, c), [mu, u, y, m], N, wn)
+        return self._border_assembly(c, pa, pr, na, nr, wn, n_true, cfg, dt)
+
+    def _lift(self, bb, cfg, dt):
+        """Border b → the sigma-point offsets of the pair and node densities, θ, σ and P = Q⁻¹."""
+        n, nq = self.n, self.nq
+        th, G, sig = self.unpack_s(bb[nq:], cfg)
+        d0, d1 = self.pair_offsets(bb[:nq])
+        dn = self.node_offsets(bb[:nq])
+        Li = tri_solve_small(jnp.sqrt(dt) * G, jnp.eye(n))
+        return d0, d1, dn, th, sig, Li.T @ Li
+
+    def _point_context(self, r, s, cfg, dt) -> dict:
+        """What every pair and node term shares: the lifted border and its Jacobian ∂z_i/∂b, the model
+        functions and their Jacobians at a point, the curvature functions and the noise columns of b."""
+        n = self.n
         npar = self.model.np
+        nq = self.nq
         nz = 2 * n + npar
         b = jnp.concatenate([r, s])
 
         def lift(bb):
-            th, G, sig = self.unpack_s(bb[nq:], cfg)
-            d0, d1 = self.pair_offsets(bb[:nq])
-            dn = self.node_offsets(bb[:nq])
-            Li = tri_solve_small(jnp.sqrt(dt) * G, jnp.eye(n))
-            return d0, d1, dn, th, sig, Li.T @ Li
+            return self._lift(bb, cfg, dt)
 
         d0, d1, dn, theta, sig, P = lift(b)
         Jd0, Jd1, Jdn, Jth, Jsig, JP = jax.jacfwd(lift)(b)
@@ -641,104 +657,117 @@ class Objective:
         scols = nq + nt + self.nm.n_proc + np.arange(self.nm.n_meas)
         Ep = jnp.asarray(np.eye(nb)[pcols])  # (npc, nb) selection
         Es = jnp.asarray(np.eye(nb)[scols])
-        JPc = JP[:, :, pcols]  # (n, n, npc)
-        Jsigc = Jsig[:, scols]  # (ny, nsc)
-        Ar = jnp.concatenate([Jd0, Jd1], axis=1)[:, :, :nq]  # (4n, 2n, nq): ∂(x_k, x_k+1)/∂r
-        Arn = Jdn[:, :, :nq]  # (2n, n, nq)
-
-        def curv(fun, kv, zidx, nzz):
-            """Per-point curvature K_i = ∇²_a(λ_i·fun) restricted to the variables kv, embedded in z-space."""
-            if kv is None:
-                kv = np.arange(nza)
-            if len(kv) == 0:
-                return None
-            Esel = jnp.asarray(np.eye(nza)[kv])  # (nv, na)
-            keep = jnp.asarray(np.isin(np.arange(nza), kv, invert=True).astype(float))
-            Ez = jnp.asarray(np.eye(nzz)[zidx[kv]])  # (nv, nz)
-            hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, fun(a * keep + av @ Esel, uk)))
-
-            def K(A, lam, uk):
-                Kv = jax.vmap(hes, (0, 0, 0, None))(A[:, kv], A, lam, uk)  # (P, nv, nv)
-                return jnp.einsum("jz,ijk,kw->izw", Ez, Kv, Ez)
-            return K
-
         kidx = np.concatenate([np.arange(n), 2 * n + np.arange(npar)])
-        K_F = curv(Fa, self.kv_F, kidx, nz)
-        K_h = curv(ha, self.kv_h, np.arange(nza), nza)
-        negI = -jnp.broadcast_to(jnp.eye(n), (4 * n, n, n))
-        cp = 1.0 / (4 * n)
-        cn = 1.0 / (2 * n)
+        return dict(
+            n=n, npar=npar, nz=nz, nza=nza, b=b, lift=lift,
+            d0=d0, d1=d1, dn=dn, theta=theta, sig=sig, P=P, Jth=Jth, Az=Az, An=An,
+            Fa=Fa, ha=ha, F_jac=F_jac, h_jac=h_jac, Ep=Ep, Es=Es,
+            JPc=JP[:, :, pcols],  # (n, n, npc)
+            Jsigc=Jsig[:, scols],  # (ny, nsc)
+            Ar=jnp.concatenate([Jd0, Jd1], axis=1)[:, :, :nq],  # (4n, 2n, nq): ∂(x_k, x_k+1)/∂r
+            Arn=Jdn[:, :, :nq],  # (2n, n, nq)
+            K_F=self._curvature(Fa, self.kv_F, kidx, nz, nza),
+            K_h=self._curvature(ha, self.kv_h, np.arange(nza), nza, nza),
+            negI=-jnp.broadcast_to(jnp.eye(n), (4 * n, n, n)),
+            cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
-        def pair_piece(mu0, mu1, uk, wk):
-            X0 = mu0 + d0
-            X1 = mu1 + d1
-            A0 = jnp.concatenate([X0, jnp.broadcast_to(theta, (4 * n, npar))], axis=1)
-            Fs = jax.vmap(Fa, (0, None))(A0, uk)
-            J = jax.vmap(F_jac, (0, None))(A0, uk)  # (4n, n, n+np)
-            e = X1 - Fs
-            Pe = e @ P
-            cw = cp * wk
-            Jh = jnp.concatenate([J[:, :, :n], negI, J[:, :, n:]], axis=2)  # (4n, n, nz)
-            PJ = jnp.einsum("ab,ibw->iaw", P, Jh)
-            Hz = cw * jnp.einsum("iaz,iaw->izw", Jh, PJ)
-            if K_F is not None:
-                Hz = Hz + K_F(A0, -cw * Pe, uk)
-            gz = -cw * jnp.einsum("iaz,ia->iz", Jh, Pe)
-            JPe = jnp.einsum("abl,ib->ial", JPc, e)
-            Cz = -cw * jnp.einsum("iaz,ial->izl", Jh, JPe)  # (4n, nz, npc): columns pcols of b
-            S = cw * (e.T @ e)
-            HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :2 * n, :2 * n], Ar)  # rows μ_k, μ_{k+1}; columns r
-            HAt = jnp.sum(Hz[:, :2 * n, 2 * n:], 0)  # (2n, np), times ∂θ/∂b later
-            Cs = jnp.sum(Cz[:, :2 * n, :], 0)
-            Hs = jnp.sum(Hz[:, :2 * n, :2 * n], 0)
-            return dict(D0=Hs[:n, :n], D1=Hs[n:, n:], B=Hs[:n, n:], Wr0=HAr[:n], Wr1=HAr[n:], Wt0=HAt[:n],
-                        Wt1=HAt[n:], Wc0=Cs[:n], Wc1=Cs[n:],
-                        g0=jnp.sum(gz[:, :n], 0), g1=jnp.sum(gz[:, n:2 * n], 0),
-                        sHz=Hz, sCz=Cz, sgz=gz, sS=S)
+    @staticmethod
+    def _curvature(fun, kv, zidx, nzz, nza):
+        """Per-point curvature K_i = ∇²_a(λ_i·fun) restricted to the variables kv, embedded in z-space."""
+        if kv is None:
+            kv = np.arange(nza)
+        if len(kv) == 0:
+            return None
+        Esel = jnp.asarray(np.eye(nza)[kv])  # (nv, na)
+        keep = jnp.asarray(np.isin(np.arange(nza), kv, invert=True).astype(float))
+        Ez = jnp.asarray(np.eye(nzz)[zidx[kv]])  # (nv, nz)
+        hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, fun(a * keep + av @ Esel, uk)))
 
-        def node_piece(muk, uk, yk, mk, wk):
-            X = muk + dn
-            A = jnp.concatenate([X, jnp.broadcast_to(theta, (2 * n, npar))], axis=1)
-            Hx = jax.vmap(ha, (0, None))(A, uk)
-            J = jax.vmap(h_jac, (0, None))(A, uk)  # (2n, ny, n+np)
-            mw = mk * wk
-            e = yk - Hx
-            iv = mw / sig ** 2
-            Hz = cn * jnp.einsum("iaz,iaw->izw", J, J * iv[None, :, None])
-            if K_h is not None:
-                Hz = Hz + K_h(A, -cn * e * iv, uk)
-            gz = -cn * jnp.einsum("iaz,ia->iz", J, e * iv)
-            Cz = (2 * cn) * jnp.einsum("iaz,ial->izl", J, (e * (mw / sig ** 3))[:, :, None] * Jsigc[None])
-            HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :n, :n], Arn)
-            return dict(D0=jnp.sum(Hz[:, :n, :n], 0), Wr0=HAr, Wt0=jnp.sum(Hz[:, :n, n:], 0),
-                        Wc0=jnp.sum(Cz[:, :n, :], 0), g0=jnp.sum(gz[:, :n], 0),
-                        sHz=Hz, sCz=Cz, sgz=gz, sSe=cn * jnp.sum(mw * e ** 2, 0), sM=mw)
+        def K(A, lam, uk):
+            Kv = jax.vmap(hes, (0, 0, 0, None))(A[:, kv], A, lam, uk)  # (P, nv, nv)
+            return jnp.einsum("jz,ijk,kw->izw", Ez, Kv, Ez)
+        return K
 
-        def chunked(fn, args, count, w):
-            """vmap ``fn`` over ``count`` items in chunks (lax.scan); keys 's…' are summed, others stacked.
+    @staticmethod
+    def _pair_term(c, mu0, mu1, uk, wk):
+        """Pair k's blocks: D (rows μ_k, μ_{k+1}), B, its border couplings (r, θ and noise parts) and
+        gradient; keys 's…' are the per-point pieces summed over pairs for the border."""
+        n, npar, P, cp = c["n"], c["npar"], c["P"], c["cp"]
+        X0 = mu0 + c["d0"]
+        X1 = mu1 + c["d1"]
+        A0 = jnp.concatenate([X0, jnp.broadcast_to(c["theta"], (4 * n, npar))], axis=1)
+        Fs = jax.vmap(c["Fa"], (0, None))(A0, uk)
+        J = jax.vmap(c["F_jac"], (0, None))(A0, uk)  # (4n, n, n+np)
+        e = X1 - Fs
+        Pe = e @ P
+        cw = cp * wk
+        Jh = jnp.concatenate([J[:, :, :n], c["negI"], J[:, :, n:]], axis=2)  # (4n, n, nz)
+        PJ = jnp.einsum("ab,ibw->iaw", P, Jh)
+        Hz = cw * jnp.einsum("iaz,iaw->izw", Jh, PJ)
+        if c["K_F"] is not None:
+            Hz = Hz + c["K_F"](A0, -cw * Pe, uk)
+        gz = -cw * jnp.einsum("iaz,ia->iz", Jh, Pe)
+        JPe = jnp.einsum("abl,ib->ial", c["JPc"], e)
+        Cz = -cw * jnp.einsum("iaz,ial->izl", Jh, JPe)  # (4n, nz, npc): columns pcols of b
+        S = cw * (e.T @ e)
+        HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :2 * n, :2 * n], c["Ar"])  # rows μ_k, μ_{k+1}; columns r
+        HAt = jnp.sum(Hz[:, :2 * n, 2 * n:], 0)  # (2n, np), times ∂θ/∂b later
+        Cs = jnp.sum(Cz[:, :2 * n, :], 0)
+        Hs = jnp.sum(Hz[:, :2 * n, :2 * n], 0)
+        return dict(D0=Hs[:n, :n], D1=Hs[n:, n:], B=Hs[:n, n:], Wr0=HAr[:n], Wr1=HAr[n:], Wt0=HAt[:n],
+                    Wt1=HAt[n:], Wc0=Cs[:n], Wc1=Cs[n:],
+                    g0=jnp.sum(gz[:, :n], 0), g1=jnp.sum(gz[:, n:2 * n], 0),
+                    sHz=Hz, sCz=Cz, sgz=gz, sS=S)
 
-            ``w`` (count,): per-item weight passed last to ``fn`` (0 for padded samples)."""
-            nc = -(-count // self.chunk)  # chunks of at most self.chunk items,
-            ch = -(-count // nc)  # as equal as possible (601 pairs: 2 x 301, not 2 x 512)
-            pad = nc * ch - count
-            wts = jnp.concatenate([w, jnp.zeros(pad)])
-            args = [jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])]) if pad else a
-                    for a in args] + [wts]
-            args = [a.reshape((nc, ch) + a.shape[1:]) for a in args]
-            shapes = jax.eval_shape(jax.vmap(fn), *[a[0] for a in args])
-            acc0 = {k: jnp.zeros(v.shape[1:]) for k, v in shapes.items() if k.startswith("s")}
+    @staticmethod
+    def _node_term(c, muk, uk, yk, mk, wk):
+        """Node k's blocks: D (row μ_k), its border couplings and gradient; keys 's…' summed for the border."""
+        n, npar, sig, cn = c["n"], c["npar"], c["sig"], c["cn"]
+        X = muk + c["dn"]
+        A = jnp.concatenate([X, jnp.broadcast_to(c["theta"], (2 * n, npar))], axis=1)
+        Hx = jax.vmap(c["ha"], (0, None))(A, uk)
+        J = jax.vmap(c["h_jac"], (0, None))(A, uk)  # (2n, ny, n+np)
+        mw = mk * wk
+        e = yk - Hx
+        iv = mw / sig ** 2
+        Hz = cn * jnp.einsum("iaz,iaw->izw", J, J * iv[None, :, None])
+        if c["K_h"] is not None:
+            Hz = Hz + c["K_h"](A, -cn * e * iv, uk)
+        gz = -cn * jnp.einsum("iaz,ia->iz", J, e * iv)
+        Cz = (2 * cn) * jnp.einsum("iaz,ial->izl", J, (e * (mw / sig ** 3))[:, :, None] * c["Jsigc"][None])
+        HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :n, :n], c["Arn"])
+        return dict(D0=jnp.sum(Hz[:, :n, :n], 0), Wr0=HAr, Wt0=jnp.sum(Hz[:, :n, n:], 0),
+                    Wc0=jnp.sum(Cz[:, :n, :], 0), g0=jnp.sum(gz[:, :n], 0),
+                    sHz=Hz, sCz=Cz, sgz=gz, sSe=cn * jnp.sum(mw * e ** 2, 0), sM=mw)
 
-            def body(acc, xs):
-                out = jax.vmap(fn)(*xs)
-                acc = {k: acc[k] + jnp.sum(out[k], 0) for k in acc}
-                return acc, {k: v for k, v in out.items() if not k.startswith("s")}
+    def _chunked(self, fn, args, count, w):
+        """vmap ``fn`` over ``count`` items in chunks (lax.scan); keys 's…' are summed, others stacked.
 
-            acc, rest = jax.lax.scan(body, acc0, args)
-            rest = {k: v.reshape((nc * ch,) + v.shape[2:])[:count] for k, v in rest.items()}
-            return acc, rest
+        ``w`` (count,): per-item weight passed last to ``fn`` (0 for padded samples)."""
+        nc = -(-count // self.chunk)  # chunks of at most self.chunk items,
+        ch = -(-count // nc)  # as equal as possible (601 pairs: 2 x 301, not 2 x 512)
+        pad = nc * ch - count
+        wts = jnp.concatenate([w, jnp.zeros(pad)])
+        args = [jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])]) if pad else a
+                for a in args] + [wts]
+        args = [a.reshape((nc, ch) + a.shape[1:]) for a in args]
+        shapes = jax.eval_shape(jax.vmap(fn), *[a[0] for a in args])
+        acc0 = {k: jnp.zeros(v.shape[1:]) for k, v in shapes.items() if k.startswith("s")}
 
-        pa, pr = chunked(pair_piece, [mu[:-1], mu[1:], step_inputs(self.F, u)], N - 1, wp)
-        na, nr = chunked(node_piece, [mu, u, y, m], N, wn)
+        def body(acc, xs):
+            out = jax.vmap(fn)(*xs)
+            acc = {k: acc[k] + jnp.sum(out[k], 0) for k in acc}
+            return acc, {k: v for k, v in out.items() if not k.startswith("s")}
+
+        acc, rest = jax.lax.scan(body, acc0, args)
+        rest = {k: v.reshape((nc * ch,) + v.shape[2:])[:count] for k, v in rest.items()}
+        return acc, rest
+
+    def _border_assembly(self, c, pa, pr, na, nr, wn, n_true, cfg, dt):
+        """Value, border gradient and H_bb (the shared functions of b plus the summed point pieces
+        through ∂z/∂b), and the per-sample blocks D, B, W, g_μ from the pair and node pieces."""
+        n, npar, nq, nb = c["n"], c["npar"], self.nq, self.nb
+        lift, Az, An, Jth, Ep, Es = c["lift"], c["Az"], c["An"], c["Jth"], c["Ep"], c["Es"]
 
         # shared functions of the border: noise terms, lifting curvature, entropy
         def shared(bb):
@@ -753,6 +782,7 @@ class Objective:
             lin = jnp.sum(jax.lax.stop_gradient(pa["sgz"]) * zp) + jnp.sum(jax.lax.stop_gradient(na["sgz"]) * zn)
             return val + lin - jax.lax.stop_gradient(lin)
 
+        b = c["b"]
         f, gsh = jax.value_and_grad(shared)(b)
         Hsh = jax.hessian(shared)(b)
         Hbb = (Hsh + jnp.einsum("iwa,iwv,ivb->ab", Az, pa["sHz"], Az)

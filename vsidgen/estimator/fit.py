@@ -1,21 +1,22 @@
 """fit() and smooth(): the structured Newton (Levenberg–Marquardt) maximisation of the ELBO.
 
-Decision vector: shared s = [z (free θ, unconstrained), noise parameters] and,
-per record, the state means μ (N×n) and assumed-density parameters
-r = (d, strict-lower L, C). Each iteration
+Decision vector, objective and the reduced Newton system: :class:`vsidgen.estimator.problem.Problem`
+(shared s = [z (free θ, unconstrained), noise parameters] and, per record, the state means μ
+(N×n) and assumed-density parameters r = (d, strict-lower L, C)). Each iteration
+(:func:`_optimize`)
 
-1. computes value, gradient and Hessian blocks of −ELBO per record
-   (``jax.vmap(jax.hessian(...))`` over pairs and nodes, one jit per record shape),
-2. solves (H + λ D) Δ = −∇ with D = Marquardt diagonal scaling: μ is eliminated
-   record by record with an O(N) block-tridiagonal Cholesky, the border
-   (all r and s) through its Schur complement,
-3. accepts the step when the actual / predicted reduction ratio ρ > 1e-4 and
-   updates λ (Nielsen's rule); a failed Cholesky (indefinite H + λD) or a
-   rejected step increases λ.
-
-It stops on the relative gradient (see :class:`FitOptions` ``gtol``): converged;
-or on no progress (step below ``xtol``, λ overflow, predicted reduction below
-rounding): not converged, with a status saying so.
+1. measures the iterate (:func:`_lm_measure`): value, gradient and Hessian blocks of −ELBO per
+   record (exact sigma-point assembly, one jit per record shape), relative gradient and Newton
+   decrement;
+2. stops (:func:`_lm_terminate`) on the Newton decrement with a positive-definite Hessian or the
+   relative gradient (see :class:`FitOptions` ``decrement_tol``, ``gtol``): converged; or on a
+   limit;
+3. otherwise (:func:`_lm_step`) solves (H + λ D) Δ = −∇ with D = Marquardt diagonal scaling: μ is
+   eliminated record by record with an O(N) block-tridiagonal Cholesky, the border (all r and s)
+   through its Schur complement; accepts the step when the actual / predicted reduction ratio
+   ρ > ACCEPT_RATIO and updates λ (Nielsen's rule); a failed Cholesky (indefinite H + λD) or a
+   rejected step increases λ. No progress (step below ``xtol``, λ overflow, predicted reduction
+   below rounding) stops, not converged, with a status saying so.
 """
 
 from __future__ import annotations
@@ -23,324 +24,18 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..model.dynamics import input_hold as transition_input_hold
-from ..model.dynamics import settings as transition_settings
-from ..model.dynamics import transition
-from .core import NoiseMap, ThetaMap, bucket_length, diff_scale, get_objective, make_cfg, record_data
-from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
+from .core import diff_scale
+from .problem import Gradient, Problem, direct_measurements, initial_means, measured_states
+from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
-
-
-# --------------------------------------------------------------------------- helpers
-@dataclasses.dataclass(frozen=True)
-class DirectMeasurement:
-    """Output ``output`` measures one state directly: y = offset + gain · x_i.
-
-    ``gain`` ≠ 0 and ``offset`` are numbers during the fit (spec constants and fixed
-    parameters allowed, estimated parameters not), so the state is known from the
-    measurement up to its noise: x_i = (y − offset)/gain.
-    """
-
-    output: int
-    gain: float = 1.0
-    offset: float = 0.0
-
-    def state_of(self, y):
-        """The state a measured value stands for: (y − offset)/gain."""
-        return (y - self.offset) / self.gain
-
-
-def _affine_in(e, x, const_values) -> tuple[float, float] | None:
-    """(gain, offset) when ``e`` is offset + gain·x with numeric gain ≠ 0 and offset, else None."""
-    import sympy
-
-    e = e.xreplace(const_values)
-    if e.free_symbols != {x}:
-        return None
-    try:
-        poly = sympy.Poly(e, x)
-    except sympy.PolynomialError:
-        return None
-    if poly.degree() != 1:
-        return None
-    k, c = (float(v) for v in (poly.coeff_monomial(x), poly.coeff_monomial(1)))
-    if not (math.isfinite(k) and math.isfinite(c) and k != 0.0):
-        return None
-    return k, c
-
-
-def direct_measurements(model) -> dict[int, DirectMeasurement]:
-    """{state index: DirectMeasurement} for outputs that measure one state directly.
-
-    An output y_j = c + k·x_i with numbers k ≠ 0 and c (the state itself, the state in
-    other units such as ``57.29578*alpha``, or a trim value plus a perturbation such as
-    ``V0 + u`` with ``V0`` a spec constant or a fixed parameter) measures x_i directly: the
-    measured values give the state's start μ_i = (y_j − c)/k and its data scale (spread of
-    y_j's sample differences / |k|). The first such output of a state is taken.
-
-    Uses ``model.symbolic.observations`` (definitions expanded, constants and fixed
-    parameters substituted) when a symbolic model is attached, else tests h numerically:
-    y_j must be the same affine function of x_i at random states and inputs, for two
-    vectors of the estimated parameters.
-    """
-    out: dict[int, DirectMeasurement] = {}
-    sym = model.symbolic
-    if sym is not None:
-        try:
-            fixed = {p.name: float(p.initial) for p in model.parameters if p.fixed}
-            consts = dict(sym.constant_values())
-            consts.update({p.symbol: fixed[p.name] for p in sym.parameters if p.name in fixed})
-            for j, e in enumerate(sym.observations_expanded()):
-                for i, st in enumerate(sym.states):
-                    kc = _affine_in(e, st.symbol, consts)
-                    if kc is not None:
-                        out.setdefault(i, DirectMeasurement(j, *kc))
-            return out
-        except Exception:  # fall back to the numerical test
-            out = {}
-    return _direct_measurements_numerical(model)
-
-
-def _direct_measurements_numerical(model) -> dict[int, DirectMeasurement]:
-    rng = np.random.default_rng(12345)
-    p0 = np.asarray([float(q.initial) for q in model.parameters], float)
-    out: dict[int, DirectMeasurement] = {}
-    npts = 4
-    X = rng.normal(size=(npts, model.nx)) * 0.7 + 0.3
-    U = rng.normal(size=(npts, model.nu))
-    free = np.array([not q.fixed for q in model.parameters], bool)
-    P = [p0, p0 + free * rng.normal(size=p0.shape) * 0.1]
-    with np.errstate(all="ignore"):
-        H = np.array([[np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(p)), float)
-                       for x, u in zip(X, U)] for p in P])  # (2, npts, ny)
-    for j in range(model.ny):
-        for i in range(model.nx):
-            x = X[:, i]
-            h = H[0, :, j]
-            if not np.all(np.isfinite(H[:, :, j])) or x[1] == x[0]:
-                continue
-            k = (h[1] - h[0]) / (x[1] - x[0])
-            c = h[0] - k * x[0]
-            pred = c + k * x
-            tol = 1e-12 * (1 + np.abs(H[:, :, j]))
-            if k != 0 and np.all(np.abs(H[:, :, j] - pred[None, :]) <= tol):
-                out.setdefault(i, DirectMeasurement(j, float(k), float(c)))
-    return out
-
-
-def measured_states(model) -> dict[int, int]:
-    """{state index: output index} for outputs that measure a state directly (:func:`direct_measurements`)."""
-    return {i: m.output for i, m in direct_measurements(model).items()}
-
-
-def _initial_mu(model, rec, pairs, how: str) -> np.ndarray:
-    N = np.asarray(rec.y).shape[0]
-    mu = np.zeros((N, model.nx))
-    if how == "zero":
-        return mu
-    if how != "measured":
-        raise FitError(f"init_states must be 'measured' or 'zero', got '{how}'")
-    y = np.asarray(rec.y, float)
-    k = np.arange(N)
-    for i, dm in pairs.items():
-        col = dm.state_of(y[:, dm.output])
-        fin = np.isfinite(col)
-        if fin.any():
-            mu[:, i] = np.interp(k, k[fin], col[fin])
-    return mu
-
-
-def _check_records(model, records):
-    if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
-        records = [records]
-    if len(records) == 0:
-        raise FitError("no records to fit")
-    for rec in records:
-        y = np.asarray(rec.y, float)
-        u = np.asarray(rec.u, float)
-        name = getattr(rec, "name", "?")
-        if y.ndim != 2 or y.shape[1] != model.ny:
-            raise FitError(f"record '{name}': y has shape {y.shape}, expected (N, {model.ny})")
-        if u.ndim != 2 or u.shape != (y.shape[0], model.nu):
-            raise FitError(f"record '{name}': u has shape {u.shape}, expected ({y.shape[0]}, {model.nu})")
-        if y.shape[0] < 3:
-            raise FitError(f"record '{name}' has {y.shape[0]} samples; at least 3 are needed")
-        if not np.all(np.isfinite(u)):
-            raise FitError(f"record '{name}': inputs contain NaN or inf")
-        for attr, want in (("output_names", model.output_names), ("input_names", model.input_names)):
-            got = getattr(rec, attr, None)
-            if got is not None and tuple(got) != tuple(want):
-                raise FitError(f"record '{name}': {attr} {tuple(got)} differ from the model's {tuple(want)}")
-        if not float(rec.dt) > 0:
-            raise FitError(f"record '{name}': sample period dt must be positive")
-    return list(records)
-
-
-class _Problem:
-    """Everything fixed during one optimisation: maps, objective, records, layout."""
-
-    def __init__(self, model, records, options: FitOptions, *, theta_fixed=None, fixed_G=None, fixed_R=None,
-                 relax: bool = False, hold=()):
-        self.model = model
-        self.relax = relax
-        #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
-        self.noise_scaled_start = False
-        self.records = _check_records(model, records)
-        self.integrator, self.substeps = transition_settings(
-            model, integrator=options.integrator, substeps=options.substeps)
-        self.input_hold = transition_input_hold(model, options.input_hold)
-        F = transition(model, integrator=self.integrator, substeps=self.substeps,
-                       inputs=self.input_hold)
-        self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
-        self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=direct_measurements(model), relax=relax,
-                           hold=hold)
-        self.obj = get_objective(model, self.tm, self.nm, F, (self.integrator, self.substeps))
-        self.cfg = make_cfg(self.tm, self.nm)
-        self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
-        self.lengths = [int(np.asarray(r.y).shape[0]) for r in self.records]
-        # the structured path pads each record to its bucket length (shared compiled code)
-        self.padded = [bucket_length(n) if options.bucket else n for n in self.lengths]
-        self.bdata = [record_data(r, length=L) if L > n else d
-                      for r, n, L, d in zip(self.records, self.lengths, self.padded, self.data)]
-        self.nrec = len(self.records)
-        nq, ng = self.obj.nq, self.obj.ng
-        self.nglob = self.nrec * nq + ng
-        self.idx = [np.concatenate([np.arange(i * nq, (i + 1) * nq), self.nrec * nq + np.arange(ng)])
-                    for i in range(self.nrec)]
-        self.theta_idx = self.nrec * nq + np.arange(self.tm.n_free)
-
-    def initial(self, options: FitOptions, start: str = "data"):
-        ws = options.warm_start
-        if isinstance(ws, FitResult):
-            ws = None if ws.decision is None else WarmStart.from_decision(ws.decision)
-        if ws is not None:
-            s = np.asarray(ws.shared, float)
-            recs = [(np.asarray(m, float), np.asarray(r, float)) for m, r in ws.records]
-            if s.shape == (self.obj.ng,) and len(recs) == self.nrec and all(
-                    m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
-                return s, recs
-            raise FitError("warm_start result does not match this problem's shape")
-        s = np.concatenate([self.tm.z0, self.nm.inits[start]])
-        pairs = direct_measurements(self.model)
-        r0 = np.zeros(self.obj.nq)  # Σ_cond = Σ_marg = I
-        if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
-            # smoothing with known noise (validation mode): start the assumed density at the
-            # prior's conditional covariance, Σ_cond = diag(T G Gᵀ), C = 0. With Σ = I the
-            # sigma points of a nonlinear model lie ±√(2n) state units away (radians for an
-            # angle), and the smoother can stop in a far, non-physical stationary point.
-            # The release start does the same at its start noise (Σ = I is not unit free).
-            T = float(np.mean([float(r.dt) for r in self.records]))
-            G = np.asarray(self.nm.fixed_G if self.nm.fixed_G is not None
-                           else self.nm.G(jnp.asarray(self.nm.inits[start])), float)
-            r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
-        recs = [(_initial_mu(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
-        return s, recs
-
-    def floor_active(self, s, gs):
-        """Mask over s of noise parameters whose lower bound (floor) is active.
-
-        σ = floor + exp(w) reaches its floor only asymptotically (w → −∞), so the
-        gradient in w never vanishes there; a parameter with floor > 0, σ within
-        1 % of the floor and a gradient pushing it towards the floor (∂(−L)/∂w > 0)
-        is treated as an active bound constraint in the convergence test
-        (projected / KKT gradient; flagged by the ``noise_at_floor`` warning).
-        """
-        act = np.zeros(len(s), bool)
-        nt, nm = self.tm.n_free, self.nm
-        w = np.asarray(s[nt:], float)
-        gw = np.asarray(gs[nt:], float)
-        for a, i in enumerate(nm.proc_est_idx):
-            fl = nm.proc_floor[i]
-            act[nt + a] = fl > 0 and math.exp(min(w[a], 700.0)) <= 0.01 * fl and gw[a] > 0
-        for a, j in enumerate(nm.meas_est_idx):
-            fl = nm.meas_floor[j]
-            k = nm.n_proc + a
-            act[nt + k] = fl > 0 and math.exp(min(w[k], 700.0)) <= 0.01 * fl and gw[k] > 0
-        return act
-
-    @staticmethod
-    def pad(m, L):
-        """μ (N, n) padded to L rows by repeating its last row (the model is evaluated there, weight 0)."""
-        m = np.asarray(m)
-        return jnp.asarray(m if L == m.shape[0] else np.concatenate([m, np.repeat(m[-1:], L - m.shape[0], 0)]))
-
-    def value(self, s, recs):
-        sj = jnp.asarray(s)
-        return float(sum(self.obj.value(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
-                         for (m, r), d, L in zip(recs, self.bdata, self.padded)))
-
-    def blocks(self, s, recs):
-        """Per-record blocks on the padded length (D, B, W, gmu have ``self.padded[i]`` rows; the padding's
-        gradient, couplings and off-diagonal blocks are exactly 0 and its diagonal blocks the identity)."""
-        sj = jnp.asarray(s)
-        return [self.obj.blocks(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
-                for (m, r), d, L in zip(recs, self.bdata, self.padded)]
-
-    def gather(self, blks):
-        """Global border gradient and Hessian (sum over records)."""
-        gg = np.zeros(self.nglob)
-        Hg = np.zeros((self.nglob, self.nglob))
-        for ix, b in zip(self.idx, blks):
-            gg[ix] += np.asarray(b["gb"])
-            Hg[np.ix_(ix, ix)] += np.asarray(b["Hbb"])
-        return gg, Hg
-
-    def schur(self, blks, lam, dmus, dglob):
-        """(factors, S, rhs): the state means eliminated record by record (block-tridiagonal
-        Cholesky of H_μμ + λD) and the Schur complement S over the border (all r and s) with
-        its right-hand side; None when a state-mean block is not positive definite."""
-        facs = [self.obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
-        if not all(bool(f["ok"]) for f in facs):
-            return None
-        S = np.zeros((self.nglob, self.nglob))
-        rhs = np.zeros(self.nglob)
-        for ix, f in zip(self.idx, facs):
-            S[np.ix_(ix, ix)] += np.asarray(f["S"])
-            rhs[ix] += np.asarray(f["rhs"])
-        S += lam * np.diag(dglob)
-        return facs, 0.5 * (S + S.T), rhs
-
-    def newton_step(self, blks, lam, dmus, dglob, frozen=None, delta=None):
-        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], ok).
-
-        ``frozen``: mask over s of variables whose step is prescribed (``delta``, default 0:
-        active floor bounds held fixed): the other variables get the (damped) Newton step
-        given these components (projected Newton step).
-        """
-        sch = self.schur(blks, lam, dmus, dglob)
-        if sch is None:
-            return None
-        facs, S, rhs = sch
-        if frozen is not None and np.any(frozen):
-            k = self.nrec * self.obj.nq + np.nonzero(frozen)[0]
-            dk = np.zeros(len(k)) if delta is None else np.asarray(delta, float)[np.nonzero(frozen)[0]]
-            rhs = rhs - S[:, k] @ dk
-            S[k, :] = 0.0
-            S[:, k] = 0.0
-            S[k, k] = 1.0
-            rhs[k] = dk
-        if self.nglob:
-            try:
-                Lc = np.linalg.cholesky(S)
-            except np.linalg.LinAlgError:
-                return None
-            db = np.linalg.solve(Lc.T, np.linalg.solve(Lc, rhs))
-        else:
-            db = np.zeros(0)
-        dmu = [np.asarray(self.obj.back(f, jnp.asarray(db[ix])))[:n] for ix, f, n in zip(self.idx, facs, self.lengths)]
-        nq = self.obj.nq
-        dr = [db[i * nq:(i + 1) * nq] for i in range(self.nrec)]
-        ds = db[self.nrec * nq:]
-        return ds, dmu, dr, S
 
 
 def _relgrad(f, s, recs, gs, gmus, grs):
@@ -352,7 +47,7 @@ def _relgrad(f, s, recs, gs, gmus, grs):
     return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
 
 
-def _stalled(P: "_Problem", history, ws, window: int, rtol: float, remaining: int) -> bool:
+def _stalled(P: "Problem", history, ws, window: int, rtol: float, remaining: int) -> bool:
     """Is this start creeping without a prospect of converging within the iteration budget?
 
     True when (i) the ELBO rose by less than ``rtol · max(|ELBO|, 1)`` over the last ``window``
@@ -379,142 +74,205 @@ def _stalled(P: "_Problem", history, ws, window: int, rtol: float, remaining: in
     return True
 
 
-def _optimize(P: _Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
-              stall: bool = False):
-    """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
+#: Levenberg–Marquardt constants (Nielsen's damping rule; :func:`_optimize`)
+#: a step is accepted when the actual reduction of −ELBO is more than this share of the predicted one
+ACCEPT_RATIO = 1e-4
+#: smallest damping after an accepted step: the Marquardt scaling stays in the system
+LAMBDA_MIN = 1e-12
+#: damping beyond which no acceptable step is left (the step is a vanishing gradient step)
+LAMBDA_MAX = 1e16
+#: floor of the Marquardt diagonal, relative to its largest entry (a zero diagonal of H still damps)
+DIAG_FLOOR = 1e-10
+#: a predicted reduction below this share of max(|f|, 1) is rounding: no progress possible
+PRED_RTOL = 1e-15
 
-    With ``stall`` the run also stops (reason :attr:`StopReason.STALLED`, resumable) when the ELBO rose by less
-    than ``options.stall_rtol`` (relative) over ``options.stall_window`` iterations without meeting the
-    gradient criterion; used while other noise starts remain to be tried.
-    """
-    t0 = time.perf_counter() if t0 is None else t0
-    nq = P.obj.nq
+
+@dataclasses.dataclass(frozen=True)
+class _Measured:
+    """What the optimizer knows at one iterate: blocks, −ELBO ``f``, the gradient split by parts
+    (``grad``), the gathered border Hessian ``Hg``, the active floors, the relative gradient and
+    half the Newton decrement (NaN: H not positive definite on the free subspace)."""
+
+    blks: list
+    f: float
+    grad: Gradient
+    Hg: np.ndarray
+    active: np.ndarray
+    relgrad: float
+    decrement: float
+
+
+@dataclasses.dataclass(frozen=True)
+class _Stop:
+    """Why the iterations end (``converged``: at an optimum)."""
+
+    reason: StopReason
+    status: str
+    converged: bool = False
+
+
+def _lm_init(P: Problem, options: FitOptions, start: str, resume):
+    """(s, recs, λ, history, first iteration) from the noise start ``start`` or a previous output."""
     if resume is None:
         s, recs = P.initial(options, start)
-        lam = float(options.lambda0)
-        history = []
-        it0 = 0
         f0 = P.value(s, recs)
         if not math.isfinite(f0):
             raise FitError("the negative ELBO is not finite at the initial point "
                            "(check initial parameter values and the measured-state initialisation)")
-    else:
-        s, recs, lam = resume["s"], resume["recs"], resume["lam"]
-        history = list(resume["history"])[:-1]  # its last point is evaluated again below
-        it0 = resume["iterations"]
+        return s, recs, float(options.lambda0), [], 0
+    # the last point of a resumed history is evaluated again
+    return resume["s"], resume["recs"], resume["lam"], list(resume["history"])[:-1], resume["iterations"]
+
+
+def _lm_measure(P: Problem, s, recs) -> _Measured:
+    """Blocks, gradient, relative gradient and Newton decrement at (s, recs)."""
+    blks = P.blocks(s, recs)
+    f = P.total(blks)
+    gg, Hg = P.gather(blks)
+    grad = P.gradient(blks, gg)
+    gs, gmus, grs = grad.shared, list(grad.records_mu), list(grad.records_r)
+    active = P.floor_active(s, gs)
+    rg = _relgrad(f, s, recs, np.where(active, 0.0, gs), gmus, grs)
+    dec = newton_decrement(P, blks, gs, gmus, grs, active)
+    return _Measured(blks=blks, f=f, grad=grad, Hg=Hg, active=active, relgrad=rg, decrement=dec)
+
+
+def _lm_detail(m: _Measured) -> str:
+    if not math.isfinite(m.decrement):
+        return f"Hessian not positive definite, relative gradient {m.relgrad:.3g}"
+    return f"Newton decrement λ²/2 = {m.decrement:.3g} nats, relative gradient {m.relgrad:.3g}"
+
+
+def _lm_terminate(m: _Measured, options: FitOptions, it: int, elapsed: float) -> _Stop | None:
+    """Stop at the measured iterate? Convergence (Newton decrement with a positive-definite Hessian,
+    or the relative gradient), a non-finite gradient, the iteration or the time limit."""
+    rg, dec = m.relgrad, m.decrement
+    pd = math.isfinite(dec)
+    detail = _lm_detail(m)
+    if not np.isfinite(rg):
+        return _Stop(StopReason.NONFINITE, "stopped: gradient is not finite")
+    stop = None
+    if pd and dec < options.decrement_tol:
+        stop = _Stop(StopReason.NEWTON_DECREMENT,
+                     f"converged: Newton decrement λ²/2 = {dec:.3g} nats < {options.decrement_tol:g} "
+                     f"(positive-definite Hessian; relative gradient {rg:.3g})", True)
+    elif rg < options.gtol:
+        stop = _Stop(StopReason.GRADIENT, f"converged: relative gradient {rg:.3g} < gtol {options.gtol:g}", True)
+    if stop is not None:
+        if m.active.any():
+            stop = dataclasses.replace(stop, status=stop.status + (
+                f" (projected: {int(m.active.sum())} noise parameter(s) at their floor "
+                "treated as active bounds)"))
+        return stop
+    if it == options.max_iter:
+        return _Stop(StopReason.ITERATION_LIMIT, f"stopped: iteration limit {options.max_iter} reached ({detail})")
+    if options.time_limit is not None and elapsed > options.time_limit:
+        return _Stop(StopReason.TIME_LIMIT, f"stopped: time limit {options.time_limit:g} s reached ({detail})")
+    return None
+
+
+def _marquardt_diagonal(m: _Measured):
+    """Marquardt scaling: |diag H| per state mean and over the border, floored at DIAG_FLOOR of its largest entry."""
+    dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in m.blks]
+    dglob = np.abs(np.diag(m.Hg))
+    big = max([1.0] + [float(d.max()) for d in dmus] + ([float(dglob.max())] if dglob.size else []))
+    floor = DIAG_FLOOR * big
+    return [np.maximum(d, floor) for d in dmus], np.maximum(dglob, floor)
+
+
+def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float):
+    """One accepted Levenberg–Marquardt step from the measured iterate.
+
+    Solves (H + λD) Δ = −g (:meth:`Problem.newton_step`, active floors held), predicts the
+    reduction pred = −½ gᵀΔ + ½ λ ΔᵀDΔ of the local quadratic model and accepts the step when
+    ρ = (f − f(x + Δ)) / pred > ACCEPT_RATIO; then λ ← λ max(1/3, 1 − (2ρ − 1)³) (Nielsen), at
+    least LAMBDA_MIN. A failed factorisation or a rejected step multiplies λ by ν (ν doubling
+    each time). Returns (s, recs, λ, stop): stop is None after an accepted step, else why no step
+    is possible (predicted reduction at rounding level or relative step below ``xtol``: no
+    progress; λ beyond LAMBDA_MAX: damping overflow).
+    """
+    nq = P.layout.nq
+    gs, gmus, grs = m.grad.shared, list(m.grad.records_mu), list(m.grad.records_r)
+    pd = math.isfinite(m.decrement)
+    f = m.f
+    dmus, dglob = _marquardt_diagonal(m)
     nu = 2.0
+    while True:
+        sol = P.newton_step(m.blks, lam, dmus, dglob, frozen=m.active)
+        if sol is None:
+            lam *= nu
+            nu *= 2.0
+        else:
+            ds, dmu, dr, _ = sol
+            gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
+                         + sum(float(g @ d) for g, d in zip(grs, dr)))
+            dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm[:len(d)] * d ** 2)) for dm, d in zip(dmus, dmu))
+                        + sum(float(dglob[i * nq:(i + 1) * nq] @ d ** 2) for i, d in enumerate(dr)))
+            pred = -0.5 * gdot + 0.5 * lam * dDd
+            s_new = s + ds
+            recs_new = [(mu + d1, r + d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
+            step = max([float(np.max(np.abs(ds) / np.maximum(np.abs(s), 1.0))) if ds.size else 0.0]
+                       + [float(np.max(np.abs(d1) / np.maximum(np.abs(mu), 1.0))) for (mu, _), d1 in zip(recs, dmu)]
+                       + [float(np.max(np.abs(d2) / np.maximum(np.abs(r), 1.0))) for (_, r), d2 in zip(recs, dr)])
+            if pred <= PRED_RTOL * max(abs(f), 1.0) or step < options.xtol:
+                return s, recs, lam, _Stop(
+                    StopReason.NO_PROGRESS if pd else StopReason.INDEFINITE_HESSIAN,
+                    f"stopped: no further progress possible (relative step {step:.2g}, predicted "
+                    f"reduction {pred:.2g}; {_lm_detail(m)})")
+            f_new = P.value(s_new, recs_new)
+            rho = (f - f_new) / pred
+            if math.isfinite(f_new) and rho > ACCEPT_RATIO:
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                return s_new, recs_new, max(lam, LAMBDA_MIN), None
+            lam *= nu
+            nu *= 2.0
+        if lam > LAMBDA_MAX:
+            return s, recs, lam, _Stop(StopReason.DAMPING_OVERFLOW if pd else StopReason.INDEFINITE_HESSIAN,
+                                       f"stopped: damping overflow, no acceptable step ({_lm_detail(m)})")
+
+
+def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
+              stall: bool = False):
+    """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
+
+    Each iteration measures the iterate (:func:`_lm_measure`), asks whether to stop
+    (:func:`_lm_terminate`; with ``stall`` also when the ELBO rose by less than
+    ``options.stall_rtol`` (relative) over ``options.stall_window`` iterations without meeting the
+    convergence criteria, reason :attr:`StopReason.STALLED`, resumable; used while other noise
+    starts remain to be tried) and otherwise takes one damped step (:func:`_lm_step`).
+    """
+    t0 = time.perf_counter() if t0 is None else t0
+    s, recs, lam, history, it0 = _lm_init(P, options, start, resume)
     ws = []  # noise parameters per iteration (stall test)
-    converged = False
-    status = ""
-    it = it0
-    reason = None
-    blks = None
-    dec = float("nan")
+    it, stop, m = it0, None, None
     for it in range(it0, options.max_iter + 1):
-        blks = P.blocks(s, recs)
-        f = float(sum(float(b["f"]) for b in blks))
-        gg, Hg = P.gather(blks)
-        gmus = [np.asarray(b["gmu"])[:n] for b, n in zip(blks, P.lengths)]
-        grs = [gg[i * nq:(i + 1) * nq] for i in range(P.nrec)]
-        gs = gg[P.nrec * nq:]
-        active = P.floor_active(s, gs)
-        rg = _relgrad(f, s, recs, np.where(active, 0.0, gs), gmus, grs)
-        dec = newton_decrement(P, blks, gs, gmus, grs, active)
-        pd = math.isfinite(dec)
+        m = _lm_measure(P, s, recs)
         elapsed = time.perf_counter() - t0
-        history.append({"iteration": it, "elbo": -f, "grad_norm": rg, "lambda": lam, "elapsed_s": elapsed,
-                        "decrement": dec})
+        history.append({"iteration": it, "elbo": -m.f, "grad_norm": m.relgrad, "lambda": lam, "elapsed_s": elapsed,
+                        "decrement": m.decrement})
         if options.progress is not None:
-            options.progress(it, -f, rg, elapsed)
+            options.progress(it, -m.f, m.relgrad, elapsed)
         if options.verbose:
-            print(f"iter {it:4d}  elbo {-f: .10e}  relgrad {rg:.3e}  decrement/2 {dec:.3e}  lambda {lam:.2e}  "
-                  f"{elapsed:7.2f} s")
-        detail = f"Newton decrement λ²/2 = {dec:.3g} nats, relative gradient {rg:.3g}"
-        if not pd:
-            detail = f"Hessian not positive definite, relative gradient {rg:.3g}"
-        if not np.isfinite(rg):
-            reason = StopReason.NONFINITE
-            status = "stopped: gradient is not finite"
-            break
-        if pd and dec < options.decrement_tol:
-            reason = StopReason.NEWTON_DECREMENT
-            status = (f"converged: Newton decrement λ²/2 = {dec:.3g} nats < {options.decrement_tol:g} "
-                      f"(positive-definite Hessian; relative gradient {rg:.3g})")
-        elif rg < options.gtol:
-            reason = StopReason.GRADIENT
-            status = f"converged: relative gradient {rg:.3g} < gtol {options.gtol:g}"
-        if reason is not None:
-            converged = True
-            if active.any():
-                status += (f" (projected: {int(active.sum())} noise parameter(s) at their floor "
-                           "treated as active bounds)")
-            break
-        if it == options.max_iter:
-            status = f"stopped: iteration limit {options.max_iter} reached ({detail})"
-            reason = StopReason.ITERATION_LIMIT
-            break
-        if options.time_limit is not None and elapsed > options.time_limit:
-            status = f"stopped: time limit {options.time_limit:g} s reached ({detail})"
-            reason = StopReason.TIME_LIMIT
+            print(f"iter {it:4d}  elbo {-m.f: .10e}  relgrad {m.relgrad:.3e}  decrement/2 {m.decrement:.3e}  "
+                  f"lambda {lam:.2e}  {elapsed:7.2f} s")
+        stop = _lm_terminate(m, options, it, elapsed)
+        if stop is not None:
             break
         ws.append(np.asarray(s[P.tm.n_free:], float).copy())
         if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it):
-            status = (f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) over "
-                      f"{options.stall_window} iterations ({detail})")
-            reason = StopReason.STALLED
+            stop = _Stop(StopReason.STALLED, f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) "
+                                             f"over {options.stall_window} iterations ({_lm_detail(m)})")
             break
-        # Marquardt scaling
-        dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in blks]
-        dglob = np.abs(np.diag(Hg))
-        big = max([1.0] + [float(d.max()) for d in dmus] + ([float(dglob.max())] if dglob.size else []))
-        floor = 1e-10 * big
-        dmus = [np.maximum(d, floor) for d in dmus]
-        dglob = np.maximum(dglob, floor)
-        accepted = False
-        while True:
-            sol = P.newton_step(blks, lam, dmus, dglob, frozen=active)
-            if sol is None:
-                lam *= nu
-                nu *= 2.0
-            else:
-                ds, dmu, dr, _ = sol
-                gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
-                             + sum(float(g @ d) for g, d in zip(grs, dr)))
-                dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm[:len(d)] * d ** 2)) for dm, d in zip(dmus, dmu))
-                            + sum(float(dglob[i * nq:(i + 1) * nq] @ d ** 2) for i, d in enumerate(dr)))
-                pred = -0.5 * gdot + 0.5 * lam * dDd
-                s_new = s + ds
-                recs_new = [(m + d1, r + d2) for (m, r), d1, d2 in zip(recs, dmu, dr)]
-                step = max([float(np.max(np.abs(ds) / np.maximum(np.abs(s), 1.0))) if ds.size else 0.0]
-                           + [float(np.max(np.abs(d1) / np.maximum(np.abs(m), 1.0))) for (m, _), d1 in zip(recs, dmu)]
-                           + [float(np.max(np.abs(d2) / np.maximum(np.abs(r), 1.0))) for (_, r), d2 in zip(recs, dr)])
-                if pred <= 1e-15 * max(abs(f), 1.0) or step < options.xtol:
-                    reason = StopReason.NO_PROGRESS if pd else StopReason.INDEFINITE_HESSIAN
-                    status = (f"stopped: no further progress possible (relative step {step:.2g}, predicted "
-                              f"reduction {pred:.2g}; {detail})")
-                    break
-                f_new = P.value(s_new, recs_new)
-                rho = (f - f_new) / pred
-                if math.isfinite(f_new) and rho > 1e-4:
-                    s, recs = s_new, recs_new
-                    lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                    lam = max(lam, 1e-12)
-                    nu = 2.0
-                    accepted = True
-                    break
-                lam *= nu
-                nu *= 2.0
-            if lam > 1e16:
-                reason = StopReason.DAMPING_OVERFLOW if pd else StopReason.INDEFINITE_HESSIAN
-                status = f"stopped: damping overflow, no acceptable step ({detail})"
-                break
-        if not accepted:
+        s, recs, lam, stop = _lm_step(P, options, s, recs, m, lam)
+        if stop is not None:
             break
-    return dict(s=s, recs=recs, blks=blks, converged=converged, status=status, iterations=it,
-                history=tuple(history), reason=reason, t0=t0, lam=lam, decrement=dec)
+    return dict(s=s, recs=recs, blks=None if m is None else m.blks, converged=stop is not None and stop.converged,
+                status="" if stop is None else stop.status, iterations=it, history=tuple(history),
+                reason=None if stop is None else stop.reason, t0=t0, lam=lam,
+                decrement=float("nan") if m is None else m.decrement)
 
 
-def newton_decrement(P: "_Problem", blks, gs, gmus, grs, active) -> float:
+def newton_decrement(P: "Problem", blks, gs, gmus, grs, active) -> float:
     """Half the Newton decrement, λ²/2 = ½ gᵀH⁻¹g (nats), on the free subspace; NaN if H is not PD there.
 
     H and g are the exact Hessian and gradient of −ELBO over every decision variable (θ,
@@ -554,7 +312,7 @@ def _starts(options: FitOptions):
     return [st]
 
 
-def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"):
+def _optimize_trust_constr(P: Problem, options: FitOptions, start: str = "data"):
     """Reference path (the paper's code): scipy.optimize.minimize(method="trust-constr").
 
     Same problem and decision vector as the structured optimizer, flattened to
@@ -569,34 +327,17 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
 
     t0 = time.perf_counter()
     s0, recs0 = P.initial(options, start)
-    nq = P.obj.nq
-    shapes = [m.shape for m, _ in recs0]
-    sizes = [int(np.prod(sh)) for sh in shapes]
-    nmu = sum(sizes)
-    nrec = P.nrec
-
-    def unflat(v):
-        mus, o = [], 0
-        for sh, sz in zip(shapes, sizes):
-            mus.append(v[o:o + sz].reshape(sh))
-            o += sz
-        rs = [v[nmu + i * nq:nmu + (i + 1) * nq] for i in range(nrec)]
-        return mus, rs, v[nmu + nrec * nq:]
-
-    def total(v, cfg, data):
-        mus, rs, ss = unflat(v)
-        return sum(P.obj._value_impl(m, r, ss, d, cfg) for m, r, d in zip(mus, rs, data))
-
+    lay = P.layout
+    total = P.flat_value
     vg = jax.jit(jax.value_and_grad(total))
     hvp = jax.jit(lambda v, w, cfg, data: jax.jvp(lambda x: jax.grad(total)(x, cfg, data), (v,), (w,))[1])
-    v0 = np.concatenate([m.ravel() for m, _ in recs0] + [r for _, r in recs0] + [s0])
+    v0 = lay.pack(s0, recs0)
     cfg, data = P.cfg, P.data  # unpadded records
     history = []
     state = {"it": 0, "converged": False, "rg": float("nan")}
 
     def split(v):
-        mus, rs, ss = unflat(np.asarray(v))
-        return ss, list(zip(mus, rs))
+        return lay.unpack(np.asarray(v))
 
     def fun(v):
         f, g = vg(jnp.asarray(v), cfg, data)
@@ -607,7 +348,8 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
 
     def relgrad(v, f, g):
         ss, recs = split(v)
-        gmus, grs, gs = unflat(np.asarray(g))
+        gs, grecs = lay.unpack(np.asarray(g))
+        gmus, grs = [gm for gm, _ in grecs], [gr for _, gr in grecs]
         active = P.floor_active(ss, gs)
         return _relgrad(f, ss, recs, np.where(active, 0.0, gs), gmus, grs)
 
@@ -657,18 +399,17 @@ def _optimize_trust_constr(P: _Problem, options: FitOptions, start: str = "data"
                 decrement=float("nan"))
 
 
-def _uncertainty(P: _Problem, blks, s):
+def _uncertainty(P: Problem, blks, s):
     """cov(θ_free) = J [H⁻¹]_zz J (J = dθ/dz), via the undamped Schur complement."""
     nt = P.tm.n_free
     info = {"pd": True, "cond": float("nan")}
     if nt == 0:
         return np.zeros((0, 0)), info
-    sch = P.schur(blks, 0.0, [np.zeros((np.asarray(b["D"]).shape[0], P.model.nx)) for b in blks],
-                  np.zeros(P.nglob))
-    if sch is None:
+    red = P.reduced_system(blks, dglob=np.zeros(P.nglob))
+    if red is None:
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
-    S = sch[1]
+    S = red.S
     d = np.diag(S)
     if np.any(d <= 0):
         info["pd"] = False
@@ -766,7 +507,7 @@ def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: 
     return tuple(flags)
 
 
-def _finish(P: _Problem, out, *, mode: str, options: FitOptions) -> FitResult:
+def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
     model = P.model
     s, recs, blks = out["s"], out["recs"], out["blks"]
     nt = P.tm.n_free
@@ -890,7 +631,7 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
         :class:`FitResult`; ``converged`` False (with ``status``) when the optimiser stopped
         without meeting the gradient criterion. Raises FitError on unusable input.
     """
-    P = _Problem(model, records, options)
+    P = Problem(model, records, options)
     starts = _starts(options)
     if options.deterministic not in ("limit", "quasi"):
         raise FitError(f"deterministic must be 'limit' or 'quasi', got '{options.deterministic}'")
@@ -902,7 +643,7 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
             out0, P0 = None, None
             eps = _warm_limit_scale(P, options.warm_start)
         else:
-            P0 = _Problem(model, records, options, relax=True)
+            P0 = Problem(model, records, options, relax=True)
             out0 = _multistart(P0, options, starts)
             eps = _relaxed_std(P0, out0)
         out = _deterministic_limit(P, P0, out0, eps, options, t0)
@@ -916,7 +657,7 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     return _finish(P, out, mode="fit", options=options)
 
 
-def _multistart(P: _Problem, options: FitOptions, starts) -> dict:
+def _multistart(P: Problem, options: FitOptions, starts) -> dict:
     """Run every noise start (stalled ones abandoned early) and return the best converged output."""
     t0 = time.perf_counter()
     tried = []
@@ -962,14 +703,14 @@ LIMIT_RATIO = 0.1       # process-noise std of the deterministic states: factor 
 LIMIT_MAX_STAGES = 8    # stages after the first (std down to 1e-8 of the first stage's)
 
 
-def _relaxed_std(P0: _Problem, out0) -> np.ndarray:
+def _relaxed_std(P0: Problem, out0) -> np.ndarray:
     """Process-noise std the relaxed first stage estimated for the deterministic states (their order)."""
     nt = P0.tm.n_free
     G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:])))
     return np.abs(np.diagonal(G))[P0.nm.relaxed]
 
 
-def _warm_limit_scale(P: _Problem, ws) -> np.ndarray:
+def _warm_limit_scale(P: Problem, ws) -> np.ndarray:
     """First-stage std of a warm-started limit: the std at which a previous limit fit ended (its decision
     belongs to it), else the data scale of :func:`_smoothing_start_std`."""
     lim = getattr(ws, "deterministic_limit", None)
@@ -978,7 +719,7 @@ def _warm_limit_scale(P: _Problem, ws) -> np.ndarray:
     return _smoothing_start_std(P)
 
 
-def _smoothing_start_std(P: _Problem) -> np.ndarray:
+def _smoothing_start_std(P: Problem) -> np.ndarray:
     """First-stage std of deterministic states when smoothing: the data start of a noisy state.
 
     A state measured directly by output j gets the robust spread of output j's
@@ -1013,7 +754,7 @@ def _scale_cond_rows(obj, r, rho, cross) -> np.ndarray:
     return out
 
 
-def _stage_start(P: _Problem, s, recs, rho):
+def _stage_start(P: Problem, s, recs, rho):
     """Warm start of the next stage: the rows of S_c of the deterministic states scaled by ``rho``.
 
     For each deterministic state, its row of C is scaled as well when that raises the ELBO
@@ -1037,7 +778,7 @@ def _stage_start(P: _Problem, s, recs, rho):
     return start(cross)
 
 
-def _from_relaxed(P0: _Problem, P: _Problem, s0) -> np.ndarray:
+def _from_relaxed(P0: Problem, P: Problem, s0) -> np.ndarray:
     """Shared vector of P from the relaxed problem's: the deterministic states' noise parameters dropped."""
     nt = P0.tm.n_free
     w0 = np.asarray(s0[nt:], float)
@@ -1047,7 +788,7 @@ def _from_relaxed(P0: _Problem, P: _Problem, s0) -> np.ndarray:
     return np.concatenate([np.asarray(s0[:nt], float), w0[keep], w0[ne0:]])
 
 
-def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) -> dict:
+def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> dict:
     """Fit (or smooth) in the limit of vanishing process noise on the deterministic states.
 
     A state without process noise has a degenerate transition, x_{k+1,i} = F_i(x_k): the
@@ -1098,8 +839,7 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
         record(0, eps, out0, None)
         status0 = out0["status"]
     else:  # smoothing or a warm start: the first stage is P itself at ``eps``
-        P.nm.set_deterministic_std(eps)
-        P.cfg = make_cfg(P.tm, P.nm)
+        P.set_deterministic_std(eps)
         o = _optimize(P, options, t0=t0)
         history += list(o["history"])
         iterations += int(o["iterations"])
@@ -1121,8 +861,7 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
     failed = None
     for attempt in range(1, LIMIT_MAX_STAGES + 5):  # full stages plus at most four milder retries
         e = base["eps"] * ratio
-        P.nm.set_deterministic_std(e)
-        P.cfg = make_cfg(P.tm, P.nm)
+        P.set_deterministic_std(e)
         start = _stage_start(P, base["s"], base["recs"], np.where(P.nm.deterministic, ratio, 1.0))
         o = _optimize(P, stage_opts, t0=t0, resume=dict(s=base["s"], recs=start, lam=float(options.lambda0),
                                                         history=[{}], iterations=0))
@@ -1180,7 +919,7 @@ def _deterministic_limit(P: _Problem, P0, out0, eps, options: FitOptions, t0) ->
     return out
 
 
-def _drift_scale(P: _Problem, idx) -> np.ndarray:
+def _drift_scale(P: Problem, idx) -> np.ndarray:
     """Data scale of the process-noise std of states ``idx``: √T · rms_k f_i(μ⁰_k, u_k, θ⁰).
 
     f is the drift at the initial state means μ⁰ (measured states from their outputs,
@@ -1197,7 +936,7 @@ def _drift_scale(P: _Problem, idx) -> np.ndarray:
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))
     sq, n = np.zeros(len(idx)), 0
     for rec in P.records:
-        mu0 = _initial_mu(P.model, rec, pairs, "measured")
+        mu0 = initial_means(P.model, rec, pairs, "measured")
         f = np.asarray(drift(jnp.asarray(mu0), jnp.asarray(np.asarray(rec.u, float)), p0), float)[:, idx]
         fin = np.all(np.isfinite(f), axis=1)
         sq += np.sum(f[fin] ** 2, axis=0)
@@ -1205,7 +944,7 @@ def _drift_scale(P: _Problem, idx) -> np.ndarray:
     return np.sqrt(sq / max(n, 1)) * math.sqrt(T)
 
 
-def _release_start(P: _Problem, options: FitOptions, t0) -> dict | None:
+def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     """The "release" noise start: unmeasured states with process noise, first held deterministic.
 
     An unmeasured state i with an estimated process-noise std has no data scale of its own,
@@ -1244,20 +983,19 @@ def _release_start(P: _Problem, options: FitOptions, t0) -> dict | None:
     if not np.all(np.isfinite(eps0) & (eps0 > 0)):
         return None
     names = P.model.state_names
-    Ph = _Problem(P.model, P.records, options, relax=P.relax, hold=held)
+    Ph = Problem(P.model, P.records, options, relax=P.relax, hold=held)
     w_data = Ph.nm.inits["data"]
     Gd = np.diag(np.diagonal(np.asarray(Ph.nm.G(jnp.asarray(w_data)), float))).copy()
     Gd[held, held] = 0.0
     Rd = np.diag(np.asarray(Ph.nm.sigma(jnp.asarray(w_data)), float) ** 2)
     # leg 1: noise fixed at the data start, held states to the deterministic limit
-    Pa = _Problem(P.model, P.records, options, fixed_G=Gd, fixed_R=Rd)
+    Pa = Problem(P.model, P.records, options, fixed_G=Gd, fixed_R=Rd)
     Pa.noise_scaled_start = True
     leg1 = _deterministic_limit(Pa, None, None, eps0, options, t0)
     lim = leg1["limit"]
     end = np.asarray([lim["std"][n] for n in (names[i] for i in np.nonzero(Pa.nm.deterministic)[0])], float)
     # leg 2: the other noise free, held states at the limit's std
-    Ph.nm.set_deterministic_std(end)
-    Ph.cfg = make_cfg(Ph.tm, Ph.nm)
+    Ph.set_deterministic_std(end)
     nt = P.tm.n_free
     s2 = np.concatenate([np.asarray(leg1["s"], float)[:nt], w_data])
     leg2 = _optimize(Ph, options, t0=t0, resume=dict(s=s2, recs=leg1["recs"], lam=float(options.lambda0),
@@ -1316,7 +1054,7 @@ def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) 
     if theta.shape != (model.np,):
         raise FitError(f"theta has shape {theta.shape}, expected ({model.np},)")
     G, R = _noise_from(noise, model)
-    P = _Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
+    P = Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
     if options.deterministic == "limit" and P.nm.deterministic.any():
         out = _deterministic_limit(P, None, None, _smoothing_start_std(P), options, time.perf_counter())
     else:

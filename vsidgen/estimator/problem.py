@@ -1,0 +1,584 @@
+"""The estimator's problem object: the decision vector, its objective and the reduced Newton system.
+
+One :class:`Problem` holds everything fixed while the ELBO of a model on a set of records is
+maximised: the parameter map θ(z) (:class:`~vsidgen.estimator.core.ThetaMap`), the noise map
+(G, σ)(w) (:class:`~vsidgen.estimator.core.NoiseMap`), the transition, the records and the
+compiled objective (:class:`~vsidgen.estimator.core.Objective`).
+
+Decision vector (:class:`Layout`). Shared by all records: s = (z, w), the free parameters in
+unconstrained coordinates z and the noise parameters w. Per record i (N_i samples): the
+assumed density's means μ_i (N_i × n) and covariance parameters r_i = (d, strict-lower L, vec C)
+(q = n + n(n−1)/2 + n² of them). Two flat orderings are used:
+
+* the *border* (global) vector b = (r_1, …, r_R, s) of length R q + n_s, the variables the
+  state means are eliminated onto;
+* the *full* vector v = (vec μ_1, …, vec μ_R, b) (:meth:`Layout.pack`, :meth:`Layout.unpack`).
+
+Objective. f(v) = −ELBO = Σ_i f_i(μ_i, r_i, s). Its Hessian is block tridiagonal in each μ_i
+(blocks D_k on the diagonal, B_k above it) with a dense border W_i = ∂²f_i/∂μ_i∂b and H_bb
+(:meth:`Problem.blocks`, :meth:`Problem.gather`).
+
+Reduced Newton system (:meth:`Problem.reduced_system`). With A_i = H_μ_iμ_i + λ diag(d_μ_i)
+(damped block-tridiagonal, Cholesky O(N_i n³)) the state means are eliminated record by record:
+
+    S   = H_bb + λ diag(d_b) − Σ_i W_iᵀ A_i⁻¹ W_i        (Schur complement over b)
+    rhs = −g_b + Σ_i W_iᵀ A_i⁻¹ g_μ_i
+
+so that the damped Newton step (H + λD) Δ = −g is Δb = S⁻¹ rhs and
+Δμ_i = −A_i⁻¹ (g_μ_i + W_i Δb) (:meth:`Problem.back_substitute`). With λ = 0, S is the Hessian
+of the profile f(b) = min_μ f(μ, b) to second order, so ½ rhsᵀ S⁻¹ rhs is half the Newton
+decrement over all variables.
+
+Start (:meth:`Problem.initial`): θ at the spec's initial values, the noise at one of the noise
+starts, μ of a state measured directly by an output y = c + k·x (:func:`direct_measurements`)
+at (y − c)/k, other states 0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.dynamics import input_hold as transition_input_hold
+from ..model.dynamics import settings as transition_settings
+from ..model.dynamics import transition
+from ..errors import FitError
+from .core import NoiseMap, ThetaMap, bucket_length, get_objective, make_cfg, record_data
+from .results import FitOptions, FitResult, WarmStart
+
+from .. import precision  # noqa: F401  (float64, set once)
+
+
+@dataclasses.dataclass(frozen=True)
+class DirectMeasurement:
+    """Output ``output`` measures one state directly: y = offset + gain · x_i.
+
+    ``gain`` ≠ 0 and ``offset`` are numbers during the fit (spec constants and fixed
+    parameters allowed, estimated parameters not), so the state is known from the
+    measurement up to its noise: x_i = (y − offset)/gain.
+    """
+
+    output: int
+    gain: float = 1.0
+    offset: float = 0.0
+
+    def state_of(self, y):
+        """The state a measured value stands for: (y − offset)/gain."""
+        return (y - self.offset) / self.gain
+
+
+def _affine_in(e, x, const_values) -> tuple[float, float] | None:
+    """(gain, offset) when ``e`` is offset + gain·x with numeric gain ≠ 0 and offset, else None."""
+    import sympy
+
+    e = e.xreplace(const_values)
+    if e.free_symbols != {x}:
+        return None
+    try:
+        poly = sympy.Poly(e, x)
+    except sympy.PolynomialError:
+        return None
+    if poly.degree() != 1:
+        return None
+    k, c = (float(v) for v in (poly.coeff_monomial(x), poly.coeff_monomial(1)))
+    if not (math.isfinite(k) and math.isfinite(c) and k != 0.0):
+        return None
+    return k, c
+
+
+def direct_measurements(model) -> dict[int, DirectMeasurement]:
+    """{state index: DirectMeasurement} for outputs that measure one state directly.
+
+    An output y_j = c + k·x_i with numbers k ≠ 0 and c (the state itself, the state in
+    other units such as ``57.29578*alpha``, or a trim value plus a perturbation such as
+    ``V0 + u`` with ``V0`` a spec constant or a fixed parameter) measures x_i directly: the
+    measured values give the state's start μ_i = (y_j − c)/k and its data scale (spread of
+    y_j's sample differences / |k|). The first such output of a state is taken.
+
+    Uses ``model.symbolic.observations`` (definitions expanded, constants and fixed
+    parameters substituted) when a symbolic model is attached, else tests h numerically:
+    y_j must be the same affine function of x_i at random states and inputs, for two
+    vectors of the estimated parameters.
+    """
+    out: dict[int, DirectMeasurement] = {}
+    sym = model.symbolic
+    if sym is not None:
+        try:
+            fixed = {p.name: float(p.initial) for p in model.parameters if p.fixed}
+            consts = dict(sym.constant_values())
+            consts.update({p.symbol: fixed[p.name] for p in sym.parameters if p.name in fixed})
+            for j, e in enumerate(sym.observations_expanded()):
+                for i, st in enumerate(sym.states):
+                    kc = _affine_in(e, st.symbol, consts)
+                    if kc is not None:
+                        out.setdefault(i, DirectMeasurement(j, *kc))
+            return out
+        except Exception:  # fall back to the numerical test
+            out = {}
+    return _direct_measurements_numerical(model)
+
+
+def _direct_measurements_numerical(model) -> dict[int, DirectMeasurement]:
+    rng = np.random.default_rng(12345)
+    p0 = np.asarray([float(q.initial) for q in model.parameters], float)
+    out: dict[int, DirectMeasurement] = {}
+    npts = 4
+    X = rng.normal(size=(npts, model.nx)) * 0.7 + 0.3
+    U = rng.normal(size=(npts, model.nu))
+    free = np.array([not q.fixed for q in model.parameters], bool)
+    P = [p0, p0 + free * rng.normal(size=p0.shape) * 0.1]
+    with np.errstate(all="ignore"):
+        H = np.array([[np.asarray(model.output(jnp.asarray(x), jnp.asarray(u), jnp.asarray(p)), float)
+                       for x, u in zip(X, U)] for p in P])  # (2, npts, ny)
+    for j in range(model.ny):
+        for i in range(model.nx):
+            x = X[:, i]
+            h = H[0, :, j]
+            if not np.all(np.isfinite(H[:, :, j])) or x[1] == x[0]:
+                continue
+            k = (h[1] - h[0]) / (x[1] - x[0])
+            c = h[0] - k * x[0]
+            pred = c + k * x
+            tol = 1e-12 * (1 + np.abs(H[:, :, j]))
+            if k != 0 and np.all(np.abs(H[:, :, j] - pred[None, :]) <= tol):
+                out.setdefault(i, DirectMeasurement(j, float(k), float(c)))
+    return out
+
+
+def measured_states(model) -> dict[int, int]:
+    """{state index: output index} for outputs that measure a state directly (:func:`direct_measurements`)."""
+    return {i: m.output for i, m in direct_measurements(model).items()}
+
+
+def initial_means(model, rec, pairs, how: str) -> np.ndarray:
+    """Starting state means (N, nx) of a record: ``how`` = "measured" (a state measured directly,
+    ``pairs``: :func:`direct_measurements`, starts at (y − offset)/gain, NaN samples interpolated;
+    other states 0) or "zero"."""
+    N = np.asarray(rec.y).shape[0]
+    mu = np.zeros((N, model.nx))
+    if how == "zero":
+        return mu
+    if how != "measured":
+        raise FitError(f"init_states must be 'measured' or 'zero', got '{how}'")
+    y = np.asarray(rec.y, float)
+    k = np.arange(N)
+    for i, dm in pairs.items():
+        col = dm.state_of(y[:, dm.output])
+        fin = np.isfinite(col)
+        if fin.any():
+            mu[:, i] = np.interp(k, k[fin], col[fin])
+    return mu
+
+
+def _check_records(model, records):
+    if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
+        records = [records]
+    if len(records) == 0:
+        raise FitError("no records to fit")
+    for rec in records:
+        y = np.asarray(rec.y, float)
+        u = np.asarray(rec.u, float)
+        name = getattr(rec, "name", "?")
+        if y.ndim != 2 or y.shape[1] != model.ny:
+            raise FitError(f"record '{name}': y has shape {y.shape}, expected (N, {model.ny})")
+        if u.ndim != 2 or u.shape != (y.shape[0], model.nu):
+            raise FitError(f"record '{name}': u has shape {u.shape}, expected ({y.shape[0]}, {model.nu})")
+        if y.shape[0] < 3:
+            raise FitError(f"record '{name}' has {y.shape[0]} samples; at least 3 are needed")
+        if not np.all(np.isfinite(u)):
+            raise FitError(f"record '{name}': inputs contain NaN or inf")
+        for attr, want in (("output_names", model.output_names), ("input_names", model.input_names)):
+            got = getattr(rec, attr, None)
+            if got is not None and tuple(got) != tuple(want):
+                raise FitError(f"record '{name}': {attr} {tuple(got)} differ from the model's {tuple(want)}")
+        if not float(rec.dt) > 0:
+            raise FitError(f"record '{name}': sample period dt must be positive")
+    return list(records)
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """Index layout of the decision vector (module docstring): R records of ``lengths`` samples,
+    ``nx`` states, ``nq`` assumed-density parameters per record, and the shared vector
+    s = (z: ``n_theta`` free parameters, w: ``n_proc`` process- then ``n_meas`` measurement-noise
+    parameters)."""
+
+    nx: int
+    lengths: tuple[int, ...]
+    nq: int
+    n_theta: int
+    n_proc: int
+    n_meas: int
+
+    @property
+    def nrec(self) -> int:
+        return len(self.lengths)
+
+    @property
+    def ng(self) -> int:
+        """Length of the shared vector s."""
+        return self.n_theta + self.n_proc + self.n_meas
+
+    @property
+    def nglob(self) -> int:
+        """Length of the border vector b = (r_1, …, r_R, s)."""
+        return self.nrec * self.nq + self.ng
+
+    @property
+    def n_mu(self) -> int:
+        """Number of state means, Σ_i N_i n."""
+        return sum(self.lengths) * self.nx
+
+    @property
+    def size(self) -> int:
+        """Length of the full vector v."""
+        return self.n_mu + self.nglob
+
+    @property
+    def shared_offset(self) -> int:
+        """Position of s in b."""
+        return self.nrec * self.nq
+
+    @property
+    def theta_index(self) -> np.ndarray:
+        """Positions of the free parameters z in b."""
+        return self.shared_offset + np.arange(self.n_theta)
+
+    @property
+    def noise_index(self) -> np.ndarray:
+        """Positions of the noise parameters w in b (process first, then measurement)."""
+        return self.shared_offset + self.n_theta + np.arange(self.n_proc + self.n_meas)
+
+    def r_index(self, i: int) -> np.ndarray:
+        """Positions of r_i in b."""
+        return np.arange(i * self.nq, (i + 1) * self.nq)
+
+    def border_index(self, i: int) -> np.ndarray:
+        """Positions in b of record i's border (r_i, s): the rows of its W_i and H_bb blocks."""
+        return np.concatenate([self.r_index(i), self.shared_offset + np.arange(self.ng)])
+
+    def pack(self, s, recs):
+        """Full vector v = (vec μ_1, …, vec μ_R, r_1, …, r_R, s) of the decision (s, [(μ_i, r_i)])."""
+        return np.concatenate([np.asarray(m, float).ravel() for m, _ in recs]
+                              + [np.asarray(r, float) for _, r in recs] + [np.asarray(s, float)])
+
+    def unpack(self, v):
+        """(s, [(μ_i, r_i)]) of a full vector v (numpy or a traced JAX array: slices of v)."""
+        mus, o = [], 0
+        for n in self.lengths:
+            mus.append(v[o:o + n * self.nx].reshape(n, self.nx))
+            o += n * self.nx
+        rs = [v[o + i * self.nq:o + (i + 1) * self.nq] for i in range(self.nrec)]
+        return v[o + self.nrec * self.nq:], list(zip(mus, rs))
+
+
+def split_density(r, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d, L, C) of one record's assumed-density parameters r = (d, strict-lower L row by row, vec C)
+    for n states: Σ_cond = L diag(eᵈ) Lᵀ (L unit lower triangular), C the cross factor."""
+    r = np.asarray(r, float)
+    nl = n * (n - 1) // 2
+    L = np.eye(n)
+    L[np.tril_indices(n, -1)] = r[n:n + nl]
+    return r[:n].copy(), L, r[n + nl:].reshape(n, n).copy()
+
+
+def join_density(d, L, C) -> np.ndarray:
+    """r = (d, strict-lower L, vec C), the inverse of :func:`split_density`."""
+    n = len(d)
+    return np.concatenate([np.asarray(d, float), np.asarray(L, float)[np.tril_indices(n, -1)],
+                           np.asarray(C, float).ravel()])
+
+
+@dataclasses.dataclass(frozen=True)
+class ReducedSystem:
+    """The Newton system with the state means eliminated (module docstring): ``S`` (symmetric,
+    nglob × nglob) and ``rhs`` over the border b, and per record the factors that give back
+    Δμ_i (:meth:`Problem.back_substitute`)."""
+
+    S: np.ndarray
+    rhs: np.ndarray
+    factors: tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class Gradient:
+    """∂(−ELBO) split by the decision vector's parts: ``shared`` (s), ``records_r`` (per r_i),
+    ``records_mu`` (per μ_i, (N_i, n))."""
+
+    shared: np.ndarray
+    records_r: tuple[np.ndarray, ...]
+    records_mu: tuple[np.ndarray, ...]
+
+
+class Problem:
+    """Everything fixed during one optimisation: maps, objective, records, layout (module docstring).
+
+    Built from the model, the records, the estimator options (integrator, sub-steps, input
+    hold, deterministic std, padding) and the noise/θ metadata of this problem:
+    ``theta_fixed`` (all parameters fixed at these values: smoothing), ``fixed_G``/``fixed_R``
+    (noise fixed), ``relax`` (deterministic states' noise estimated: the first stage of the
+    deterministic limit), ``hold`` (noisy states held deterministic).
+    """
+
+    def __init__(self, model, records, options: FitOptions = FitOptions(), *, theta_fixed=None, fixed_G=None,
+                 fixed_R=None, relax: bool = False, hold=()):
+        self.model = model
+        self.relax = relax
+        #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
+        self.noise_scaled_start = False
+        self.records = _check_records(model, records)
+        self.integrator, self.substeps = transition_settings(
+            model, integrator=options.integrator, substeps=options.substeps)
+        self.input_hold = transition_input_hold(model, options.input_hold)
+        self.F = transition(model, integrator=self.integrator, substeps=self.substeps, inputs=self.input_hold)
+        self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
+        self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=direct_measurements(model), relax=relax,
+                           hold=hold)
+        self.cfg = make_cfg(self.tm, self.nm)
+        self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
+        self.lengths = [int(np.asarray(r.y).shape[0]) for r in self.records]
+        # the structured path pads each record to its bucket length (shared compiled code)
+        self.padded = [bucket_length(n) if options.bucket else n for n in self.lengths]
+        self.bdata = [record_data(r, length=L) if L > n else d
+                      for r, n, L, d in zip(self.records, self.lengths, self.padded, self.data)]
+        nx = model.nx
+        self.layout = Layout(nx=nx, lengths=tuple(self.lengths), nq=nx + nx * (nx - 1) // 2 + nx * nx,
+                             n_theta=self.tm.n_free, n_proc=self.nm.n_proc, n_meas=self.nm.n_meas)
+        self.nrec = self.layout.nrec
+        self.nglob = self.layout.nglob
+        self.idx = [self.layout.border_index(i) for i in range(self.nrec)]
+        self.theta_idx = self.layout.theta_index
+
+    @functools.cached_property
+    def obj(self):
+        """The compiled objective (shared between problems of the same structure), built on first use;
+        its construction evaluates the model at sample points (curvature structure), eagerly even
+        when the first use is inside a JAX trace (:meth:`flat_value` under ``jax.hessian``)."""
+        with jax.ensure_compile_time_eval():
+            obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps))
+        if (obj.nq, obj.ng) != (self.layout.nq, self.layout.ng):
+            raise FitError("objective layout differs from the problem's")
+        return obj
+
+    # -- the shared vector s by name
+    @property
+    def free_names(self) -> list[str]:
+        """Names of the free parameters, in the order of z."""
+        return [self.model.parameters[i].name for i in self.tm.free_idx]
+
+    def theta(self, s) -> np.ndarray:
+        """All parameters θ (model order) of a shared vector s (or of z = s[:n_theta])."""
+        z = np.asarray(s, float)[:self.tm.n_free]
+        return np.asarray(self.tm.theta(jnp.asarray(z)), float)
+
+    def theta_jacobian(self, s) -> np.ndarray:
+        """dθ_free/dz (diagonal of the parameter map) at s."""
+        return np.asarray(self.tm.dtheta_dz(np.asarray(s, float)[:self.tm.n_free]), float)
+
+    def parameter_start(self) -> np.ndarray:
+        """z of the spec's initial values (the start of every fit)."""
+        return np.asarray(self.tm.z0, float)
+
+    def process_noise_index(self, state: str) -> int | None:
+        """Position in b of the estimated diagonal process-noise parameter of ``state`` (None: not estimated)."""
+        i = self.model.state_names.index(state)
+        hits = np.nonzero(self.nm.proc_est_idx == i)[0]
+        return int(self.layout.noise_index[hits[0]]) if hits.size else None
+
+    def noise_vector(self, *, proc_std: dict, proc_G: dict, meas_std: dict, default_std: float) -> np.ndarray:
+        """Noise parameters w holding the given stds (the inverse of the noise map, by name).
+
+        ``proc_std``: {state: std} (G_ii; states absent get ``default_std``); ``proc_G``:
+        {(row state, column state): value} off-diagonal entries of G (absent: 0); ``meas_std``:
+        {output: σ}. With floors φ: w = log(std − φ) (clipped at 1e-300), off-diagonals as given.
+        """
+        nm, names = self.nm, self.model.state_names
+        w = [math.log(max(float(proc_std.get(names[i], default_std)) - float(nm.proc_floor[i]), 1e-300))
+             for i in nm.proc_est_idx]
+        w += [float(proc_G.get((names[a], names[b]), 0.0)) for a, b in nm.offdiag]
+        w += [math.log(max(float(meas_std[self.model.output_names[j]]) - float(nm.meas_floor[j]), 1e-300))
+              for j in nm.meas_est_idx]
+        if len(w) != nm.n:
+            raise FitError("noise layout mismatch")
+        return np.asarray(w, float)
+
+    def set_deterministic_std(self, std) -> None:
+        """Fix the process-noise std of the deterministic states (one value per such state)."""
+        self.nm.set_deterministic_std(std)
+        self.cfg = make_cfg(self.tm, self.nm)
+
+    # -- start
+    def initial(self, options: FitOptions, start: str = "data"):
+        ws = options.warm_start
+        if isinstance(ws, FitResult):
+            ws = None if ws.decision is None else WarmStart.from_decision(ws.decision)
+        if ws is not None:
+            s = np.asarray(ws.shared, float)
+            recs = [(np.asarray(m, float), np.asarray(r, float)) for m, r in ws.records]
+            if s.shape == (self.layout.ng,) and len(recs) == self.nrec and all(
+                    m.shape == (np.asarray(r.y).shape[0], self.model.nx) for (m, _), r in zip(recs, self.records)):
+                return s, recs
+            raise FitError("warm_start result does not match this problem's shape")
+        s = np.concatenate([self.tm.z0, self.nm.inits[start]])
+        pairs = direct_measurements(self.model)
+        r0 = np.zeros(self.layout.nq)  # Σ_cond = Σ_marg = I
+        if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
+            # smoothing with known noise (validation mode): start the assumed density at the
+            # prior's conditional covariance, Σ_cond = diag(T G Gᵀ), C = 0. With Σ = I the
+            # sigma points of a nonlinear model lie ±√(2n) state units away (radians for an
+            # angle), and the smoother can stop in a far, non-physical stationary point.
+            # The release start does the same at its start noise (Σ = I is not unit free).
+            T = float(np.mean([float(r.dt) for r in self.records]))
+            G = np.asarray(self.nm.fixed_G if self.nm.fixed_G is not None
+                           else self.nm.G(jnp.asarray(self.nm.inits[start])), float)
+            r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
+        recs = [(initial_means(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
+        return s, recs
+
+    def floor_active(self, s, gs):
+        """Mask over s of noise parameters whose lower bound (floor) is active.
+
+        σ = floor + exp(w) reaches its floor only asymptotically (w → −∞), so the
+        gradient in w never vanishes there; a parameter with floor > 0, σ within
+        1 % of the floor and a gradient pushing it towards the floor (∂(−L)/∂w > 0)
+        is treated as an active bound constraint in the convergence test
+        (projected / KKT gradient; flagged by the ``noise_at_floor`` warning).
+        """
+        act = np.zeros(len(s), bool)
+        nt, nm = self.tm.n_free, self.nm
+        w = np.asarray(s[nt:], float)
+        gw = np.asarray(gs[nt:], float)
+        for a, i in enumerate(nm.proc_est_idx):
+            fl = nm.proc_floor[i]
+            act[nt + a] = fl > 0 and math.exp(min(w[a], 700.0)) <= 0.01 * fl and gw[a] > 0
+        for a, j in enumerate(nm.meas_est_idx):
+            fl = nm.meas_floor[j]
+            k = nm.n_proc + a
+            act[nt + k] = fl > 0 and math.exp(min(w[k], 700.0)) <= 0.01 * fl and gw[k] > 0
+        return act
+
+    # -- objective
+    @staticmethod
+    def pad(m, L):
+        """μ (N, n) padded to L rows by repeating its last row (the model is evaluated there, weight 0)."""
+        m = np.asarray(m)
+        return jnp.asarray(m if L == m.shape[0] else np.concatenate([m, np.repeat(m[-1:], L - m.shape[0], 0)]))
+
+    def value(self, s, recs) -> float:
+        """−ELBO at the decision (s, [(μ_i, r_i)])."""
+        sj = jnp.asarray(s)
+        return float(sum(self.obj.value(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+                         for (m, r), d, L in zip(recs, self.bdata, self.padded)))
+
+    def flat_value(self, v, cfg=None, data=None):
+        """−ELBO of a full vector v (:meth:`Layout.unpack`) on the unpadded records, traceable by JAX
+        (``jax.grad``, ``jax.hessian``: the dense reference of the structured derivatives).
+        ``cfg``/``data`` (default this problem's) may be passed as jit arguments."""
+        cfg = self.cfg if cfg is None else cfg
+        data = self.data if data is None else data
+        s, recs = self.layout.unpack(v)
+        return sum(self.obj._value_impl(m, r, s, d, cfg) for (m, r), d in zip(recs, data))
+
+    def blocks(self, s, recs):
+        """Per-record value, gradient and Hessian blocks (f, gmu, gb, D, B, W, Hbb; see
+        :meth:`vsidgen.estimator.core.Objective.blocks`) on the padded length (D, B, W, gmu have
+        ``self.padded[i]`` rows; the padding's gradient, couplings and off-diagonal blocks are
+        exactly 0 and its diagonal blocks the identity)."""
+        sj = jnp.asarray(s)
+        return [self.obj.blocks(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+                for (m, r), d, L in zip(recs, self.bdata, self.padded)]
+
+    @staticmethod
+    def total(blks) -> float:
+        """−ELBO from the blocks."""
+        return float(sum(float(b["f"]) for b in blks))
+
+    def gather(self, blks):
+        """Border gradient g_b and Hessian H_bb over b (sums over records)."""
+        gg = np.zeros(self.nglob)
+        Hg = np.zeros((self.nglob, self.nglob))
+        for ix, b in zip(self.idx, blks):
+            gg[ix] += np.asarray(b["gb"])
+            Hg[np.ix_(ix, ix)] += np.asarray(b["Hbb"])
+        return gg, Hg
+
+    def gradient(self, blks, gg=None) -> Gradient:
+        """The gradient split by parts (``gg``: g_b from :meth:`gather`, computed when not given)."""
+        gg = self.gather(blks)[0] if gg is None else gg
+        nq = self.layout.nq
+        return Gradient(shared=gg[self.nrec * nq:],
+                        records_r=tuple(gg[i * nq:(i + 1) * nq] for i in range(self.nrec)),
+                        records_mu=tuple(np.asarray(b["gmu"])[:n] for b, n in zip(blks, self.lengths)))
+
+    # -- reduced Newton system
+    def reduced_system(self, blks, *, lam: float = 0.0, dmus=None, dglob=None) -> ReducedSystem | None:
+        """The state means eliminated (module docstring): S = H_bb + λ diag(d_b) − Σ W_iᵀA_i⁻¹W_i and
+        rhs = −g_b + Σ W_iᵀA_i⁻¹g_μ_i, A_i = H_μ_iμ_i + λ diag(d_μ_i) (block-tridiagonal Cholesky);
+        ``dmus`` (per record, the padded (N_i, n) diagonal) and ``dglob`` (nglob) default to 0.
+        None when some A_i is not positive definite."""
+        if dmus is None:
+            dmus = [np.zeros((np.asarray(b["D"]).shape[0], self.model.nx)) for b in blks]
+        facs = [self.obj.factor(b, jnp.asarray(dm), lam) for b, dm in zip(blks, dmus)]
+        if not all(bool(f["ok"]) for f in facs):
+            return None
+        S = np.zeros((self.nglob, self.nglob))
+        rhs = np.zeros(self.nglob)
+        for ix, f in zip(self.idx, facs):
+            S[np.ix_(ix, ix)] += np.asarray(f["S"])
+            rhs[ix] += np.asarray(f["rhs"])
+        if dglob is not None:
+            S += lam * np.diag(dglob)
+        return ReducedSystem(S=0.5 * (S + S.T), rhs=rhs, factors=tuple(facs))
+
+    def back_substitute(self, red: ReducedSystem, db):
+        """(Δs, [Δμ_i], [Δr_i]) of the border step Δb: Δμ_i = −A_i⁻¹(g_μ_i + W_i Δb_i), unpadded."""
+        dmu = [np.asarray(self.obj.back(f, jnp.asarray(db[ix])))[:n]
+               for ix, f, n in zip(self.idx, red.factors, self.lengths)]
+        nq = self.layout.nq
+        dr = [db[i * nq:(i + 1) * nq] for i in range(self.nrec)]
+        return db[self.nrec * nq:], dmu, dr
+
+    def newton_step(self, blks, lam, dmus, dglob, frozen=None, delta=None):
+        """Solve (H + λ diag(D)) Δ = −∇. Returns (Δs, [Δμ], [Δr], S), or None when H + λD is not
+        positive definite.
+
+        ``frozen``: mask over s of variables whose step is prescribed (``delta``, default 0:
+        active floor bounds held fixed): the other variables get the (damped) Newton step
+        given these components (projected Newton step).
+        """
+        red = self.reduced_system(blks, lam=lam, dmus=dmus, dglob=dglob)
+        if red is None:
+            return None
+        S, rhs = red.S, red.rhs
+        if frozen is not None and np.any(frozen):
+            k = self.nrec * self.layout.nq + np.nonzero(frozen)[0]
+            dk = np.zeros(len(k)) if delta is None else np.asarray(delta, float)[np.nonzero(frozen)[0]]
+            rhs = rhs - S[:, k] @ dk
+            S[k, :] = 0.0
+            S[:, k] = 0.0
+            S[k, k] = 1.0
+            rhs[k] = dk
+        if self.nglob:
+            try:
+                Lc = np.linalg.cholesky(S)
+            except np.linalg.LinAlgError:
+                return None
+            db = np.linalg.solve(Lc.T, np.linalg.solve(Lc, rhs))
+        else:
+            db = np.zeros(0)
+        ds, dmu, dr = self.back_substitute(red, db)
+        return ds, dmu, dr, S
+
+
+def parameter_start(model) -> tuple[np.ndarray, np.ndarray]:
+    """The start of every fit of ``model``: the free parameters' unconstrained coordinates z₀ and the
+    θ (all parameters, model order) they map to — the spec's initial values."""
+    tm = ThetaMap(model.parameters)
+    return np.asarray(tm.z0, float), np.asarray(tm.theta(tm.z0), float)
