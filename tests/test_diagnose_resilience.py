@@ -3,7 +3,10 @@
 The base fit is real (ATTAS short period, synthetic record, fitted once per module); the
 candidate refits are replaced by stand-ins that return a known outcome instantly, raise an
 interrupt, or let a simulated clock run past the time limit, so the checkpoint logic is
-tested without the cost of real refits.
+tested without the cost of real refits. The candidates are ranked by their locate scores
+(``screen=False``, ``--no-screen``): on this clean synthetic record no score test reaches
+``--min-score``, so the default ranking would refit nothing, and the ranking is not what
+these tests check.
 """
 
 from __future__ import annotations
@@ -108,7 +111,7 @@ def test_time_limit_stops_between_refits_and_keeps_the_accepted_effect(patched, 
     # 1000 s of the 600 s limit, so the second one does not start
     refits = patched(["gain", "same", ("slow", 1000.0)], clock)
     res = search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
-                              effects=EFFECTS, time_limit=600.0, workers=1)
+                              screen=False, effects=EFFECTS, time_limit=600.0, workers=1)
     assert res.stop is search.StopReason.TIME_LIMIT
     assert len(refits.calls) == 3                  # 2 in round 1, 1 in round 2, none after
     doc = _doc(tmp_path / "o")
@@ -127,7 +130,7 @@ def test_interrupt_writes_the_accepted_effect_and_the_unfinished_round(patched, 
     refits = patched(["gain", "same", "interrupt"])
     with pytest.raises(KeyboardInterrupt):
         search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
-                            effects=EFFECTS, workers=1)
+                            screen=False, effects=EFFECTS, workers=1)
     doc = _doc(tmp_path / "o")
     assert doc["stop"]["reason"] == "interrupted"
     assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
@@ -150,7 +153,7 @@ def test_checkpoint_after_every_refit_says_running(patched, tmp_path):
     s.staged_refit, orig = peek, s.staged_refit
     try:
         search.run_diagnose(SPEC, [DATA], out=out, max_rounds=1, max_candidates=2,
-                            effects=EFFECTS, workers=1)
+                            screen=False, effects=EFFECTS, workers=1)
     finally:
         s.staged_refit = orig
     assert [d["stop"]["reason"] for d in seen] == ["running", "running"]
@@ -166,6 +169,7 @@ def test_cli_sigterm_and_time_limit_exit_codes(patched, monkeypatch, tmp_path, c
     monkeypatch.setenv("VSIDGEN_CACHE_DIR", "")
     patched(["gain", "sigterm"])
     rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "t"), "--workers", "1",
+               "--no-screen",
                "--max-candidates", "1", "--effects", *EFFECTS, "--quiet"])
     assert rc == 130
     doc = _doc(tmp_path / "t")
@@ -174,12 +178,13 @@ def test_cli_sigterm_and_time_limit_exit_codes(patched, monkeypatch, tmp_path, c
     capsys.readouterr()
     patched([])
     rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "l"), "--workers", "1",
+               "--no-screen",
                "--time-limit", "1e-6", "--effects", *EFFECTS, "--quiet"])
     assert rc == 1
     line = capsys.readouterr().out
     assert line.startswith("STOPPED at the time limit") and "no significant" not in line
     assert _doc(tmp_path / "l")["stop"]["reason"] == "time_limit"
-    assert main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "x"),
+    assert main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "x"), "--no-screen",
                  "--time-limit", "-3"]) == 2
 
 

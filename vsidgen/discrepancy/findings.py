@@ -19,7 +19,8 @@ findings.json (keys in this order)::
      "final_spec": "path", "base": {"elbo", "metrics"}, "final": {"elbo", "metrics"},
      "locate": {evidence of the base fit}, "rounds": [...],
      "unfinished_round": null | {"round", "base_spec", "base_elbo", "n_candidates",
-                                 "refitted": [trial...], "pending": [key...]},
+                                 "refitted": [trial...], "pending": [key...],
+                                 "screen": [the round's ranking, as rounds[].screen]},
      "stop": {"reason": "completed" | "time_limit" | "interrupted" | "running",
               "time_limit_s"},
      "report": "diagnose.html", "wall_time_s": ...}
@@ -463,6 +464,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
     if rows:
         parts.append("<h3>Every candidate refitted</h3><table border='1' cellpadding='3'>"
                      "<tr><th>round</th><th>candidate</th><th>locate score</th>"
+                     "<th>score test (dof)</th>"
                      "<th>2ΔELBO vs nested reference</th><th>threshold</th><th>converged</th>"
                      "<th>significant</th><th>validation</th><th>verdict</th></tr>")
         for rnd, t in rows:
@@ -470,8 +472,11 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                 return "–" if v is None else format(v, fmt)
             conv = {True: "yes", False: "<b>no</b>", None: "–"}[t.get("converged")]
             val = {True: "holds", False: "<b>fails</b>", None: "–"}[t.get("validation_ok")]
+            st = t.get("score_test") or {}
+            sct = ("–" if st.get("statistic") is None
+                   else f"{num(st.get('statistic'))} ({st.get('dof')})")
             parts.append(f"<tr><td>{rnd}</td><td>{e(t['key'])}</td><td>{num(t.get('score'), '.3g')}</td>"
-                         f"<td>{num(t.get('statistic'))}</td><td>{num(t.get('threshold'))}</td>"
+                         f"<td>{sct}</td><td>{num(t.get('statistic'))}</td><td>{num(t.get('threshold'))}</td>"
                          f"<td>{conv}</td><td>{'yes' if t.get('significant') else 'no'}</td>"
                          f"<td>{val}</td><td>{e(t.get('verdict') or '–')}</td></tr>")
         parts.append("</table><p>An unconverged refit is never accepted (it enters the Holm "

@@ -30,8 +30,33 @@ whose gain is still zero, e.g. the lag of an α̇ term with zero gain) carries n
 information at the null (Davies' problem): such parameters are held at their
 nesting values and not counted in the degrees of freedom. New noise parameters
 (a wind state's intensity at its vanishing start) are held likewise; a candidate
-with nothing testable left gets ``None`` (its locate score decides).
+with nothing testable left gets ``None`` and is ranked after every tested one, by its
+locate score (:class:`.search.Ranked`).
 
+
+Candidates that add states. The added states are embedded at the nesting point as in
+stage 0 of the refit (:func:`.refit.stage0_start`: means simulated with their own
+transition along the current smoother). Three things make the statistic well-posed there
+(:func:`condition_added_states`, :func:`nesting_reach`):
+
+* a proper prior on each added state's first value, centred on its nesting value with the
+  precision of one step of its own process noise, ``1/(T G_ii²)`` — with the ELBO's flat
+  prior the initial value of a state that reaches no output is an exactly flat direction;
+* the expected (Fisher) information instead of the observed one in the cross blocks of the
+  new parameters with the means of added states that reach no data at the null and with
+  the noise parameters: at the
+  nesting point these are the equation error times a sensitivity, zero in expectation
+  under the current model (Rao's form of the score test); observed, they make the
+  curvature indefinite — the new gains enter only as products with the nearly free,
+  integrating added-state paths, and the noise cross terms grow with the gradient itself;
+* the new parameters that only move added states that reach nothing (the added mode's time
+  constant while its gain is zero, the speed damping while the lift and moment couplings
+  are zero) are held at their nesting values (Davies' problem, as above), found from the
+  structural zeros of the exact Jacobians along the path; so are the assumed-density
+  entries that couple an added state with the others (its start is not their optimum).
+
+The statistic is then the score test of the couplings given the added states' own
+dynamics at their nesting values.
 
 Cost: candidates are screened in *batches*. A batch is one spec that adds several
 candidates at once, every new parameter at its nesting value: frozen at those
@@ -93,7 +118,7 @@ def _names(c) -> set:
             | set((c.definitions or {}).keys()))
 
 
-def batches(candidates, *, max_states: int = 8) -> list[list]:
+def batches(candidates, *, max_states: int = 2) -> list[list]:
     """Group screenable candidates: all that add no state in one batch; those that add
     states in batches of at most ``max_states`` added states."""
     plain = [c for c in candidates if not c.states]
@@ -182,6 +207,102 @@ def _reduced_system(problem, blks, lam=SCORE_DAMPING):
     return S, red.rhs
 
 
+def nesting_reach(model, new_states, new_params, X, U, theta):
+    """(informative new parameters, added states that reach the data) at the nesting point.
+
+    Structural zeros of the model's exact Jacobians along the embedded path ``X`` (inputs
+    ``U``, parameters ``theta`` at their nesting values): an added state *reaches* the data
+    when some base-state drift or output, or the drift of an added state that reaches,
+    depends on it (∂f/∂z or ∂h/∂z ≠ 0 at some sample); a new parameter is *informative*
+    when one of those equations depends on it. Every other new parameter moves only added
+    states that reach nothing: the ELBO is flat along it at the null, so it carries no
+    information there (Davies' problem — e.g. the time constant of a mode whose gain is
+    zero, the speed damping X_V while Z_V = M_V = 0).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    names = list(model.state_names)
+    pnames = list(model.parameter_names)
+    n = len(names)
+    added = [names.index(z) for z in new_states]
+    th = jnp.asarray(theta)
+
+    def jac(x, u):
+        fx, _, fp = model.drift_jacobian(x, u, th)
+        hx, _, hp = model.output_jacobian(x, u, th)
+        return jnp.concatenate([fx, hx]), jnp.concatenate([fp, hp])
+
+    step = max(1, len(X) // 256)
+    jx, jp = jax.vmap(jac)(jnp.asarray(X[::step]), jnp.asarray(U[::step]))
+    nzx = np.any(np.asarray(jx) != 0.0, axis=0)        # (n + ny, n)
+    nzp = np.any(np.asarray(jp) != 0.0, axis=0)        # (n + ny, np)
+    rows = {i for i in range(nzx.shape[0]) if i >= n or i not in added}
+    reach: list[int] = []
+    grown = True
+    while grown:
+        grown = False
+        for z in added:
+            if z not in reach and any(nzx[r, z] for r in rows):
+                reach.append(z)
+                rows.add(z)
+                grown = True
+    informative = {q for q in new_params if any(nzp[r, pnames.index(q)] for r in rows)}
+    return informative, [names[z] for z in reach]
+
+
+def condition_added_states(blk, added, x0_precision, inert, coupling_cols, noise_cols):
+    """Blocks of one record with the added states conditioned as the score test needs.
+
+    * ``x0_precision`` (per added state): a proper prior on the added state's value at the
+      first sample, centred on its nesting value — the state is at that value one sample
+      before the record and its first transition adds its own process noise (precision
+      1/(T·G_ii²)). With the flat prior of the ELBO the initial value of a state that
+      reaches nothing at the null is an exactly flat direction (singular Hessian).
+    * ``coupling_cols`` (columns of the border): the cross blocks between the means of the
+      ``inert`` added states (those that reach no data at the null, see
+      :func:`nesting_reach`) and the new parameters are set to their expectation under the
+      null, zero. Those parameters couple such a state into the model as a product
+      (``Z_V·ΔV``), so the observed cross term is the equation error times the
+      sensitivity, whose expectation under the current model is zero; with
+      quasi-deterministic but integrating added states it makes the observed information
+      indefinite (a saddle in ``(Z_V, ΔV path)``). Using the expected information for that
+      block is Rao's form of the score test; the gradient stays exact. (A state that
+      reaches the data, e.g. a mode that enters its equation with a fixed coefficient and
+      is driven through a new gain, keeps its exact cross blocks: they carry the test.)
+    * ``noise_cols``: likewise the cross blocks between the new parameters and the noise
+      parameters (``∂²/∂θ_new ∂log G = 2 ∂/∂θ_new`` of the equation's error term, zero in
+      expectation). Observed, they grow with the gradient itself, so a strongly supported
+      candidate (a large statistic) would make the profiled curvature negative.
+    """
+    import jax.numpy as jnp
+
+    D = np.asarray(blk["D"]).copy()
+    for i, prec in zip(added, x0_precision):
+        D[0, i, i] += prec
+    W = np.asarray(blk["W"]).copy()
+    H = np.asarray(blk["Hbb"]).copy()
+    if len(coupling_cols):
+        cc = np.asarray(coupling_cols)
+        if len(inert):
+            W[np.ix_(np.arange(W.shape[0]), np.asarray(inert), cc)] = 0.0
+        if len(noise_cols):
+            H[np.ix_(cc, np.asarray(noise_cols))] = 0.0
+            H[np.ix_(np.asarray(noise_cols), cc)] = 0.0
+    return {**blk, "D": jnp.asarray(D), "W": jnp.asarray(W), "Hbb": jnp.asarray(H)}
+
+
+def added_state_r_index(n: int, added) -> list[int]:
+    """Entries of a record's assumed-density parameters ``r = (d, L, C)`` (see
+    ``Objective.cov_factors``) that couple an added state with the others (``L`` and ``C``
+    entries in its row or column)."""
+    tr = list(zip(*np.tril_indices(n, -1)))
+    nl = len(tr)
+    out = [n + j for j, (a, b) in enumerate(tr) if a in added or b in added]
+    out += [n + nl + a * n + b for a in range(n) for b in range(n) if a in added or b in added]
+    return out
+
+
 def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generated_dir,
                  det_std: float) -> dict:
     """Score statistics of the candidates of one batch: {key: ScoreResult}."""
@@ -207,16 +328,13 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
                                            default_std=det_std)])
     new_states = [n for n in m.state_names if n not in current.model.state_names]
     if new_states:
-        # the added states' assumed density is fitted first (θ, noise fixed: stage 0 of the
-        # refit), so that the Hessian is taken at a stationary point of everything but the
-        # new parameters
-        from ..estimator import WarmStart, smooth
-        dec, G1, R1, _, _ = stage0_start(m, records, base_fit, current.model, theta, det_std)
-        r0 = smooth(m, records, theta, {"G": G1, "R": R1},
-                    options=FitOptions(max_iter=100, deterministic="quasi", deterministic_std=det_std,
-                                       warm_start=WarmStart.from_decision(dec)))
+        # the added states embedded at the nesting point as in stage 0 of the refit (means
+        # simulated along the current smoother with their own transition, stationary
+        # covariance); no smoothing run: the statistic is the difference of two Newton
+        # decrements, which holds at a start that is not exactly stationary
+        dec, _, _, _, _ = stage0_start(m, records, base_fit, current.model, theta, det_std)
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
-                for x in r0.decision["records"]]
+                for x in dec["records"]]
     else:
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in base_fit.decision["records"]]
@@ -227,6 +345,28 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     new_noise = [j for j in (P.process_noise_index(n) for n in new_states) if j is not None]
     new_par = {bnames[c.key][p.name] for c in cands for p in c.parameters if not p.fixed}
     Hdiag = np.diag(P.gather(blks)[1])
+    informative = set(new_par)
+    held_r: set = set()
+    if new_states:
+        import jax.numpy as jnp
+
+        lay = P.layout
+        ni = [m.state_names.index(z) for z in new_states]
+        informative, reach = nesting_reach(
+            m, new_states, sorted(new_par & set(gpos)),
+            np.concatenate([mu for mu, _ in recs]),
+            np.concatenate([np.asarray(r.u, float) for r in records]), theta)
+        Gd = np.abs(np.diag(np.asarray(P.nm.G(jnp.asarray(s[lay.n_theta:]), P.cfg["noise"]),
+                                       float)))
+        # columns of a record's border block (r_i, then the shared vector)
+        cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
+        ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
+        inert = [m.state_names.index(z) for z in new_states if z not in reach]
+        blks = [condition_added_states(b, ni, 1.0 / (float(r.dt) * Gd[ni] ** 2), inert, cols,
+                                       ncols)
+                for b, r in zip(blks, records)]
+        held_r = {int(lay.r_index(i)[j]) for i in range(lay.nrec)
+                  for j in added_state_r_index(m.nx, ni)}
     S, rhs = _reduced_system(P, blks)
     out = {}
     if S is None:
@@ -234,7 +374,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
             out[c.key] = ScoreResult(None, 0, None, note="state block not positive definite")
         return out
     # null: every new parameter and new-state noise held at its nesting value
-    held_all = set(gpos[n] for n in new_par if n in gpos) | set(new_noise)
+    held_all = set(gpos[n] for n in new_par if n in gpos) | set(new_noise) | held_r
     rest = np.array([j for j in range(nglob) if j not in held_all], int)
     try:
         L0 = np.linalg.cholesky(S[np.ix_(rest, rest)])
@@ -253,7 +393,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     for c in cands:
         names = [p.name for p in c.parameters if not p.fixed and bnames[c.key][p.name] in gpos]
         bn = bnames[c.key]
-        tested = [n for n in names if Hdiag[gpos[bn[n]]] > 1e-300]
+        tested = [n for n in names if Hdiag[gpos[bn[n]]] > 1e-300 and bn[n] in informative]
         held = [n for n in names if n not in tested]
         if not tested:
             out[c.key] = ScoreResult(None, 0, None, held=tuple(held),
@@ -283,44 +423,81 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     return out
 
 
-def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
-           det_std: float, include_states: bool = False, progress=None) -> dict:
-    """Score-screen every screenable candidate: {key: ScoreResult} (see the module docstring).
-
-    ``include_states`` (default False): also screen candidates that add states (unsteady
-    aerodynamics, missing modes). Their batch needs its own compilation and a smoothing
-    run of the added states, which costs minutes on a 2-core machine, and the Schur
-    complement of their gains was often not positive definite in the tests (the stiff,
-    quasi-deterministic added states); by default they are ranked by their locate score.
+def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: str, *,
+                 generated_dir, det_std: float) -> dict:
+    """Score statistics of one batch (a task of :func:`screen`, also on an engine worker).
 
     A small batch (≤ 8) that fails to build or evaluate is split into single candidates
-    once; a candidate that still fails gets ``statistic None`` and a note (its locate
-    score then decides).
+    once; a candidate that still fails gets ``statistic None`` and a note.
     """
     from ..errors import FitError, SpecError, VsidgenError
 
-    todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
-    out: dict = {}
     errs = (SpecError, FitError, VsidgenError, ValueError, ArithmeticError,
             np.linalg.LinAlgError, KeyError)
+    out: dict = {}
 
-    def run(group, tag):
+    def run(grp, t):
         try:
-            out.update(screen_batch(group, current, info, workdir / f"{tag}.yaml",
-                                    f"{name}_{tag}", generated_dir=generated_dir, det_std=det_std))
+            out.update(screen_batch(grp, current, info, workdir / f"{t}.yaml", f"{name}_{t}",
+                                    generated_dir=generated_dir, det_std=det_std))
             return True
         except errs as err:
-            if len(group) == 1 or len(group) > 8:
-                for c in group:
+            if len(grp) == 1 or len(grp) > 8:
+                for c in grp:
                     out[c.key] = ScoreResult(None, 0, None,
                                              note=f"failed: {str(err).splitlines()[0][:200]}")
                 return True
             return False
 
-    for i, group in enumerate(batches(todo)):
-        if progress is not None:
-            progress(f"    score screen: batch {i + 1} ({len(group)} candidates)")
-        if not run(group, f"b{i + 1}"):
-            for j, c in enumerate(group):
-                run([c], f"b{i + 1}_{j + 1}")
+    if not run(group, tag):
+        for j, c in enumerate(group):
+            run([c], f"{tag}_{j + 1}")
     return out
+
+
+def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
+           det_std: float, include_states: bool = True, progress=None, engine=None,
+           deadline: float | None = None) -> dict:
+    """Score-screen every screenable candidate: {key: ScoreResult} (see the module docstring).
+
+    ``include_states`` (default True): also screen candidates that add states (unsteady
+    aerodynamics, missing modes, speed dynamics, delays and lags as states, wind): their
+    batches (at most two added states each: the compilation of the block assembly grows
+    steeply with the number of states — a batch of seven candidates with eight added states
+    had not compiled after 10 min on the loaded 2-core machine) need a compilation each, no
+    smoothing run (see "Candidates that add states" in the module docstring).
+
+    ``engine`` (:class:`vsidgen.engine.Engine`, entered): the batches are its tasks, run in
+    parallel on its workers (``deadline``: :func:`time.monotonic` instant after which no
+    batch starts); without one they run here, one after another. A batch that fails
+    (:func:`screen_group`) or is not run leaves its candidates without a statistic (a note
+    says why): they are ranked after the tested ones.
+    """
+    todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
+    groups = batches(todo)
+    out: dict = {}
+    if progress is not None:
+        progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
+                 f"({sum(1 for c in todo if c.states)} add states)")
+    tasks = [(f"b{i + 1}", (group, current, info, workdir, f"b{i + 1}", name))
+             for i, group in enumerate(groups)]
+    if engine is None or engine.serial:
+        for key, args in tasks:
+            out.update(screen_group(*args, generated_dir=generated_dir, det_std=det_std))
+        return out
+    from ..engine import TaskStatus
+
+    outcomes = engine.run(_screen_task, [(k, a + (generated_dir, det_std)) for k, a in tasks],
+                          deadline=deadline)
+    for (key, args), oc in zip(tasks, outcomes):
+        if oc.status is TaskStatus.DONE:
+            out.update(oc.value)
+        else:
+            for c in args[0]:
+                out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
+    return out
+
+
+def _screen_task(group, current, info, workdir, tag, name, generated_dir, det_std):
+    return screen_group(group, current, info, workdir, tag, name, generated_dir=generated_dir,
+                        det_std=det_std)

@@ -6,10 +6,14 @@ One round:
    evaluate the four signals; :func:`~.locate.locate` the mismatch;
 2. every registered effect proposes candidates for the model
    (:func:`~.base.propose`); each is scored against the locate evidence, and every
-   screenable candidate also gets a score (Lagrange-multiplier) statistic at the
-   current optimum (:mod:`.score`, no refit). The screening priority is the score
-   test's −log10 p where it applies, else the locate score; the ``max_candidates``
-   best with priority ≥ ``min_score`` are written as specs that ``extend`` the
+   screenable candidate — with or without added states — also gets a score
+   (Lagrange-multiplier) statistic at the current optimum (:mod:`.score`, no refit).
+   All tested candidates are ranked on one scale, the score test's p-value; those
+   without a statistic come after them, by locate score (:class:`Ranked`). The
+   locate statistics say *where* the mismatch is; the score test decides *what* is
+   refitted (:func:`choose_refits`: first the best candidate of every effect class ×
+   target that clears ``α/m``, then the rest in rank order, ``max_candidates`` in
+   all, priority ≥ ``min_score``). They are written as specs that ``extend`` the
    current spec (``DIR/candidates/r<round>_<i>_<key>.yaml``; the current parameter
    estimates become their initial values — warm start) and refitted;
 3. significance: the likelihood-ratio-type statistic
@@ -496,21 +500,96 @@ def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_
                         key=lambda t: -t.statistic))
 
 
+class ScreenTier(enum.Enum):
+    """How a candidate is ranked for refitting (``rounds[].screen[].tier``).
+
+    ``SCORE_TEST``: by the p-value of its score (Lagrange-multiplier) statistic at the
+    current optimum (:mod:`.score`) — one scale for every tested candidate, whether it adds
+    states or not. ``LOCATE``: no score statistic (not screenable, or the test could not
+    be computed: its note says why); ranked after every tested candidate, by its locate
+    score, never mixed into the p-value scale.
+    """
+
+    SCORE_TEST = "score_test"
+    LOCATE = "locate"
+
+
+@dataclasses.dataclass(frozen=True)
+class Ranked:
+    """One examined candidate with its screening result."""
+
+    candidate: Candidate
+    locate_score: float
+    screen: Any = None               # ScoreResult, or None when not screened
+
+    @property
+    def tier(self) -> ScreenTier:
+        sr = self.screen
+        if sr is not None and sr.statistic is not None and sr.dof >= 1 \
+                and math.isfinite(sr.log10p):
+            return ScreenTier.SCORE_TEST
+        return ScreenTier.LOCATE
+
+    @property
+    def priority(self) -> float:
+        """−log10 p of the score test (tier SCORE_TEST), else the locate score."""
+        return float(self.screen.log10p) if self.tier is ScreenTier.SCORE_TEST \
+            else float(self.locate_score)
+
+    def sort_key(self) -> tuple:
+        """Tier first (every tested candidate before every untested one), then priority."""
+        pr = self.priority
+        return (0 if self.tier is ScreenTier.SCORE_TEST else 1,
+                -pr if math.isfinite(pr) else math.inf)
+
+
 def screen_priority(loc_score: float, sr) -> float:
-    """Screening priority: the score test's −log10 p where it applies, else the locate score."""
-    if sr is not None and sr.statistic is not None and sr.dof >= 1:
-        return float(sr.log10p)
-    return float(loc_score)
+    """Screening priority within a tier (see :class:`Ranked`)."""
+    return Ranked(None, loc_score, sr).priority
+
+
+def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: float,
+                  alpha: float, n_examined: int) -> list[Ranked]:
+    """The candidates to refit, from ``rows`` sorted by :meth:`Ranked.sort_key`.
+
+    First the best-ranked candidate of every effect class × target (``Candidate.effect``,
+    ``Candidate.target``) whose score test clears the family-wise level of the round,
+    ``p < α/m`` (Bonferroni over the ``m`` examined candidates, Holm's first level), so
+    that competing explanations of one mismatch are all refitted and the refits, not the
+    screening order, decide between them; then the remaining rows in rank order with
+    priority ≥ ``min_score``; at most ``max_candidates`` in all, in rank order.
+    """
+    level = -math.log10(alpha / max(n_examined, 1))
+    eligible = [r for r in rows if math.isfinite(r.priority) and r.priority >= min_score]
+    chosen: list[Ranked] = []
+    classes: set = set()
+    for r in eligible:
+        cls = (r.candidate.effect, r.candidate.target)
+        if r.tier is ScreenTier.SCORE_TEST and r.priority > level and cls not in classes:
+            classes.add(cls)
+            chosen.append(r)
+    chosen = chosen[:max_candidates]
+    taken = {id(r) for r in chosen}
+    for r in eligible:
+        if len(chosen) >= max_candidates:
+            break
+        if id(r) not in taken:
+            chosen.append(r)
+    pos = {id(r): i for i, r in enumerate(rows)}
+    return sorted(chosen, key=lambda r: pos[id(r)])
 
 
 def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effect],
                       current: FitState | None, *, max_candidates: int, min_score: float,
-                      screen: bool, workdir: pathlib.Path | None = None, generated_dir=None,
-                      progress=None):
+                      screen: bool, alpha: float = 0.01, workdir: pathlib.Path | None = None,
+                      generated_dir=None, progress=None, engine=None,
+                      deadline: float | None = None):
     """(selected [(priority, locate score, Candidate, ScoreResult|None)], n examined, table).
 
-    Every candidate gets its locate score; with ``screen`` every screenable one also
-    gets its score statistic at the current fit (:func:`.score.screen`).
+    Every candidate gets its locate score; with ``screen`` every screenable one also gets
+    its score statistic at the current fit (:func:`.score.screen`, candidates that add
+    states included; its batches run on ``engine``'s workers when given). The table ranks
+    them by :meth:`Ranked.sort_key`; the refitted ones are chosen by :func:`choose_refits`.
     """
     from .refit import REFIT_DETERMINISTIC_STD
     from .score import screen as score_screen
@@ -522,16 +601,18 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
         scores = score_screen([c for _, c in every], current, info, workdir,
                               f"{safe_name(current.model.name)[:30]}_sc",
                               generated_dir=generated_dir, det_std=REFIT_DETERMINISTIC_STD,
-                              progress=progress)
-    rows = []
-    for loc, c in every:
-        sr = scores.get(c.key)
-        rows.append((screen_priority(loc, sr), loc, c, sr))
-    rows.sort(key=lambda r: -r[0] if math.isfinite(r[0]) else math.inf)
-    table = [{"key": c.key, "priority": _f(pr), "locate_score": _f(loc),
-              "score_test": None if sr is None else sr.to_json()} for pr, loc, c, sr in rows]
-    chosen = [r for r in rows if math.isfinite(r[0]) and r[0] >= min_score][:max_candidates]
-    return chosen, len(every), table
+                              progress=progress, engine=engine, deadline=deadline)
+    rows = sorted((Ranked(c, loc, scores.get(c.key)) for loc, c in every),
+                  key=Ranked.sort_key)
+    chosen = choose_refits(rows, max_candidates=max_candidates, min_score=min_score,
+                           alpha=alpha, n_examined=len(every))
+    picked = {id(r) for r in chosen}
+    table = [{"key": r.candidate.key, "effect": r.candidate.effect,
+              "target": r.candidate.target, "tier": r.tier.value, "priority": _f(r.priority),
+              "locate_score": _f(r.locate_score), "refitted": id(r) in picked,
+              "score_test": None if r.screen is None else r.screen.to_json()} for r in rows]
+    return ([(r.priority, r.locate_score, r.candidate, r.screen) for r in chosen], len(every),
+            table)
 
 
 # ---------------------------------------------------------------------------
@@ -653,7 +734,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
 
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
                  alpha: float = 0.01, min_score: float = 1.0, effects: Sequence[str] | None = None,
-                 effects_module=None, max_iter: int = 200, screen: bool = False,
+                 effects_module=None, max_iter: int = 200, screen: bool = True,
                  time_limit: float | None = None, workers: int | None = 1,
                  scheduler: str | None = None, numerics: bool = True, gated: bool = True,
                  progress: Callable[[str], None] | None = None,
@@ -832,8 +913,9 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 info = model_info_of(current)
                 ranked, n_examined, table = select_candidates(
                     info, evidence, catalogue, current, max_candidates=max_candidates,
-                    min_score=min_score, screen=screen, workdir=out / "screen" / f"r{rnd}",
-                    generated_dir=gen, progress=progress)
+                    min_score=min_score, screen=screen, alpha=alpha,
+                    workdir=out / "screen" / f"r{rnd}", generated_dir=gen, progress=progress,
+                    engine=engine, deadline=deadline)
                 if not ranked:
                     rounds.append({"round": rnd, "base_spec": str(current.spec_path),
                                    "base_elbo": current.elbo, "trials": [],
@@ -841,10 +923,14 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                    "note": "no candidate is supported by the locate evidence or "
                                            "the score test"})
                     break
-                _say(progress, ("screen (priority = -log10 p of the score test, else locate "
-                                "score): " if screen else "locate scores: ")
-                     + ", ".join(f"{r['key']} {r['priority']:.3g}"
-                                 for r in table[:max_candidates + 4] if r['priority'] is not None))
+                _say(progress, ("screen (-log10 p of the score test; [locate score] where no "
+                                "score statistic): " if screen else "locate scores: ")
+                     + ", ".join(f"{r['key']} " + (f"{r['priority']:.3g}"
+                                                   if r['tier'] == ScreenTier.SCORE_TEST.value
+                                                   else f"[{r['priority']:.3g}]")
+                                 + ("*" if r["refitted"] else "")
+                                 for r in table[:max_candidates + 4] if r['priority'] is not None)
+                     + " (* refitted)")
                 paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
                          for i, (_, _, c, _) in enumerate(ranked)]
                 # transport delays are profiled over a grid of delays (.delay), not refitted
@@ -878,10 +964,13 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                                   f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
                                   max_iter, groups.get(c.key)))
                          for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
-                by_key = {c.key: (i, score, c, sr) for i, (score, _, c, sr) in enumerate(ranked)}
+                # a trial carries the candidate's locate score (findings: locate_score) and its
+                # score test (score_test); the priority that ranked it is in the round's screen
+                by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
                 unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                               "base_elbo": current.elbo, "n_candidates": n_examined,
-                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked]}
+                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
+                              "screen": table}
                 checkpoint(StopReason.RUNNING, report=False)
                 _say(progress, f"round {rnd}: refitting {len(tasks)} candidates "
                                f"({engine.describe()}): " + ", ".join(k for k, _ in tasks))
@@ -921,7 +1010,7 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                     i, score, c, sr = by_key[o.key]
                     trials.append(_trial_of(o, c, score, sr, paths[i], current))
                 for i in profiled:
-                    score, _, c, sr = ranked[i]
+                    _, score, c, sr = ranked[i]
                     _say(progress, f"round {rnd}: {c.key}: profiling the delay over a grid")
                     t = delay_trial(c, score, current, paths[i],
                                      f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}",
@@ -1108,7 +1197,8 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.01,
                    help="family-wise significance level per round (default 0.01)")
     p.add_argument("--min-score", type=float, default=1.0,
-                   help="minimum locate score (-log10 p) to refit a candidate (default 1)")
+                   help="minimum priority to refit a candidate: -log10 p of its score test, "
+                        "or its locate score where it has no score statistic (default 1)")
     p.add_argument("--effects", nargs="+", default=None, metavar="ID",
                    help="restrict the catalogue to these effect ids")
     p.add_argument("--effects-module", action="append", default=None, metavar="PATH.py",
@@ -1121,9 +1211,10 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
                    help="compile every candidate's own model (the reference path; by default "
                         "the candidates that add no state are gated terms of one model per "
                         "round, compiled once)")
-    p.add_argument("--screen", action="store_true",
-                   help="experimental: rank the candidates that add no state by a score "
-                        "(Lagrange-multiplier) test at the current fit before refitting")
+    p.add_argument("--screen", action=argparse.BooleanOptionalAction, default=True,
+                   help="rank every candidate by the p-value of its score (Lagrange-multiplier) "
+                        "statistic at the current fit before refitting (default; "
+                        "--no-screen: by the locate score only)")
     from ..spec.overrides import add_override_arguments
 
     add_override_arguments(p)
