@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import enum
+import functools
 import math
 import pathlib
 import sys
@@ -326,9 +327,9 @@ def projected_refit(t: "Trial", current: FitState, path: pathlib.Path, name: str
 
     A candidate's refit can end in a better optimum of the current model's own
     parameters and noise (the noise likelihood is multimodal; the extra parameter opens a
-    path out of the current basin). That gain is not the new term's: a round-2
-    ``time_skew:q`` once reached Λ = 97 with an estimate 0.3 s.e. from zero, and an
-    unconverged gust state Λ = 104 from the same basin. This refit starts at the
+    path out of the current basin). Such a gain belongs to the current model, not to the
+    new term: measured against the old optimum it can make a term whose estimate is
+    indistinguishable from zero look highly significant. This refit starts at the
     candidate's optimum with its new parameters fixed at their nesting values (the
     current model exactly; only for candidates that add no state and nest the current
     model at their initial values) and the candidate's noise and assumed density as warm
@@ -831,295 +832,449 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                              gated=gated)
 
 
+@dataclasses.dataclass(frozen=True)
+class _RunConfig:
+    """The fixed settings of one diagnose run (what every phase reads, nothing it writes)."""
+
+    out: pathlib.Path
+    gen: pathlib.Path
+    data: Sequence
+    validate: Sequence
+    catalogue: Sequence[Effect]
+    max_rounds: int
+    max_candidates: int
+    alpha: float
+    min_score: float
+    max_iter: int
+    screen: bool
+    numerics: bool
+    gated: bool
+    time_limit: float | None
+    deadline: float | None          # time.monotonic() value after which no refit starts
+    engine: Any
+    progress: Callable[[str], None] | None
+    version: str
+    build_document: Callable
+    write_findings: Callable
+    options: dict
+    t_start: float                  # time.perf_counter() at the start of the run
+    compile0: float                 # refit.compile_seconds() at the start of the run
+
+    def past_deadline(self) -> bool:
+        return self.deadline is not None and time.monotonic() >= self.deadline
+
+    def say(self, msg: str) -> None:
+        _say(self.progress, msg)
+
+
+@dataclasses.dataclass
+class _RunState:
+    """What a diagnose run has found so far; every checkpoint writes it.
+
+    ``base``/``evidence0``: the base fit and its locate evidence (None until done);
+    ``current``/``evidence``: the model the next round extends and its evidence;
+    ``rounds``: the finished rounds' records; ``accepted``: (trial, fit it was tested
+    against, that fit's evidence) per accepted effect; ``unfinished``: the record of the
+    round under way (None between rounds); ``numres``: the integrator-settings stage.
+    """
+
+    base: FitState | None = None
+    current: FitState | None = None
+    evidence0: Evidence | None = None
+    evidence: Evidence | None = None
+    numres: Any = None
+    rounds: list[dict] = dataclasses.field(default_factory=list)
+    accepted: list[tuple[Trial, FitState, Evidence]] = dataclasses.field(default_factory=list)
+    unfinished: dict | None = None
+
+
+class _RoundEnd(enum.Enum):
+    """How one round of :func:`_run_round` ended."""
+
+    ACCEPTED = "accepted"          # an effect was accepted: the next round extends it
+    DONE = "done"                  # nothing to refit or nothing accepted: the search ends
+    TIME_LIMIT = "time_limit"      # the time limit cancelled a refit of the round
+
+
+@dataclasses.dataclass(frozen=True)
+class _RoundPlan:
+    """The refits of one round: ``ranked`` as from :func:`select_candidates`, the spec path
+    of each, the indices of the profiled delays, the gated model of each gated candidate's
+    key, the engine tasks of the other refits and ``by_key``: key → (index, locate score,
+    candidate, score result)."""
+
+    ranked: list
+    paths: list[pathlib.Path]
+    profiled: list[int]
+    groups: dict
+    tasks: list
+    by_key: dict
+
+
+def _round_name(current: FitState, rnd: int, tag) -> str:
+    """Model name of a spec written in round ``rnd`` from the current model."""
+    return f"{safe_name(current.model.name)[:30]}_dg{rnd}_{tag}"
+
+
+def _document(run: _RunConfig, st: _RunState, stop: StopReason) -> dict:
+    """The findings document of the run so far (:func:`.findings.build_document`) with the
+    compile time spent in this process and in the refits."""
+    from .refit import compile_seconds
+
+    doc = run.build_document(base=st.base, final=st.current, accepted=st.accepted,
+                             rounds=st.rounds, evidence=st.evidence0,
+                             final_evidence=st.evidence, alpha=run.alpha, version=run.version,
+                             wall_time_s=time.perf_counter() - run.t_start, out=run.out,
+                             options=run.options,
+                             stop={"reason": stop.value, "time_limit_s": run.time_limit},
+                             unfinished_round=st.unfinished,
+                             numerics=None if st.numres is None else st.numres.to_json())
+    refit_c = [t["refit"].get("compile_s") for r in st.rounds for t in r.get("trials", ())
+               if t.get("refit")]
+    doc["compile_s"] = {"this_process": round(compile_seconds() - run.compile0, 2),
+                        "refits": round(sum(c for c in refit_c if c is not None), 2)}
+    return doc
+
+
+def _checkpoint(run: _RunConfig, st: _RunState, stop: StopReason, *,
+                report: bool = True) -> dict:
+    """Write ``findings.json`` (and with ``report`` ``diagnose.html``); the document."""
+    from .findings import write_findings_json
+
+    doc = _document(run, st, stop)
+    if report:
+        run.write_findings(run.out, doc, base=st.base, final=st.current, accepted=st.accepted)
+    else:
+        write_findings_json(run.out, doc)
+    return doc
+
+
+def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
+    """Fit the base spec (continued once when unconverged) and locate its mismatch."""
+    run.say(f"fitting the base model {spec}")
+    base = fit_spec(spec, run.data, validate=run.validate, generated_dir=run.gen,
+                    max_iter=run.max_iter)
+    if not base.fit.converged and not run.past_deadline():
+        base = polish(base, max_iter=run.max_iter, progress=run.progress)
+    st.base = st.current = base
+    st.evidence0 = st.evidence = locate_state(base)
+    run.say("locate:\n" + st.evidence0.summary())
+    _checkpoint(run, st, StopReason.RUNNING)
+
+
+def _numerics_stage(run: _RunConfig, st: _RunState) -> None:
+    """Refit the current model with other integrator settings (:mod:`.numerics`); adopt a
+    setting that removes a significant part of the mismatch."""
+    from .numerics import run_numerics
+
+    st.numres = run_numerics(st.current, run.out, alpha=run.alpha, generated_dir=run.gen,
+                             max_iter=run.max_iter, engine=run.engine, deadline=run.deadline,
+                             progress=run.progress)
+    if st.numres.adopted is not None:
+        st.current = st.numres.adopted.state
+        st.evidence = locate_state(st.current)
+    _checkpoint(run, st, StopReason.RUNNING)
+
+
+def _say_screen(run: _RunConfig, table: list[dict]) -> None:
+    """One progress line with the round's screen ranking (refitted ones starred)."""
+    run.say(("screen (-log10 p of the score test; [locate score] where no "
+             "score statistic): " if run.screen else "locate scores: ")
+            + ", ".join(f"{r['key']} " + (f"{r['priority']:.3g}"
+                                          if r['tier'] == ScreenTier.SCORE_TEST.value
+                                          else f"[{r['priority']:.3g}]")
+                        + ("*" if r["refitted"] else "")
+                        for r in table[:run.max_candidates + 4] if r['priority'] is not None)
+            + " (* refitted)")
+
+
+def _gated_round_models(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
+                        cands: Sequence[Candidate]) -> dict:
+    """Key → gated model (:mod:`.gated`) of the gateable ``cands``, each group's module
+    built once before the refits; a group whose model cannot be built is left out (its
+    candidates compile their own models)."""
+    from .gated import gateable, gated_groups, gated_model, write_gated_spec
+
+    groups = {}
+    for g, grp in enumerate(gated_groups([c for c in cands if gateable(c)])):
+        try:
+            gg = write_gated_spec(grp, current, info,
+                                  run.out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
+                                  _round_name(current, rnd, f"g{g + 1}"))
+            gated_model(gg, run.gen)
+        except (SpecError, VsidgenError, ValueError, KeyError) as err:
+            run.say(f"    gated model of {', '.join(c.key for c in grp)} "
+                    f"not built ({str(err).splitlines()[0]}); their "
+                    "refits compile their own models")
+            continue
+        groups.update({c.key: gg for c in grp})
+    if groups:
+        run.say(f"round {rnd}: {len(groups)} candidates are gated terms of "
+                f"{len(set(groups.values()))} compiled model(s) "
+                "(the others compile their own)")
+    return groups
+
+
+def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
+                ranked: list) -> _RoundPlan:
+    """Spec paths, gated models and engine tasks of the round's selected candidates;
+    transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted."""
+    paths = [run.out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
+             for i, (_, _, c, _) in enumerate(ranked)]
+    profiled = [i for i, (_, _, c, _) in enumerate(ranked) if c.info.get("profile") == "delay"]
+    groups = {}
+    if run.gated:
+        groups = _gated_round_models(run, current, info, rnd,
+                                     [c for i, (_, _, c, _) in enumerate(ranked)
+                                      if i not in profiled])
+    tasks = [(c.key, (c, current, info, paths[i], _round_name(current, rnd, i + 1), run.gen,
+                      run.max_iter, groups.get(c.key)))
+             for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
+    # a trial carries the candidate's locate score (findings: locate_score) and its score
+    # test (score_test); the priority that ranked it is in the round's screen
+    by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
+    return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key)
+
+
+def _refit_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
+                current: FitState, oc) -> None:
+    """Engine callback of one finished refit task: progress lines and a checkpoint with
+    the refit moved from pending to refitted (a cancelled one stays pending)."""
+    from ..engine import TaskStatus
+
+    i, score, c, sr = plan.by_key[oc.key]
+    t = _trial_of(oc, c, score, sr, plan.paths[i], current)
+    if oc.status is TaskStatus.DONE:
+        for m in oc.value[1]:
+            run.say(f"    [{c.key}] {m.strip()}")
+        run.say(f"round {rnd}: {c.key}: ELBO {t.state.elbo:.6g}, 2ΔELBO "
+                f"vs nested reference {t.statistic:.4g}, "
+                f"{conv_label(t.state.fit)} ({oc.wall_s:.0f} s, "
+                f"compile {t.refit.compile_s:.0f} s)")
+    else:
+        run.say(f"round {rnd}: {c.key}: {oc.status.value.upper()} ({oc.error})")
+    if oc.status is not TaskStatus.CANCELLED:
+        un = st.unfinished
+        un["pending"].remove(c.key)
+        un["refitted"].append(t.to_json())
+        _checkpoint(run, st, StopReason.RUNNING, report=False)
+        status = getattr(run.progress, "refitting", None)
+        if status is not None and un["pending"]:
+            n_done = len(un["refitted"])
+            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), un["pending"][0]))
+
+
+def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
+                 current: FitState) -> list[Trial] | None:
+    """The round's refits on the engine, then its delay profiles: the trials, in that
+    order (None when the time limit cancelled one)."""
+    from ..engine import TaskStatus
+
+    status = getattr(run.progress, "refitting", None)  # live status line with time left
+    if status is not None and plan.tasks:
+        run.say(status(rnd, 1, len(plan.tasks), plan.tasks[0][0]))
+    outcomes = run.engine.run(_refit_task, plan.tasks, deadline=run.deadline,
+                              on_done=functools.partial(_refit_done, run, st, rnd, plan, current))
+    if any(o.status is TaskStatus.CANCELLED for o in outcomes):
+        return None
+    trials = []
+    for o in outcomes:
+        i, score, c, sr = plan.by_key[o.key]
+        trials.append(_trial_of(o, c, score, sr, plan.paths[i], current))
+    for i in plan.profiled:
+        _, score, c, sr = plan.ranked[i]
+        run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
+        t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
+                        engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
+                        deadline=run.deadline)
+        if t is None:
+            return None
+        st.unfinished["pending"].remove(c.key)
+        st.unfinished["refitted"].append(t.to_json())
+        if t.state is not None:
+            run.say(f"round {rnd}: {c.key}: delay {t.candidate.info['delay']}"
+                    f", 2ΔELBO {t.statistic:.4g}")
+        elif t.refit is not None:
+            run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
+        trials.append(t)
+    return trials
+
+
+def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
+                     trials: list[Trial]) -> tuple[list[Trial], list[dict], FitState | None] | None:
+    """Projected refits (:func:`projected_refit`) of the nominally significant trials that
+    add no state: a candidate's gain may be a better optimum of the current model itself.
+    When one is found it becomes ``st.current`` (re-based on the current spec,
+    :func:`rebase`) and every trial's statistic is taken against it. Returns (trials,
+    projected-refit records, the better optimum or None); None when the time limit
+    cancelled one."""
+    from ..engine import TaskStatus
+
+    current = st.current
+    ptasks = []
+    for i, t in enumerate(trials):
+        if (t.state is None or t.candidate.states or not t.candidate.screenable
+                or not t.converged or not (t.p_value < run.alpha)):
+            continue
+        ppath = (run.out / "candidates"
+                 / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
+        ptasks.append((t.candidate.key, (t, current, ppath, _round_name(current, rnd, f"{i + 1}p"),
+                                         run.gen, run.max_iter, plan.groups.get(t.candidate.key))))
+    if ptasks:
+        st.unfinished["projected_pending"] = [k for k, _ in ptasks]
+        run.say(f"round {rnd}: projected refits of " + ", ".join(k for k, _ in ptasks))
+    pouts = run.engine.run(_projected_task, ptasks, deadline=run.deadline)
+    if any(o.status is TaskStatus.CANCELLED for o in pouts):
+        return None
+    projected = []
+    better = None
+    for (key, (_, _, ppath, *_)), o in zip(ptasks, pouts):
+        if o.status is not TaskStatus.DONE:
+            projected.append({"key": key, "error": f"{o.status.value}: {o.error}"})
+            continue
+        ps = o.value
+        ok = refit_converged(ps.fit)
+        projected.append({"key": key, "spec": str(ppath), "elbo": _f(ps.elbo), "converged": ok,
+                          "gain_over_current": _f(ps.elbo - current.elbo)})
+        if ok and ps.elbo > current.elbo + PROJECTED_TOL and (
+                better is None or ps.elbo > better.elbo):
+            better = ps
+    if better is not None:
+        run.say(f"    the current model has a better optimum (ELBO "
+                f"{current.elbo:.6g} -> {better.elbo:.6g}, reached from a "
+                "candidate's optimum with its new terms removed): every "
+                "statistic of the round is taken against it")
+        try:
+            rb = rebase(better, current, run.out / "candidates" / f"r{rnd}_00_current.yaml",
+                        _round_name(current, rnd, 0), generated_dir=run.gen,
+                        max_iter=run.max_iter)
+            if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
+                better = rb
+        except (SpecError, FitError, VsidgenError, ValueError, KeyError) as err:
+            run.say(f"    (re-basing on the current spec failed: {err}; the "
+                    "projected spec is kept)")
+        trials = _against_better_reference(trials, better)
+        st.current = better
+    return trials, projected, better
+
+
+def _accept(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, info: ModelInfo,
+            best: Trial) -> None:
+    """Record the accepted trial and make it the current model (a gated candidate is
+    refitted as its own spec first: the next round extends its own spec and model)."""
+    run.say(f"round {rnd}: accepted {best.candidate.key} "
+            f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
+            + (f"; AMBIGUOUS with {', '.join(t.candidate.key for t in best.alternatives)}"
+               if best.alternatives else ""))
+    if best.candidate.key in plan.groups:
+        from .gated import adopt
+
+        ia = plan.by_key[best.candidate.key][0]
+        own = adopt(best.candidate, best.state, st.current, info, best.spec_path,
+                    _round_name(st.current, rnd, ia + 1), generated_dir=run.gen,
+                    max_iter=run.max_iter)
+        run.say(f"    {best.candidate.key} as its own spec: ELBO "
+                f"{own.elbo:.6g} (gated fit {best.state.elbo:.6g})")
+        best = dataclasses.replace(best, state=own)
+    st.accepted.append((best, st.current, st.evidence))
+    st.current = best.state
+    st.evidence = locate_state(st.current)
+    _checkpoint(run, st, StopReason.RUNNING)
+
+
+def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
+    """One round: screen and select → refits → projected refits → decide → accept."""
+    current = st.current
+    info = model_info_of(current)
+    ranked, n_examined, table = select_candidates(
+        info, st.evidence, run.catalogue, current, max_candidates=run.max_candidates,
+        min_score=run.min_score, screen=run.screen, alpha=run.alpha,
+        workdir=run.out / "screen" / f"r{rnd}", generated_dir=run.gen, progress=run.progress,
+        engine=run.engine, deadline=run.deadline)
+    if not ranked:
+        st.rounds.append({"round": rnd, "base_spec": str(current.spec_path),
+                          "base_elbo": current.elbo, "trials": [],
+                          "n_examined": n_examined, "screen": table,
+                          "note": "no candidate is supported by the locate evidence or "
+                                  "the score test"})
+        return _RoundEnd.DONE
+    _say_screen(run, table)
+    plan = _plan_round(run, current, info, rnd, ranked)
+    st.unfinished = {"round": rnd, "base_spec": str(current.spec_path),
+                     "base_elbo": current.elbo, "n_candidates": n_examined,
+                     "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
+                     "screen": table}
+    _checkpoint(run, st, StopReason.RUNNING, report=False)
+    run.say(f"round {rnd}: refitting {len(plan.tasks)} candidates "
+            f"({run.engine.describe()}): " + ", ".join(k for k, _ in plan.tasks))
+    trials = _refit_round(run, st, rnd, plan, current)
+    if trials is None:
+        return _RoundEnd.TIME_LIMIT
+    checked = _projected_round(run, st, rnd, plan, trials)
+    if checked is None:
+        return _RoundEnd.TIME_LIMIT
+    trials, projected, better = checked
+    st.unfinished = None
+    finished = _decide_round(rnd, trials, st.current, n_examined, run.alpha, table,
+                             projected, better)
+    st.rounds.append(finished.record)
+    if finished.base_unconverged or finished.best is None:
+        return _RoundEnd.DONE
+    _accept(run, st, rnd, plan, info, finished.best)
+    return _RoundEnd.ACCEPTED
+
+
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
                   write_findings, time_limit, engine, numerics=True,
                   gated=True) -> DiagnoseResult:
-    from ..engine import TaskStatus
-    from .findings import write_findings_json
+    """The diagnose run in ``out`` (see :func:`run_diagnose`): base fit, integrator
+    settings, then rounds until one ends the search, the time limit or ``max_rounds``;
+    a checkpoint after every phase, the interrupted state written before re-raising."""
+    from .refit import compile_seconds
 
-    gen = out / "generated"
     t_start = time.perf_counter()
     deadline = None if time_limit is None else time.monotonic() + float(time_limit)
     options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
                "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
                "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics,
                "gated": gated}
-
-    def past_deadline() -> bool:
-        return deadline is not None and time.monotonic() >= deadline
-
-    base = None
-    rounds: list[dict] = []
-    accepted: list[tuple[Trial, FitState, Evidence]] = []
-    unfinished: dict | None = None
-    current = evidence0 = evidence = None
-    numres = None
-
-    from .refit import compile_seconds
-
-    compile0 = compile_seconds()
-
-    def document(stop: StopReason) -> dict:
-        doc = build_document(base=base, final=current, accepted=accepted, rounds=rounds,
-                              evidence=evidence0, final_evidence=evidence, alpha=alpha,
-                              version=version, wall_time_s=time.perf_counter() - t_start,
-                              out=out, options=options,
-                              stop={"reason": stop.value, "time_limit_s": time_limit},
-                              unfinished_round=unfinished,
-                              numerics=None if numres is None else numres.to_json())
-        refit_c = [t["refit"].get("compile_s") for r in rounds for t in r.get("trials", ())
-                   if t.get("refit")]
-        doc["compile_s"] = {"this_process": round(compile_seconds() - compile0, 2),
-                            "refits": round(sum(c for c in refit_c if c is not None), 2)}
-        return doc
-
-    def checkpoint(stop: StopReason, *, report: bool = True) -> dict:
-        doc = document(stop)
-        if report:
-            write_findings(out, doc, base=base, final=current, accepted=accepted)
-        else:
-            write_findings_json(out, doc)
-        return doc
-
+    run = _RunConfig(out=out, gen=out / "generated", data=data, validate=validate,
+                     catalogue=catalogue, max_rounds=max_rounds, max_candidates=max_candidates,
+                     alpha=alpha, min_score=min_score, max_iter=max_iter, screen=screen,
+                     numerics=numerics, gated=gated, time_limit=time_limit, deadline=deadline,
+                     engine=engine, progress=progress, version=version,
+                     build_document=build_document, write_findings=write_findings,
+                     options=options, t_start=t_start, compile0=compile_seconds())
+    st = _RunState()
     stop = StopReason.COMPLETED
     try:
-        _say(progress, f"fitting the base model {spec}")
-        base = fit_spec(spec, data, validate=validate, generated_dir=gen, max_iter=max_iter)
-        if not base.fit.converged and not past_deadline():
-            base = polish(base, max_iter=max_iter, progress=progress)
-        current = base
-        evidence0 = locate_state(base)
-        evidence = evidence0
-        _say(progress, "locate:\n" + evidence0.summary())
-        checkpoint(StopReason.RUNNING)
+        _fit_base(run, st, spec)
         with engine:
             if not engine.serial:
-                _say(progress, f"refits run on a {engine.describe()}")
-            if numerics and not past_deadline():
-                from .numerics import run_numerics
-
-                numres = run_numerics(current, out, alpha=alpha, generated_dir=gen,
-                                      max_iter=max_iter, engine=engine, deadline=deadline,
-                                      progress=progress)
-                if numres.adopted is not None:
-                    current = numres.adopted.state
-                    evidence = locate_state(current)
-                checkpoint(StopReason.RUNNING)
+                run.say(f"refits run on a {engine.describe()}")
+            if numerics and not run.past_deadline():
+                _numerics_stage(run, st)
             for rnd in range(1, max_rounds + 1):
-                if past_deadline():
+                if run.past_deadline():
                     stop = StopReason.TIME_LIMIT
                     break
-                info = model_info_of(current)
-                ranked, n_examined, table = select_candidates(
-                    info, evidence, catalogue, current, max_candidates=max_candidates,
-                    min_score=min_score, screen=screen, alpha=alpha,
-                    workdir=out / "screen" / f"r{rnd}", generated_dir=gen, progress=progress,
-                    engine=engine, deadline=deadline)
-                if not ranked:
-                    rounds.append({"round": rnd, "base_spec": str(current.spec_path),
-                                   "base_elbo": current.elbo, "trials": [],
-                                   "n_examined": n_examined, "screen": table,
-                                   "note": "no candidate is supported by the locate evidence or "
-                                           "the score test"})
-                    break
-                _say(progress, ("screen (-log10 p of the score test; [locate score] where no "
-                                "score statistic): " if screen else "locate scores: ")
-                     + ", ".join(f"{r['key']} " + (f"{r['priority']:.3g}"
-                                                   if r['tier'] == ScreenTier.SCORE_TEST.value
-                                                   else f"[{r['priority']:.3g}]")
-                                 + ("*" if r["refitted"] else "")
-                                 for r in table[:max_candidates + 4] if r['priority'] is not None)
-                     + " (* refitted)")
-                paths = [out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
-                         for i, (_, _, c, _) in enumerate(ranked)]
-                # transport delays are profiled over a grid of delays (.delay), not refitted
-                profiled = [i for i, (_, _, c, _) in enumerate(ranked)
-                            if c.info.get("profile") == "delay"]
-                # candidates that add no state share one compiled, gated model (.gated)
-                groups = {}
-                if gated:
-                    from .gated import gateable, gated_groups, gated_model, write_gated_spec
-
-                    gcands = [c for i, (_, _, c, _) in enumerate(ranked)
-                              if i not in profiled and gateable(c)]
-                    for g, grp in enumerate(gated_groups(gcands)):
-                        try:
-                            gg = write_gated_spec(
-                                grp, current, info,
-                                out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
-                                f"{safe_name(current.model.name)[:30]}_dg{rnd}_g{g + 1}")
-                            gated_model(gg, gen)  # its module is built once, before the refits
-                        except (SpecError, VsidgenError, ValueError, KeyError) as err:
-                            _say(progress, f"    gated model of {', '.join(c.key for c in grp)} "
-                                           f"not built ({str(err).splitlines()[0]}); their "
-                                           "refits compile their own models")
-                            continue
-                        groups.update({c.key: gg for c in grp})
-                    if groups:
-                        _say(progress, f"round {rnd}: {len(groups)} candidates are gated terms of "
-                                       f"{len(set(groups.values()))} compiled model(s) "
-                                       "(the others compile their own)")
-                tasks = [(c.key, (c, current, info, paths[i],
-                                  f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}", gen,
-                                  max_iter, groups.get(c.key)))
-                         for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
-                # a trial carries the candidate's locate score (findings: locate_score) and its
-                # score test (score_test); the priority that ranked it is in the round's screen
-                by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
-                unfinished = {"round": rnd, "base_spec": str(current.spec_path),
-                              "base_elbo": current.elbo, "n_candidates": n_examined,
-                              "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
-                              "screen": table}
-                checkpoint(StopReason.RUNNING, report=False)
-                _say(progress, f"round {rnd}: refitting {len(tasks)} candidates "
-                               f"({engine.describe()}): " + ", ".join(k for k, _ in tasks))
-                status = getattr(progress, "refitting", None)  # live status line with time left
-                if status is not None and tasks:
-                    _say(progress, status(rnd, 1, len(tasks), tasks[0][0]))
-
-                def refit_done(oc, rnd=rnd, current=current, by_key=by_key, paths=paths):
-                    i, score, c, sr = by_key[oc.key]
-                    t = _trial_of(oc, c, score, sr, paths[i], current)
-                    if oc.status is TaskStatus.DONE:
-                        for m in oc.value[1]:
-                            _say(progress, f"    [{c.key}] {m.strip()}")
-                        _say(progress, f"round {rnd}: {c.key}: ELBO {t.state.elbo:.6g}, 2ΔELBO "
-                                       f"vs nested reference {t.statistic:.4g}, "
-                                       f"{conv_label(t.state.fit)} ({oc.wall_s:.0f} s, "
-                                       f"compile {t.refit.compile_s:.0f} s)")
-                    else:
-                        _say(progress, f"round {rnd}: {c.key}: {oc.status.value.upper()} "
-                                       f"({oc.error})")
-                    if oc.status is not TaskStatus.CANCELLED:
-                        unfinished["pending"].remove(c.key)
-                        unfinished["refitted"].append(t.to_json())
-                        checkpoint(StopReason.RUNNING, report=False)
-                        status = getattr(progress, "refitting", None)
-                        if status is not None and unfinished["pending"]:
-                            n_done = len(unfinished["refitted"])
-                            _say(progress, status(rnd, n_done + 1, n_done + len(unfinished["pending"]),
-                                                  unfinished["pending"][0]))
-
-                outcomes = engine.run(_refit_task, tasks, deadline=deadline, on_done=refit_done)
-                if any(o.status is TaskStatus.CANCELLED for o in outcomes):
+                end = _run_round(run, st, rnd)
+                if end is _RoundEnd.TIME_LIMIT:
                     stop = StopReason.TIME_LIMIT
+                if end is not _RoundEnd.ACCEPTED:
                     break
-                trials = []
-                for o in outcomes:
-                    i, score, c, sr = by_key[o.key]
-                    trials.append(_trial_of(o, c, score, sr, paths[i], current))
-                for i in profiled:
-                    _, score, c, sr = ranked[i]
-                    _say(progress, f"round {rnd}: {c.key}: profiling the delay over a grid")
-                    t = delay_trial(c, score, current, paths[i],
-                                     f"{safe_name(current.model.name)[:30]}_dg{rnd}_{i + 1}",
-                                     engine=engine, generated_dir=gen, max_iter=max_iter,
-                                     deadline=deadline)
-                    if t is None:
-                        stop = StopReason.TIME_LIMIT
-                        break
-                    unfinished["pending"].remove(c.key)
-                    unfinished["refitted"].append(t.to_json())
-                    if t.state is not None:
-                        _say(progress, f"round {rnd}: {c.key}: delay {t.candidate.info['delay']}"
-                                       f", 2ΔELBO {t.statistic:.4g}")
-                    elif t.refit is not None:
-                        _say(progress, f"round {rnd}: {c.key}: {t.refit.notes[0]}")
-                    trials.append(t)
-                if stop is StopReason.TIME_LIMIT:
-                    break
-                # a candidate's gain may be a better optimum of the current model itself: refit
-                # the current model from each nominally significant candidate's optimum
-                # (new terms removed)
-                ptasks = []
-                for i, t in enumerate(trials):
-                    if (t.state is None or t.candidate.states or not t.candidate.screenable
-                            or not t.converged or not (t.p_value < alpha)):
-                        continue
-                    ppath = (out / "candidates"
-                             / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
-                    ptasks.append((t.candidate.key, (t, current, ppath,
-                                                     f"{safe_name(current.model.name)[:30]}_dg{rnd}_"
-                                                     f"{i + 1}p", gen, max_iter,
-                                                     groups.get(t.candidate.key))))
-                if ptasks:
-                    unfinished["projected_pending"] = [k for k, _ in ptasks]
-                    _say(progress, f"round {rnd}: projected refits of "
-                                   + ", ".join(k for k, _ in ptasks))
-                pouts = engine.run(_projected_task, ptasks, deadline=deadline)
-                if any(o.status is TaskStatus.CANCELLED for o in pouts):
-                    stop = StopReason.TIME_LIMIT
-                    break
-                projected = []
-                better = None
-                for (key, (_, _, ppath, *_)), o in zip(ptasks, pouts):
-                    if o.status is not TaskStatus.DONE:
-                        projected.append({"key": key, "error": f"{o.status.value}: {o.error}"})
-                        continue
-                    ps = o.value
-                    ok = refit_converged(ps.fit)
-                    projected.append({"key": key, "spec": str(ppath), "elbo": _f(ps.elbo),
-                                      "converged": ok,
-                                      "gain_over_current": _f(ps.elbo - current.elbo)})
-                    if ok and ps.elbo > current.elbo + PROJECTED_TOL and (
-                            better is None or ps.elbo > better.elbo):
-                        better = ps
-                if better is not None:
-                    _say(progress, f"    the current model has a better optimum (ELBO "
-                                   f"{current.elbo:.6g} -> {better.elbo:.6g}, reached from a "
-                                   "candidate's optimum with its new terms removed): every "
-                                   "statistic of the round is taken against it")
-                    try:
-                        rb = rebase(better, current,
-                                    out / "candidates" / f"r{rnd}_00_current.yaml",
-                                    f"{safe_name(current.model.name)[:30]}_dg{rnd}_0",
-                                    generated_dir=gen, max_iter=max_iter)
-                        if refit_converged(rb.fit) and rb.elbo >= better.elbo - PROJECTED_TOL:
-                            better = rb
-                    except (SpecError, FitError, VsidgenError, ValueError, KeyError) as err:
-                        _say(progress, f"    (re-basing on the current spec failed: {err}; the "
-                                       "projected spec is kept)")
-                    trials = _against_better_reference(trials, better)
-                    current = better
-                unfinished = None
-                finished = _decide_round(rnd, trials, current, n_examined, alpha, table,
-                                         projected, better)
-                rounds.append(finished.record)
-                if finished.base_unconverged or finished.best is None:
-                    break
-                best = finished.best
-                _say(progress, f"round {rnd}: accepted {best.candidate.key} "
-                               f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
-                               + (f"; AMBIGUOUS with "
-                                  f"{', '.join(t.candidate.key for t in best.alternatives)}"
-                                  if best.alternatives else ""))
-                if best.candidate.key in groups:
-                    # the next round extends the accepted candidate's own spec and model
-                    ia = by_key[best.candidate.key][0]
-                    from .gated import adopt
-
-                    own = adopt(best.candidate, best.state, current, info, best.spec_path,
-                                f"{safe_name(current.model.name)[:30]}_dg{rnd}_{ia + 1}",
-                                generated_dir=gen, max_iter=max_iter)
-                    _say(progress, f"    {best.candidate.key} as its own spec: ELBO "
-                                   f"{own.elbo:.6g} (gated fit {best.state.elbo:.6g})")
-                    best = dataclasses.replace(best, state=own)
-                accepted.append((best, current, evidence))
-                current = best.state
-                evidence = locate_state(current)
-                checkpoint(StopReason.RUNNING)
     except KeyboardInterrupt:
-        if evidence0 is not None:          # the base fit and its locate step are done
-            checkpoint(StopReason.INTERRUPTED)
-            _say(progress, f"interrupted: {len(accepted)} accepted finding(s) and the unfinished "
-                           f"round written to {out / 'findings.json'}")
+        if st.evidence0 is not None:          # the base fit and its locate step are done
+            _checkpoint(run, st, StopReason.INTERRUPTED)
+            run.say(f"interrupted: {len(st.accepted)} accepted finding(s) and the unfinished "
+                    f"round written to {out / 'findings.json'}")
         raise
     if stop is StopReason.TIME_LIMIT:
-        _say(progress, f"time limit of {time_limit:g} s reached: stopping between refits")
-    doc = checkpoint(stop)
+        run.say(f"time limit of {time_limit:g} s reached: stopping between refits")
+    doc = _checkpoint(run, st, stop)
     return DiagnoseResult(out, tuple(doc["findings"]), pathlib.Path(doc["final_spec"]), doc,
-                          base, current, evidence0, stop)
+                          st.base, st.current, st.evidence0, stop)
 
 
 @dataclasses.dataclass(frozen=True)
