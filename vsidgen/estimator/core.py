@@ -441,6 +441,10 @@ POINT_JACOBIANS = "autodiff"
 #: relative (docs/performance.md, ``benchmarks/bench_compile.py --options``).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
+#: pairs / nodes per vmapped chunk of the Hessian assembly: memory is one chunk of
+#: per-point blocks, and a cache-sized chunk is faster than a large one (docs/performance.md)
+ASSEMBLY_CHUNK = 512
+
 
 def compiler_options() -> dict | None:
     """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults)."""
@@ -463,8 +467,7 @@ class Objective:
         self.ng = theta_map.n_free + noise_map.n
         self.nb = self.nq + self.ng
         self._tril = np.tril_indices(n, -1)
-        self.chunk = 512  # pairs / nodes per vmapped chunk of the Hessian assembly (cache-sized: 512 was
-        # 1.5x faster than 4096 at N = 4e4 on the 2-core dev machine; memory is one chunk of blocks)
+        self.chunk = ASSEMBLY_CHUNK
         na = n + model.np
         nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
         # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)

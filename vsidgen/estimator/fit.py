@@ -440,6 +440,8 @@ CORRELATION_LIMIT = 0.999
 #: a smallest eigenvalue of the parameters' correlation matrix below this (the standard
 #: error of some combination is 1/√λ ≥ 1000 times what it would be were the others known).
 EIGENVALUE_LIMIT = 1e-6
+#: a smoothed state this many measurement stds (RMS) from its direct measurement is reported
+FAR_FROM_MEASUREMENT = 5.0
 #: z value of the two-sided 95 % interval (the bound test).
 Z95 = 1.959963984540054
 
@@ -594,7 +596,7 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
             res = res[np.isfinite(res)]
             if res.size and sig[j] > 0:
                 ratio = float(np.sqrt(np.mean(res ** 2)) / sig[j])
-                if ratio > 5:
+                if ratio > FAR_FROM_MEASUREMENT:
                     warnings.append({"code": "state_far_from_measurement", "reliable": True,
                                      "record": str(getattr(rec, "name", "")), "state": model.state_names[i],
                                      "output": model.output_names[j], "ratio": ratio,

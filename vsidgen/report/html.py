@@ -1,4 +1,4 @@
-"""HTML report of a fit's results directory (issue 4).
+"""HTML report of a fit's results directory.
 
 ``write_report(DIR)`` reads ``DIR/results.json`` and the ``signals_<record>.csv``
 time histories (format: docs/architecture.md, "Results directory") and writes
