@@ -218,3 +218,25 @@ def test_conclusion_when_every_refit_failed():
     rounds[0]["trials"].append({"key": "c", "error": None, "converged": True})
     text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="s.yaml")
     assert text.startswith("No significant") and "failed (neither accepted nor ruled out): a, b" in text
+
+
+def test_an_unreachable_cluster_is_refused_before_the_base_fit(monkeypatch, tmp_path, capsys):
+    """``--scheduler`` that cannot be reached ends the run (exit 2, one line) before any fit."""
+    from vsidgen import engine as engine_mod
+    from vsidgen.cli import main
+    from vsidgen.errors import VsidgenError
+
+    def unreachable(self):
+        raise VsidgenError(f"cannot start or reach the dask cluster ({self.scheduler}): refused")
+
+    def no_fit(*a, **k):
+        raise AssertionError("the base model was fitted before the cluster was reached")
+
+    monkeypatch.setattr(engine_mod.Engine, "__enter__", unreachable)
+    monkeypatch.setattr(search, "fit_spec", no_fit)
+    rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "s"),
+               "--scheduler", "tcp://127.0.0.1:1", "--quiet"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "cannot start or reach the dask cluster (tcp://127.0.0.1:1)" in err
+    assert "Traceback" not in err

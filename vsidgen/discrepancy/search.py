@@ -1249,8 +1249,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     st = _RunState()
     stop = StopReason.COMPLETED
     try:
-        _fit_base(run, st, spec)
-        with engine:
+        with engine:  # entered first: an unreachable cluster is refused before any fit
+            _fit_base(run, st, spec)
             if not engine.serial:
                 run.say(f"refits run on a {engine.describe()}")
             if numerics and not run.past_deadline():
