@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import Gradient, Problem, direct_measurements, initial_means, measured_states
+from .problem import Gradient, Problem, initial_means
 from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -582,7 +582,7 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         warnings.append({"code": code, "reliable": False, "stop_reason": reason.value,
                          "message": f"{reason.message}: {out['status']}"})
     # smoothers and state-vs-measurement check
-    pairs = direct_measurements(model)
+    pairs = P.direct
     smoothers = []
     for rec, (m, r) in zip(P.records, recs):
         Sc, C, Sm, _ = P.obj.cov_factors(jnp.asarray(r))
@@ -728,7 +728,7 @@ def _smoothing_start_std(P: Problem) -> np.ndarray:
     sample-to-sample differences / √T (the random-walk rate the record allows); an
     unmeasured one 1 (state unit/√s).
     """
-    pairs = direct_measurements(P.model)
+    pairs = P.direct
     T = float(np.mean([float(r.dt) for r in P.records]))
     out = []
     for i in np.nonzero(P.nm.deterministic)[0]:
@@ -932,7 +932,7 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     It is in the state's own units (deg/√s for a state in degrees), so a start built on it
     does not depend on them. 0 where the drift of the state vanishes at the start.
     """
-    pairs = direct_measurements(P.model)
+    pairs = P.direct
     T = float(np.mean([float(r.dt) for r in P.records]))
     p0 = jnp.asarray(P.tm.theta(jnp.asarray(P.tm.z0)))
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))
@@ -977,7 +977,7 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     """
     if P.nm.fixed_G is not None or P.nm.deterministic.any() or P.tm.n_free == 0:
         return None
-    pairs = measured_states(P.model)
+    pairs = P.direct
     held = [int(i) for i in P.nm.proc_est_idx if int(i) not in pairs]
     if not held:
         return None

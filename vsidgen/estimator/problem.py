@@ -338,8 +338,10 @@ class Problem:
         self.input_hold = transition_input_hold(model, options.input_hold)
         self.F = transition(model, integrator=self.integrator, substeps=self.substeps, inputs=self.input_hold)
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
+        #: {state index: DirectMeasurement} of the model (:func:`direct_measurements`)
+        self.direct = direct_measurements(model)
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
-                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=direct_measurements(model), relax=relax,
+                           fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=self.direct, relax=relax,
                            hold=hold)
         self.cfg = make_cfg(self.tm, self.nm)
         self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
@@ -427,7 +429,7 @@ class Problem:
                 return s, recs
             raise FitError("warm_start result does not match this problem's shape")
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
-        pairs = direct_measurements(self.model)
+        pairs = self.direct
         r0 = np.zeros(self.layout.nq)  # Σ_cond = Σ_marg = I
         if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
             # smoothing with known noise (validation mode): start the assumed density at the
