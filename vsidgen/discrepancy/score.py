@@ -303,12 +303,9 @@ def added_state_r_index(n: int, added) -> list[int]:
     return out
 
 
-def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generated_dir,
-                 det_std: float) -> dict:
-    """Score statistics of the candidates of one batch: {key: ScoreResult}."""
-    from ..estimator import FitOptions, Problem
+def _batch_model(cands, current, info, path: pathlib.Path, name: str, *, generated_dir):
+    """(model, {key: {name: batch name}}) of the batch spec of ``cands`` (written at ``path``)."""
     from ..model import load_model
-    from .refit import noise_stds, stage0_start
     from .specwrite import warm_parameters, write_spec
 
     d, bnames = batch_spec_dict(cands, current.spec_path, name=name, path=path, info=info)
@@ -316,13 +313,38 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     params.update(d.get("parameters") or {})
     d["parameters"] = params
     write_spec(path, "vsidgen diagnose score-test batch", d)
-    m = load_model(path, generated_dir=generated_dir)
+    return load_model(path, generated_dir=generated_dir), bnames
+
+
+def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generated_dir,
+                 det_std: float, one_shot: bool = False) -> dict:
+    """Score statistics of the candidates of one batch: {key: ScoreResult}.
+
+    The batch's own model and objective (one compilation); ``one_shot`` (default False)
+    compiles it with the options for one evaluation (:class:`~vsidgen.estimator.core.Objective`).
+    """
+    from ..estimator import FitOptions, Problem
+
+    m, bnames = _batch_model(cands, current, info, path, name, generated_dir=generated_dir)
+    # the model's own integrator, sub-steps and input hold; records unpadded
+    P = Problem(m, list(current.records), FitOptions(deterministic_std=det_std, bucket=False),
+                one_shot=one_shot)
+    return batch_statistics(cands, current, m, P, bnames, det_std=det_std)
+
+
+def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
+    """Score statistics of the candidates ``cands`` of the batch model ``m`` (names ``bnames``,
+    :func:`batch_spec_dict`) from the problem ``P`` of ``m`` on the current records: ``P.model``
+    is ``m`` or ``m`` with inert parameters appended (:func:`padded_model`; they are held, so
+    the statistics are those of ``m``)."""
+    from .refit import noise_stds, stage0_start
+
     records = list(current.records)
     base_fit = current.fit
-    # the model's own integrator, sub-steps and input hold; records unpadded
-    P = Problem(m, records, FitOptions(deterministic_std=det_std, bucket=False))
     z0 = P.parameter_start()
     theta = P.theta(z0)
+    theta_m = theta[:m.np]
+    pads = [n for n in P.model.parameter_names[m.np:]]
     proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     s = np.concatenate([z0, P.noise_vector(proc_std=proc_std, proc_G=offd, meas_std=meas_std,
                                            default_std=det_std)])
@@ -332,7 +354,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
         # simulated along the current smoother with their own transition, stationary
         # covariance); no smoothing run: the statistic is the difference of two Newton
         # decrements, which holds at a start that is not exactly stationary
-        dec, _, _, _, _ = stage0_start(m, records, base_fit, current.model, theta, det_std)
+        dec, _, _, _, _ = stage0_start(m, records, base_fit, current.model, theta_m, det_std)
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in dec["records"]]
     else:
@@ -355,7 +377,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
         informative, reach = nesting_reach(
             m, new_states, sorted(new_par & set(gpos)),
             np.concatenate([mu for mu, _ in recs]),
-            np.concatenate([np.asarray(r.u, float) for r in records]), theta)
+            np.concatenate([np.asarray(r.u, float) for r in records]), theta_m)
         Gd = np.abs(np.diag(np.asarray(P.nm.G(jnp.asarray(s[lay.n_theta:]), P.cfg["noise"]),
                                        float)))
         # columns of a record's border block (r_i, then the shared vector)
@@ -374,7 +396,8 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
             out[c.key] = ScoreResult(None, 0, None, note="state block not positive definite")
         return out
     # null: every new parameter and new-state noise held at its nesting value
-    held_all = set(gpos[n] for n in new_par if n in gpos) | set(new_noise) | held_r
+    held_all = (set(gpos[n] for n in new_par if n in gpos) | set(new_noise) | held_r
+                | {gpos[n] for n in pads if n in gpos})
     rest = np.array([j for j in range(nglob) if j not in held_all], int)
     try:
         L0 = np.linalg.cholesky(S[np.ix_(rest, rest)])
@@ -389,7 +412,7 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     a0 = solve0(rhs[rest])
     gain0 = 0.5 * float(rhs[rest] @ a0)
     dth = P.theta_jacobian(z0)
-    free_idx = [m.parameter_names.index(n) for n in free_names]
+    free_idx = [P.model.parameter_names.index(n) for n in free_names]
     for c in cands:
         names = [p.name for p in c.parameters if not p.fixed and bnames[c.key][p.name] in gpos]
         bn = bnames[c.key]
@@ -424,24 +447,21 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
 
 
 def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: str, *,
-                 generated_dir, det_std: float) -> dict:
+                 generated_dir, det_std: float, one_shot: bool = False) -> dict:
     """Score statistics of one batch (a task of :func:`screen`, also on an engine worker).
 
     A small batch (≤ 8) that fails to build or evaluate is split into single candidates
     once; a candidate that still fails gets ``statistic None`` and a note.
     """
-    from ..errors import FitError, SpecError, VsidgenError
-
-    errs = (SpecError, FitError, VsidgenError, ValueError, ArithmeticError,
-            np.linalg.LinAlgError, KeyError)
     out: dict = {}
 
     def run(grp, t):
         try:
             out.update(screen_batch(grp, current, info, workdir / f"{t}.yaml", f"{name}_{t}",
-                                    generated_dir=generated_dir, det_std=det_std))
+                                    generated_dir=generated_dir, det_std=det_std,
+                                    one_shot=one_shot))
             return True
-        except errs as err:
+        except _ERRORS as err:
             if len(grp) == 1 or len(grp) > 8:
                 for c in grp:
                     out[c.key] = ScoreResult(None, 0, None,
@@ -455,23 +475,130 @@ def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: st
     return out
 
 
+def _errors():
+    from ..errors import FitError, SpecError, VsidgenError
+
+    return (SpecError, FitError, VsidgenError, ValueError, ArithmeticError,
+            np.linalg.LinAlgError, KeyError)
+
+
+_ERRORS = _errors()
+
+#: name prefix of the inert parameters appended by :func:`padded_model`
+PAD_PREFIX = "__screen_pad"
+
+
+def padded_model(m, *, n_free: int, n_par: int):
+    """``m`` with inert parameters appended: ``n_free`` free parameters in all, ``n_par`` in all.
+
+    The appended parameters (names ``PAD_PREFIX`` + index, initial value 0, unbounded; the
+    free ones first) enter neither the drift nor the output: ``drift(x, u, p) =
+    m.drift(x, u, p[:m.np])``, likewise the output. Their rows and columns of every
+    derivative of the objective are exactly zero, so holding them (deleting their rows and
+    columns) leaves the score statistics of ``m``'s candidates exactly those of ``m``. Models
+    padded to one shape share a :class:`~vsidgen.estimator.core.SwitchedObjective`.
+    """
+    import dataclasses
+
+    from ..metadata import Parameter
+
+    nf = sum(1 for p in m.parameters if not p.fixed)
+    k_free, k_all = n_free - nf, n_par - m.np
+    if k_free < 0 or k_all < k_free:
+        raise ValueError(f"cannot pad {m.np} parameters ({nf} free) to {n_par} ({n_free} free)")
+    npm = m.np
+    pads = tuple(Parameter(name=f"{PAD_PREFIX}{j}", unit="1",
+                           description="inert padding of the score screen", initial=0.0,
+                           fixed=j >= k_free) for j in range(k_all))
+    drift, output = m.drift, m.output
+
+    def pdrift(x, u, p):
+        return drift(x, u, p[:npm])
+
+    def poutput(x, u, p):
+        return output(x, u, p[:npm])
+
+    return dataclasses.replace(m, drift=pdrift, output=poutput, parameters=m.parameters + pads,
+                               jacobians=None)
+
+
+def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: str, *,
+                  generated_dir, det_std: float, one_shot: bool = True) -> dict:
+    """Score statistics of the batches ``groups`` (lists of candidates), one compilation per shape.
+
+    Every batch's model is built as in :func:`screen_batch`; the batches whose models have the
+    same states, noise structure and transition setting form one *shape*: their models are
+    padded to the same numbers of free and of all parameters (:func:`padded_model`) and share
+    one :class:`~vsidgen.estimator.core.SwitchedObjective`, so the Hessian-block assembly and the
+    elimination of the state means are traced and compiled once per shape instead of once per
+    batch; each batch's problem selects its own model by its index. The statistics are those
+    of :func:`screen_batch` up to rounding. ``one_shot`` (default True: each batch evaluates the
+    blocks once) compiles with the options for one evaluation. A batch whose model or shared
+    evaluation fails is screened on its own by :func:`screen_group` (which splits it once).
+    """
+    from ..estimator import FitOptions, Problem
+    from ..estimator.core import SwitchedObjective
+    from ..model.dynamics import transition
+
+    records = list(current.records)
+    opts = FitOptions(deterministic_std=det_std, bucket=False)
+    out: dict = {}
+    built = []          # (batch tag, candidates, model, names, unpadded problem)
+    for i, g in enumerate(groups):
+        t = f"{tag}{i + 1}"
+        try:
+            m, bnames = _batch_model(g, current, info, workdir / f"{t}.yaml", f"{name}_{t}",
+                                     generated_dir=generated_dir)
+            built.append((t, g, m, bnames, Problem(m, records, opts)))
+        except _ERRORS:
+            out.update(screen_group(g, current, info, workdir, t, name,
+                                    generated_dir=generated_dir, det_std=det_std,
+                                    one_shot=one_shot))
+    shapes: dict = {}
+    for b in built:
+        P0 = b[4]
+        key = (P0.layout.nx, P0.nm.static_key(), P0.F.key, P0.integrator, P0.substeps)
+        shapes.setdefault(key, []).append(b)
+    for members in shapes.values():
+        n_free = max(P0.tm.n_free for *_, P0 in members)
+        n_par = max(m.np + n_free - P0.tm.n_free for _, _, m, _, P0 in members)
+        pms = [padded_model(m, n_free=n_free, n_par=n_par) for _, _, m, _, _ in members]
+        Pr = Problem(pms[0], records, opts)
+        Fs = [transition(pm, integrator=Pr.integrator, substeps=Pr.substeps, inputs=Pr.input_hold)
+              for pm in pms]
+        obj = SwitchedObjective(pms, Pr.tm, Pr.nm, Fs, one_shot=one_shot)
+        for k, ((t, g, m, bnames, _), pm) in enumerate(zip(members, pms)):
+            try:
+                P = Problem(pm, records, opts, objective=obj, branch=k)
+                out.update(batch_statistics(g, current, m, P, bnames, det_std=det_std))
+            except _ERRORS:
+                out.update(screen_group(g, current, info, workdir, t, name,
+                                        generated_dir=generated_dir, det_std=det_std,
+                                        one_shot=one_shot))
+    return out
+
+
 def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
-           det_std: float, include_states: bool = True, progress=None, engine=None,
-           deadline: float | None = None) -> dict:
+           det_std: float, include_states: bool = True, shared: bool = True, progress=None,
+           engine=None, deadline: float | None = None) -> dict:
     """Score-screen every screenable candidate: {key: ScoreResult} (see the module docstring).
 
     ``include_states`` (default True): also screen candidates that add states (unsteady
     aerodynamics, missing modes, speed dynamics, delays and lags as states, wind): their
     batches (at most two added states each: the compilation of the block assembly grows
     steeply with the number of states — a batch of seven candidates with eight added states
-    had not compiled after 10 min on the loaded 2-core machine) need a compilation each, no
-    smoothing run (see "Candidates that add states" in the module docstring).
+    had not compiled after 10 min on the loaded 2-core machine) need no smoothing run (see
+    "Candidates that add states" in the module docstring).
 
-    ``engine`` (:class:`vsidgen.engine.Engine`, entered): the batches are its tasks, run in
-    parallel on its workers (``deadline``: :func:`time.monotonic` instant after which no
-    batch starts); without one they run here, one after another. A batch that fails
-    (:func:`screen_group`) or is not run leaves its candidates without a statistic (a note
-    says why): they are ranked after the tested ones.
+    ``shared`` (default True): the batches that add states share one compilation per shape
+    (:func:`screen_shared`, compiled for one evaluation), one task; False: one compilation
+    per batch (:func:`screen_group`, the reference path), one task each.
+
+    ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its
+    workers (``deadline``: :func:`time.monotonic` instant after which no task starts);
+    without one they run here, one after another. A batch that fails (:func:`screen_group`)
+    or is not run leaves its candidates without a statistic (a note says why): they are
+    ranked after the tested ones.
     """
     todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
     groups = batches(todo)
@@ -479,25 +606,38 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     if progress is not None:
         progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
                  f"({sum(1 for c in todo if c.states)} add states)")
-    tasks = [(f"b{i + 1}", (group, current, info, workdir, f"b{i + 1}", name))
-             for i, group in enumerate(groups)]
+    plain = [g for g in groups if not any(c.states for c in g)]
+    with_states = [g for g in groups if any(c.states for c in g)]
+    if shared and with_states:
+        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+                 for i, group in enumerate(plain)]
+        tasks.append(("s", (True, with_states, current, info, workdir, "s", name)))
+    else:
+        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+                 for i, group in enumerate(groups)]
     if engine is None or engine.serial:
-        for key, args in tasks:
-            out.update(screen_group(*args, generated_dir=generated_dir, det_std=det_std))
+        for _, args in tasks:
+            out.update(_screen_task(*args, generated_dir, det_std))
         return out
     from ..engine import TaskStatus
 
     outcomes = engine.run(_screen_task, [(k, a + (generated_dir, det_std)) for k, a in tasks],
                           deadline=deadline)
-    for (key, args), oc in zip(tasks, outcomes):
+    for (_, args), oc in zip(tasks, outcomes):
         if oc.status is TaskStatus.DONE:
             out.update(oc.value)
         else:
-            for c in args[0]:
+            cands = [c for g in args[1] for c in g] if args[0] else args[1]
+            for c in cands:
                 out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
     return out
 
 
-def _screen_task(group, current, info, workdir, tag, name, generated_dir, det_std):
-    return screen_group(group, current, info, workdir, tag, name, generated_dir=generated_dir,
+def _screen_task(is_shared, payload, current, info, workdir, tag, name, generated_dir, det_std):
+    """One task of :func:`screen`: the batches ``payload`` through :func:`screen_shared`
+    (``is_shared``) or the one batch ``payload`` through :func:`screen_group`."""
+    if is_shared:
+        return screen_shared(payload, current, info, workdir, tag, name,
+                             generated_dir=generated_dir, det_std=det_std)
+    return screen_group(payload, current, info, workdir, tag, name, generated_dir=generated_dir,
                         det_std=det_std)

@@ -446,16 +446,31 @@ CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 ASSEMBLY_CHUNK = 512
 
 
-def compiler_options() -> dict | None:
-    """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults)."""
-    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+#: XLA options added on the CPU backend for an objective whose compiled functions are evaluated
+#: once or a few times (``Objective(one_shot=True)``: the score screen of diagnose evaluates the
+#: Hessian blocks of each candidate batch once), where compile time is all that counts
+#: (docs/performance.md, "Score screen")
+ONE_SHOT_CPU_OPTIONS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
+
+
+def compiler_options(*, one_shot: bool = False) -> dict | None:
+    """:data:`CPU_COMPILER_OPTIONS` (with ``one_shot``: and :data:`ONE_SHOT_CPU_OPTIONS`) when
+    JAX's default backend is the CPU, else None (XLA defaults)."""
+    if jax.default_backend() != "cpu":
+        return None
+    return {**CPU_COMPILER_OPTIONS, **ONE_SHOT_CPU_OPTIONS} if one_shot else dict(CPU_COMPILER_OPTIONS)
 
 
 class Objective:
-    """Negative ELBO pieces for one problem (model + options); jitted per record shape."""
+    """Negative ELBO pieces for one problem (model + options); jitted per record shape.
 
-    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F):
+    ``one_shot`` (default False: compiled for the many evaluations of a fit): compile with
+    :data:`ONE_SHOT_CPU_OPTIONS` on the CPU, for functions evaluated once (the score screen).
+    """
+
+    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F, *, one_shot: bool = False):
         self.model = model
+        self.one_shot = one_shot
         self.tm = theta_map
         self.nm = noise_map
         self.F = F
@@ -471,14 +486,28 @@ class Objective:
         na = n + model.np
         nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
         # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)
-        self.kv_F = curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu)
-        self.kv_h = curvature_vars(lambda a, u: model.output(a[:n], u, a[n:]), na, nu)
+        self.kv_F, self.kv_h = self._curvature_structure(na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
-        opts = compiler_options()
+        opts = compiler_options(one_shot=one_shot)
         self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
         self._value = jax.jit(self._value_impl, compiler_options=opts)
         self._factor = jax.jit(self._factor_impl, compiler_options=opts)
         self._back = jax.jit(self._back_impl, compiler_options=opts)
+
+    def _curvature_structure(self, na: int, nu: int):
+        """(kv_F, kv_h): the variables of a = (x, θ) with curvature in F and h (:func:`curvature_vars`)."""
+        n, F, h = self.n, self.F, self.model.output
+        return (curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu),
+                curvature_vars(lambda a, u: h(a[:n], u, a[n:]), na, nu))
+
+    # -- the model functions (one model; :class:`SwitchedObjective` selects one of several by ``cfg``)
+    def transition_of(self, cfg):
+        """The transition F(x, v, θ, dt) evaluated under the configuration ``cfg``."""
+        return self.F
+
+    def output_of(self, cfg):
+        """The output function h(x, u, θ) evaluated under the configuration ``cfg``."""
+        return self.model.output
 
     # -- unpacking
     def unpack_s(self, s, cfg):
@@ -547,7 +576,8 @@ class Objective:
         X0 = mu0 + dx0
         X1 = mu1 + dx1
         if lin is None:
-            Fx = jax.vmap(lambda x: self.F(x, u0, theta, dt))(X0)
+            F = self.transition_of(cfg)
+            Fx = jax.vmap(lambda x: F(x, u0, theta, dt))(X0)
         else:
             Fx = self._lin_eval(X0, theta, lin)
         return self.pair_from_F(X1, Fx, G, dt)
@@ -556,7 +586,8 @@ class Objective:
         theta, _, sig = self.unpack_s(s, cfg)
         X = mu + self.node_offsets(r)
         if lin is None:
-            H = jax.vmap(lambda x: self.model.output(x, u, theta))(X)  # (2n, ny)
+            h = self.output_of(cfg)
+            H = jax.vmap(lambda x: h(x, u, theta))(X)  # (2n, ny)
         else:
             H = self._lin_eval(X, theta, lin)
         return self.node_from_H(H, y, m, sig)
@@ -648,11 +679,13 @@ class Objective:
         Az = jnp.concatenate([Jd0, Jd1, jnp.broadcast_to(Jth, (4 * n,) + Jth.shape)], axis=1)  # (4n, nz, nb)
         An = jnp.concatenate([Jdn, jnp.broadcast_to(Jth, (2 * n,) + Jth.shape)], axis=1)  # (2n, n+np, nb)
 
+        F_fn, h_fn = self.transition_of(cfg), self.output_of(cfg)
+
         def Fa(a, uk):
-            return self.F(a[:n], uk, a[n:], dt)
+            return F_fn(a[:n], uk, a[n:], dt)
 
         def ha(a, uk):
-            return self.model.output(a[:n], uk, a[n:])
+            return h_fn(a[:n], uk, a[n:])
 
         if self.point_jacobians == "generated":
             def F_jac(a, uk):  # chain rule through the generated f_x, f_p
@@ -851,15 +884,18 @@ class Objective:
 _OBJECTIVES: dict = {}
 
 
-def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra):
+def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra, *,
+                  one_shot: bool = False):
     """Objective with compiled functions shared between problems of the same structure.
 
     The numeric configuration (initial θ, bounds, floors, fixed noise) is a
     jit argument (``cfg``), so refitting the same model (other records, other
     fixed values) reuses the compiled code. Keyed on the model's functions,
-    dimensions, integrator and the static index structure of the maps.
+    dimensions, integrator, the static index structure of the maps and the compiler
+    options (``one_shot``: see :class:`Objective`).
     """
-    key = (model.drift, model.output, POINT_JACOBIANS, tuple(sorted((compiler_options() or {}).items())),
+    key = (model.drift, model.output, POINT_JACOBIANS,
+           tuple(sorted((compiler_options(one_shot=one_shot) or {}).items())),
            model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
@@ -867,9 +903,64 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     if obj is None:
         if len(_OBJECTIVES) >= 16:
             _OBJECTIVES.pop(next(iter(_OBJECTIVES)))
-        obj = Objective(model, theta_map, noise_map, F)
+        obj = Objective(model, theta_map, noise_map, F, one_shot=one_shot)
         _OBJECTIVES[key] = obj
     return obj
+
+
+class SwitchedObjective(Objective):
+    """One compiled objective for several models of one layout, selected at run time.
+
+    ``models`` (with their transitions ``Fs``) have the same states, inputs, outputs, number
+    of parameters, free parameters and noise structure (the same :meth:`ThetaMap.static_key`
+    and :meth:`NoiseMap.static_key`); they differ in their drift and output functions and
+    in the run-time configuration (initial values, bounds, which parameters are free, noise
+    floors). Every function evaluates the model ``k = cfg["branch"]`` (an int32 scalar of
+    the configuration, :meth:`Problem` ``branch=k``) through ``jax.lax.switch``: ``k`` is a
+    jit argument, never batched by the vmaps over samples and sigma points, so the switch
+    stays a conditional that runs the selected branch only, and the problems of all the
+    models share one trace and one XLA compilation of each function. Every value equals
+    the one of the model's own :class:`Objective` up to rounding (a different compiled
+    function). The variables with model curvature are the union over the models
+    (:func:`curvature_vars`; the curvature of the others is exactly zero there).
+    """
+
+    def __init__(self, models, theta_map: ThetaMap, noise_map: NoiseMap, Fs, *, one_shot: bool = False):
+        models, Fs = list(models), list(Fs)
+        shapes = {(m.nx, m.nu, m.ny, m.np) for m in models}
+        keys = {getattr(F, "key", None) for F in Fs}
+        if not models or len(shapes) != 1 or len(keys) != 1 or len(Fs) != len(models):
+            raise FitError("a switched objective needs models of one shape and one transition setting")
+        self.models = tuple(models)
+        self.transitions = tuple(Fs)
+        super().__init__(models[0], theta_map, noise_map, Fs[0], one_shot=one_shot)
+        self.point_jacobians = "autodiff"
+
+    def _curvature_structure(self, na: int, nu: int):
+        n = self.n
+        kvs = [(curvature_vars(lambda a, u, F=F: F(a[:n], u, a[n:], 0.05), na, nu),
+                curvature_vars(lambda a, u, h=m.output: h(a[:n], u, a[n:]), na, nu))
+               for m, F in zip(self.models, self.transitions)]
+
+        def union(sets):
+            if any(v is None for v in sets):
+                return None
+            return np.unique(np.concatenate([np.asarray(v, int) for v in sets])).astype(int)
+        return union([a for a, _ in kvs]), union([b for _, b in kvs])
+
+    def transition_of(self, cfg):
+        k, Fs = cfg["branch"], self.transitions
+
+        def F(x, v, p, dt):
+            return jax.lax.switch(k, Fs, x, v, p, dt)
+        return F
+
+    def output_of(self, cfg):
+        k, hs = cfg["branch"], [m.output for m in self.models]
+
+        def h(x, u, p):
+            return jax.lax.switch(k, hs, x, u, p)
+        return h
 
 
 def make_cfg(theta_map: ThetaMap, noise_map: NoiseMap):

@@ -324,12 +324,25 @@ class Problem:
     ``theta_fixed`` (all parameters fixed at these values: smoothing), ``fixed_G``/``fixed_R``
     (noise fixed), ``relax`` (deterministic states' noise estimated: the first stage of the
     deterministic limit), ``hold`` (noisy states held deterministic).
+
+    Compilation: ``one_shot`` (default False, a fit evaluates its functions many times) compiles
+    the objective for few evaluations (:class:`~vsidgen.estimator.core.Objective`); ``objective``
+    (default None: this model's own, shared through :func:`~vsidgen.estimator.core.get_objective`)
+    a :class:`~vsidgen.estimator.core.SwitchedObjective` of this problem's layout whose model
+    ``branch`` (its index there) is this problem's, so problems of several models share one
+    compilation (diagnose's score screen).
     """
 
     def __init__(self, model, records, options: FitOptions = FitOptions(), *, theta_fixed=None, fixed_G=None,
-                 fixed_R=None, relax: bool = False, hold=()):
+                 fixed_R=None, relax: bool = False, hold=(), one_shot: bool = False, objective=None,
+                 branch: int | None = None):
+        if (objective is None) != (branch is None):
+            raise FitError("a shared objective needs the problem's branch, and a branch a shared objective")
         self.model = model
         self.relax = relax
+        self.one_shot = one_shot
+        self._shared_obj = objective
+        self.branch = branch
         #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
         self.noise_scaled_start = False
         self.records = _check_records(model, records)
@@ -343,7 +356,7 @@ class Problem:
         self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=self.direct, relax=relax,
                            hold=hold)
-        self.cfg = make_cfg(self.tm, self.nm)
+        self.cfg = self._make_cfg()
         self.data = [record_data(r) for r in self.records]  # unpadded (reference path, tests)
         self.lengths = [int(np.asarray(r.y).shape[0]) for r in self.records]
         # the structured path pads each record to its bucket length (shared compiled code)
@@ -363,8 +376,14 @@ class Problem:
         """The compiled objective (shared between problems of the same structure), built on first use;
         its construction evaluates the model at sample points (curvature structure), eagerly even
         when the first use is inside a JAX trace (:meth:`flat_value` under ``jax.hessian``)."""
-        with jax.ensure_compile_time_eval():
-            obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps))
+        if self._shared_obj is not None:
+            obj = self._shared_obj
+            if (obj.tm.static_key(), obj.nm.static_key()) != (self.tm.static_key(), self.nm.static_key()):
+                raise FitError("the shared objective's parameter or noise structure differs from the problem's")
+        else:
+            with jax.ensure_compile_time_eval():
+                obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps),
+                                    one_shot=self.one_shot)
         if (obj.nq, obj.ng) != (self.layout.nq, self.layout.ng):
             raise FitError("objective layout differs from the problem's")
         return obj
@@ -411,10 +430,16 @@ class Problem:
             raise FitError("noise layout mismatch")
         return np.asarray(w, float)
 
+    def _make_cfg(self):
+        cfg = make_cfg(self.tm, self.nm)
+        if self.branch is not None:
+            cfg["branch"] = jnp.asarray(self.branch, jnp.int32)
+        return cfg
+
     def set_deterministic_std(self, std) -> None:
         """Fix the process-noise std of the deterministic states (one value per such state)."""
         self.nm.set_deterministic_std(std)
-        self.cfg = make_cfg(self.tm, self.nm)
+        self.cfg = self._make_cfg()
 
     # -- start
     def initial(self, options: FitOptions, start: str = "data"):
