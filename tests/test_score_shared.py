@@ -1,0 +1,105 @@
+"""The score screen's shared compilation of state-adding batches against the per-batch path.
+
+:func:`vsidgen.discrepancy.score.screen_shared` evaluates every batch's Hessian blocks through
+one :class:`~vsidgen.estimator.core.SwitchedObjective` per shape (models padded with inert
+parameters, selected by a run-time index) compiled for one evaluation; the reference is
+:func:`~vsidgen.discrepancy.score.screen_group`, each batch's own model and objective compiled
+with the fit's options (the path checked against a Kalman filter in test_score_states.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_score_states import SPEC, _simulate
+
+
+@pytest.fixture(scope="module")
+def lin1(tmp_path_factory):
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.search import fit_spec, model_info_of
+
+    tmp = tmp_path_factory.mktemp("lin1")
+    t, u, y = _simulate(n=400)
+    csv = tmp / "lin1.csv"
+    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    spec = tmp / "lin1.yaml"
+    spec.write_text(SPEC)
+    st = fit_spec(spec, [csv], generated_dir=tmp / "gen", max_iter=200)
+    assert st.fit.converged
+    info = model_info_of(st)
+    states = [c for c in propose(info) if c.screenable and c.states]
+    return tmp, st, info, states
+
+
+def test_shared_compilation_gives_the_per_batch_statistics(lin1, monkeypatch):
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
+    from vsidgen.discrepancy.score import screen_group, screen_shared
+    from vsidgen.estimator import core
+
+    tmp, st, info, states = lin1
+    # batches of one single-state candidate each: one shape, models with different parameters
+    groups = [[c] for c in states if len(c.states) == 1]
+    assert len(groups) >= 2
+    made = []
+
+    class Recorded(core.SwitchedObjective):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append(self)
+
+    monkeypatch.setattr(core, "SwitchedObjective", Recorded)
+    shared = screen_shared(groups, st, info, tmp / "shared", "s", "t_sh", generated_dir=tmp / "gen",
+                           det_std=DET)
+    ref = {}
+    for i, g in enumerate(groups):
+        ref.update(screen_group(g, st, info, tmp / "ref", f"b{i}", "t_ref",
+                                generated_dir=tmp / "gen", det_std=DET))
+    # one objective for the three batches, its Hessian blocks traced (compiled) once
+    assert len(made) == 1 and len(made[0].models) == len(groups)
+    assert made[0].traces["blocks"] == 1 and made[0].one_shot
+    tested = 0
+    for g in groups:
+        k = g[0].key
+        a, b = ref[k], shared[k]
+        assert (a.tested, a.held, a.dof, a.note) == (b.tested, b.held, b.dof, b.note), (a, b)
+        if a.statistic is None:
+            assert b.statistic is None
+            continue
+        tested += 1
+        assert b.statistic == pytest.approx(a.statistic, rel=1e-8, abs=1e-10), (k, a, b)
+        assert b.gain_rest == pytest.approx(a.gain_rest, rel=1e-6, abs=1e-9)
+        for n in a.step:
+            assert b.step[n] == pytest.approx(a.step[n], rel=1e-8, abs=1e-12)
+    assert tested >= 1
+
+
+def test_inert_padding_leaves_the_statistic_unchanged(lin1):
+    """A batch model padded with inert free and fixed parameters (held in the test) gives its
+    own statistics: the padded rows and columns of the gradient and Hessian are exact zeros."""
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
+    from vsidgen.discrepancy.score import _batch_model, batch_statistics, padded_model
+    from vsidgen.estimator import FitOptions, Problem
+    from vsidgen.estimator.core import SwitchedObjective
+    from vsidgen.model.dynamics import transition
+
+    tmp, st, info, states = lin1
+    g = [next(c for c in states if len(c.states) == 1)]
+    m, bnames = _batch_model(g, st, info, tmp / "pad.yaml", "t_pad", generated_dir=tmp / "gen")
+    recs = list(st.records)
+    opts = FitOptions(deterministic_std=DET, bucket=False)
+    own = batch_statistics(g, st, m, Problem(m, recs, opts), bnames, det_std=DET)
+    nf = sum(not p.fixed for p in m.parameters)
+    pm = padded_model(m, n_free=nf + 2, n_par=m.np + 5)
+    assert pm.np == m.np + 5 and sum(not p.fixed for p in pm.parameters) == nf + 2
+    P0 = Problem(pm, recs, opts)
+    obj = SwitchedObjective([pm], P0.tm, P0.nm, [transition(pm, integrator=P0.integrator,
+                                                            substeps=P0.substeps)])
+    padded = batch_statistics(g, st, m, Problem(pm, recs, opts, objective=obj, branch=0), bnames,
+                              det_std=DET)
+    a, b = own[g[0].key], padded[g[0].key]
+    assert a.statistic is not None and a.tested == b.tested and a.held == b.held
+    assert b.statistic == pytest.approx(a.statistic, rel=1e-8)
+    with pytest.raises(ValueError):
+        padded_model(m, n_free=nf - 1, n_par=m.np)
