@@ -28,6 +28,17 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 FLIGHT = pathlib.Path(os.environ.get("VSIDGEN_FLIGHT_DATA", ROOT.parent / "shared" / "data" / "flight"))
 
+#: XLA-CPU settings compared by --settings for the one-shot blocks (added to vsidgen's
+#: CPU_COMPILER_OPTIONS); the first is the fit's (no one-shot options)
+SETTINGS = (
+    ("fit options (elemental emitters)", None),
+    ("+ LLVM -O0", {"xla_backend_optimization_level": 0}),
+    ("+ LLVM -O1", {"xla_backend_optimization_level": 1}),
+    ("+ no expensive LLVM passes", {"xla_llvm_disable_expensive_passes": True}),
+    ("+ -O0 + no expensive passes", {"xla_backend_optimization_level": 0,
+                                     "xla_llvm_disable_expensive_passes": True}),
+)
+
 PHASES = {"/jax/core/compile/jaxpr_trace_duration": "trace",
           "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
           "/jax/core/compile/backend_compile_duration": "compile"}
@@ -72,6 +83,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-batches", type=int, default=0, help="stop after this many batches (0: all)")
     ap.add_argument("--paths", nargs="+", default=["per-batch"], choices=["per-batch", "shared"],
                     help="screen path(s), one after the other in this process")
+    ap.add_argument("--settings", action="store_true",
+                    help="per-batch path once per XLA setting of SETTINGS (one_shot options "
+                         "replaced), one after the other in this process")
     a = ap.parse_args(argv)
 
     import jax
@@ -111,6 +125,36 @@ def main(argv=None) -> int:
     tm.wrap(score, "nesting_reach", "reach")
     tm.wrap(problem_mod.Problem, "reduced_system", "reduce")
     results = {}
+    if a.settings:
+        from vsidgen.estimator import core
+
+        base = None
+        print("| setting | blocks (first call) s | trace / lower / XLA compile s | batches wall s "
+              "| max rel. diff of S |")
+        print("|---|---|---|---|---|")
+        for label, opts in SETTINGS:
+            if opts is not None:
+                core.ONE_SHOT_CPU_OPTIONS = dict(opts)
+            tm.t.clear()
+            tm.jax.clear()
+            tm.on = True
+            w0 = time.perf_counter()
+            out = {}
+            for i, g in enumerate(groups):
+                out.update(score.screen_group(g, st, info, work / "settings", f"b{i + 1}",
+                                              "bench_set", generated_dir=gen,
+                                              det_std=refit.REFIT_DETERMINISTIC_STD,
+                                              one_shot=opts is not None))
+            wall = time.perf_counter() - w0
+            tm.on = False
+            base = out if base is None else base
+            diff = max((abs(r.statistic - base[k].statistic) / abs(base[k].statistic)
+                        for k, r in out.items() if r.statistic is not None
+                        and base[k].statistic), default=0.0)
+            print(f"| {label} | {tm.t['blocks']:.1f} | {tm.jax['trace']:.1f} / {tm.jax['lower']:.1f} / "
+                  f"{tm.jax['compile']:.1f} | {wall:.1f} | {diff:.2g} |", flush=True)
+        print(f"load {load_average():.1f}")
+        return 0
     for path in a.paths:
         print(f"\npath {path}; load {load_average():.1f}")
         print("| batch | candidates | added states | codegen+load s | stage0 s | blocks s | reach s "

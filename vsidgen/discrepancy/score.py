@@ -67,6 +67,16 @@ statistic is then a small Schur complement of the reduced (global) system
 (holding a global variable fixed = deleting its row and column there). Candidates
 whose new names collide, and those that add states beyond ``max_states`` per
 batch, go to further batches.
+
+The batches that add states are many models of few shapes (the current states plus one or
+two added ones). They share one compilation per shape (:func:`screen_shared`): each batch's
+model is padded with inert parameters to the shape's numbers of free and of all parameters
+(:func:`padded_model`; held, so they change no statistic) and one
+:class:`~vsidgen.estimator.core.SwitchedObjective` evaluates the Hessian blocks of the batch
+whose index its configuration carries (``jax.lax.switch`` on a run-time index). Each batch
+evaluates the blocks once, so they are compiled with the options for one evaluation
+(``one_shot``). The per-batch path (:func:`screen_group`, each batch's own objective) is the
+reference; ``screen(shared=False)`` takes it.
 """
 
 from __future__ import annotations
