@@ -28,8 +28,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 FLIGHT = pathlib.Path(os.environ.get("VSIDGEN_FLIGHT_DATA", ROOT.parent / "shared" / "data" / "flight"))
 
-#: XLA-CPU settings compared by --settings for the one-shot blocks (added to vsidgen's
-#: CPU_COMPILER_OPTIONS); the first is the fit's (no one-shot options)
+#: XLA-CPU settings compared by --settings (added to vsidgen's CPU_COMPILER_OPTIONS); the
+#: first is vsidgen's own
 SETTINGS = (
     ("fit options (elemental emitters)", None),
     ("+ LLVM -O0", {"xla_backend_optimization_level": 0}),
@@ -84,8 +84,8 @@ def main(argv=None) -> int:
     ap.add_argument("--paths", nargs="+", default=["per-batch"], choices=["per-batch", "shared"],
                     help="screen path(s), one after the other in this process")
     ap.add_argument("--settings", action="store_true",
-                    help="per-batch path once per XLA setting of SETTINGS (one_shot options "
-                         "replaced), one after the other in this process")
+                    help="per-batch path once per XLA setting of SETTINGS (added to the CPU "
+                         "options), one after the other in this process")
     a = ap.parse_args(argv)
 
     import jax
@@ -129,12 +129,12 @@ def main(argv=None) -> int:
         from vsidgen.estimator import core
 
         base = None
+        own = dict(core.CPU_COMPILER_OPTIONS)
         print("| setting | blocks (first call) s | trace / lower / XLA compile s | batches wall s "
               "| max rel. diff of S |")
         print("|---|---|---|---|---|")
         for label, opts in SETTINGS:
-            if opts is not None:
-                core.ONE_SHOT_CPU_OPTIONS = dict(opts)
+            core.CPU_COMPILER_OPTIONS = {**own, **(opts or {})}
             tm.t.clear()
             tm.jax.clear()
             tm.on = True
@@ -143,8 +143,7 @@ def main(argv=None) -> int:
             for i, g in enumerate(groups):
                 out.update(score.screen_group(g, st, info, work / "settings", f"b{i + 1}",
                                               "bench_set", generated_dir=gen,
-                                              det_std=refit.REFIT_DETERMINISTIC_STD,
-                                              one_shot=opts is not None))
+                                              det_std=refit.REFIT_DETERMINISTIC_STD))
             wall = time.perf_counter() - w0
             tm.on = False
             base = out if base is None else base

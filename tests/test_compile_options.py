@@ -59,26 +59,6 @@ def test_every_objective_jit_compiles_with_the_cpu_options(monkeypatch):
         P.obj.back({"Xg": jnp.zeros(m.shape), "Y": jnp.zeros(m.shape + (2,))}, jnp.zeros(2))
 
 
-@pytest.mark.skipif(jax.default_backend() != "cpu", reason="CPU compiler options")
-def test_one_shot_objective_compiles_with_the_one_shot_options(monkeypatch):
-    """Problem(one_shot=True) compiles its objective with ONE_SHOT_CPU_OPTIONS added to the CPU
-    options (and gets its own objective); a fit's problem does not use them."""
-    model, rec = _pend_problem()
-    monkeypatch.setattr(core, "curvature_vars", lambda *a, **k: None)
-    monkeypatch.setattr(core, "ONE_SHOT_CPU_OPTIONS", {"xla_no_such_one_shot_option": True})
-    assert core.compiler_options(one_shot=True) == {**core.CPU_COMPILER_OPTIONS,
-                                                    "xla_no_such_one_shot_option": True}
-    P1 = Problem(model, [rec], FitOptions(bucket=False), one_shot=True)
-    P0 = Problem(model, [rec], FitOptions(bucket=False))
-    assert P1.obj is not P0.obj and P1.obj.one_shot and not P0.obj.one_shot
-    s, recs = _point(P1)
-    (m, r), = recs
-    args = (jnp.asarray(m), jnp.asarray(r), jnp.asarray(s), P1.data[0], P1.cfg)
-    with pytest.raises(Exception, match="xla_no_such_one_shot_option"):
-        P1.obj.blocks(*args)
-    assert np.isfinite(float(P0.obj.blocks(*args)["f"]))
-
-
 @pytest.mark.slow
 def test_cpu_options_equal_xla_defaults(monkeypatch):
     model, rec = _pend_problem()

@@ -73,10 +73,11 @@ two added ones). They share one compilation per shape (:func:`screen_shared`): e
 model is padded with inert parameters to the shape's numbers of free and of all parameters
 (:func:`padded_model`; held, so they change no statistic) and one
 :class:`~vsidgen.estimator.core.SwitchedObjective` evaluates the Hessian blocks of the batch
-whose index its configuration carries (``jax.lax.switch`` on a run-time index). Each batch
-evaluates the blocks once, so they are compiled with the options for one evaluation
-(``one_shot``). The per-batch path (:func:`screen_group`, each batch's own objective) is the
-reference; ``screen(shared=False)`` takes it.
+whose index its configuration carries (``jax.lax.switch`` on a run-time index). The
+per-batch path (:func:`screen_group`, each batch's own objective) is the reference;
+``screen(shared=False)`` takes it. (XLA options that compile faster for the one evaluation
+of a batch, LLVM -O0/-O1 or without its expensive passes, saved nothing measurable on the
+Twin Otter batches: docs/performance.md, "Score screen".)
 """
 
 from __future__ import annotations
@@ -327,18 +328,14 @@ def _batch_model(cands, current, info, path: pathlib.Path, name: str, *, generat
 
 
 def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generated_dir,
-                 det_std: float, one_shot: bool = False) -> dict:
-    """Score statistics of the candidates of one batch: {key: ScoreResult}.
-
-    The batch's own model and objective (one compilation); ``one_shot`` (default False)
-    compiles it with the options for one evaluation (:class:`~vsidgen.estimator.core.Objective`).
-    """
+                 det_std: float) -> dict:
+    """Score statistics of the candidates of one batch: {key: ScoreResult} (the batch's own
+    model and objective: one compilation)."""
     from ..estimator import FitOptions, Problem
 
     m, bnames = _batch_model(cands, current, info, path, name, generated_dir=generated_dir)
     # the model's own integrator, sub-steps and input hold; records unpadded
-    P = Problem(m, list(current.records), FitOptions(deterministic_std=det_std, bucket=False),
-                one_shot=one_shot)
+    P = Problem(m, list(current.records), FitOptions(deterministic_std=det_std, bucket=False))
     return batch_statistics(cands, current, m, P, bnames, det_std=det_std)
 
 
@@ -457,7 +454,7 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
 
 
 def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: str, *,
-                 generated_dir, det_std: float, one_shot: bool = False) -> dict:
+                 generated_dir, det_std: float) -> dict:
     """Score statistics of one batch (a task of :func:`screen`, also on an engine worker).
 
     A small batch (≤ 8) that fails to build or evaluate is split into single candidates
@@ -468,8 +465,7 @@ def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: st
     def run(grp, t):
         try:
             out.update(screen_batch(grp, current, info, workdir / f"{t}.yaml", f"{name}_{t}",
-                                    generated_dir=generated_dir, det_std=det_std,
-                                    one_shot=one_shot))
+                                    generated_dir=generated_dir, det_std=det_std))
             return True
         except _ERRORS as err:
             if len(grp) == 1 or len(grp) > 8:
@@ -533,7 +529,7 @@ def padded_model(m, *, n_free: int, n_par: int):
 
 
 def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: str, *,
-                  generated_dir, det_std: float, one_shot: bool = True) -> dict:
+                  generated_dir, det_std: float) -> dict:
     """Score statistics of the batches ``groups`` (lists of candidates), one compilation per shape.
 
     Every batch's model is built as in :func:`screen_batch`; the batches whose models have the
@@ -542,9 +538,8 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
     one :class:`~vsidgen.estimator.core.SwitchedObjective`, so the Hessian-block assembly and the
     elimination of the state means are traced and compiled once per shape instead of once per
     batch; each batch's problem selects its own model by its index. The statistics are those
-    of :func:`screen_batch` up to rounding. ``one_shot`` (default True: each batch evaluates the
-    blocks once) compiles with the options for one evaluation. A batch whose model or shared
-    evaluation fails is screened on its own by :func:`screen_group` (which splits it once).
+    of :func:`screen_batch` up to rounding. A batch whose model or shared evaluation fails is
+    screened on its own by :func:`screen_group` (which splits it once).
     """
     from ..estimator import FitOptions, Problem
     from ..estimator.core import SwitchedObjective
@@ -562,8 +557,7 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
             built.append((t, g, m, bnames, Problem(m, records, opts)))
         except _ERRORS:
             out.update(screen_group(g, current, info, workdir, t, name,
-                                    generated_dir=generated_dir, det_std=det_std,
-                                    one_shot=one_shot))
+                                    generated_dir=generated_dir, det_std=det_std))
     shapes: dict = {}
     for b in built:
         P0 = b[4]
@@ -576,15 +570,14 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
         Pr = Problem(pms[0], records, opts)
         Fs = [transition(pm, integrator=Pr.integrator, substeps=Pr.substeps, inputs=Pr.input_hold)
               for pm in pms]
-        obj = SwitchedObjective(pms, Pr.tm, Pr.nm, Fs, one_shot=one_shot)
+        obj = SwitchedObjective(pms, Pr.tm, Pr.nm, Fs)
         for k, ((t, g, m, bnames, _), pm) in enumerate(zip(members, pms)):
             try:
                 P = Problem(pm, records, opts, objective=obj, branch=k)
                 out.update(batch_statistics(g, current, m, P, bnames, det_std=det_std))
             except _ERRORS:
                 out.update(screen_group(g, current, info, workdir, t, name,
-                                        generated_dir=generated_dir, det_std=det_std,
-                                        one_shot=one_shot))
+                                        generated_dir=generated_dir, det_std=det_std))
     return out
 
 
@@ -601,7 +594,7 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     "Candidates that add states" in the module docstring).
 
     ``shared`` (default True): the batches that add states share one compilation per shape
-    (:func:`screen_shared`, compiled for one evaluation), one task; False: one compilation
+    (:func:`screen_shared`), one task; False: one compilation
     per batch (:func:`screen_group`, the reference path), one task each.
 
     ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its

@@ -446,31 +446,16 @@ CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 ASSEMBLY_CHUNK = 512
 
 
-#: XLA options added on the CPU backend for an objective whose compiled functions are evaluated
-#: once or a few times (``Objective(one_shot=True)``: the score screen of diagnose evaluates the
-#: Hessian blocks of each candidate batch once), where compile time is all that counts
-#: (docs/performance.md, "Score screen")
-ONE_SHOT_CPU_OPTIONS = {"xla_backend_optimization_level": 0, "xla_llvm_disable_expensive_passes": True}
-
-
-def compiler_options(*, one_shot: bool = False) -> dict | None:
-    """:data:`CPU_COMPILER_OPTIONS` (with ``one_shot``: and :data:`ONE_SHOT_CPU_OPTIONS`) when
-    JAX's default backend is the CPU, else None (XLA defaults)."""
-    if jax.default_backend() != "cpu":
-        return None
-    return {**CPU_COMPILER_OPTIONS, **ONE_SHOT_CPU_OPTIONS} if one_shot else dict(CPU_COMPILER_OPTIONS)
+def compiler_options() -> dict | None:
+    """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults)."""
+    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
 
 
 class Objective:
-    """Negative ELBO pieces for one problem (model + options); jitted per record shape.
+    """Negative ELBO pieces for one problem (model + options); jitted per record shape."""
 
-    ``one_shot`` (default False: compiled for the many evaluations of a fit): compile with
-    :data:`ONE_SHOT_CPU_OPTIONS` on the CPU, for functions evaluated once (the score screen).
-    """
-
-    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F, *, one_shot: bool = False):
+    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F):
         self.model = model
-        self.one_shot = one_shot
         self.tm = theta_map
         self.nm = noise_map
         self.F = F
@@ -488,7 +473,7 @@ class Objective:
         # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)
         self.kv_F, self.kv_h = self._curvature_structure(na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
-        opts = compiler_options(one_shot=one_shot)
+        opts = compiler_options()
         self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
         self._value = jax.jit(self._value_impl, compiler_options=opts)
         self._factor = jax.jit(self._factor_impl, compiler_options=opts)
@@ -884,18 +869,17 @@ class Objective:
 _OBJECTIVES: dict = {}
 
 
-def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra, *,
-                  one_shot: bool = False):
+def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra):
     """Objective with compiled functions shared between problems of the same structure.
 
     The numeric configuration (initial θ, bounds, floors, fixed noise) is a
     jit argument (``cfg``), so refitting the same model (other records, other
     fixed values) reuses the compiled code. Keyed on the model's functions,
     dimensions, integrator, the static index structure of the maps and the compiler
-    options (``one_shot``: see :class:`Objective`).
+    options.
     """
     key = (model.drift, model.output, POINT_JACOBIANS,
-           tuple(sorted((compiler_options(one_shot=one_shot) or {}).items())),
+           tuple(sorted((compiler_options() or {}).items())),
            model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
@@ -903,7 +887,7 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra,
     if obj is None:
         if len(_OBJECTIVES) >= 16:
             _OBJECTIVES.pop(next(iter(_OBJECTIVES)))
-        obj = Objective(model, theta_map, noise_map, F, one_shot=one_shot)
+        obj = Objective(model, theta_map, noise_map, F)
         _OBJECTIVES[key] = obj
     return obj
 
@@ -925,7 +909,7 @@ class SwitchedObjective(Objective):
     (:func:`curvature_vars`; the curvature of the others is exactly zero there).
     """
 
-    def __init__(self, models, theta_map: ThetaMap, noise_map: NoiseMap, Fs, *, one_shot: bool = False):
+    def __init__(self, models, theta_map: ThetaMap, noise_map: NoiseMap, Fs):
         models, Fs = list(models), list(Fs)
         shapes = {(m.nx, m.nu, m.ny, m.np) for m in models}
         keys = {getattr(F, "key", None) for F in Fs}
@@ -933,7 +917,7 @@ class SwitchedObjective(Objective):
             raise FitError("a switched objective needs models of one shape and one transition setting")
         self.models = tuple(models)
         self.transitions = tuple(Fs)
-        super().__init__(models[0], theta_map, noise_map, Fs[0], one_shot=one_shot)
+        super().__init__(models[0], theta_map, noise_map, Fs[0])
         self.point_jacobians = "autodiff"
 
     def _curvature_structure(self, na: int, nu: int):

@@ -325,22 +325,19 @@ class Problem:
     (noise fixed), ``relax`` (deterministic states' noise estimated: the first stage of the
     deterministic limit), ``hold`` (noisy states held deterministic).
 
-    Compilation: ``one_shot`` (default False, a fit evaluates its functions many times) compiles
-    the objective for few evaluations (:class:`~vsidgen.estimator.core.Objective`); ``objective``
-    (default None: this model's own, shared through :func:`~vsidgen.estimator.core.get_objective`)
-    a :class:`~vsidgen.estimator.core.SwitchedObjective` of this problem's layout whose model
+    Compilation: ``objective`` (default None: this model's own, shared through
+    :func:`~vsidgen.estimator.core.get_objective`) a
+    :class:`~vsidgen.estimator.core.SwitchedObjective` of this problem's layout whose model
     ``branch`` (its index there) is this problem's, so problems of several models share one
     compilation (diagnose's score screen).
     """
 
     def __init__(self, model, records, options: FitOptions = FitOptions(), *, theta_fixed=None, fixed_G=None,
-                 fixed_R=None, relax: bool = False, hold=(), one_shot: bool = False, objective=None,
-                 branch: int | None = None):
+                 fixed_R=None, relax: bool = False, hold=(), objective=None, branch: int | None = None):
         if (objective is None) != (branch is None):
             raise FitError("a shared objective needs the problem's branch, and a branch a shared objective")
         self.model = model
         self.relax = relax
-        self.one_shot = one_shot
         self._shared_obj = objective
         self.branch = branch
         #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
@@ -382,8 +379,7 @@ class Problem:
                 raise FitError("the shared objective's parameter or noise structure differs from the problem's")
         else:
             with jax.ensure_compile_time_eval():
-                obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps),
-                                    one_shot=self.one_shot)
+                obj = get_objective(self.model, self.tm, self.nm, self.F, (self.integrator, self.substeps))
         if (obj.nq, obj.ng) != (self.layout.nq, self.layout.ng):
             raise FitError("objective layout differs from the problem's")
         return obj
