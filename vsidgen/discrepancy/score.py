@@ -594,7 +594,7 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     "Candidates that add states" in the module docstring).
 
     ``shared`` (default True): the batches that add states share one compilation per shape
-    (:func:`screen_shared`), one task; False: one compilation
+    (:func:`screen_shared`), one task per number of added states; False: one compilation
     per batch (:func:`screen_group`, the reference path), one task each.
 
     ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its
@@ -614,7 +614,11 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     if shared and with_states:
         tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(plain)]
-        tasks.append(("s", (True, with_states, current, info, workdir, "s", name)))
+        by_states: dict = {}        # batches of one number of added states: one shape, one task
+        for g in with_states:
+            by_states.setdefault(sum(len(c.states) for c in g), []).append(g)
+        tasks += [(f"s{k}", (True, gs, current, info, workdir, f"s{k}_", name))
+                  for k, gs in sorted(by_states.items(), reverse=True)]
     else:
         tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(groups)]
