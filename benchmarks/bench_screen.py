@@ -90,7 +90,6 @@ def main(argv=None) -> int:
 
     import jax
     jax.config.update("jax_enable_compilation_cache", False)
-    import numpy as np
 
     from vsidgen.discrepancy import refit, score, search
     from vsidgen.discrepancy.base import registered_effects
