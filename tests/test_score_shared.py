@@ -63,7 +63,8 @@ def test_shared_compilation_gives_the_per_batch_statistics(lin1, monkeypatch):
     for g in groups:
         k = g[0].key
         a, b = ref[k], shared[k]
-        assert (a.tested, a.held, a.dof, a.note) == (b.tested, b.held, b.dof, b.note), (a, b)
+        assert (a.tested, a.held, a.dof, a.note, a.ascent) == (b.tested, b.held, b.dof, b.note,
+                                                             b.ascent), (a, b)
         if a.statistic is None:
             assert b.statistic is None
             continue
