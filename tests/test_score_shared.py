@@ -104,3 +104,26 @@ def test_inert_padding_leaves_the_statistic_unchanged(lin1):
     assert b.statistic == pytest.approx(a.statistic, rel=1e-8)
     with pytest.raises(ValueError):
         padded_model(m, n_free=nf - 1, n_par=m.np)
+
+
+def test_a_shape_without_shared_objective_is_screened_batch_by_batch(lin1, monkeypatch):
+    """When the shared objective of a shape cannot be built, its batches fall back to their own
+    objectives (:func:`screen_group`): every candidate still gets its statistic."""
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
+    from vsidgen.discrepancy.score import screen_shared
+    from vsidgen.errors import FitError
+    from vsidgen.estimator import core
+
+    tmp, st, info, states = lin1
+
+    class Refused(core.SwitchedObjective):
+        def __init__(self, *a, **k):
+            raise FitError("refused for the test")
+
+    monkeypatch.setattr(core, "SwitchedObjective", Refused)
+    groups = [[c] for c in states if len(c.states) == 1]
+    out = screen_shared(groups, st, info, tmp / "fallback", "f", "t_fb", generated_dir=tmp / "gen",
+                        det_std=DET)
+    assert set(out) == {g[0].key for g in groups}
+    assert any(r.statistic is not None and np.isfinite(r.statistic) for r in out.values())
+    assert not any(r.note.startswith("failed") for r in out.values()), out

@@ -581,13 +581,18 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
     for members in shapes.values():
         n_free = max(P0.tm.n_free for *_, P0 in members)
         n_par = max(m.np + n_free - P0.tm.n_free for _, _, m, _, P0 in members)
-        pms = [padded_model(m, n_free=n_free, n_par=n_par) for _, _, m, _, _ in members]
-        Pr = Problem(pms[0], records, opts)
-        Fs = [transition(pm, integrator=Pr.integrator, substeps=Pr.substeps, inputs=Pr.input_hold)
-              for pm in pms]
-        obj = SwitchedObjective(pms, Pr.tm, Pr.nm, Fs)
+        try:
+            pms = [padded_model(m, n_free=n_free, n_par=n_par) for _, _, m, _, _ in members]
+            Pr = Problem(pms[0], records, opts)
+            Fs = [transition(pm, integrator=Pr.integrator, substeps=Pr.substeps,
+                             inputs=Pr.input_hold) for pm in pms]
+            obj = SwitchedObjective(pms, Pr.tm, Pr.nm, Fs)
+        except _ERRORS:
+            pms, obj = [None] * len(members), None
         for k, ((t, g, m, bnames, _), pm) in enumerate(zip(members, pms)):
             try:
+                if obj is None:
+                    raise ValueError("no shared objective for this shape")
                 P = Problem(pm, records, opts, objective=obj, branch=k)
                 out.update(batch_statistics(g, current, m, P, bnames, det_std=det_std))
             except _ERRORS:
