@@ -921,16 +921,21 @@ class SwitchedObjective(Objective):
         self.point_jacobians = "autodiff"
 
     def _curvature_structure(self, na: int, nu: int):
+        """The union over the models of their variables with curvature: those of one random
+        positive combination Σ_k w_k F_k (and Σ_k w_k h_k), one probe instead of one per model.
+        A second derivative that is non-zero for some model cancels in the combination only on
+        a set of weights and points of measure zero (the argument of :func:`curvature_vars`),
+        and the combination is analytic exactly when every model is."""
         n = self.n
-        kvs = [(curvature_vars(lambda a, u, F=F: F(a[:n], u, a[n:], 0.05), na, nu),
-                curvature_vars(lambda a, u, h=m.output: h(a[:n], u, a[n:]), na, nu))
-               for m, F in zip(self.models, self.transitions)]
+        w = np.random.default_rng(1).uniform(0.5, 1.5, len(self.models))
+        Fs, hs = self.transitions, [m.output for m in self.models]
 
-        def union(sets):
-            if any(v is None for v in sets):
-                return None
-            return np.unique(np.concatenate([np.asarray(v, int) for v in sets])).astype(int)
-        return union([a for a, _ in kvs]), union([b for _, b in kvs])
+        def F_sum(a, u):
+            return sum(wk * F(a[:n], u, a[n:], 0.05) for wk, F in zip(w, Fs))
+
+        def h_sum(a, u):
+            return sum(wk * h(a[:n], u, a[n:]) for wk, h in zip(w, hs))
+        return curvature_vars(F_sum, na, nu), curvature_vars(h_sum, na, nu)
 
     def transition_of(self, cfg):
         k, Fs = cfg["branch"], self.transitions
