@@ -115,14 +115,17 @@ def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit
                  max_candidates: int, max_rounds: int, effects=None, workers: int = 1) -> dict:
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(SPEC[case.model]), str(csv),
            "--out", str(out), "--max-candidates", str(max_candidates),
-           "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet"]
+           "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet",
+           # the CLI's own limit first (findings written, stop reason `time_limit`); the
+           # subprocess timeout is the backstop for a run that does not stop by itself
+           "--time-limit", f"{time_limit:g}"]
     if effects:
         cmd += ["--effects", *effects]
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.time()
     try:
         proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                              timeout=time_limit)
+                              timeout=time_limit + 300)
         rc, last = proc.returncode, (proc.stdout.strip().splitlines() or [""])[-1]
         err = proc.stderr.strip()[-400:] if rc else ""
     except subprocess.TimeoutExpired:
