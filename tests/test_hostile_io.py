@@ -387,3 +387,39 @@ def test_killed_run_leftover_is_removed_and_results_kept(tmp_path):
     assert "removed the unfinished results" in proc.stderr
     assert json.loads((d / "results.json").read_text()) == {"run": 1}
     assert _leftovers(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- spreadsheet exports
+
+def _export(path: pathlib.Path, kind: str) -> pathlib.Path:
+    """The shipped record as a spreadsheet program may export it."""
+    lines = DATA.read_text().splitlines()
+    if kind == "bom":               # Excel's "CSV UTF-8": a byte-order mark before the header
+        path.write_bytes(b"\xef\xbb\xbf" + ("\n".join(lines) + "\n").encode())
+    elif kind == "semicolon":       # a European locale: semicolons and decimal commas
+        path.write_text("\n".join(ln.replace(",", ";").replace(".", ",") for ln in lines) + "\n")
+    elif kind == "cp1252":          # a legacy code page: a degree sign in a column name
+        head = lines[0].replace("alpha_rad", "alpha_rad (\u00b0)")
+        path.write_bytes(("\n".join([head] + lines[1:]) + "\n").encode("cp1252"))
+    return path
+
+
+@pytest.mark.parametrize("command", ["check", "fit"])
+def test_spreadsheet_exports(tmp_path, command):
+    """A byte-order mark is read as the UTF-8 it marks; semicolon-separated and legacy
+    8-bit text are refused with what the file is and how to save it, before any fit."""
+    def run(kind):
+        f = _export(tmp_path / f"{kind}.csv", kind)
+        args = (["check", SPEC, "--data", f] if command == "check"
+                else ["fit", SPEC, f, "--out", tmp_path / f"out_{kind}", "--quiet",
+                      "--max-iter", "1"])
+        return run_cli(args, tmp_path)
+
+    semi = run("semicolon")
+    expect_refused(semi, "semicolon.csv", "comma-separated")
+    legacy = run("cp1252")
+    expect_refused(legacy, "cp1252.csv", "not UTF-8 text", "line 1", "CSV UTF-8")
+    if command == "check":
+        bom = run("bom")
+        assert bom.returncode == 0, bom.stderr[-2000:]
+        assert "ok (attas_sp" in bom.stdout + bom.stderr

@@ -205,3 +205,25 @@ def test_choose_refits_covers_every_significant_effect_class_and_target_first():
     assert [r.candidate.key for r in got] == ["a1", "a2", "a3", "b1", "c1", "d1", "u1"]
     got = choose_refits(rows, max_candidates=2, min_score=1.0, alpha=0.01, n_examined=7)
     assert [r.candidate.key for r in got] == ["a1", "b1"]
+
+
+def test_ascent_candidates_are_refitted_before_non_significant_score_tests():
+    """A candidate whose profiled curvature is negative at the current optimum (a saddle of
+    its ELBO: it certainly improves the fit) is refitted before one whose score test is not
+    significant, after every significant one; without a statistic it is never mixed into
+    the p-value scale."""
+    up = ScoreResult(None, 1, None, ("p",), ascent=True)
+    rows = [Ranked(_cand("weak", "arm", "output:az"), 0.0, _sr(3.35)),    # p = 0.067
+            Ranked(_cand("sad1", "pos", "output:az"), 10.4, up),
+            Ranked(_cand("sad2", "pos", "output:alpha"), 1.96, up),
+            Ranked(_cand("strong", "bias", "output:q"), 0.0, _sr(40.0)),
+            Ranked(_cand("flat", "skew", "output:q"), 5.0,
+                   ScoreResult(None, 1, None, note="Schur complement not positive definite"))]
+    rows = sorted(rows, key=Ranked.sort_key)
+    assert [r.candidate.key for r in rows] == ["strong", "weak", "sad1", "sad2", "flat"]
+    assert [r.tier for r in rows] == [ScreenTier.SCORE_TEST] * 2 + [ScreenTier.ASCENT] * 2 \
+        + [ScreenTier.LOCATE]
+    got = choose_refits(rows, max_candidates=3, min_score=1.0, alpha=0.01, n_examined=5)
+    assert [r.candidate.key for r in got] == ["strong", "sad1", "sad2"]
+    got = choose_refits(rows, max_candidates=2, min_score=1.0, alpha=0.01, n_examined=5)
+    assert [r.candidate.key for r in got] == ["strong", "sad1"]

@@ -251,3 +251,40 @@ def test_integrator_input_hold(tmp_path):
     assert err.hint == "did you mean `foh`?"
     err = error(tmp_path, replace("states:\n", "integrator: {method: euler, input: foh}\nstates:\n"))
     assert "input" in err.message and err.line == 2
+
+
+@pytest.mark.parametrize("text,hint", [
+    ("(1 + ZQ)q", "`)q` → `)*q`"),                 # a product written as on paper
+    ("2alpha + q", "`2alpha` → `2*alpha`"),
+    ("ZQ q", "`ZQ q` → `ZQ*q`"),
+])
+def test_product_without_star_is_named_with_the_fix(text, hint):
+    from vsidgen.spec.expr import parse_expression
+    import sympy
+
+    ns = {n: sympy.Symbol(n) for n in ("ZQ", "q", "alpha")}
+    with pytest.raises(SpecError) as e:
+        parse_expression(text, ns, path="m.yaml", line=3, column=10)
+    assert "syntax error" in str(e.value) and hint in str(e.value)
+
+
+def test_valid_exponents_and_calls_get_no_product_hint():
+    from vsidgen.spec.expr import _implicit_product_hint
+
+    for text in ("1e-3*a", "2.5E+4 + b", "sin(a)", "a*(b)", "x if y else z", "a or b"):
+        assert _implicit_product_hint(text) is None, text
+
+
+def test_greek_letter_is_spelt_out_in_the_hint(tmp_path):
+    p = tmp_path / "g.yaml"
+    p.write_text(textwrap.dedent("""\
+        name: g
+        states: {alpha: {unit: rad}}
+        parameters: {Za: {unit: 1/s}}
+        drift:
+          alpha: Za*α
+        """))
+    with pytest.raises(SpecError) as e:
+        compile_spec(p)
+    msg = str(e.value)
+    assert "unknown symbol `α`" in msg and "did you mean `alpha`?" in msg and ":5:" in msg

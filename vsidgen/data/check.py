@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .records import load_record
+from .records import load_record, refuse_other_delimiter
 from ..errors import DataError, Location, SpecError, SpecWarning
 from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
@@ -46,7 +46,7 @@ def read_first_row(csv_path) -> dict[str, float]:
     """Header and first data row of a CSV file as {column: value} (DataError on problems)."""
     csv_path = check_input_file(csv_path, what="data file")
     try:
-        with csv_path.open(newline="", encoding="utf-8") as fh:
+        with csv_path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
             header = next(reader, None)
             row = next(reader, None)
@@ -57,6 +57,7 @@ def read_first_row(csv_path) -> dict[str, float]:
     if not header or row is None:
         raise DataError("data file needs a header row and at least one data row", path=csv_path)
     header = [h.strip() for h in header]
+    refuse_other_delimiter(header, csv_path)
     if len(row) != len(header):
         raise DataError(f"first data row has {len(row)} fields but the header has {len(header)}",
                         path=csv_path, sample=0)

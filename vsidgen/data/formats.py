@@ -81,9 +81,25 @@ def detect_format(path: pathlib.Path) -> DataFormat:
         except UnicodeDecodeError as exc:
             if exc.start >= len(head) - 4:  # a multi-byte character cut by the 64 KiB window
                 return DataFormat.CSV
+            if _legacy_text(head):
+                line = head[:exc.start].count(b"\n") + 1
+                raise DataError(
+                    f"not UTF-8 text: byte 0x{head[exc.start]:02x} at line {line} (the file "
+                    "looks like text in a legacy 8-bit encoding such as Windows-1252 or "
+                    "Latin-1)", path=path,
+                    hint="save it as CSV UTF-8 (Excel: 'CSV UTF-8 (Comma delimited)'; "
+                         "iconv -f cp1252 -t utf-8)") from None
     kind = _guess_binary(head)
     raise DataError(f"not a supported data file{kind}", path=path,
                     hint=f"supported formats: {SUPPORTED}")
+
+
+def _legacy_text(head: bytes) -> bool:
+    """Whether bytes that are not UTF-8 read as text in an 8-bit code page: no control
+    characters but tab, CR and LF, and printable ASCII for at least 90 % of the bytes."""
+    if any(b < 32 and b not in (9, 10, 13) for b in head) or 127 in head:
+        return False
+    return sum(32 <= b < 127 or b in (9, 10, 13) for b in head) >= 0.9 * len(head)
 
 
 def _guess_binary(head: bytes) -> str:

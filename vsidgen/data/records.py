@@ -266,13 +266,20 @@ def _read_block(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
         return _slow_parse(path, header, idx)
 
 
+def refuse_other_delimiter(header: list[str], path) -> None:
+    """Raise DataError when a CSV header is one field holding another delimiter (a
+    semicolon-, tab- or bar-separated export)."""
+    if len(header) == 1 and any(d in header[0] for d in ";\t|"):
+        raise DataError("the header has a single field: vsidgen reads comma-separated files",
+                        path=path, hint="save the record as CSV with commas between values "
+                                        "and a decimal point (not semicolons or tabs)")
+
+
 def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str:
     hint = column_hint(name, header, taken)
     if hint and hint.startswith("did you mean"):
         return hint
     shown = ", ".join(header[:12]) + (", ..." if len(header) > 12 else "")
-    if len(header) == 1 and any(d in header[0] for d in ";\t|"):
-        return "the header has a single field: vsidgen reads comma-separated files"
     return (hint + "; " if hint else "") + f"columns in the file: {shown}"
 
 
@@ -438,6 +445,7 @@ def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
     if not header:
         raise DataError("empty file", path=path,
                         hint="expected one header row of column names followed by data rows")
+    refuse_other_delimiter(header, path)
     seen: dict[str, int] = {}
     for j, h in enumerate(header):
         seen.setdefault(h, j)
@@ -640,4 +648,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "load_record", "most_extreme_sample", "resolution", "unique_names", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "load_record", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]

@@ -53,6 +53,14 @@ def _paren(text: str) -> str:
     return f"({text})"
 
 
+def _input_dynamics_evidence(c, ev) -> float:
+    """Evidence for dynamics (a lag, a delay) between an input and the aircraft: the
+    equation errors of the states the input drives correlate with its rate or a lagged copy."""
+    u = c.info["input"]
+    return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
+                for s in c.info["states"]), default=0.0)
+
+
 def _lag_bounds(info: ModelInfo, factor: float = 1.0) -> float:
     dt = info.dt or 0.01
     return factor * dt
@@ -237,11 +245,7 @@ class _InputDynamics(Effect):
         return out
 
     def score(self, c, ev):
-        """Evidence for dynamics between an input and the aircraft: the equation errors of the
-        states the input drives correlate with its rate or a lagged copy."""
-        u = c.info["input"]
-        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
-                    for s in c.info["states"]), default=0.0)
+        return _input_dynamics_evidence(c, ev)
 
 
 @register_effect
@@ -286,11 +290,7 @@ class TransportDelay(Effect):
         return out
 
     def score(self, c, ev):
-        """The evidence of :class:`ControlDelay`: equation errors of the states the input
-        drives correlate with its rate or a lagged copy."""
-        u = c.info["input"]
-        return max((max(ev.state_score(s, f"udot:{u}"), ev.state_score(s, f"lag:{u}"))
-                    for s in c.info["states"]), default=0.0)
+        return _input_dynamics_evidence(c, ev)
 
 
 @register_effect

@@ -94,6 +94,10 @@ class ScoreResult:
     gain_rest: float = math.nan
     step: dict = dataclasses.field(default_factory=dict)   # one-step estimates of the tested
     note: str = ""
+    #: the profiled curvature along the new parameters is negative at the nesting point: the
+    #: current optimum is a saddle of the candidate's ELBO, so the candidate raises the ELBO
+    #: for certain, by an amount the quadratic model cannot give (no statistic)
+    ascent: bool = False
 
     @property
     def log10p(self) -> float:
@@ -109,7 +113,7 @@ class ScoreResult:
                 "minus_log10_p": f(self.log10p), "tested": list(self.tested),
                 "held": list(self.held), "gain_full": f(self.gain_full),
                 "gain_rest": f(self.gain_rest), "one_step": {k: f(v) for k, v in self.step.items()},
-                "note": self.note}
+                "note": self.note, "ascent": self.ascent}
 
 
 
@@ -192,6 +196,11 @@ def batch_spec_dict(cands, base_spec, *, name, path, info) -> tuple[dict, dict]:
 #: relative Marquardt damping of the score system: keeps the elimination of the state means and the
 #: Cholesky factor of the global system defined where a curvature vanishes at the nesting point
 SCORE_DAMPING = 1e-10
+
+
+#: a profiled curvature eigenvalue below −tol·(largest |eigenvalue|) is negative curvature,
+#: not rounding of a flat direction (about √ε of double precision)
+NEGATIVE_CURVATURE_TOL = 1e-8
 
 
 def _reduced_system(problem, blks, lam=SCORE_DAMPING):
@@ -410,9 +419,15 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
                                      note="singular Schur complement")
             continue
         stat = float(max(rJ @ dz, 0.0))
-        if not math.isfinite(stat) or np.any(np.linalg.eigvalsh(0.5 * (schur + schur.T)) <= 0):
-            out[c.key] = ScoreResult(None, len(tested), None, tuple(tested), tuple(held),
-                                     note="Schur complement not positive definite")
+        eig = np.linalg.eigvalsh(0.5 * (schur + schur.T))
+        if not math.isfinite(stat) or np.any(eig <= 0):
+            ascent = bool(eig[0] < -NEGATIVE_CURVATURE_TOL * max(float(np.max(np.abs(eig))),
+                                                                  1e-300))
+            out[c.key] = ScoreResult(
+                None, len(tested), None, tuple(tested), tuple(held), ascent=ascent,
+                note=("negative curvature along the new parameters at the nesting point: "
+                      "the candidate raises the ELBO (a refit sizes it)") if ascent
+                else "Schur complement not positive definite")
             continue
         step = {}
         for n, dzn in zip(tested, dz):

@@ -508,10 +508,15 @@ class ScreenTier(enum.Enum):
     current optimum (:mod:`.score`) — one scale for every tested candidate, whether it adds
     states or not. ``LOCATE``: no score statistic (not screenable, or the test could not
     be computed: its note says why); ranked after every tested candidate, by its locate
-    score, never mixed into the p-value scale.
+    score, never mixed into the p-value scale. ``ASCENT``: no statistic because the profiled
+    curvature along the candidate's parameters is negative at the current optimum — a
+    saddle of the candidate's ELBO, so the candidate certainly raises the ELBO and only a
+    refit can say by how much; ranked by its locate score, refitted before every candidate
+    whose score test is not significant (:func:`choose_refits`).
     """
 
     SCORE_TEST = "score_test"
+    ASCENT = "ascent"
     LOCATE = "locate"
 
 
@@ -529,6 +534,8 @@ class Ranked:
         if sr is not None and sr.statistic is not None and sr.dof >= 1 \
                 and math.isfinite(sr.log10p):
             return ScreenTier.SCORE_TEST
+        if sr is not None and sr.ascent:
+            return ScreenTier.ASCENT
         return ScreenTier.LOCATE
 
     @property
@@ -538,10 +545,12 @@ class Ranked:
             else float(self.locate_score)
 
     def sort_key(self) -> tuple:
-        """Tier first (every tested candidate before every untested one), then priority."""
+        """Tier first (tested, then ascent, then untested), then priority."""
         pr = self.priority
-        return (0 if self.tier is ScreenTier.SCORE_TEST else 1,
-                -pr if math.isfinite(pr) else math.inf)
+        return (_TIER_ORDER[self.tier], -pr if math.isfinite(pr) else math.inf)
+
+
+_TIER_ORDER = {ScreenTier.SCORE_TEST: 0, ScreenTier.ASCENT: 1, ScreenTier.LOCATE: 2}
 
 
 def screen_priority(loc_score: float, sr) -> float:
@@ -557,8 +566,10 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
     ``Candidate.target``) whose score test clears the family-wise level of the round,
     ``p < α/m`` (Bonferroni over the ``m`` examined candidates, Holm's first level), so
     that competing explanations of one mismatch are all refitted and the refits, not the
-    screening order, decide between them; then the remaining rows in rank order with
-    priority ≥ ``min_score``; at most ``max_candidates`` in all, in rank order.
+    screening order, decide between them; then the candidates of tier ``ASCENT`` (the
+    current optimum is a saddle of their ELBO: they certainly improve the fit, a
+    non-significant score test says it will likely not); then the remaining rows in rank
+    order with priority ≥ ``min_score``; at most ``max_candidates`` in all, in rank order.
     """
     level = -math.log10(alpha / max(n_examined, 1))
     eligible = [r for r in rows if math.isfinite(r.priority) and r.priority >= min_score]
@@ -569,6 +580,7 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
         if r.tier is ScreenTier.SCORE_TEST and r.priority > level and cls not in classes:
             classes.add(cls)
             chosen.append(r)
+    chosen += [r for r in eligible if r.tier is ScreenTier.ASCENT]
     chosen = chosen[:max_candidates]
     taken = {id(r) for r in chosen}
     for r in eligible:
@@ -1004,10 +1016,13 @@ def _noise_model_stage(run: _RunConfig, st: _RunState) -> None:
 def _say_screen(run: _RunConfig, table: list[dict]) -> None:
     """One progress line with the round's screen ranking (refitted ones starred)."""
     run.say(("screen (-log10 p of the score test; [locate score] where no "
-             "score statistic): " if run.screen else "locate scores: ")
+             "score statistic, ^ where the fit is a saddle of the candidate's ELBO): "
+             if run.screen else "locate scores: ")
             + ", ".join(f"{r['key']} " + (f"{r['priority']:.3g}"
                                           if r['tier'] == ScreenTier.SCORE_TEST.value
-                                          else f"[{r['priority']:.3g}]")
+                                          else f"[{r['priority']:.3g}]"
+                                          + ("^" if r['tier'] == ScreenTier.ASCENT.value
+                                             else ""))
                         + ("*" if r["refitted"] else "")
                         for r in table[:run.max_candidates + 4] if r['priority'] is not None)
             + " (* refitted)")

@@ -193,6 +193,38 @@ def _make_error(text, message, *, path, line, column, offset, length, hint=None)
     return SpecError(message, path=path, line=line, column=col, text=shown, hint=hint, span=span)
 
 
+#: a factor written directly against the next one, as on paper: ``(1 + Zq)q``, ``2x``, ``a b``
+_IMPLICIT_PRODUCT = re.compile(
+    r"(\)|(?<![\w.])\d+\.?\d*(?:[eE][-+]?\d+)?(?![eE][-+]?\d)(?=[A-Za-z_(])"
+    r"|(?<![\w.])[A-Za-z_]\w*(?=\s+[A-Za-z_]))"
+    r"(\s*)([A-Za-z_]\w*|\()")
+
+
+def _implicit_product_hint(text: str) -> str | None:
+    """A hint for a product written without ``*``, showing the first one found."""
+    for m in _IMPLICIT_PRODUCT.finditer(text):
+        left, right = m.group(1), m.group(3)
+        if keyword.iskeyword(left) or keyword.iskeyword(right):
+            continue
+        return f"write `*` for a product: `{left}{m.group(2)}{right}` → `{left}*{right}`"
+    return None
+
+
+def _ascii_greek(name: str) -> str:
+    """``α`` → ``alpha``, ``δe`` → ``deltae``: Greek letters spelt as their ASCII names."""
+    import unicodedata
+
+    out = []
+    for ch in name:
+        uname = unicodedata.name(ch, "")
+        if uname.startswith("GREEK SMALL LETTER ") or uname.startswith("GREEK CAPITAL LETTER "):
+            word = uname.rsplit(" ", 1)[-1].lower()
+            out.append(word if uname.startswith("GREEK SMALL") else word.capitalize())
+        else:
+            out.append(ch)
+    return "".join(out)
+
+
 def did_you_mean(name: str, candidates) -> str | None:
     """A 'did you mean `x`?' hint for ``name`` among ``candidates`` (or None)."""
     from ..suggest import closest
@@ -350,7 +382,10 @@ def _name(ctx: _Ctx, node: ast.Name):
     what = "unit" if ctx.units else "symbol"
     if name in FUNCTIONS and not ctx.units:
         raise _error(ctx, f"`{name}` is a function; call it with arguments", node)
-    hint = did_you_mean(name, list(ctx.namespace) + ([] if ctx.units else list(BUILTIN_NAMES)))
+    known = list(ctx.namespace) + ([] if ctx.units else list(BUILTIN_NAMES))
+    spelt = _ascii_greek(name)
+    hint = (f"did you mean `{spelt}`? (names are ASCII: spell Greek letters out)"
+            if spelt != name and spelt in known else did_you_mean(name, known))
     if hint is None:
         hint = ("declare it under states, inputs, constants, parameters or definitions"
                 if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))
@@ -501,7 +536,7 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
         if off is not None and (off < 0 or off > len(flat)):
             off = None
         raise _make_error(text, f"syntax error: {exc.msg}", path=path, line=line, column=column,
-                          offset=off, length=1) from None
+                          offset=off, length=1, hint=_implicit_product_hint(flat)) from None
     except (RecursionError, MemoryError):
         raise _make_error(text, "expression is nested too deeply", path=path, line=line,
                           column=column, offset=None, length=None) from None

@@ -227,20 +227,25 @@ def compile_spec(path) -> SymbolicModel:
         raise SpecError("spec is nested too deeply", path=path) from None
 
 
-def compile_typed(spec: Spec) -> SymbolicModel:
-    """Compile a typed spec (:func:`vsidgen.spec.typed.read_spec`) to a :class:`SymbolicModel`.
+@dataclasses.dataclass
+class _Declared:
+    """The declarations of a spec, in order, with each name's physical dimension."""
 
-    Raises:
-        SpecError: a name declared twice, an expression that does not parse or names an
-            undeclared symbol, a definition cycle, an equation missing or for an undeclared
-            variable, an oversized expansion, a noise or data entry that does not match
-            the declarations, a unit that does not parse or convert.
-    """
-    warnings: list[SpecWarning] = []
-    root_loc = {"path": spec.path, "line": 1, "column": 1}
+    states: list[Variable]
+    inputs: list[Variable]
+    outputs: list[Variable]
+    output_dims: dict[str, Any]
+    constants: list[Constant]
+    parameters: list[Parameter]
+    definitions: dict[str, Equation]
+    dims: dict[sympy.Symbol, Any]
+    namespace: dict[str, sympy.Symbol]
+
+
+def _declarations(spec: Spec, root_loc: dict) -> _Declared:
+    """Declare every name once (states, inputs, constants, parameters, definitions) and
+    record the variables, constants and parameters with their units."""
     names = _Names()
-
-    # declarations -----------------------------------------------------------------
     dims: dict[sympy.Symbol, Any] = {}
     states, inputs, outputs = [], [], []
     output_dims: dict[str, Any] = {}
@@ -280,51 +285,45 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     def_at = {e.name.value: e for e in spec.definitions}
     for e in spec.definitions:
         names.declare(e.name, "a definition")
+    return _Declared(states, inputs, outputs, output_dims, constants, parameters, def_at, dims,
+                     names.namespace())
 
-    namespace = names.namespace()
-    def_syms = {nm: _sym(nm) for nm in def_at}
 
-    # add_terms --------------------------------------------------------------------
-    sections: dict[str, dict[str, Equation]] = {
-        "definitions": def_at, "drift": {e.name.value: e for e in spec.drift},
-        "observations": {e.name.value: e for e in spec.observations}}
-    added: dict[tuple[str, str], list[sympy.Expr]] = {}
-    for a in spec.add_terms:
-        target = sections[a.section]
-        if a.term.name.value not in target:
-            word = {"definitions": "definition", "drift": "drift equation for",
-                    "observations": "observation equation for"}[a.section]
-            raise SpecError(f"add_terms: there is no {word} `{a.term.name.value}` to add to",
-                            **a.term.name.key_loc, text=a.term.name.key_text,
-                            hint=did_you_mean(a.term.name.value, target) or
-                            f"add_terms only extends existing {a.section} entries")
-        added.setdefault((a.section, a.term.name.value), []).append(_expression(a.term.expression, namespace))
+class _Equations:
+    """The equations of the three sections, each parsed once with its ``add_terms`` added;
+    records where each equation is written (``locations``)."""
 
-    locations: dict[str, Location] = {}
+    def __init__(self, spec: Spec, decl: _Declared, root_loc: dict):
+        self.spec, self.namespace, self.root_loc = spec, decl.namespace, root_loc
+        self.sections: dict[str, dict[str, Equation]] = {
+            "definitions": decl.definitions, "drift": {e.name.value: e for e in spec.drift},
+            "observations": {e.name.value: e for e in spec.observations}}
+        self.locations: dict[str, Location] = {}
+        self.added: dict[tuple[str, str], list[sympy.Expr]] = {}
+        for a in spec.add_terms:
+            target = self.sections[a.section]
+            if a.term.name.value not in target:
+                word = {"definitions": "definition", "drift": "drift equation for",
+                        "observations": "observation equation for"}[a.section]
+                raise SpecError(f"add_terms: there is no {word} `{a.term.name.value}` to add to",
+                                **a.term.name.key_loc, text=a.term.name.key_text,
+                                hint=did_you_mean(a.term.name.value, target) or
+                                f"add_terms only extends existing {a.section} entries")
+            self.added.setdefault((a.section, a.term.name.value), []).append(
+                _expression(a.term.expression, self.namespace))
 
-    def equation(section: str, e: Equation) -> sympy.Expr:
-        expr = _expression(e.expression, namespace)
-        for extra in added.get((section, e.name.value), []):
+    def equation(self, section: str, e: Equation) -> sympy.Expr:
+        """One equation's expression plus its added terms."""
+        expr = _expression(e.expression, self.namespace)
+        for extra in self.added.get((section, e.name.value), []):
             expr = expr + extra
         at = e.expression
-        locations[f"{section}:{e.name.value}"] = Location(at.path, at.line, at.column)
+        self.locations[f"{section}:{e.name.value}"] = Location(at.path, at.line, at.column)
         return expr
 
-    # definitions ------------------------------------------------------------------
-    def_exprs = {nm: equation("definitions", e) for nm, e in def_at.items()}
-    deps = {nm: [d for d in def_at if def_syms[d] in e.free_symbols] for nm, e in def_exprs.items()}
-    order = list(def_at)
-    cycle = _find_cycle(deps, order)
-    if cycle:
-        first = def_at[cycle[0]].name
-        raise SpecError("definition cycle: " + " -> ".join(cycle), **first.key_loc,
-                        text=first.key_text,
-                        hint="definitions may refer to each other, but not in a circle")
-    definitions = tuple((nm, def_exprs[nm]) for nm in _topo(deps, order))
-
-    # drift / observations ---------------------------------------------------------
-    def equations(section: str, variables: list[Variable], what: str) -> list[sympy.Expr]:
-        entries = sections[section]
+    def equations(self, section: str, variables: list[Variable], what: str) -> list[sympy.Expr]:
+        """Exactly one equation per declared variable, in declaration order."""
+        entries = self.sections[section]
         declared = [v.name for v in variables]
         for nm, e in entries.items():
             if nm not in declared:
@@ -334,31 +333,49 @@ def compile_typed(spec: Spec) -> SymbolicModel:
         out = []
         for v in variables:
             if v.name not in entries:
-                where = spec.sections_at.get(section)
+                where = self.spec.sections_at.get(section)
                 raise SpecError(f"missing {section} equation for {what} `{v.name}`",
-                                **(where.key_loc if where is not None else root_loc),
+                                **(where.key_loc if where is not None else self.root_loc),
                                 text=where.key_text if where is not None else None,
                                 hint=f"add `{v.name}: <expression>` under `{section}` "
                                      f"(exactly one equation per {what})")
-            out.append(equation(section, entries[v.name]))
+            out.append(self.equation(section, entries[v.name]))
         return out
 
-    drift = equations("drift", states, "state")
-    observations = equations("observations", outputs, "output")
+    def definitions(self) -> tuple[tuple[tuple[str, sympy.Expr], ...], dict[str, list[str]]]:
+        """The definitions in dependency order and each one's direct dependencies.
 
-    # size of the definition-expanded equations (bounded before anything expands) -----
-    _check_expanded_size(definitions, def_at, drift, states, observations, outputs, sections)
+        Raises:
+            SpecError: a definition cycle, named by its first definition.
+        """
+        def_at = self.sections["definitions"]
+        def_syms = {nm: _sym(nm) for nm in def_at}
+        exprs = {nm: self.equation("definitions", e) for nm, e in def_at.items()}
+        deps = {nm: [d for d in def_at if def_syms[d] in e.free_symbols] for nm, e in exprs.items()}
+        order = list(def_at)
+        cycle = _find_cycle(deps, order)
+        if cycle:
+            first = def_at[cycle[0]].name
+            raise SpecError("definition cycle: " + " -> ".join(cycle), **first.key_loc,
+                            text=first.key_text,
+                            hint="definitions may refer to each other, but not in a circle")
+        return tuple((nm, exprs[nm]) for nm in _topo(deps, order)), deps
 
-    # unused symbols (through the definition graph, nothing expanded) -------------
+
+def _warn_unused(warnings: list, spec: Spec, definitions, deps, equations) -> None:
+    """Warn about parameters, constants, inputs and definitions no drift or observation
+    equation reaches (through the definition graph, nothing expanded)."""
+    def_exprs = dict(definitions)
+    def_syms = {nm: _sym(nm) for nm in def_exprs}
     reach: set[str] = set()
-    stack = [nm for nm in def_at if any(def_syms[nm] in e.free_symbols for e in drift + observations)]
+    stack = [nm for nm in def_exprs if any(def_syms[nm] in e.free_symbols for e in equations)]
     while stack:
         n = stack.pop()
         if n not in reach:
             reach.add(n)
             stack.extend(deps[n])
     used: set = set()
-    for e in drift + observations:
+    for e in equations:
         used |= e.free_symbols
     for n in reach:
         used |= def_exprs[n].free_symbols
@@ -371,14 +388,14 @@ def compile_typed(spec: Spec) -> SymbolicModel:
         if _sym(d.name.value) not in used:
             _warn(warnings, f"unused input `{d.name.value}`", d.name,
                   code="unused_input", hint="remove it or use it in an equation")
-    for nm, e in def_at.items():
-        if nm not in reach:
-            _warn(warnings, f"unused definition `{nm}`", e.name, code="unused_definition",
-                  hint="no drift or observation equation depends on it")
+    for e in spec.definitions:
+        if e.name.value not in reach:
+            _warn(warnings, f"unused definition `{e.name.value}`", e.name,
+                  code="unused_definition", hint="no drift or observation equation depends on it")
 
-    # noise ------------------------------------------------------------------------
-    state_names = [v.name for v in states]
-    output_names = [o.name for o in outputs]
+
+def _noise(spec: Spec, state_names: list[str], output_names: list[str]):
+    """The process-noise declaration and one measurement-noise entry per output."""
     process = ProcessNoiseSpec(states=tuple(state_names))
     if spec.process_noise is not None:
         process = _process_noise(spec.process_noise, state_names)
@@ -391,25 +408,51 @@ def compile_typed(spec: Spec) -> SymbolicModel:
                             "keys of noise.measurement are output names")
         measurement[o] = MeasurementNoiseSpec(o, m.estimate, m.std.value if m.std else None,
                                               m.floor.value if m.floor is not None else "auto")
+    return process, tuple(measurement[o] for o in output_names)
 
-    # data -------------------------------------------------------------------------
-    var_units = {("input", v.name): v.unit for v in inputs}
-    var_units.update({("output", v.name): v.unit for v in outputs})
-    data = _data_spec(spec, [v.name for v in inputs], output_names, root_loc, var_units)
 
-    # units ------------------------------------------------------------------------
-    _check_dimensions(warnings, dims, definitions, def_at, drift, sections, states,
-                      observations, outputs, output_dims)
+def compile_typed(spec: Spec) -> SymbolicModel:
+    """Compile a typed spec (:func:`vsidgen.spec.typed.read_spec`) to a :class:`SymbolicModel`.
+
+    Phases: declarations (every name once, with its dimension) → equations (parsed in the
+    declared namespace, ``add_terms`` added) → definition order (no cycles) → bounded
+    expansion size → unused names (warnings) → noise and data map → dimensional check.
+
+    Raises:
+        SpecError: a name declared twice, an expression that does not parse or names an
+            undeclared symbol, a definition cycle, an equation missing or for an undeclared
+            variable, an oversized expansion, a noise or data entry that does not match
+            the declarations, a unit that does not parse or convert.
+    """
+    warnings: list[SpecWarning] = []
+    root_loc = {"path": spec.path, "line": 1, "column": 1}
+    decl = _declarations(spec, root_loc)
+    eqs = _Equations(spec, decl, root_loc)
+    definitions, deps = eqs.definitions()
+    drift = eqs.equations("drift", decl.states, "state")
+    observations = eqs.equations("observations", decl.outputs, "output")
+    _check_expanded_size(definitions, decl.definitions, drift, decl.states, observations,
+                         decl.outputs, eqs.sections)
+    _warn_unused(warnings, spec, definitions, deps, drift + observations)
+
+    output_names = [o.name for o in decl.outputs]
+    process, measurement = _noise(spec, [v.name for v in decl.states], output_names)
+    var_units = {("input", v.name): v.unit for v in decl.inputs}
+    var_units.update({("output", v.name): v.unit for v in decl.outputs})
+    data = _data_spec(spec, [v.name for v in decl.inputs], output_names, root_loc, var_units)
+    _check_dimensions(warnings, decl.dims, definitions, decl.definitions, drift, eqs.sections,
+                      decl.states, observations, decl.outputs, decl.output_dims)
 
     return SymbolicModel(
         name=spec.name.value, description=spec.description, source_path=spec.path,
         source_hash=spec.hash,
-        states=tuple(states), inputs=tuple(inputs), outputs=tuple(outputs),
-        constants=tuple(constants), parameters=tuple(parameters), definitions=definitions,
-        drift=tuple(drift), observations=tuple(observations), process_noise=process,
-        measurement_noise=tuple(measurement[o] for o in output_names), data=data,
+        states=tuple(decl.states), inputs=tuple(decl.inputs), outputs=tuple(decl.outputs),
+        constants=tuple(decl.constants), parameters=tuple(decl.parameters),
+        definitions=definitions, drift=tuple(drift), observations=tuple(observations),
+        process_noise=process, measurement_noise=measurement, data=data,
         integrator=spec.integrator, substeps=spec.substeps, input_hold=spec.input_hold,
-        warnings=tuple(warnings), locations=locations, files=spec.files, canonical=spec.canonical)
+        warnings=tuple(warnings), locations=eqs.locations, files=spec.files,
+        canonical=spec.canonical)
 
 
 def expanded_sizes(definitions) -> dict[sympy.Symbol, int]:
