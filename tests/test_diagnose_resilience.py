@@ -83,12 +83,14 @@ class _Clock:
 def patched(monkeypatch, base_state):
     monkeypatch.setattr(search, "fit_spec", lambda *a, **k: base_state)
     monkeypatch.setattr(search, "projected_refit", lambda t, current, *a, **k: current)
-    from vsidgen.discrepancy import gated, numerics
+    from vsidgen.discrepancy import gated, noisemodel, numerics
 
-    # the integrator settings stage keeps the current setting without refitting
+    # the integrator settings and noise-model stages keep the current model without refitting
     monkeypatch.setattr(numerics, "run_numerics", lambda current, out, *, alpha, **k:
                         numerics.NumericsResult(numerics.NumericsSetting.of(current.model),
                                                 current.elbo, (), alpha))
+    monkeypatch.setattr(noisemodel, "run_noise_model", lambda current, out, *, alpha, **k:
+                        noisemodel.NoiseModelResult("diagonal", (), current.elbo, (), alpha))
 
     def install(actions, clock=None):
         r = _Refits(actions, clock)

@@ -115,14 +115,17 @@ def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit
                  max_candidates: int, max_rounds: int, effects=None, workers: int = 1) -> dict:
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(SPEC[case.model]), str(csv),
            "--out", str(out), "--max-candidates", str(max_candidates),
-           "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet"]
+           "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet",
+           # the CLI's own limit first (findings written, stop reason `time_limit`); the
+           # subprocess timeout is the backstop for a run that does not stop by itself
+           "--time-limit", f"{time_limit:g}"]
     if effects:
         cmd += ["--effects", *effects]
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.time()
     try:
         proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True,
-                              timeout=time_limit)
+                              timeout=time_limit + 300)
         rc, last = proc.returncode, (proc.stdout.strip().splitlines() or [""])[-1]
         err = proc.stderr.strip()[-400:] if rc else ""
     except subprocess.TimeoutExpired:
@@ -148,6 +151,15 @@ def classify(case: Case, res: dict) -> dict:
         out.update(named="(no result)", outcome="timeout" if res["rc"] is None else "error")
         return out
     inconclusive = doc.get("conclusion", "").startswith("INCONCLUSIVE")
+    # a run stopped by its limit (or killed while a refit ran) accepted nothing in its
+    # unfinished round: "nothing" there is not a result
+    stop = (doc.get("stop") or {}).get("reason", "completed")
+    out["stop"] = stop
+    noise = (doc.get("noise_model") or {}).get("adopted")
+    out["noise_model"] = (None if not noise else
+                          "correlated process noise (" + ", ".join(
+                              f"ρ {c['rho']:+.2f}" for c in noise.get("correlations") or []
+                              if c.get("rho") is not None) + f"; Λ {noise['statistic']:.4g})")
     adopted = (doc.get("numerics") or {}).get("adopted")
     # a modelling-numerics finding is not a physical effect: reported, never counted as one
     out["numerics"] = adopted["setting"]["text"] if adopted else None
@@ -163,12 +175,14 @@ def classify(case: Case, res: dict) -> dict:
         out["alternatives"] = [f"{a.get('effect')}:{a.get('target')}"
                                for a in f.get("alternatives") or []]
     else:
-        out["named"] = "inconclusive" if inconclusive else "nothing"
+        out["named"] = ("inconclusive" if inconclusive
+                        else "nothing" if stop == "completed" else f"nothing yet ({stop})")
     out["n_findings"] = len(findings)
     trials = [t for r in doc.get("rounds", []) for t in r.get("trials", [])]
     out["refitted"] = [(t.get("key"), t.get("statistic"), t.get("converged")) for t in trials]
     if case.effect == "none":
-        out["outcome"] = "ok" if not findings else "false positive"
+        out["outcome"] = ("false positive" if findings
+                          else "ok" if stop == "completed" else "unfinished")
         return out
     labels = TRUE_LABELS[(case.model, case.effect)]
 
@@ -183,7 +197,8 @@ def classify(case: Case, res: dict) -> dict:
     elif findings:
         out["outcome"] = "wrong"
     else:
-        out["outcome"] = "inconclusive" if inconclusive else "missed"
+        out["outcome"] = ("inconclusive" if inconclusive
+                          else "missed" if stop == "completed" else "unfinished")
     return out
 
 
@@ -221,7 +236,7 @@ def _fmt_est(est: dict | None) -> str:
 
 
 def report(rows: list[dict]) -> str:
-    lines = ["| case | truth | numerics adopted | named first | estimate | 2ΔELBO (threshold) "
+    lines = ["| case | truth | numerics / noise model adopted | named first | estimate | 2ΔELBO (threshold) "
              "| outcome | wall |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -231,7 +246,8 @@ def report(rows: list[dict]) -> str:
             f"{r['statistic']:.4g} ({r['threshold']:.3g})"
         named = r["named"] + (" (alt: " + ", ".join(r["alternatives"]) + ")"
                               if r.get("alternatives") else "")
-        lines.append(f"| {r['case']} | {truth} | {r.get('numerics') or '–'} | {named} | "
+        adopted = "; ".join(x for x in (r.get("numerics"), r.get("noise_model")) if x) or "–"
+        lines.append(f"| {r['case']} | {truth} | {adopted} | {named} | "
                      f"{_fmt_est(r.get('estimates'))} | {stat} | {r['outcome']} | "
                      f"{r['wall_s']:.0f} s |")
         if r.get("oracle"):
@@ -267,7 +283,10 @@ def report(rows: list[dict]) -> str:
     nulls = [r for r in rows if r["effect"] == "none"]
     if nulls:
         fp = sum(r["outcome"] == "false positive" for r in nulls)
-        lines.append(f"\nFalse positives on null cases: {fp}/{len(nulls)}")
+        unf = sum(r["outcome"] == "unfinished" for r in nulls)
+        lines.append(f"\nFalse positives on null cases: {fp}/{len(nulls) - unf} finished"
+                     + (f" ({unf} unfinished: stopped by the time limit before the end of "
+                        "round 1, nothing accepted)" if unf else ""))
     tot = sum(r["wall_s"] for r in rows)
     lines.append(f"Total diagnose wall time: {tot:.0f} s over {len(rows)} cases")
     return "\n".join(lines)
@@ -315,9 +334,18 @@ def main(argv=None) -> int:
         work = pathlib.Path(args.work)
         rows = []
         for c in cases:
-            if (p := work / f"{c.name}.result.json").exists():
-                rows.append(json.loads(p.read_text()))
-            elif (fj := work / c.name / "findings.json").exists():
+            res = work / f"{c.name}.result.json"
+            fj = work / c.name / "findings.json"
+            if res.exists() and fj.exists():   # classified again from the findings
+                old = json.loads(res.read_text())
+                doc = json.loads(fj.read_text())
+                row = classify(c, {"doc": doc, "rc": old.get("rc"), "wall_s": old["wall_s"],
+                                   "cli_last_line": old.get("cli_last_line", ""),
+                                   "error": old.get("error", "")})
+                rows.append({**row, **({"oracle": old["oracle"]} if old.get("oracle") else {})})
+            elif res.exists():
+                rows.append(json.loads(res.read_text()))
+            elif fj.exists():
                 doc = json.loads(fj.read_text())   # a run whose driver was stopped
                 rows.append(classify(c, {"doc": doc, "rc": 0, "wall_s": doc["wall_time_s"],
                                          "cli_last_line": "", "error": ""}))

@@ -6,6 +6,9 @@ findings.json (keys in this order)::
      "options": {...}, "conclusion": "plain words",
      "numerics": null | {"kind": "modelling_numerics", "current", "trials": [...],
                          "adopted": null | {"setting", "recommendation", "statistic", ...}},
+     "noise_model": null | {"kind": "noise_model", "current", "trials": [...],
+                            "adopted": null | {"alternative", "recommendation", "statistic",
+                                               "dof", "correlations", "explanation", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -93,8 +96,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                     final_spec, base_converged: bool = True, base_status: str = "",
                     numerics_adopted: bool = False) -> str:
     """The plain-words conclusion of findings.json (pure: findings and round records only;
-    ``numerics_adopted``: a modelling-numerics setting was adopted, so only the physics is
-    kept when nothing else is found)."""
+    ``numerics_adopted``: a modelling-numerics setting or a noise model was adopted, so only
+    the physics is kept when nothing else is found)."""
     if findings:
         conclusion = (f"{len(findings)} significant discrepanc{'y' if len(findings) == 1 else 'ies'}"
                       f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
@@ -110,7 +113,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                  "needed).")
     else:
         what = "physical discrepancy" if numerics_adopted else "discrepancy"
-        kept = ("The model's physics is kept as it is (with the numerics setting above)"
+        kept = ("The model's physics is kept as it is (with the numerics or noise-model "
+                "setting above)"
                 if numerics_adopted else "The model is kept as it is")
         conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                       f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
@@ -204,6 +208,11 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         lines.append(f"0. modelling numerics (not physics): {adopted['recommendation']}: 2ΔELBO = "
                      f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}")
         lines.append(f"   {adopted['explanation']}")
+    noise = (document.get("noise_model") or {}).get("adopted")
+    if noise:
+        lines.append(f"0. noise model (not physics): {noise['recommendation']}: 2ΔELBO = "
+                     f"{noise['statistic']:.4g} > {noise['threshold']:.4g}")
+        lines.append(f"   {noise['explanation']}")
     for f in document.get("findings") or []:
         ev = f["evidence"]
         lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
@@ -232,14 +241,30 @@ def numerics_text(numerics: dict | None) -> str:
             "added); the physical search below used it. ")
 
 
+def noise_model_text(noise_model: dict | None) -> str:
+    """Sentence on the noise-model stage put before the conclusion ("" when nothing was
+    adopted)."""
+    adopted = (noise_model or {}).get("adopted")
+    if not adopted:
+        return ""
+    rho = ", ".join(f"ρ({c['states'][0]}, {c['states'][1]}) = {c['rho']:+.2f}"
+                    for c in adopted.get("correlations") or [] if c.get("rho") is not None)
+    return (f"NOISE MODEL (not a physical effect): the process noise is correlated between the "
+            f"state equations ({rho}); {adopted['recommendation']} (2ΔELBO = "
+            f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}, chi2({adopted['dof']})); "
+            "the physical search below used it. ")
+
+
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options, stop: dict | None = None,
-                   unfinished_round: dict | None = None, numerics: dict | None = None) -> dict:
+                   unfinished_round: dict | None = None, numerics: dict | None = None,
+                   noise_model: dict | None = None) -> dict:
     """The findings.json mapping (see the module docstring).
 
     ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
     ``unfinished_round``: the round that was in progress (refitted trials, pending keys);
-    ``numerics``: the modelling-numerics stage (:meth:`.numerics.NumericsResult.to_json`).
+    ``numerics``: the modelling-numerics stage (:meth:`.numerics.NumericsResult.to_json`);
+    ``noise_model``: the noise-model stage (:meth:`.noisemodel.NoiseModelResult.to_json`).
     """
     findings = []
     for rank, (trial, before, ev) in enumerate(accepted, start=1):
@@ -288,18 +313,19 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
                                  base_status=base.fit.status,
-                                 numerics_adopted=bool((numerics or {}).get("adopted")))
+                                 numerics_adopted=bool((numerics or {}).get("adopted"))
+                                 or bool((noise_model or {}).get("adopted")))
     stopped = stop_text(stop, unfinished_round, len(findings))
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
-    conclusion = stopped + numerics_text(numerics) + conclusion
+    conclusion = stopped + numerics_text(numerics) + noise_model_text(noise_model) + conclusion
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
-        "numerics": numerics, "findings": findings, "final_spec": str(final.spec_path),
+        "numerics": numerics, "noise_model": noise_model, "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "metrics": metrics_summary(base)},
         "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
@@ -409,6 +435,23 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             st = t.get("statistic")
             parts.append(f"<tr><td><code>{e(t['setting']['text'])}</code></td>"
                          f"<td>{'n/a' if st is None else f'{st:.4g}'}</td>"
+                         f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
+        parts.append("</table>")
+    nm = doc.get("noise_model") or {}
+    if nm.get("trials"):
+        parts.append("<h3>Noise model (tested before physics)</h3>"
+                     f"<p>Current process noise: <code>structure: {e(nm['current']['structure'])}"
+                     f"</code> on {e(', '.join(nm['current']['states']))}. "
+                     + (f"<b>{e(nm['adopted']['explanation'])}</b>" if nm.get("adopted")
+                        else "Kept: correlated process noise did not improve the fit "
+                             "significantly.")
+                     + "</p><table border='1' cellpadding='3' style='border-collapse:collapse;"
+                       "font-size:90%'><tr><th>alternative</th><th>2ΔELBO</th><th>dof</th>"
+                       "<th>threshold</th><th>verdict</th></tr>")
+        for t in nm["trials"]:
+            st = t.get("statistic")
+            parts.append(f"<tr><td>{e(t['alternative'])}</td>"
+                         f"<td>{'n/a' if st is None else f'{st:.4g}'}</td><td>{t['dof']}</td>"
                          f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
         parts.append("</table>")
     loc = doc.get("locate", {})

@@ -750,6 +750,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                  effects_module=None, max_iter: int = 200, screen: bool = True,
                  time_limit: float | None = None, workers: int | None = 1,
                  scheduler: str | None = None, numerics: bool = True, gated: bool = True,
+                 noise_model: bool = True,
                  progress: Callable[[str], None] | None = None,
                  overwrite: bool = False, overrides=None) -> DiagnoseResult:
     """Locate, explain, model and confirm discrepancies of ``spec`` on ``data``.
@@ -780,6 +781,12 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     integrator settings (rk4, sub-steps, first-order hold of the inputs; :mod:`.numerics`);
     a setting that removes a significant part of the mismatch is adopted for the rest of
     the run and reported as a modelling-numerics finding (``findings.json`` → ``numerics``).
+
+    ``noise_model``: then, still before any physics candidate, the current model is refitted
+    with correlated process noise (a full factor G on the same states; :mod:`.noisemodel`);
+    when 2ΔELBO exceeds χ²_k at ``alpha`` (k added off-diagonal entries) it is adopted for
+    the rest of the run and reported as a noise-model finding (``findings.json`` →
+    ``noise_model``), never as a physical effect.
 
     ``gated`` (default): the candidates of a round that add no state are refitted as
     fits of one gated model (:mod:`.gated`; compiled once per round and process, the other
@@ -841,7 +848,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
                              progress=progress, version=__version__,
                              build_document=build_document, write_findings=write_findings,
                              time_limit=time_limit, engine=engine, numerics=numerics,
-                             gated=gated)
+                             gated=gated, noise_model=noise_model)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -861,6 +868,7 @@ class _RunConfig:
     screen: bool
     numerics: bool
     gated: bool
+    noise_model: bool
     time_limit: float | None
     deadline: float | None          # time.monotonic() value after which no refit starts
     engine: Any
@@ -887,7 +895,8 @@ class _RunState:
     ``current``/``evidence``: the model the next round extends and its evidence;
     ``rounds``: the finished rounds' records; ``accepted``: (trial, fit it was tested
     against, that fit's evidence) per accepted effect; ``unfinished``: the record of the
-    round under way (None between rounds); ``numres``: the integrator-settings stage.
+    round under way (None between rounds); ``numres``: the integrator-settings stage;
+    ``noiseres``: the noise-model stage.
     """
 
     base: FitState | None = None
@@ -895,6 +904,7 @@ class _RunState:
     evidence0: Evidence | None = None
     evidence: Evidence | None = None
     numres: Any = None
+    noiseres: Any = None
     rounds: list[dict] = dataclasses.field(default_factory=list)
     accepted: list[tuple[Trial, FitState, Evidence]] = dataclasses.field(default_factory=list)
     unfinished: dict | None = None
@@ -940,7 +950,8 @@ def _document(run: _RunConfig, st: _RunState, stop: StopReason) -> dict:
                              options=run.options,
                              stop={"reason": stop.value, "time_limit_s": run.time_limit},
                              unfinished_round=st.unfinished,
-                             numerics=None if st.numres is None else st.numres.to_json())
+                             numerics=None if st.numres is None else st.numres.to_json(),
+                             noise_model=None if st.noiseres is None else st.noiseres.to_json())
     refit_c = [t["refit"].get("compile_s") for r in st.rounds for t in r.get("trials", ())
                if t.get("refit")]
     doc["compile_s"] = {"this_process": round(compile_seconds() - run.compile0, 2),
@@ -984,6 +995,20 @@ def _numerics_stage(run: _RunConfig, st: _RunState) -> None:
                              progress=run.progress)
     if st.numres.adopted is not None:
         st.current = st.numres.adopted.state
+        st.evidence = locate_state(st.current)
+    _checkpoint(run, st, StopReason.RUNNING)
+
+
+def _noise_model_stage(run: _RunConfig, st: _RunState) -> None:
+    """Refit the current model with correlated process noise (:mod:`.noisemodel`); adopt it
+    when the nested likelihood-ratio test is significant."""
+    from .noisemodel import run_noise_model
+
+    st.noiseres = run_noise_model(st.current, run.out, alpha=run.alpha, generated_dir=run.gen,
+                                  max_iter=run.max_iter, engine=run.engine,
+                                  deadline=run.deadline, progress=run.progress)
+    if st.noiseres.adopted is not None:
+        st.current = st.noiseres.adopted.state
         st.evidence = locate_state(st.current)
     _checkpoint(run, st, StopReason.RUNNING)
 
@@ -1242,7 +1267,7 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
                   catalogue, max_iter, screen, progress, version, build_document,
                   write_findings, time_limit, engine, numerics=True,
-                  gated=True) -> DiagnoseResult:
+                  gated=True, noise_model=True) -> DiagnoseResult:
     """The diagnose run in ``out`` (see :func:`run_diagnose`): base fit, integrator
     settings, then rounds until one ends the search, the time limit or ``max_rounds``;
     a checkpoint after every phase, the interrupted state written before re-raising."""
@@ -1253,11 +1278,12 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
     options = {"max_rounds": max_rounds, "max_candidates": max_candidates, "alpha": alpha,
                "min_score": min_score, "screen": screen, "effects": [e.id for e in catalogue],
                "time_limit_s": time_limit, "engine": engine.describe(), "numerics": numerics,
-               "gated": gated}
+               "gated": gated, "noise_model": noise_model}
     run = _RunConfig(out=out, gen=out / "generated", data=data, validate=validate,
                      catalogue=catalogue, max_rounds=max_rounds, max_candidates=max_candidates,
                      alpha=alpha, min_score=min_score, max_iter=max_iter, screen=screen,
-                     numerics=numerics, gated=gated, time_limit=time_limit, deadline=deadline,
+                     numerics=numerics, gated=gated, noise_model=noise_model,
+                     time_limit=time_limit, deadline=deadline,
                      engine=engine, progress=progress, version=version,
                      build_document=build_document, write_findings=write_findings,
                      options=options, t_start=t_start, compile0=compile_seconds())
@@ -1270,6 +1296,8 @@ def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alph
                 run.say(f"refits run on a {engine.describe()}")
             if numerics and not run.past_deadline():
                 _numerics_stage(run, st)
+            if noise_model and not run.past_deadline():
+                _noise_model_stage(run, st)
             for rnd in range(1, max_rounds + 1):
                 if run.past_deadline():
                     stop = StopReason.TIME_LIMIT
@@ -1377,6 +1405,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--no-numerics", action="store_true",
                    help="do not test the integrator settings (rk4, sub-steps, first-order hold "
                         "of the inputs) before the physical candidates")
+    p.add_argument("--no-noise-model", action="store_true",
+                   help="do not test correlated process noise (one gust acting on several "
+                        "state equations) before the physical candidates")
     p.add_argument("--per-candidate-models", action="store_true",
                    help="compile every candidate's own model (the reference path; by default "
                         "the candidates that add no state are gated terms of one model per "
@@ -1423,6 +1454,7 @@ def diagnose_command(args) -> int:
                                screen=args.screen, time_limit=args.time_limit,
                                workers=args.workers, scheduler=args.scheduler, progress=progress,
                                numerics=not args.no_numerics,
+                               noise_model=not args.no_noise_model,
                                gated=not args.per_candidate_models,
                                overwrite=args.overwrite, overrides=ov)
     finally:

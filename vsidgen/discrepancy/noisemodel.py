@@ -1,0 +1,243 @@
+"""The noise model before physics: correlated turbulence as a candidate of its own.
+
+An aircraft flies through one air mass: a vertical gust ``w_g`` changes the aerodynamic angle
+of attack ``α − w_g/V``, and every equation that depends on α receives it through its own
+derivative — ``Z_α·w_g/V`` in the α equation, ``M_α·w_g/V`` in the q equation. The process
+noise of those equations is therefore *correlated* (for a single gust component exactly of
+rank one), while a spec with ``noise.process.structure: diagonal`` models each equation's
+turbulence as independent. That mismatch is systematic and the physical catalogue can absorb
+part of it: a term that mixes the states of two equations mixes their noise too, so on a
+record with no concealed effect a flow-vane position ``α + D·q`` raised the ELBO exactly as
+much as a correlated noise model does (independent benchmark, ``sp_none_0_s0``: Λ = 17.29 vs
+17.30) and was reported as a sensor effect.
+
+So before any physical candidate, :func:`run_noise_model` refits the current model with a
+full (lower-triangular) process-noise factor ``G`` on the same states, warm-started from the
+current fit. At ``G_ij = 0`` (i ≠ j) it *is* the current model, an interior point of the
+larger family, so Wilks' theorem applies:
+
+    Λ = 2(ELBO_full − ELBO_diagonal)  ~  χ²_k,   k = n(n − 1)/2
+
+for ``n`` process-noise states with estimated intensities. The alternative is adopted when
+the refit converged and Λ exceeds the χ²_k quantile at level α (one hypothesis in this stage).
+It is reported as a **noise-model finding** ("the turbulence is correlated between the
+equations …", with the correlation coefficients ``ρ_ij = Q_ij/√(Q_ii Q_jj)`` of ``Q = G Gᵀ``),
+never as a physical effect, and the physical search continues with it (the final spec carries
+``structure: full``). The estimator already supports the full factor; no parameter of the
+aircraft model is added.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import pathlib
+import time
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+
+class NoiseModelVerdict(enum.Enum):
+    """Outcome of a noise-model alternative (``findings.json`` → ``noise_model.trials[].verdict``)."""
+
+    ADOPTED = "adopted"
+    NOT_SIGNIFICANT = "not_significant"
+    NOT_CONVERGED = "not_converged"
+    FAILED = "failed"
+
+
+class NoiseAlternative(enum.Enum):
+    """A noise model tested against the current one."""
+
+    CORRELATED = "correlated_process_noise"   # structure: full on the same states
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseModelTrial:
+    """The current model refitted with one noise-model alternative."""
+
+    alternative: NoiseAlternative
+    spec_path: pathlib.Path
+    dof: int
+    state: Any = None                    # search.FitState (None: failed)
+    statistic: float = math.nan          # 2(ELBO_alternative − ELBO_current)
+    threshold: float = math.nan
+    p_value: float = math.nan
+    converged: bool = False
+    verdict: NoiseModelVerdict = NoiseModelVerdict.FAILED
+    correlations: tuple[tuple[str, str, float], ...] = ()
+    error: str | None = None
+    wall_s: float = 0.0
+
+    def to_json(self) -> dict:
+        def f(v):
+            return None if v is None or not math.isfinite(v) else float(v)
+        return {"alternative": self.alternative.value, "spec": str(self.spec_path),
+                "dof": self.dof, "elbo": None if self.state is None else f(self.state.elbo),
+                "statistic": f(self.statistic), "threshold": f(self.threshold),
+                "p_value": f(self.p_value), "converged": self.converged,
+                "verdict": self.verdict.value,
+                "correlations": [{"states": [a, b], "rho": f(r)} for a, b, r in self.correlations],
+                "error": self.error, "wall_s": round(self.wall_s, 2)}
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseModelResult:
+    """The noise-model stage of a diagnose run."""
+
+    structure: str                       # the current process-noise structure
+    states: tuple[str, ...]              # its states with estimated intensities
+    elbo_current: float
+    trials: tuple[NoiseModelTrial, ...]
+    alpha: float
+    adopted: NoiseModelTrial | None = None
+
+    def to_json(self) -> dict:
+        adopted = None
+        if self.adopted is not None:
+            a = self.adopted
+            adopted = {"alternative": a.alternative.value, "spec": str(a.spec_path),
+                       "statistic": float(a.statistic), "threshold": float(a.threshold),
+                       "dof": a.dof, "p_value": float(a.p_value),
+                       "elbo_before": float(self.elbo_current), "elbo_after": float(a.state.elbo),
+                       "correlations": a.to_json()["correlations"],
+                       "recommendation": "use noise: {process: {structure: full}}",
+                       "explanation": explanation(a)}
+        return {"kind": "noise_model",
+                "test": "2*(ELBO_full - ELBO_diagonal) against chi2(n(n-1)/2) at alpha: the "
+                        "diagonal process noise is the full one with zero off-diagonal factor "
+                        "entries (nested, interior point)",
+                "current": {"structure": self.structure, "states": list(self.states)},
+                "elbo_current": float(self.elbo_current), "alpha": self.alpha,
+                "trials": [t.to_json() for t in self.trials], "adopted": adopted}
+
+
+def noise_alternatives(model) -> list[tuple[NoiseAlternative, int]]:
+    """Alternatives to test for ``model`` with their added noise parameters: the full factor
+    when at least two states have estimated, independent (diagonal) process noise."""
+    pn = model.process_noise
+    if pn is None or not pn.estimate or pn.structure != "diagonal":
+        return []
+    n = len(pn.states or model.state_names)
+    return [(NoiseAlternative.CORRELATED, n * (n - 1) // 2)] if n >= 2 else []
+
+
+def correlations(G, names) -> tuple[tuple[str, str, float], ...]:
+    """Correlation coefficients ``Q_ij/√(Q_ii Q_jj)`` of ``Q = G Gᵀ`` for every pair of
+    states with process noise."""
+    G = np.asarray(G, float)
+    Q = G @ G.T
+    d = np.sqrt(np.clip(np.diag(Q), 0.0, None))
+    out = []
+    for i in range(len(names)):
+        for j in range(i):
+            if d[i] > 0 and d[j] > 0:
+                out.append((names[j], names[i], float(Q[i, j] / (d[i] * d[j]))))
+    return tuple(out)
+
+
+def explanation(trial: NoiseModelTrial) -> str:
+    """Plain words for an adopted noise model."""
+    rho = ", ".join(f"ρ({a}, {b}) = {r:+.2f}" for a, b, r in trial.correlations)
+    return ("Noise model, not physics: the turbulence (process noise) is correlated between the "
+            "state equations — one gust acting on several equations through their aerodynamic "
+            f"derivatives — rather than independent per equation ({rho}; 2ΔELBO = "
+            f"{trial.statistic:.4g} > {trial.threshold:.4g}, χ²({trial.dof})). Use "
+            "`noise: {process: {structure: full}}` in the spec; the physical search continues "
+            "with it.")
+
+
+def write_noise_spec(current, path: pathlib.Path, name: str):
+    """Spec extending the current one with a full process-noise factor (current estimates as
+    initial values)."""
+    from .specwrite import extends_text, warm_parameters, write_spec
+
+    return write_spec(path, "vsidgen diagnose: noise model with correlated process noise",
+                      {"name": name,
+                       "description": "the current model with correlated process noise "
+                                      "(structure: full)",
+                       "extends": extends_text(current.spec_path, path),
+                       "noise": {"process": {"structure": "full"}},
+                       "parameters": warm_parameters(current.model, current.fit.theta)})
+
+
+def _noise_task(current, path, name, generated_dir, max_iter):
+    """The alternative's warm refit (runs on an engine worker); a FitState."""
+    from .fitstate import refit_warm
+
+    write_noise_spec(current, path, name)
+    return refit_warm(path, current, current, generated_dir=generated_dir,
+                      iterations=2 * max_iter, max_iter=max_iter)
+
+
+def decide(trial: NoiseModelTrial, elbo_current: float, alpha: float) -> NoiseModelTrial:
+    """Statistic, threshold (χ²_dof at α), p-value and verdict of one refitted alternative."""
+    thr = float(stats.chi2.isf(alpha, max(trial.dof, 1)))
+    if trial.state is None:
+        return dataclasses.replace(trial, threshold=thr, verdict=NoiseModelVerdict.FAILED)
+    lam = 2.0 * (trial.state.elbo - elbo_current)
+    p = float(stats.chi2.sf(max(lam, 0.0), max(trial.dof, 1)))
+    if not trial.converged:
+        v = NoiseModelVerdict.NOT_CONVERGED
+    else:
+        v = NoiseModelVerdict.ADOPTED if lam > thr else NoiseModelVerdict.NOT_SIGNIFICANT
+    return dataclasses.replace(trial, statistic=lam, threshold=thr, p_value=p, verdict=v)
+
+
+def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, max_iter: int,
+                    engine, deadline=None, progress=None) -> NoiseModelResult:
+    """Refit ``current`` (a search.FitState) with correlated process noise and decide (see
+    the module docstring). The adopted trial's state is the model the run continues from."""
+    from ..engine import TaskStatus
+    from .fitstate import refit_converged
+    from .specwrite import safe_name
+
+    model = current.model
+    pn = model.process_noise
+    states = tuple(pn.states or model.state_names) if pn is not None else ()
+    structure = pn.structure if pn is not None else "diagonal"
+    alts = noise_alternatives(model)
+    if not alts:
+        return NoiseModelResult(structure, states, current.elbo, (), alpha)
+    t0 = time.perf_counter()
+    trials = []
+    for i, (alt, dof) in enumerate(alts):
+        path = pathlib.Path(out) / "candidates" / f"r0_n{i + 1:02d}_noise_{alt.value}.yaml"
+        if progress is not None:
+            progress(f"noise model first: refitting with correlated process noise on "
+                     f"{', '.join(states)} ({dof} parameter{'s' if dof > 1 else ''} added)")
+        task = (alt.value, (current, path, f"{safe_name(model.name)[:30]}_noise{i + 1}",
+                            generated_dir, max_iter))
+        outs = engine.run(_noise_task, [task], deadline=deadline)
+        o = outs[0] if outs else None
+        if o is None or o.status is not TaskStatus.DONE:
+            err = "not run" if o is None else f"{o.status.value}: {o.error}"
+            trials.append(decide(NoiseModelTrial(alt, path, dof, error=err,
+                                                 wall_s=0.0 if o is None else o.wall_s),
+                                 current.elbo, alpha))
+            continue
+        st = o.value
+        names = [n for n in st.model.state_names if n in states]
+        idx = [st.model.state_names.index(n) for n in names]
+        rho = correlations(np.asarray(st.fit.G, float)[np.ix_(idx, idx)], names)
+        trials.append(decide(NoiseModelTrial(alt, path, dof, st, converged=refit_converged(st.fit),
+                                             correlations=rho, wall_s=o.wall_s),
+                             current.elbo, alpha))
+    good = [t for t in trials if t.verdict is NoiseModelVerdict.ADOPTED]
+    adopted = max(good, key=lambda t: t.state.elbo) if good else None
+    if progress is not None:
+        for t in trials:
+            progress(f"    {t.alternative.value}: 2ΔELBO {t.statistic:.4g} (threshold "
+                     f"{t.threshold:.4g}, χ²({t.dof})) {t.verdict.value}"
+                     + (f" [{t.error}]" if t.error else ""))
+        progress(("noise model: correlated process noise adopted" if adopted is not None
+                  else "noise model: the current process noise is kept")
+                 + f" ({time.perf_counter() - t0:.0f} s)")
+    return NoiseModelResult(structure, states, current.elbo, tuple(trials), alpha, adopted)
+
+
+__all__ = ["NoiseAlternative", "NoiseModelResult", "NoiseModelTrial", "NoiseModelVerdict",
+           "correlations", "decide", "noise_alternatives", "run_noise_model"]
