@@ -230,6 +230,22 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     return lines
 
 
+def _trial_table(first: str, rows, *, dof: bool) -> str:
+    """HTML table of a before-physics stage's trials: ``rows`` of (escaped first cell, trial
+    record with ``statistic``, ``dof``, ``threshold``, ``verdict``)."""
+    e = html.escape
+    head = (f"<tr><th>{first}</th><th>2ΔELBO</th>" + ("<th>dof</th>" if dof else "")
+            + "<th>threshold</th><th>verdict</th></tr>")
+    body = []
+    for cell, t in rows:
+        st = t.get("statistic")
+        body.append(f"<tr><td>{cell}</td><td>{'n/a' if st is None else f'{st:.4g}'}</td>"
+                    + (f"<td>{int(t['dof'])}</td>" if dof else "")
+                    + f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
+    return ("<table border='1' cellpadding='3' style='border-collapse:collapse;font-size:90%'>"
+            + head + "".join("\n" + r for r in body) + "\n</table>")
+
+
 def numerics_text(numerics: dict | None) -> str:
     """Sentence on the modelling-numerics stage put before the conclusion ("" when nothing
     was adopted)."""
@@ -428,15 +444,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      f"<p>Current setting: <code>{e(num['current']['text'])}</code>. "
                      + (f"<b>{e(num['adopted']['explanation'])}</b>" if num.get("adopted")
                         else "Kept: no other setting improved the fit significantly.")
-                     + "</p><table border='1' cellpadding='3' style='border-collapse:collapse;"
-                       "font-size:90%'><tr><th>setting</th><th>2ΔELBO</th><th>threshold</th>"
-                       "<th>verdict</th></tr>")
-        for t in num["trials"]:
-            st = t.get("statistic")
-            parts.append(f"<tr><td><code>{e(t['setting']['text'])}</code></td>"
-                         f"<td>{'n/a' if st is None else f'{st:.4g}'}</td>"
-                         f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
-        parts.append("</table>")
+                     + "</p>" + _trial_table("setting", [(f"<code>{e(t['setting']['text'])}</code>", t)
+                                                       for t in num["trials"]], dof=False))
     nm = doc.get("noise_model") or {}
     if nm.get("trials"):
         parts.append("<h3>Noise model (tested before physics)</h3>"
@@ -445,15 +454,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      + (f"<b>{e(nm['adopted']['explanation'])}</b>" if nm.get("adopted")
                         else "Kept: correlated process noise did not improve the fit "
                              "significantly.")
-                     + "</p><table border='1' cellpadding='3' style='border-collapse:collapse;"
-                       "font-size:90%'><tr><th>alternative</th><th>2ΔELBO</th><th>dof</th>"
-                       "<th>threshold</th><th>verdict</th></tr>")
-        for t in nm["trials"]:
-            st = t.get("statistic")
-            parts.append(f"<tr><td>{e(t['alternative'])}</td>"
-                         f"<td>{'n/a' if st is None else f'{st:.4g}'}</td><td>{t['dof']}</td>"
-                         f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
-        parts.append("</table>")
+                     + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
+                                                           for t in nm["trials"]], dof=True))
     loc = doc.get("locate", {})
     if loc:
         parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "
