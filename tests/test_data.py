@@ -343,3 +343,15 @@ def test_large_record_is_fast(tmp_path):
     r = load_record(_m(), tmp_path / "big.csv")
     assert time.perf_counter() - t0 < 5.0
     assert r.n == n
+
+
+def test_an_expression_written_as_a_column_name_gets_the_expr_form():
+    """A new user writes a combination of columns where a column name goes; the hint gives
+    the data map's expression form, and only when every name in it is a column."""
+    from vsidgen.suggest import column_hint
+
+    header = ["t_s", "da_left_rad", "da_right_rad", "p_radps"]
+    got = column_hint("(da_left_rad - da_right_rad)/2", header)
+    assert got == 'to combine columns, write {expr: "(da_left_rad - da_right_rad)/2"}'
+    assert "expr" not in (column_hint("(da_left - da_right)/2", header) or "")
+    assert "expr" not in (column_hint("p_rad", header) or "")

@@ -14,6 +14,7 @@ similar.
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Iterable, Mapping
 
 CUTOFF = 0.6
@@ -74,6 +75,9 @@ def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = 
     rudder column ``dr_deg`` must not suggest the aileron's ``da_deg``); when
     only such a column is similar, the hint says whose column it is.
     """
+    words = re.findall(r"[A-Za-z_]\w*", name)
+    if re.search(r"[-+*/()]", name) and words and all(w in header for w in words):
+        return f'to combine columns, write {{expr: "{name}"}}'
     taken = {c: who for c, who in (taken or {}).items() if c != name}
     free = [h for h in header if h not in taken]
     close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
