@@ -12,6 +12,7 @@ false positive of the independent benchmark's null short-period case.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import pathlib
 import types
@@ -23,7 +24,8 @@ from scipy import stats
 from vsidgen.discrepancy.findings import noise_model_text, report_section, summary_lines
 from vsidgen.discrepancy.noisemodel import (NoiseAlternative, NoiseModelResult, NoiseModelTrial,
                                             NoiseModelVerdict, correlations, decide,
-                                            noise_alternatives)
+                                            independent_shares, noise_alternatives)
+from vsidgen.estimator import StopReason
 
 DT = 0.04
 
@@ -121,6 +123,32 @@ def test_correlations_of_the_factor():
     # Q = G Gᵀ: Q_xy = 2, Q_xx = 4, Q_yy = 2 -> ρ = 2/√8; z is independent
     assert math.isclose(got[("x", "y")], 2.0 / math.sqrt(8.0))
     assert got[("x", "z")] == 0.0 and got[("y", "z")] == 0.0
+
+
+def test_independent_shares_mark_a_factor_driven_singular():
+    """G_ii/√Q_ii by hand: independent noise 1; a state whose noise is a multiple of an
+    earlier state's (one gust, nothing independent: Q singular) 0; in between √(1 − ρ²) for
+    two states with correlation ρ."""
+    got = dict(independent_shares(np.diag([2.0, 3.0]), ["a", "b"]))
+    assert got == {"a": 1.0, "b": 1.0}
+    got = dict(independent_shares(np.array([[2.0, 0.0], [-6.0, 0.0]]), ["a", "b"]))
+    assert got["a"] == 1.0 and got["b"] == 0.0
+    rho = 0.6
+    G = np.linalg.cholesky(np.array([[1.0, rho], [rho, 1.0]]))
+    assert math.isclose(dict(independent_shares(G, ["a", "b"]))["b"], math.sqrt(1 - rho ** 2))
+
+
+def test_a_refit_that_did_not_converge_says_why_in_findings():
+    t = decide(dataclasses.replace(_trial(40.0, dof=6, converged=False),
+                                   stop_reason=StopReason.ITERATION_LIMIT, iterations=400,
+                                   independent_shares=(("V", 1.0), ("alpha", 0.0042))),
+               100.0, 0.01)
+    j = t.to_json()
+    assert t.verdict is NoiseModelVerdict.NOT_CONVERGED
+    assert j["verdict"] == "not_converged" and j["stop_reason"] == "iteration_limit"
+    assert j["iterations"] == 400
+    assert j["independent_shares"] == [{"state": "V", "share": 1.0},
+                                       {"state": "alpha", "share": 0.0042}]
 
 
 def _trial(gain, *, dof=1, converged=True):

@@ -71,6 +71,9 @@ class NoiseModelTrial:
     correlations: tuple[tuple[str, str, float], ...] = ()
     error: str | None = None
     wall_s: float = 0.0
+    stop_reason: Any = None              # estimator.StopReason of the refit (None: not run)
+    iterations: int = 0
+    independent_shares: tuple[tuple[str, float], ...] = ()
 
     def to_json(self) -> dict:
         def f(v):
@@ -81,6 +84,10 @@ class NoiseModelTrial:
                 "p_value": f(self.p_value), "converged": self.converged,
                 "verdict": self.verdict.value,
                 "correlations": [{"states": [a, b], "rho": f(r)} for a, b, r in self.correlations],
+                "independent_shares": [{"state": a, "share": f(v)}
+                                       for a, v in self.independent_shares],
+                "stop_reason": None if self.stop_reason is None else self.stop_reason.value,
+                "iterations": self.iterations,
                 "error": self.error, "wall_s": round(self.wall_s, 2)}
 
 
@@ -137,6 +144,21 @@ def correlations(G, names) -> tuple[tuple[str, str, float], ...]:
             if d[i] > 0 and d[j] > 0:
                 out.append((names[j], names[i], float(Q[i, j] / (d[i] * d[j]))))
     return tuple(out)
+
+
+def independent_shares(G, names) -> tuple[tuple[str, float], ...]:
+    """Per state, the share of its process-noise std not explained by the states before it:
+    ``G_ii/√Q_ii`` with ``Q = G Gᵀ`` (G lower triangular on ``names``' order).
+
+    1 for independent noise; 0 when the state's noise is a linear combination of the earlier
+    states' (Q singular). A share near 0 marks the degenerate factor of a refit that drives
+    Q towards a singular matrix (one gust acting on several equations with nothing
+    independent left), where the Cholesky diagonal ``G_ii = floor + e^w`` has no finite
+    optimum (``w → −∞``)."""
+    G = np.asarray(G, float)
+    q = np.sqrt(np.sum(G ** 2, axis=1))
+    return tuple((n, float(abs(G[i, i]) / q[i]) if q[i] > 0 else math.nan)
+                 for i, n in enumerate(names))
 
 
 def explanation(trial: NoiseModelTrial) -> str:
@@ -222,9 +244,13 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
         st = o.value
         names = [n for n in st.model.state_names if n in states]
         idx = [st.model.state_names.index(n) for n in names]
-        rho = correlations(np.asarray(st.fit.G, float)[np.ix_(idx, idx)], names)
+        Gs = np.asarray(st.fit.G, float)[np.ix_(idx, idx)]
         trials.append(decide(NoiseModelTrial(alt, path, dof, st, converged=refit_converged(st.fit),
-                                             correlations=rho, wall_s=o.wall_s),
+                                             correlations=correlations(Gs, names),
+                                             wall_s=o.wall_s,
+                                             stop_reason=getattr(st.fit, "stop_reason", None),
+                                             iterations=int(getattr(st.fit, "iterations", 0)),
+                                             independent_shares=independent_shares(Gs, names)),
                              current.elbo, alpha))
     good = [t for t in trials if t.verdict is NoiseModelVerdict.ADOPTED]
     adopted = max(good, key=lambda t: t.state.elbo) if good else None
@@ -232,7 +258,11 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
         for t in trials:
             progress(f"    {t.alternative.value}: 2ΔELBO {t.statistic:.4g} (threshold "
                      f"{t.threshold:.4g}, χ²({t.dof})) {t.verdict.value}"
-                     + (f" [{t.error}]" if t.error else ""))
+                     + (f" [{t.error}]" if t.error else "")
+                     + ("" if t.stop_reason is None or t.converged else
+                        f" (refit stopped: {t.stop_reason.value} after {t.iterations} "
+                        "iterations; independent share G_ii/√Q_ii: "
+                        + ", ".join(f"{a} {v:.2g}" for a, v in t.independent_shares) + ")"))
         progress(("noise model: correlated process noise adopted" if adopted is not None
                   else "noise model: the current process noise is kept")
                  + f" ({time.perf_counter() - t0:.0f} s)")
@@ -240,4 +270,4 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
 
 
 __all__ = ["NoiseAlternative", "NoiseModelResult", "NoiseModelTrial", "NoiseModelVerdict",
-           "correlations", "decide", "noise_alternatives", "run_noise_model"]
+           "correlations", "decide", "independent_shares", "noise_alternatives", "run_noise_model"]
