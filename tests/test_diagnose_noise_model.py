@@ -144,11 +144,34 @@ def test_a_refit_that_did_not_converge_says_why_in_findings():
                                    independent_shares=(("V", 1.0), ("alpha", 0.0042))),
                100.0, 0.01)
     j = t.to_json()
-    assert t.verdict is NoiseModelVerdict.NOT_CONVERGED
-    assert j["verdict"] == "not_converged" and j["stop_reason"] == "iteration_limit"
+    assert t.verdict is NoiseModelVerdict.SIGNIFICANT_NOT_CONVERGED
+    assert j["verdict"] == "significant_not_converged" and j["stop_reason"] == "iteration_limit"
     assert j["iterations"] == 400
     assert j["independent_shares"] == [{"state": "V", "share": 1.0},
                                        {"state": "alpha", "share": 0.0042}]
+
+
+def test_significant_but_unconverged_noise_model_is_said_not_adopted_everywhere():
+    """Not adopted (the search keeps the diagonal noise), and the conclusion, the CLI summary
+    and the report say so with the same numbers, instead of 'did not improve the fit'."""
+    t = decide(dataclasses.replace(_trial(127.0, dof=6, converged=False),
+                                   stop_reason=StopReason.ITERATION_LIMIT, iterations=400,
+                                   independent_shares=(("V", 1.0), ("alpha", 0.0042))),
+               100.0, 0.01)
+    nm = NoiseModelResult("diagonal", ("V", "alpha"), 100.0, (t,), 0.01).to_json()
+    assert nm["adopted"] is None
+    un = nm["significant_not_adopted"]
+    assert un["statistic_lower_bound"] == 254.0 and un["stop_reason"] == "iteration_limit"
+    assert math.isclose(un["threshold"], stats.chi2.isf(0.01, 6))
+    text = noise_model_text(nm)
+    assert text.startswith("NOISE MODEL UNRESOLVED") and "254" in text and "alpha 0.0042" in text
+    lines = summary_lines({"noise_model": nm, "findings": [], "conclusion": text}, "f.json")
+    assert lines[0].startswith("0. noise model UNRESOLVED") and "254" in lines[0]
+    html = report_section({"noise_model": nm, "findings": [], "conclusion": text, "locate": {}})
+    assert "NOISE MODEL UNRESOLVED" in html and "did not improve the fit" not in html
+    ok = NoiseModelResult("diagonal", ("V", "alpha"), 100.0,
+                          (decide(_trial(1.0, dof=6), 100.0, 0.01),), 0.01).to_json()
+    assert ok["significant_not_adopted"] is None and noise_model_text(ok) == ""
 
 
 def _trial(gain, *, dof=1, converged=True):
@@ -167,7 +190,11 @@ def test_decide_is_the_nested_chi2_test_of_the_added_factor_entries():
     t3 = decide(_trial(0.51 * thr1, dof=3), 100.0, 0.01)
     assert math.isclose(t3.threshold, stats.chi2.isf(0.01, 3))
     assert t3.verdict is NoiseModelVerdict.NOT_SIGNIFICANT
+    # a refit stopped before its optimum: Λ is a lower bound (ascent steps only), so above the
+    # threshold the current model is rejected, at or below it the test is inconclusive
     assert decide(_trial(50.0, converged=False), 100.0, 0.01).verdict \
+        is NoiseModelVerdict.SIGNIFICANT_NOT_CONVERGED
+    assert decide(_trial(0.49 * thr1, converged=False), 100.0, 0.01).verdict \
         is NoiseModelVerdict.NOT_CONVERGED
     failed = NoiseModelTrial(NoiseAlternative.CORRELATED, pathlib.Path("n.yaml"), 1,
                              error="failed: boom")

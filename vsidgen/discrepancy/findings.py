@@ -8,7 +8,9 @@ findings.json (keys in this order)::
                          "adopted": null | {"setting", "recommendation", "statistic", ...}},
      "noise_model": null | {"kind": "noise_model", "current", "trials": [...],
                             "adopted": null | {"alternative", "recommendation", "statistic",
-                                               "dof", "correlations", "explanation", ...}},
+                                               "dof", "correlations", "explanation", ...},
+                            "significant_not_adopted": null | {"statistic_lower_bound",
+                                               "threshold", "dof", "stop_reason", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -213,6 +215,12 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         lines.append(f"0. noise model (not physics): {noise['recommendation']}: 2ΔELBO = "
                      f"{noise['statistic']:.4g} > {noise['threshold']:.4g}")
         lines.append(f"   {noise['explanation']}")
+    unresolved = (document.get("noise_model") or {}).get("significant_not_adopted")
+    if unresolved and not noise:
+        lines.append(f"0. noise model UNRESOLVED (not physics): correlated process noise, 2ΔELBO ≥ "
+                     f"{unresolved['statistic_lower_bound']:.4g} > {unresolved['threshold']:.4g}, "
+                     f"refit without a finite optimum ({unresolved.get('stop_reason')}); "
+                     "the search used the diagonal noise")
     for f in document.get("findings") or []:
         ev = f["evidence"]
         lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
@@ -259,8 +267,21 @@ def numerics_text(numerics: dict | None) -> str:
 
 def noise_model_text(noise_model: dict | None) -> str:
     """Sentence on the noise-model stage put before the conclusion ("" when nothing was
-    adopted)."""
+    adopted and no alternative was significant)."""
     adopted = (noise_model or {}).get("adopted")
+    unresolved = (noise_model or {}).get("significant_not_adopted")
+    if not adopted and unresolved:
+        low = [f"{s['state']} {s['share']:.2g}" for s in unresolved.get("independent_shares") or []
+               if s.get("share") is not None]
+        return ("NOISE MODEL UNRESOLVED: the process noise is correlated between the state "
+                f"equations (2ΔELBO ≥ {unresolved['statistic_lower_bound']:.4g} > "
+                f"{unresolved['threshold']:.4g}, chi2({unresolved['dof']}), from a refit that "
+                f"stopped before its optimum: {unresolved.get('stop_reason')}), but the full "
+                "factor has no finite optimum — the noise covariance tends to a singular matrix "
+                "(one gust acting on several equations; share of each state's noise independent "
+                f"of the states before it: {', '.join(low)}). The physical search below used "
+                "the diagonal noise: a finding that couples these equations may be this "
+                "correlation, not physics. ")
     if not adopted:
         return ""
     rho = ", ".join(f"ρ({c['states'][0]}, {c['states'][1]}) = {c['rho']:+.2f}"
@@ -452,6 +473,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      f"<p>Current process noise: <code>structure: {e(nm['current']['structure'])}"
                      f"</code> on {e(', '.join(nm['current']['states']))}. "
                      + (f"<b>{e(nm['adopted']['explanation'])}</b>" if nm.get("adopted")
+                        else f"<b>{e(noise_model_text(nm))}</b>"
+                        if nm.get("significant_not_adopted")
                         else "Kept: correlated process noise did not improve the fit "
                              "significantly.")
                      + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
