@@ -264,3 +264,26 @@ def test_independent_noise_keeps_the_diagonal_model(tmp_path):
     assert nm["adopted"] is None
     (t,) = nm["trials"]
     assert t["verdict"] == "not_significant" and t["statistic"] < t["threshold"]
+
+
+@pytest.mark.slow
+def test_rank_one_gust_rejects_the_diagonal_noise_even_without_a_finite_optimum(tmp_path):
+    """ρ = 1: one gust drives both equations and nothing independent is left in the q
+    equation, so the ELBO over full factors is highest where Q is singular (q's Cholesky
+    diagonal at its floor). Whether or not the refit reaches a declared optimum there, the
+    diagonal noise must be rejected, and a trial without an optimum must be reported as
+    unresolved (not adopted, not 'not significant')."""
+    from vsidgen.discrepancy import run_diagnose
+
+    spec, csv, rho = _write(tmp_path, 1.0)
+    res = run_diagnose(spec, [csv], out=tmp_path / "o", max_rounds=1, max_candidates=1,
+                       effects=["sensor_position"], numerics=False)
+    nm = res.document["noise_model"]
+    (t,) = nm["trials"]
+    assert t["verdict"] in ("adopted", "significant_not_converged")
+    assert t["statistic"] > t["threshold"]
+    if t["verdict"] == "significant_not_converged":
+        assert nm["adopted"] is None and nm["significant_not_adopted"]["stop_reason"]
+        assert res.document["conclusion"].startswith("NOISE MODEL UNRESOLVED")
+    else:
+        assert abs(nm["adopted"]["correlations"][0]["rho"] - rho) < 0.05
