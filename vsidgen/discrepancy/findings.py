@@ -219,7 +219,7 @@ def summary_lines(document: dict, findings_path) -> list[str]:
     if unresolved and not noise:
         lines.append(f"0. noise model UNRESOLVED (not physics): correlated process noise, 2ΔELBO ≥ "
                      f"{unresolved['statistic_lower_bound']:.4g} > {unresolved['threshold']:.4g}, "
-                     f"refit without a finite optimum ({unresolved.get('stop_reason')}); "
+                     f"refit stopped before its optimum ({unresolved.get('stop_reason')}); "
                      "the search used the diagonal noise")
     for f in document.get("findings") or []:
         ev = f["evidence"]
@@ -276,10 +276,10 @@ def noise_model_text(noise_model: dict | None) -> str:
         return ("NOISE MODEL UNRESOLVED: the process noise is correlated between the state "
                 f"equations (2ΔELBO ≥ {unresolved['statistic_lower_bound']:.4g} > "
                 f"{unresolved['threshold']:.4g}, chi2({unresolved['dof']}), from a refit that "
-                f"stopped before its optimum: {unresolved.get('stop_reason')}), but the full "
-                "factor has no finite optimum — the noise covariance tends to a singular matrix "
-                "(one gust acting on several equations; share of each state's noise independent "
-                f"of the states before it: {', '.join(low)}). The physical search below used "
+                f"stopped before its optimum: {unresolved.get('stop_reason')}), so the full "
+                "factor was not adopted (share of each state's noise independent of the states "
+                f"before it: {', '.join(low)}; near 0: one gust acting on several equations). "
+                "The physical search below used "
                 "the diagonal noise: a finding that couples these equations may be this "
                 "correlation, not physics. ")
     if not adopted:

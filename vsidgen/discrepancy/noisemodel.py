@@ -23,11 +23,10 @@ the refit converged and Λ exceeds the χ²_k quantile at level α (one hypothes
 A refit that stopped before an optimum gives a lower bound of Λ (the optimizer takes ascent
 steps only): above the threshold the diagonal model is rejected all the same, but the
 iterate is not adopted (:func:`decide`, ``SIGNIFICANT_NOT_CONVERGED``) and the findings say
-that the search went on with the diagonal noise. That is what happens when one gust acts on
-several equations with almost nothing independent in some of them: the maximum lies where
-``Q`` is singular, which the triangular factor reaches only as a diagonal entry goes to its
-floor (``w → −∞``), and the Hessian is indefinite along the way (measured on the independent
-benchmark's HFB-320 and lateral null records; ``docs/diagnose.md``).
+that the search went on with the diagonal noise. Measured on the independent
+benchmark's HFB-320 and lateral null records (``docs/diagnose.md``): the refit stops at the
+iteration limit with an indefinite Hessian while ``Q`` approaches a singular matrix (one gust
+acting on several equations), the ELBO still rising.
 It is reported as a **noise-model finding** ("the turbulence is correlated between the
 equations …", with the correlation coefficients ``ρ_ij = Q_ij/√(Q_ii Q_jj)`` of ``Q = G Gᵀ``),
 never as a physical effect, and the physical search continues with it (the final spec carries
@@ -171,10 +170,8 @@ def independent_shares(G, names) -> tuple[tuple[str, float], ...]:
     ``G_ii/√Q_ii`` with ``Q = G Gᵀ`` (G lower triangular on ``names``' order).
 
     1 for independent noise; 0 when the state's noise is a linear combination of the earlier
-    states' (Q singular). A share near 0 marks the degenerate factor of a refit that drives
-    Q towards a singular matrix (one gust acting on several equations with nothing
-    independent left), where the Cholesky diagonal ``G_ii = floor + e^w`` has no finite
-    optimum (``w → −∞``)."""
+    states' (Q singular). A share near 0 marks a factor close to a singular Q (one gust
+    acting on several equations with almost nothing independent left)."""
     G = np.asarray(G, float)
     q = np.sqrt(np.sum(G ** 2, axis=1))
     return tuple((n, float(abs(G[i, i]) / q[i]) if q[i] > 0 else math.nan)
