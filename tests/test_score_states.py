@@ -133,21 +133,28 @@ def _kf_score(u, y):
     return gk ** 2 / schur
 
 
+def fit_lin1(tmp, t, u, y):
+    """(FitState, ModelInfo) of the one-state model ``SPEC`` fitted to the record (t, u, y),
+    written as a CSV in ``tmp`` (generated code in ``tmp/gen``)."""
+    from vsidgen.discrepancy.search import fit_spec, model_info_of
+
+    csv = tmp / "lin1.csv"
+    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    spec = tmp / "lin1.yaml"
+    spec.write_text(SPEC)
+    st = fit_spec(spec, [csv], generated_dir=tmp / "gen", max_iter=200)
+    assert st.fit.converged
+    return st, model_info_of(st)
+
+
 def test_state_adding_score_statistic_matches_kalman_filter(tmp_path):
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
     from vsidgen.discrepancy.score import screen
-    from vsidgen.discrepancy.search import fit_spec, model_info_of
 
     assert REFIT_DETERMINISTIC_STD == DET
     t, u, y = _simulate()
-    csv = tmp_path / "lin1.csv"
-    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
-    spec = tmp_path / "lin1.yaml"
-    spec.write_text(SPEC)
-    st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=200)
-    assert st.fit.converged
-    info = model_info_of(st)
+    st, info = fit_lin1(tmp_path, t, u, y)
     cand = next(c for c in propose(info) if c.key == "missing_dynamics:x:u")
     res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]

@@ -25,6 +25,13 @@ through the Schur complement: it approximates the likelihood-ratio statistic
 the difference keeps the approximation when the start is not exactly stationary
 (added states embedded by simulation).
 
+The cross blocks between the new parameters and the noise parameters take their
+expectation under the null, zero (Rao's form of the score test, the expected information
+for that block; the gradient stays exact): observed, ``∂²/∂θ_new ∂log G`` is twice the
+equation error's part of ``∂/∂θ_new``, so it grows with the gradient itself and a strongly
+supported candidate made the profiled curvature negative (an elevator delay of three
+samples: every gate of the delay screen but the two weakest, :mod:`.delay`).
+
 A direction along which the ELBO is flat at the nesting point (a time constant
 whose gain is still zero, e.g. the lag of an α̇ term with zero gain) carries no
 information at the null (Davies' problem): such parameters are held at their
@@ -109,14 +116,19 @@ class ScoreResult:
     #: current optimum is a saddle of the candidate's ELBO, so the candidate raises the ELBO
     #: for certain, by an amount the quadratic model cannot give (no statistic)
     ascent: bool = False
+    #: Bonferroni factor of a statistic maximised over ``multiplicity`` tests (a profiled
+    #: nonlinear parameter: the grid of delays, :func:`screen_delays`): p = min(1, m·p₁)
+    multiplicity: int = 1
+    #: (value of the profiled parameter, statistic or None) per grid value
+    profile: tuple = ()
 
     @property
     def log10p(self) -> float:
-        """−log10 p (inf-safe), the screening priority."""
+        """−log10 p (inf-safe, Bonferroni factor included), the screening priority."""
         if self.statistic is None or self.dof < 1:
             return math.nan
         lp = float(stats.chi2.logsf(max(self.statistic, 0.0), self.dof))
-        return -lp / math.log(10.0)
+        return max(-(lp + math.log(max(self.multiplicity, 1))) / math.log(10.0), 0.0)
 
     def to_json(self) -> dict:
         f = finite_or_none
@@ -124,7 +136,8 @@ class ScoreResult:
                 "minus_log10_p": f(self.log10p), "tested": list(self.tested),
                 "held": list(self.held), "gain_full": f(self.gain_full),
                 "gain_rest": f(self.gain_rest), "one_step": {k: f(v) for k, v in self.step.items()},
-                "note": self.note, "ascent": self.ascent}
+                "note": self.note, "ascent": self.ascent, "multiplicity": self.multiplicity,
+                "profile": [[float(v), f(st)] for v, st in self.profile]}
 
 
 
@@ -293,7 +306,8 @@ def condition_added_states(blk, added, x0_precision, inert, coupling_cols, noise
     * ``noise_cols``: likewise the cross blocks between the new parameters and the noise
       parameters (``∂²/∂θ_new ∂log G = 2 ∂/∂θ_new`` of the equation's error term, zero in
       expectation). Observed, they grow with the gradient itself, so a strongly supported
-      candidate (a large statistic) would make the profiled curvature negative.
+      candidate (a large statistic) would make the profiled curvature negative. This one
+      applies to every batch, with or without added states (``added=[]``).
     """
     import jax.numpy as jnp
 
@@ -385,10 +399,14 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
     Hdiag = np.diag(P.gather(blks)[1])
     informative = set(new_par)
     held_r: set = set()
+    lay = P.layout
+    # columns of a record's border block (r_i, then the shared vector): the new parameters'
+    # and the noise parameters' (their cross blocks take the null expectation, zero)
+    cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
+    ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
     if new_states:
         import jax.numpy as jnp
 
-        lay = P.layout
         ni = [m.state_names.index(z) for z in new_states]
         informative, reach = nesting_reach(
             m, new_states, sorted(new_par & set(gpos)),
@@ -396,15 +414,14 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
             np.concatenate([np.asarray(r.u, float) for r in records]), theta_m)
         Gd = np.abs(np.diag(np.asarray(P.nm.G(jnp.asarray(s[lay.n_theta:]), P.cfg["noise"]),
                                        float)))
-        # columns of a record's border block (r_i, then the shared vector)
-        cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
-        ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
         inert = [m.state_names.index(z) for z in new_states if z not in reach]
         blks = [condition_added_states(b, ni, 1.0 / (float(r.dt) * Gd[ni] ** 2), inert, cols,
                                        ncols)
                 for b, r in zip(blks, records)]
         held_r = {int(lay.r_index(i)[j]) for i in range(lay.nrec)
                   for j in added_state_r_index(m.nx, ni)}
+    else:
+        blks = [condition_added_states(b, [], [], [], cols, ncols) for b in blks]
     S, rhs = _reduced_system(P, blks)
     out = {}
     if S is None:
@@ -601,6 +618,140 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
     return out
 
 
+#: name prefixes of the gates and difference channels of :func:`gate_bank`
+GATE_PREFIX, DIFF_PREFIX = "__delay_gate_", "__delay_diff_"
+
+
+@dataclasses.dataclass(frozen=True)
+class GateBank:
+    """The current model with delay gates (:func:`gate_bank`): ``model`` and its ``records``
+    (extra input channels), and per input name the grid ``taus`` and its gate names."""
+
+    model: object
+    records: tuple
+    taus: dict
+    gates: dict
+
+
+def gate_bank(model, records, theta, inputs, grid) -> GateBank:
+    """``model`` with a gate ``g_k`` per input of ``inputs`` and delay τ_k of ``grid``.
+
+    The model sees input ``u_j + Σ_k g_jk d_jk`` where ``d_jk = u_j(t − τ_k) − u_j(t)``
+    (:func:`vsidgen.data.delay_input`, linear interpolation) is an extra input channel of
+    the returned records, in its drift and its outputs alike (a delay acts on the input
+    itself). The gates are free parameters starting at 0, where the model is exactly
+    ``model``; ``model``'s own parameters start at ``theta`` (its estimates)."""
+    import jax.numpy as jnp
+
+    from ..data import delay_input
+    from ..metadata import Parameter, Variable
+
+    nu, npm = model.nu, model.np
+    names = list(model.input_names)
+    cols = [(names.index(u), k, tau) for u in inputs for k, tau in enumerate(grid)]
+    idx = jnp.asarray([j for j, _, _ in cols], dtype=jnp.int32)
+    extra_in = tuple(Variable(f"{DIFF_PREFIX}{names[j]}_{k}", model.inputs[j].unit,
+                              f"{names[j]} delayed by {tau:.6g} s minus {names[j]}")
+                     for j, k, tau in cols)
+    gates = tuple(Parameter(f"{GATE_PREFIX}{names[j]}_{k}", "1",
+                            f"gate of {names[j]} towards its {tau:.6g} s delayed copy",
+                            initial=0.0) for j, k, tau in cols)
+    base = tuple(p if p.fixed else dataclasses.replace(p, initial=_clip(float(v), p))
+                 for p, v in zip(model.parameters, np.asarray(theta, float)))
+    drift, output = model.drift, model.output
+
+    def gated_u(u, p):
+        return u[:nu].at[idx].add(u[nu:] * p[npm:])
+
+    def gdrift(x, u, p):
+        return drift(x, gated_u(u, p), p[:npm])
+
+    def goutput(x, u, p):
+        return output(x, gated_u(u, p), p[:npm])
+
+    m = dataclasses.replace(model, drift=gdrift, output=goutput,
+                            inputs=model.inputs + extra_in, parameters=base + gates,
+                            jacobians=None)
+    recs = []
+    for r in records:
+        u = np.asarray(r.u, np.float64)
+        t = np.asarray(r.t, np.float64)
+        d = np.stack([delay_input(u[:, j], t, tau) - u[:, j] for j, _, tau in cols], axis=1)
+        ua = np.concatenate([u, d], axis=1)
+        ua.setflags(write=False)
+        recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
+                                        + tuple(v.name for v in extra_in)))
+    return GateBank(m, tuple(recs), {u: tuple(grid) for u in inputs},
+                    {u: tuple(g.name for (j, _, _), g in zip(cols, gates) if names[j] == u)
+                     for u in inputs})
+
+
+def _clip(v: float, p) -> float:
+    from .specwrite import clip_to_bounds
+
+    return clip_to_bounds(v, [p.lower, p.upper]) if (p.lower is not None
+                                                     or p.upper is not None) else v
+
+
+def screen_delays(cands, current, *, det_std: float) -> dict:
+    """Score statistics of the transport-delay candidates ``cands`` (see "Screening" in the
+    docstring of :mod:`.delay`): {key: :class:`ScoreResult`} with the grid delays' statistics
+    in ``profile`` and the Bonferroni factor in ``multiplicity``; an input the model already
+    delays, or a failed evaluation, gets ``statistic None`` and a note."""
+    from ..estimator import FitOptions, Problem
+    from .base import Candidate, NewParameter
+    from .delay import delay_grid, delay_p_value
+
+    out: dict = {}
+    todo = []
+    for c in cands:
+        u = c.info["input"]
+        j = list(current.model.input_names).index(u)
+        if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
+            out[c.key] = ScoreResult(None, 0, None, note=f"the model already delays {u}")
+        else:
+            todo.append(c)
+    if not todo:
+        return out
+    dt = float(np.median([r.dt for r in current.records]))
+    grid = delay_grid(dt)
+    bank = gate_bank(current.model, current.records, current.fit.theta,
+                     [c.info["input"] for c in todo], grid)
+    pseudo = [Candidate(effect="transport_delay", key=g, target="", explanation="",
+                        parameters=(NewParameter(g, "1", initial=0.0),))
+              for c in todo for g in bank.gates[c.info["input"]]]
+    try:
+        P = Problem(bank.model, list(bank.records),
+                    FitOptions(deterministic_std=det_std, bucket=False))
+        res = batch_statistics(pseudo, current, bank.model, P, {p.key: {p.key: p.key}
+                                                                  for p in pseudo},
+                               det_std=det_std)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError, KeyError) as err:
+        for c in todo:
+            out[c.key] = ScoreResult(None, 0, None,
+                                     note=f"delay screen failed: {str(err).splitlines()[0][:200]}")
+        return out
+    for c in todo:
+        u = c.info["input"]
+        rows = [(tau, res[g]) for tau, g in zip(bank.taus[u], bank.gates[u])]
+        prof = tuple((float(tau), r.statistic) for tau, r in rows)
+        ok = [(tau, r) for tau, r in rows if r.statistic is not None]
+        if not ok:
+            notes = sorted({r.note for _, r in rows if r.note})
+            out[c.key] = ScoreResult(None, 1, None, ("tau",), profile=prof,
+                                     multiplicity=len(grid), ascent=any(r.ascent for _, r in rows),
+                                     note="no grid delay has a statistic: " + "; ".join(notes))
+            continue
+        tau, best = max(ok, key=lambda tr: tr[1].statistic)
+        out[c.key] = ScoreResult(best.statistic, 1, delay_p_value(best.statistic, len(grid)),
+                                 ("tau",), (), best.gain_full, best.gain_rest,
+                                 {"tau_s": float(tau)}, profile=prof,
+                                 multiplicity=len(grid),
+                                 note=f"best of {len(grid)} grid delays: {tau:.4g} s")
+    return out
+
+
+
 def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
            det_std: float, include_states: bool = True, shared: bool = True, progress=None,
            engine=None, deadline: float | None = None) -> dict:
@@ -617,6 +768,9 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     (:func:`screen_shared`), one task per number of added states; False: one compilation
     per batch (:func:`screen_group`, the reference path), one task each.
 
+    Transport-delay candidates (``info["profile"] == "delay"``) get the profiled score
+    statistic of :func:`screen_delays` (one more task).
+
     ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its
     workers (``deadline``: :func:`time.monotonic` instant after which no task starts);
     without one they run here, one after another. A batch that fails (:func:`screen_group`)
@@ -624,24 +778,28 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     ranked after the tested ones.
     """
     todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
+    delays = [c for c in candidates if (c.info or {}).get("profile") == "delay"]
     groups = batches(todo)
     out: dict = {}
     if progress is not None:
         progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
-                 f"({sum(1 for c in todo if c.states)} add states)")
+                 f"({sum(1 for c in todo if c.states)} add states)"
+                 + (f", {len(delays)} profiled delays" if delays else ""))
     plain = [g for g in groups if not any(c.states for c in g)]
     with_states = [g for g in groups if any(c.states for c in g)]
     if shared and with_states:
-        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+        tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(plain)]
         by_states: dict = {}        # batches of one number of added states: one shape, one task
         for g in with_states:
             by_states.setdefault(sum(len(c.states) for c in g), []).append(g)
-        tasks += [(f"s{k}", (True, gs, current, info, workdir, f"s{k}_", name))
+        tasks += [(f"s{k}", ("shared", gs, current, info, workdir, f"s{k}_", name))
                   for k, gs in sorted(by_states.items(), reverse=True)]
     else:
-        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+        tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(groups)]
+    if delays:
+        tasks.append(("delays", ("delays", delays, current, info, workdir, "d", name)))
     if engine is None or engine.serial:
         for _, args in tasks:
             out.update(_screen_task(*args, generated_dir, det_std))
@@ -654,17 +812,20 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
         if oc.status is TaskStatus.DONE:
             out.update(oc.value)
         else:
-            cands = [c for g in args[1] for c in g] if args[0] else args[1]
+            cands = [c for g in args[1] for c in g] if args[0] == "shared" else args[1]
             for c in cands:
                 out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
     return out
 
 
-def _screen_task(is_shared, payload, current, info, workdir, tag, name, generated_dir, det_std):
-    """One task of :func:`screen`: the batches ``payload`` through :func:`screen_shared`
-    (``is_shared``) or the one batch ``payload`` through :func:`screen_group`."""
-    if is_shared:
+def _screen_task(kind, payload, current, info, workdir, tag, name, generated_dir, det_std):
+    """One task of :func:`screen`: ``kind`` "shared": the batches ``payload`` through
+    :func:`screen_shared`; "batch": the one batch ``payload`` through :func:`screen_group`;
+    "delays": the transport-delay candidates ``payload`` through :func:`screen_delays`."""
+    if kind == "shared":
         return screen_shared(payload, current, info, workdir, tag, name,
                              generated_dir=generated_dir, det_std=det_std)
+    if kind == "delays":
+        return screen_delays(payload, current, det_std=det_std)
     return screen_group(payload, current, info, workdir, tag, name, generated_dir=generated_dir,
                         det_std=det_std)

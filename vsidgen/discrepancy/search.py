@@ -685,22 +685,26 @@ def _grid_size(c: Candidate) -> int:
 
 
 def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_iter,
-                 deadline) -> Trial | None:
+                 deadline, screen=None) -> Trial | None:
     """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
-    estimate and the test (Bonferroni over the grid; None when the time ran out)."""
+    estimate and the test (Bonferroni over the grid; None when the time ran out).
+    ``screen``: its :class:`.score.ScoreResult` (:func:`.score.screen_delays`); the profile
+    starts at its best grid delay."""
     from .delay import delay_p_value, hold_lag, profile_delay
     from .refit import RefitOutcome
 
     u = c.info["input"]
     j = list(current.model.input_names).index(u)
     if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"the model already delays {u}")
     try:
+        start = (screen.step or {}).get("tau_s") if screen is not None \
+            and screen.statistic is not None else None
         prof = profile_delay(current, u, path, name, engine=engine, generated_dir=generated_dir,
-                             max_iter=max_iter, deadline=deadline)
+                             max_iter=max_iter, deadline=deadline, start=start)
     except (FitError, SpecError, VsidgenError, ValueError, ArithmeticError) as err:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"failed: {str(err).splitlines()[0]}")
     if prof is None:
         return None
@@ -708,13 +712,13 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         # no delay: every delayed fit is below the current model (τ = 0); nothing to refit
         c0 = dataclasses.replace(c, info={**c.info, "profile_result": prof.to_json()})
         best = max((e for e in prof.elbos if math.isfinite(e)), default=math.nan)
-        return Trial(c0, score, path, None, 0.0, 1, 1.0,
+        return Trial(c0, score, path, None, 0.0, 1, 1.0, screen=screen,
                      refit=RefitOutcome(elbo_ref=current.elbo, warm="delay profile",
                                         notes=[f"profile highest at τ = 0 (the current model): "
                                                f"best delayed fit {best - current.elbo:+.4g} nats"
                                                ], wall_s=prof.wall_s))
     if prof.state is None:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error="failed: no grid fit or final refit succeeded")
     st = prof.state
     lam = 2.0 * (st.elbo - current.elbo)
@@ -737,11 +741,12 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
     c2 = dataclasses.replace(c, explanation=text,
                              info={**c.info, "delay": ent, "profile_result": prof.to_json()})
     ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
-                      notes=[f"profile over {len(prof.grid)} delays; best grid value "
+                      notes=[f"profile over {sum(map(math.isfinite, prof.elbos))} of "
+                             f"{len(prof.grid)} grid delays; best grid value "
                              f"{prof.best_grid:.4g} s, refined {prof.estimate:.4g} s"],
                       wall_s=prof.wall_s)
     return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
-                 statistic_vs_base=lam, converged=refit_converged(st.fit),
+                 statistic_vs_base=lam, converged=refit_converged(st.fit), screen=screen,
                  verdict=refit_verdict(lam, {}, {}))
 
 
@@ -1126,7 +1131,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
                         engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
-                        deadline=run.deadline)
+                        deadline=run.deadline, screen=sr)
         if t is None:
             return None
         st.unfinished["pending"].remove(c.key)
