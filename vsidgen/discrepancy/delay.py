@@ -22,17 +22,17 @@ the best of ``n`` grid values, its p-value is multiplied by ``n`` (Bonferroni ov
 grid), which covers the maximisation over τ conservatively; the round's Holm correction
 then counts the profiled input as one more candidate.
 
-Screening (:func:`.score.screen_delays`): before any refit the delay gets a score statistic like
-every other candidate, so it is ranked on the same p-value scale. For each grid delay τ_k
-the family ``u + g_k (u_{τ_k} − u)`` (the recorded input moved towards its delayed copy by
-a gate ``g_k``) contains the current model at ``g_k = 0`` and the input delayed by τ_k at
-``g_k = 1``, for any model, linear in u or not. All gates of all inputs are parameters of one
-model (the current one with the differences ``u_{τ_k} − u`` as extra input channels), so one
-compilation and one Hessian assembly at the current optimum give every grid delay's
-one-degree-of-freedom score statistic ``S_k`` (:func:`.score.batch_statistics`, through
-:func:`.score.gate_bank`). The input's
+Screening (:func:`.score.screen_input_filters`): before any refit the delay gets a score
+statistic like every other candidate, so it is ranked on the same p-value scale. For each
+grid delay τ_k the family ``u + g_k (u_{τ_k} − u)`` (the recorded input moved towards its
+delayed copy by a gate ``g_k``) contains the current model at ``g_k = 0`` and the input
+delayed by τ_k at ``g_k = 1``, for any model, linear in u or not. All gates are parameters
+of one model (the current one with the differences as extra input channels,
+:func:`.score.gate_bank`), so one compilation and one Hessian assembly at the current
+optimum give every grid delay's one-degree-of-freedom score statistic ``S_k``. The input's
 statistic is ``max_k S_k``, its p-value ``min(1, K·P(χ²₁ > max_k S_k))`` (Bonferroni over
 the ``K`` grid delays, as the profile's), and the best τ_k is where the profile starts.
+(Lags and Padé delays are screened the same way over their time constants.)
 
 Units: the spec carries the delay τ̂ applied to the recorded samples. A model that holds
 its inputs over each sample (zero-order hold) already delays a continuously moving input by
@@ -153,7 +153,7 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
     of time. When the profile is highest at τ = 0 (the current model itself) no refit is
     made: ``at_zero`` is set and ``state`` is None.
 
-    ``start`` (s, the best grid delay of the screen, :func:`.score.screen_delays`): refit the grid
+    ``start`` (s, the best grid delay of the screen, :func:`.score.screen_input_filters`): refit the grid
     delays nearest ``start`` and its two neighbours, then climb the grid towards the higher
     neighbour until the best refit has refitted neighbours on both sides (a local maximum
     of the profile bracketed on the grid); without it every grid delay is refitted. Grid

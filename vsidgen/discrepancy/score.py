@@ -117,7 +117,7 @@ class ScoreResult:
     #: for certain, by an amount the quadratic model cannot give (no statistic)
     ascent: bool = False
     #: Bonferroni factor of a statistic maximised over ``multiplicity`` tests (a profiled
-    #: nonlinear parameter: the grid of delays, :func:`screen_delays`): p = min(1, m·p₁)
+    #: nonlinear parameter: the grid of delays or time constants, :func:`screen_input_filters`): p = min(1, m·p₁)
     multiplicity: int = 1
     #: (value of the profiled parameter, statistic or None) per grid value
     profile: tuple = ()
@@ -619,71 +619,135 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
 
 
 #: name prefixes of the gates and difference channels of :func:`gate_bank`
-GATE_PREFIX, DIFF_PREFIX = "__delay_gate_", "__delay_diff_"
+GATE_PREFIX, DIFF_PREFIX = "__filter_gate_", "__filter_diff_"
+
+#: grid of a filter time constant: geometric, ratio √2, from the parameter's lower bound to
+#: its upper bound (at most ``MAX_FILTER_GRID`` values)
+FILTER_GRID_RATIO, MAX_FILTER_GRID = math.sqrt(2.0), 16
+
+
+def filter_input(kind: str, u, t, tau: float) -> np.ndarray:
+    """The recorded input ``u`` (N,) at times ``t`` through an input filter of parameter τ:
+
+    * ``"delay"``: the pure transport delay ``u(t − τ)`` (:func:`vsidgen.data.delay_input`);
+    * ``"lag"``: the first-order lag ``τ ż = u − z``, ``z(t₀) = u(t₀)``, exact for an input
+      linear between samples: ``z_{k+1} = a z_k + (1 − a) u_k + b (u_{k+1} − u_k)`` with
+      ``a = e^{−T/τ}``, ``b = 1 − (τ/T)(1 − a)``;
+    * ``"pade"``: the first-order Padé delay ``2z − u`` with ``(τ/2) ż = u − z`` (the
+      ``control_delay`` candidate's state).
+    """
+    from scipy import signal
+
+    from ..data import delay_input
+
+    u = np.asarray(u, np.float64)
+    if kind == "delay":
+        return delay_input(u, np.asarray(t, np.float64), tau)
+    if kind not in ("lag", "pade"):
+        raise ValueError(f"unknown input filter {kind!r}")
+    T = float(np.median(np.diff(np.asarray(t, np.float64))))
+    tc = tau if kind == "lag" else 0.5 * tau
+    a = math.exp(-T / tc)
+    b = 1.0 - (tc / T) * (1.0 - a)
+    num, den = [b, (1.0 - a) - b], [1.0, -a]
+    z, _ = signal.lfilter(num, den, u, zi=signal.lfilter_zi(num, den) * u[0])
+    return z if kind == "lag" else 2.0 * z - u
+
+
+def filter_grid(c, dt: float) -> tuple[str, list[float]]:
+    """(filter kind, grid of its parameter in s) of an input-filter candidate ``c``
+    (``info["filter"]``): a transport delay the delay grid (:func:`.delay.delay_grid`), a lag
+    or Padé delay geometric over its time constant's bounds."""
+    from .delay import delay_grid
+
+    kind = c.info["filter"]
+    if kind == "delay":
+        return kind, delay_grid(dt)
+    p = c.parameters[0]
+    lo = float(p.lower if p.lower is not None else dt)
+    hi = float(p.upper if p.upper is not None else 1.0)
+    n = min(MAX_FILTER_GRID, 1 + int(math.floor(math.log(hi / lo) / math.log(FILTER_GRID_RATIO)
+                                                 + 1e-9)))
+    return kind, [lo * FILTER_GRID_RATIO ** k for k in range(max(n, 2))]
 
 
 @dataclasses.dataclass(frozen=True)
 class GateBank:
-    """The current model with delay gates (:func:`gate_bank`): ``model`` and its ``records``
-    (extra input channels), and per input name the grid ``taus`` and its gate names."""
+    """The current model with input gates (:func:`gate_bank`): ``model``, its ``records``
+    (extra input channels) and the gate names in channel order."""
 
     model: object
     records: tuple
-    taus: dict
-    gates: dict
+    gates: tuple
 
 
-def gate_bank(model, records, theta, inputs, grid) -> GateBank:
-    """``model`` with a gate ``g_k`` per input of ``inputs`` and delay τ_k of ``grid``.
+def gate_bank(model, records, theta, means, channels) -> GateBank:
+    """``model`` with one gate ``g_k`` per channel of ``channels``, ``(input name, label,
+    [difference (N,) per record])``, for the score test of moving input ``u_j`` by ``g_k d_k``
+    (``d_k``: e.g. a filtered copy of the recorded input minus the input, :func:`filter_input`).
 
-    The model sees input ``u_j + Σ_k g_jk d_jk`` where ``d_jk = u_j(t − τ_k) − u_j(t)``
-    (:func:`vsidgen.data.delay_input`, linear interpolation) is an extra input channel of
-    the returned records, in its drift and its outputs alike (a delay acts on the input
-    itself). The gates are free parameters starting at 0, where the model is exactly
-    ``model``; ``model``'s own parameters start at ``theta`` (its estimates)."""
+    The gate enters as the first-order change of the model in that direction, its
+    coefficient frozen at the current estimates ``theta`` and smoother means ``means`` (one
+    (N, nx) array per record):
+
+        ``ẋ = f(x, u; θ) + Σ_k g_k b_k^f(t)``,  ``y = h(x, u; θ) + Σ_k g_k b_k^h(t)``,
+        ``b_k^f(t_i) = ∂f/∂u_j(μ̂_i, u_i; θ̂) d_k(t_i)`` (and ``∂h/∂u_j`` for ``b_k^h``),
+
+    carried as extra input channels of the returned records (nx + ny per gate). At
+    ``g = 0`` it is exactly ``model``; its gradient in ``g_k`` there is that of the family
+    ``u_j + g_k d_k`` (the same first derivative), and its second derivatives in ``g_k`` with
+    the parameters and state means, which for ``u_j + g_k d_k`` carry the equation error times
+    ``∂²f/∂u∂θ`` (zero in expectation under the null), are the expected-information (Gauss–
+    Newton) ones: the score statistic is Rao's. Observed, those terms grow with the effect
+    itself and made the profiled curvature of strong lags indefinite, or nearly zero next to
+    an indefinite grid value (an inflated statistic there). ``model``'s own parameters start
+    at ``theta``; the gates are free and start at 0."""
+    import jax
     import jax.numpy as jnp
 
-    from ..data import delay_input
     from ..metadata import Parameter, Variable
 
-    nu, npm = model.nu, model.np
+    nu, npm, nx, ny = model.nu, model.np, model.nx, model.ny
+    K = len(channels)
     names = list(model.input_names)
-    cols = [(names.index(u), k, tau) for u in inputs for k, tau in enumerate(grid)]
-    idx = jnp.asarray([j for j, _, _ in cols], dtype=jnp.int32)
-    extra_in = tuple(Variable(f"{DIFF_PREFIX}{names[j]}_{k}", model.inputs[j].unit,
-                              f"{names[j]} delayed by {tau:.6g} s minus {names[j]}")
-                     for j, k, tau in cols)
-    gates = tuple(Parameter(f"{GATE_PREFIX}{names[j]}_{k}", "1",
-                            f"gate of {names[j]} towards its {tau:.6g} s delayed copy",
-                            initial=0.0) for j, k, tau in cols)
+    th = jnp.asarray(np.asarray(theta, float))
+    jac = jax.jit(jax.vmap(lambda x, u: (model.drift_jacobian(x, u, th)[1],
+                                         model.output_jacobian(x, u, th)[1])))
+    extra_in = tuple(Variable(f"{DIFF_PREFIX}{k}_{e}", None, f"{label}: forcing of {e}")
+                     for k, (_, label, _) in enumerate(channels)
+                     for e in model.state_names + model.output_names)
+    gates = tuple(Parameter(f"{GATE_PREFIX}{k}", "1", f"gate of {u} towards {label}",
+                            initial=0.0) for k, (u, label, _) in enumerate(channels))
     base = tuple(p if p.fixed else dataclasses.replace(p, initial=_clip(float(v), p))
                  for p, v in zip(model.parameters, np.asarray(theta, float)))
     drift, output = model.drift, model.output
 
-    def gated_u(u, p):
-        return u[:nu].at[idx].add(u[nu:] * p[npm:])
-
     def gdrift(x, u, p):
-        return drift(x, gated_u(u, p), p[:npm])
+        b = u[nu:].reshape(K, nx + ny)
+        return drift(x, u[:nu], p[:npm]) + p[npm:] @ b[:, :nx]
 
     def goutput(x, u, p):
-        return output(x, gated_u(u, p), p[:npm])
+        b = u[nu:].reshape(K, nx + ny)
+        return output(x, u[:nu], p[:npm]) + p[npm:] @ b[:, nx:]
 
     m = dataclasses.replace(model, drift=gdrift, output=goutput,
                             inputs=model.inputs + extra_in, parameters=base + gates,
                             jacobians=None)
     recs = []
-    for r in records:
-        u = np.asarray(r.u, np.float64)
-        t = np.asarray(r.t, np.float64)
-        d = np.stack([delay_input(u[:, j], t, tau) - u[:, j] for j, _, tau in cols], axis=1)
-        ua = np.concatenate([u, d], axis=1)
+    for i, (r, mu) in enumerate(zip(records, means)):
+        U = np.asarray(r.u, np.float64)
+        fu, hu = (np.asarray(a, np.float64)
+                  for a in jac(jnp.asarray(np.asarray(mu, float)[:len(U)]), jnp.asarray(U)))
+        cols = []
+        for u, _, diffs in channels:
+            j = names.index(u)
+            d = np.asarray(diffs[i], np.float64)[:, None]
+            cols += [fu[:, :, j] * d, hu[:, :, j] * d]
+        ua = np.concatenate([U] + cols, axis=1)
         ua.setflags(write=False)
         recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
                                         + tuple(v.name for v in extra_in)))
-    return GateBank(m, tuple(recs), {u: tuple(grid) for u in inputs},
-                    {u: tuple(g.name for (j, _, _), g in zip(cols, gates) if names[j] == u)
-                     for u in inputs})
+    return GateBank(m, tuple(recs), tuple(g.name for g in gates))
 
 
 def _clip(v: float, p) -> float:
@@ -693,63 +757,83 @@ def _clip(v: float, p) -> float:
                                                      or p.upper is not None) else v
 
 
-def screen_delays(cands, current, *, det_std: float) -> dict:
-    """Score statistics of the transport-delay candidates ``cands`` (see "Screening" in the
-    docstring of :mod:`.delay`): {key: :class:`ScoreResult`} with the grid delays' statistics
-    in ``profile`` and the Bonferroni factor in ``multiplicity``; an input the model already
-    delays, or a failed evaluation, gets ``statistic None`` and a note."""
+def screen_input_filters(cands, current, *, det_std: float) -> dict:
+    """Profiled score statistics of the input-filter candidates ``cands`` (transport delays,
+    lags, Padé delays: ``info["filter"]``): {key: :class:`ScoreResult`}.
+
+    For each grid value τ_k of the candidate's parameter (:func:`filter_grid`) the family
+    ``u + g_k (F_{τ_k} u − u)`` (:func:`filter_input`) contains the current model at
+    ``g_k = 0`` and the input through the filter at ``g_k = 1``, for any model. All gates of
+    all candidates are parameters of one model (:func:`gate_bank`): one compilation and one
+    Hessian assembly at the current optimum give every grid value's one-degree-of-freedom
+    score statistic ``S_k`` (:func:`batch_statistics`). The candidate's statistic is
+    ``max_k S_k``, its p-value ``min(1, K·P(χ²₁ > max_k S_k))`` (Bonferroni over its ``K``
+    grid values: ``multiplicity``), the best τ_k is in ``step["tau_s"]`` (where the delay
+    profile and the lag refit start) and every S_k in ``profile``. An input the model
+    already delays (transport delay), or a failed evaluation, gets ``statistic None`` and a
+    note."""
     from ..estimator import FitOptions, Problem
     from .base import Candidate, NewParameter
-    from .delay import delay_grid, delay_p_value
 
     out: dict = {}
     todo = []
     for c in cands:
         u = c.info["input"]
         j = list(current.model.input_names).index(u)
-        if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
+        if c.info["filter"] == "delay" and float(getattr(current.model.inputs[j], "delay", 0.0)
+                                                 or 0.0) > 0.0:
             out[c.key] = ScoreResult(None, 0, None, note=f"the model already delays {u}")
         else:
             todo.append(c)
     if not todo:
         return out
     dt = float(np.median([r.dt for r in current.records]))
-    grid = delay_grid(dt)
+    grids = {c.key: filter_grid(c, dt) for c in todo}
+    channels, owner = [], []
+    for c in todo:
+        u = c.info["input"]
+        j = list(current.model.input_names).index(u)
+        kind, grid = grids[c.key]
+        for tau in grid:
+            diffs = [filter_input(kind, r.u[:, j], r.t, tau) - np.asarray(r.u[:, j], float)
+                     for r in current.records]
+            channels.append((u, f"{u} through a {kind} of {tau:.4g} s", diffs))
+            owner.append((c.key, tau))
     bank = gate_bank(current.model, current.records, current.fit.theta,
-                     [c.info["input"] for c in todo], grid)
-    pseudo = [Candidate(effect="transport_delay", key=g, target="", explanation="",
-                        parameters=(NewParameter(g, "1", initial=0.0),))
-              for c in todo for g in bank.gates[c.info["input"]]]
+                     [np.asarray(x["mu"], float) for x in current.fit.decision["records"]],
+                     channels)
+    pseudo = [Candidate(effect="input_filter", key=g, target="", explanation="",
+                        parameters=(NewParameter(g, "1", initial=0.0),)) for g in bank.gates]
     try:
         P = Problem(bank.model, list(bank.records),
                     FitOptions(deterministic_std=det_std, bucket=False))
-        res = batch_statistics(pseudo, current, bank.model, P, {p.key: {p.key: p.key}
-                                                                  for p in pseudo},
-                               det_std=det_std)
-    except (ValueError, ArithmeticError, np.linalg.LinAlgError, KeyError) as err:
+        res = batch_statistics(pseudo, current, bank.model, P,
+                               {p.key: {p.key: p.key} for p in pseudo}, det_std=det_std)
+    except _ERRORS as err:
         for c in todo:
-            out[c.key] = ScoreResult(None, 0, None,
-                                     note=f"delay screen failed: {str(err).splitlines()[0][:200]}")
+            out[c.key] = ScoreResult(None, 0, None, note=f"input-filter screen failed: "
+                                                         f"{str(err).splitlines()[0][:200]}")
         return out
     for c in todo:
-        u = c.info["input"]
-        rows = [(tau, res[g]) for tau, g in zip(bank.taus[u], bank.gates[u])]
+        kind, grid = grids[c.key]
+        rows = [(tau, res[g]) for (key, tau), g in zip(owner, bank.gates) if key == c.key]
         prof = tuple((float(tau), r.statistic) for tau, r in rows)
         ok = [(tau, r) for tau, r in rows if r.statistic is not None]
         if not ok:
             notes = sorted({r.note for _, r in rows if r.note})
             out[c.key] = ScoreResult(None, 1, None, ("tau",), profile=prof,
-                                     multiplicity=len(grid), ascent=any(r.ascent for _, r in rows),
-                                     note="no grid delay has a statistic: " + "; ".join(notes))
+                                     multiplicity=len(grid),
+                                     ascent=any(r.ascent for _, r in rows),
+                                     note=f"no grid {kind} has a statistic: " + "; ".join(notes))
             continue
         tau, best = max(ok, key=lambda tr: tr[1].statistic)
-        out[c.key] = ScoreResult(best.statistic, 1, delay_p_value(best.statistic, len(grid)),
-                                 ("tau",), (), best.gain_full, best.gain_rest,
-                                 {"tau_s": float(tau)}, profile=prof,
+        p = float(min(1.0, len(grid) * stats.chi2.sf(best.statistic, 1)))
+        out[c.key] = ScoreResult(best.statistic, 1, p, ("tau",), (), best.gain_full,
+                                 best.gain_rest, {"tau_s": float(tau)}, profile=prof,
                                  multiplicity=len(grid),
-                                 note=f"best of {len(grid)} grid delays: {tau:.4g} s")
+                                 note=f"best of {len(grid)} grid values of the {kind}: "
+                                      f"{tau:.4g} s")
     return out
-
 
 
 def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
@@ -768,8 +852,8 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     (:func:`screen_shared`), one task per number of added states; False: one compilation
     per batch (:func:`screen_group`, the reference path), one task each.
 
-    Transport-delay candidates (``info["profile"] == "delay"``) get the profiled score
-    statistic of :func:`screen_delays` (one more task).
+    Input-filter candidates (transport delays, lags, Padé delays: ``info["filter"]``) get the
+    profiled score statistic of :func:`screen_input_filters` (one more task).
 
     ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its
     workers (``deadline``: :func:`time.monotonic` instant after which no task starts);
@@ -778,13 +862,13 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     ranked after the tested ones.
     """
     todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
-    delays = [c for c in candidates if (c.info or {}).get("profile") == "delay"]
+    filters = [c for c in candidates if (c.info or {}).get("filter")]
     groups = batches(todo)
     out: dict = {}
     if progress is not None:
         progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
                  f"({sum(1 for c in todo if c.states)} add states)"
-                 + (f", {len(delays)} profiled delays" if delays else ""))
+                 + (f", {len(filters)} input filters profiled" if filters else ""))
     plain = [g for g in groups if not any(c.states for c in g)]
     with_states = [g for g in groups if any(c.states for c in g)]
     if shared and with_states:
@@ -798,8 +882,8 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     else:
         tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(groups)]
-    if delays:
-        tasks.append(("delays", ("delays", delays, current, info, workdir, "d", name)))
+    if filters:
+        tasks.append(("filters", ("filters", filters, current, info, workdir, "f", name)))
     if engine is None or engine.serial:
         for _, args in tasks:
             out.update(_screen_task(*args, generated_dir, det_std))
@@ -821,11 +905,11 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
 def _screen_task(kind, payload, current, info, workdir, tag, name, generated_dir, det_std):
     """One task of :func:`screen`: ``kind`` "shared": the batches ``payload`` through
     :func:`screen_shared`; "batch": the one batch ``payload`` through :func:`screen_group`;
-    "delays": the transport-delay candidates ``payload`` through :func:`screen_delays`."""
+    "filters": the input-filter candidates ``payload`` through :func:`screen_input_filters`."""
     if kind == "shared":
         return screen_shared(payload, current, info, workdir, tag, name,
                              generated_dir=generated_dir, det_std=det_std)
-    if kind == "delays":
-        return screen_delays(payload, current, det_std=det_std)
+    if kind == "filters":
+        return screen_input_filters(payload, current, det_std=det_std)
     return screen_group(payload, current, info, workdir, tag, name, generated_dir=generated_dir,
                         det_std=det_std)

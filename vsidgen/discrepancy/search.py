@@ -688,7 +688,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
                  deadline, screen=None) -> Trial | None:
     """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
     estimate and the test (Bonferroni over the grid; None when the time ran out).
-    ``screen``: its :class:`.score.ScoreResult` (:func:`.score.screen_delays`); the profile
+    ``screen``: its :class:`.score.ScoreResult` (:func:`.score.screen_input_filters`); the profile
     starts at its best grid delay."""
     from .delay import delay_p_value, hold_lag, profile_delay
     from .refit import RefitOutcome
@@ -1063,7 +1063,9 @@ def _gated_round_models(run: _RunConfig, current: FitState, info: ModelInfo, rnd
 def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
                 ranked: list) -> _RoundPlan:
     """Spec paths, gated models and engine tasks of the round's selected candidates;
-    transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted."""
+    transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted; lags
+    and Padé delays are refitted from the screen's best time constant (:func:`filter_start`)."""
+    ranked = [(pr, loc, filter_start(c, sr), sr) for pr, loc, c, sr in ranked]
     paths = [run.out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
              for i, (_, _, c, _) in enumerate(ranked)]
     profiled = [i for i, (_, _, c, _) in enumerate(ranked) if c.info.get("profile") == "delay"]
@@ -1079,6 +1081,25 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
     # test (score_test); the priority that ranked it is in the round's screen
     by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
     return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key)
+
+
+def filter_start(c: Candidate, sr) -> Candidate:
+    """``c`` with its time constant starting at the best grid value of its screen
+    (:func:`.score.screen_input_filters`) when ``c`` is a lag or Padé delay of an input that
+    has one: the likelihood of a time constant is multimodal and a refit from the smallest
+    (a sample) stops in the nearest optimum. Any other candidate is returned unchanged."""
+    from .specwrite import clip_to_bounds
+
+    kind = (c.info or {}).get("filter")
+    tau = (getattr(sr, "step", None) or {}).get("tau_s") if sr is not None else None
+    if kind not in ("lag", "pade") or tau is None or sr.statistic is None \
+            or not math.isfinite(tau) or not c.parameters:
+        return c
+    p = c.parameters[0]
+    start = clip_to_bounds(float(tau), [p.lower, p.upper])
+    return dataclasses.replace(c, parameters=(dataclasses.replace(p, initial=start),)
+                               + tuple(c.parameters[1:]),
+                               info={**c.info, "start_from_screen_s": start})
 
 
 def _refit_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
