@@ -17,9 +17,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy import optimize, stats
+from scipy import stats
 
-from test_score_states import DT, fit_lin1
+from test_score_states import DT, fit_lin1, null_mle, rao_statistic
 
 TAU_TRUE = 0.15
 TAU_LAG = 0.12
@@ -75,30 +75,9 @@ def _kf_scores(u, y, ds):
     """Rao's statistic of the gate g for each difference channel of ``ds`` (the gate's
     coefficient frozen at the null estimate B₀, so its cross derivatives with A and B are the
     expected-information ones)."""
-    f0 = lambda p: -_kf_loglik(np.append(p, 0.0), u, u, y)  # noqa: E731
-    p0 = optimize.minimize(f0, np.array([-1.0, 1.5, math.log(0.05), math.log(0.03)]),
-                           method="Nelder-Mead",
-                           options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 3000}).x
-    p0 = optimize.minimize(f0, p0, method="BFGS", options={"gtol": 1e-7}).x
-    hs = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-3])
-    out = []
-    for d in ds:
-        def ll(z):
-            return _kf_loglik(z, u, d, y, b0=p0[1])
-        z0 = np.append(p0, 0.0)
-        n, E = 5, np.eye(5) * hs
-        g = np.array([(ll(z0 + E[i]) - ll(z0 - E[i])) / (2 * hs[i]) for i in range(n)])
-        H = np.zeros((n, n))
-        for i in range(n):
-            for j in range(i, n):
-                H[i, j] = H[j, i] = -(ll(z0 + E[i] + E[j]) - ll(z0 + E[i] - E[j])
-                                      - ll(z0 - E[i] + E[j]) + ll(z0 - E[i] - E[j])) / (
-                    4 * hs[i] * hs[j])
-        H[4, 2:4] = H[2:4, 4] = 0.0
-        r = [0, 1, 2, 3]
-        gk = g[4] - H[4, r] @ np.linalg.solve(H[np.ix_(r, r)], g[r])
-        out.append(gk ** 2 / (H[4, 4] - H[4, r] @ np.linalg.solve(H[np.ix_(r, r)], H[r, 4])))
-    return out
+    p0 = null_mle(lambda p: -_kf_loglik(np.append(p, 0.0), u, u, y))
+    return [rao_statistic(lambda z, d=d: _kf_loglik(z, u, d, y, b0=p0[1]), np.append(p0, 0.0),
+                          [1e-4, 1e-4, 1e-4, 1e-4, 1e-3]) for d in ds]
 
 
 @pytest.fixture(scope="module")

@@ -102,35 +102,41 @@ def _kf_loglik(p, u, y, k):
     return ll
 
 
-def _kf_score(u, y):
-    """Rao's score statistic of k at the null MLE (finite differences of the exact
-    log-likelihood; Fisher cross terms of k with the noise parameters zero)."""
-    f0 = lambda p: -_kf_loglik(p, u, y, 0.0)  # noqa: E731
-    p0 = optimize.minimize(f0, np.array([-1.0, 1.5, math.log(0.05), math.log(0.03)]),
+def null_mle(negll):
+    """The null maximum-likelihood estimate of (A, B, log process std, log measurement std)."""
+    p0 = optimize.minimize(negll, np.array([-1.0, 1.5, math.log(0.05), math.log(0.03)]),
                            method="Nelder-Mead",
                            options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 4000}).x
-    p0 = optimize.minimize(f0, p0, method="BFGS", options={"gtol": 1e-7}).x
+    return optimize.minimize(negll, p0, method="BFGS", options={"gtol": 1e-7}).x
 
-    def ll(z):
-        return _kf_loglik(z[:4], u, y, z[4])
-    z0 = np.concatenate([p0, [0.0]])
-    hs = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-3])
+
+def rao_statistic(ll, z0, hs):
+    """Rao's score statistic of the last variable of ``z0`` (its null value) for the
+    log-likelihood ``ll`` of (A, B, log process std, log measurement std, new), by central
+    finite differences (steps ``hs``); the cross terms of the new variable with the two noise
+    parameters at their null expectation, zero."""
     n = len(z0)
-    g = np.array([(ll(z0 + hs[i] * np.eye(n)[i]) - ll(z0 - hs[i] * np.eye(n)[i])) / (2 * hs[i])
-                  for i in range(n)])
+    E = np.eye(n) * np.asarray(hs, float)
+    g = np.array([(ll(z0 + E[i]) - ll(z0 - E[i])) / (2 * hs[i]) for i in range(n)])
     H = np.zeros((n, n))
     for i in range(n):
         for j in range(i, n):
-            ei, ej = hs[i] * np.eye(n)[i], hs[j] * np.eye(n)[j]
-            H[i, j] = H[j, i] = -(ll(z0 + ei + ej) - ll(z0 + ei - ej) - ll(z0 - ei + ej)
-                                  + ll(z0 - ei - ej)) / (4 * hs[i] * hs[j])
-    H[4, 2:4] = H[2:4, 4] = 0.0
-    rest = [0, 1, 2, 3]
-    schur = H[4, 4] - H[4, rest] @ np.linalg.solve(H[np.ix_(rest, rest)], H[rest, 4])
-    g_rest = g[rest]
+            H[i, j] = H[j, i] = -(ll(z0 + E[i] + E[j]) - ll(z0 + E[i] - E[j])
+                                  - ll(z0 - E[i] + E[j]) + ll(z0 - E[i] - E[j])) / (
+                4 * hs[i] * hs[j])
+    k, r = n - 1, list(range(n - 1))
+    H[k, 2:4] = H[2:4, k] = 0.0
     # profiled gradient (the null MLE is stationary in the rest: g_rest ≈ 0)
-    gk = g[4] - H[4, rest] @ np.linalg.solve(H[np.ix_(rest, rest)], g_rest)
-    return gk ** 2 / schur
+    gk = g[k] - H[k, r] @ np.linalg.solve(H[np.ix_(r, r)], g[r])
+    return gk ** 2 / (H[k, k] - H[k, r] @ np.linalg.solve(H[np.ix_(r, r)], H[r, k]))
+
+
+def _kf_score(u, y):
+    """Rao's score statistic of k at the null MLE (finite differences of the exact
+    log-likelihood; Fisher cross terms of k with the noise parameters zero)."""
+    p0 = null_mle(lambda p: -_kf_loglik(p, u, y, 0.0))
+    return rao_statistic(lambda z: _kf_loglik(z[:4], u, y, z[4]), np.append(p0, 0.0),
+                         [1e-4, 1e-4, 1e-4, 1e-4, 1e-3])
 
 
 def fit_lin1(tmp, t, u, y):
@@ -275,28 +281,8 @@ def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
     cand = next(c for c in propose(info) if c.key == "sensor_bias:y")
     res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    f0 = lambda p: -_kf_bias(p, u, y, 0.0)  # noqa: E731
-    p0 = optimize.minimize(f0, np.array([-1.0, 1.5, math.log(0.05), math.log(0.03)]),
-                           method="Nelder-Mead",
-                           options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 4000}).x
-    p0 = optimize.minimize(f0, p0, method="BFGS", options={"gtol": 1e-7}).x
-
-    def ll(z):
-        return _kf_bias(z[:4], u, y, z[4])
-    z0 = np.append(p0, 0.0)
-    hs = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
-    E = np.eye(5) * hs
-    g = np.array([(ll(z0 + E[i]) - ll(z0 - E[i])) / (2 * hs[i]) for i in range(5)])
-    H = np.zeros((5, 5))
-    for i in range(5):
-        for j in range(i, 5):
-            H[i, j] = H[j, i] = -(ll(z0 + E[i] + E[j]) - ll(z0 + E[i] - E[j])
-                                  - ll(z0 - E[i] + E[j]) + ll(z0 - E[i] - E[j])) / (
-                4 * hs[i] * hs[j])
-    H[4, 2:4] = H[2:4, 4] = 0.0
-    r = [0, 1, 2, 3]
-    gk = g[4] - H[4, r] @ np.linalg.solve(H[np.ix_(r, r)], g[r])
-    ref = gk ** 2 / (H[4, 4] - H[4, r] @ np.linalg.solve(H[np.ix_(r, r)], H[r, 4]))
+    p0 = null_mle(lambda p: -_kf_bias(p, u, y, 0.0))
+    ref = rao_statistic(lambda z: _kf_bias(z[:4], u, y, z[4]), np.append(p0, 0.0), [1e-4] * 5)
     print("sensor_bias:y score statistic", res.statistic, "Kalman-filter reference", ref)
     assert res.dof == 1 and 10.0 < ref < 5000.0, (res, ref)
     # measured: 17.19654 against 17.19666 (zeroing the noise cross terms before the latent
