@@ -12,23 +12,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_score_states import SPEC, _simulate
+from test_score_states import _simulate, fit_lin1
 
 
 @pytest.fixture(scope="module")
 def lin1(tmp_path_factory):
     from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.search import fit_spec, model_info_of
 
     tmp = tmp_path_factory.mktemp("lin1")
-    t, u, y = _simulate(n=400)
-    csv = tmp / "lin1.csv"
-    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
-    spec = tmp / "lin1.yaml"
-    spec.write_text(SPEC)
-    st = fit_spec(spec, [csv], generated_dir=tmp / "gen", max_iter=200)
-    assert st.fit.converged
-    info = model_info_of(st)
+    st, info = fit_lin1(tmp, *_simulate(n=400))
     states = [c for c in propose(info) if c.screenable and c.states]
     return tmp, st, info, states
 

@@ -128,6 +128,10 @@ def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit
                               timeout=time_limit + 300)
         rc, last = proc.returncode, (proc.stdout.strip().splitlines() or [""])[-1]
         err = proc.stderr.strip()[-400:] if rc else ""
+        # the run's own account (stages, refits, times) beside its findings
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "diagnose.log").write_text(proc.stdout + ("\n--- stderr ---\n" + proc.stderr
+                                                         if proc.stderr else ""))
     except subprocess.TimeoutExpired:
         rc, last, err = None, "", f"time limit {time_limit:g} s"
     wall = time.time() - t0

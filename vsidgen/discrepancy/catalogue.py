@@ -221,6 +221,9 @@ class _InputDynamics(Effect):
 
     state_prefix = param_prefix = ""
     min_steps, upper = 1.0, 1.0
+    #: the input filter its state realises (:func:`.score.filter_input`): its score statistic
+    #: is profiled over the time constant (:func:`.score.screen_input_filters`)
+    filter = "lag"
 
     def pieces(self, info, u, z, tau) -> dict:
         """``coupling`` (replaces u), ``drift`` of z, ``param_doc``, ``state_doc``, ``explain``."""
@@ -240,7 +243,8 @@ class _InputDynamics(Effect):
                 parameters=(NewParameter(tau, "s", pc["param_doc"], initial=lo,
                                          lower=lo, upper=self.upper),),
                 states=(NewState(z, pc["drift"], info.unit(u), pc["state_doc"]),),
-                add_terms={"drift": adds}, info={"input": u, "states": tuple(gains)},
+                add_terms={"drift": adds},
+                info={"input": u, "states": tuple(gains), "filter": self.filter},
                 screenable=False))
         return out
 
@@ -257,6 +261,7 @@ class ControlDelay(_InputDynamics):
                    "acquisition). Modelled as a first-order Padé delay of {param} seconds.")
     doc = "A time delay on one input (first-order Padé state)."
     state_prefix, param_prefix, min_steps, upper = "pade", "DELAY", 2.0, 1.0
+    filter = "pade"
 
     def pieces(self, info, u, z, tau):
         # first-order Padé: delayed u = 2 z - u with dz/dt = 2 (u - z)/tau
@@ -285,7 +290,8 @@ class TransportDelay(Effect):
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
                 explanation=self.explain(input=u, delay="τ", spec_delay="τ"),
-                info={"input": u, "states": tuple(gains), "profile": "delay"},
+                info={"input": u, "states": tuple(gains), "profile": "delay",
+                      "filter": "delay"},
                 screenable=False))
         return out
 

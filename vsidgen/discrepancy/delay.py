@@ -22,6 +22,18 @@ the best of ``n`` grid values, its p-value is multiplied by ``n`` (Bonferroni ov
 grid), which covers the maximisation over τ conservatively; the round's Holm correction
 then counts the profiled input as one more candidate.
 
+Screening (:func:`.score.screen_input_filters`): before any refit the delay gets a score
+statistic like every other candidate, so it is ranked on the same p-value scale. For each
+grid delay τ_k the family ``u + g_k (u_{τ_k} − u)`` (the recorded input moved towards its
+delayed copy by a gate ``g_k``) contains the current model at ``g_k = 0`` and the input
+delayed by τ_k at ``g_k = 1``, for any model, linear in u or not. All gates are parameters
+of one model (the current one with the differences as extra input channels,
+:func:`.score.gate_bank`), so one compilation and one Hessian assembly at the current
+optimum give every grid delay's one-degree-of-freedom score statistic ``S_k``. The input's
+statistic is ``max_k S_k``, its p-value ``min(1, K·P(χ²₁ > max_k S_k))`` (Bonferroni over
+the ``K`` grid delays, as the profile's), and the best τ_k is where the profile starts.
+(Lags and Padé delays are screened the same way over their time constants.)
+
 Units: the spec carries the delay τ̂ applied to the recorded samples. A model that holds
 its inputs over each sample (zero-order hold) already delays a continuously moving input by
 half a sample on average (:func:`hold_lag`), so the physical transport delay reported is
@@ -136,10 +148,16 @@ class DelayProfile:
 
 
 def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, generated_dir,
-                  max_iter: int, deadline=None) -> DelayProfile | None:
+                  max_iter: int, deadline=None, start: float | None = None) -> DelayProfile | None:
     """Profile the delay of input ``u`` (see the module docstring); None when the run ran out
     of time. When the profile is highest at τ = 0 (the current model itself) no refit is
-    made: ``at_zero`` is set and ``state`` is None."""
+    made: ``at_zero`` is set and ``state`` is None.
+
+    ``start`` (s, the best grid delay of the screen, :func:`.score.screen_input_filters`): refit the grid
+    delays nearest ``start`` and its two neighbours, then climb the grid towards the higher
+    neighbour until the best refit has refitted neighbours on both sides (a local maximum
+    of the profile bracketed on the grid); without it every grid delay is refitted. Grid
+    delays not refitted have ELBO NaN; the Bonferroni factor stays the whole grid's."""
     from ..engine import TaskStatus
     from .fitstate import stage1_iterations
 
@@ -148,13 +166,37 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
     dt = float(np.median([r.dt for r in current.records]))
     grid = delay_grid(dt)
     iters = stage1_iterations(max_iter)
-    outs = engine.run(_grid_task, [(f"{u}@{g:.6g}", (current, j, g, iters)) for g in grid],
-                      deadline=deadline)
-    if any(o.status is TaskStatus.CANCELLED for o in outs):
-        return None
-    elbos = [o.value[0] if o.status is TaskStatus.DONE else math.nan for o in outs]
     xs = [0.0] + list(grid)
-    ys = [current.elbo] + elbos
+    ys = [current.elbo] + [math.nan] * len(grid)
+    done = {0}
+
+    def refit(idx) -> bool:
+        idx = [i for i in dict.fromkeys(idx) if 0 < i < len(xs) and i not in done]
+        if not idx:
+            return True
+        outs = engine.run(_grid_task, [(f"{u}@{xs[i]:.6g}", (current, j, xs[i], iters))
+                                       for i in idx], deadline=deadline)
+        if any(o.status is TaskStatus.CANCELLED for o in outs):
+            return False
+        for i, o in zip(idx, outs):
+            ys[i] = o.value[0] if o.status is TaskStatus.DONE else math.nan
+            done.add(i)
+        return True
+
+    if start is None or not math.isfinite(start):
+        if not refit(range(1, len(xs))):
+            return None
+    else:
+        s0 = 1 + int(np.argmin([abs(g - start) for g in grid]))
+        if not refit((s0 - 1, s0, s0 + 1)):
+            return None
+        while True:
+            b = max((i for i in done if math.isfinite(ys[i])), key=lambda k: ys[k])
+            if not refit((b - 1, b + 1)):
+                return None
+            if b == max((i for i in done if math.isfinite(ys[i])), key=lambda k: ys[k]):
+                break
+    elbos = ys[1:]
     ok = [i for i in range(1, len(xs)) if math.isfinite(ys[i])]
     if not ok:
         return DelayProfile(u, tuple(grid), tuple(elbos), math.nan, math.nan, math.nan, None,

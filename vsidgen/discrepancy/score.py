@@ -25,6 +25,17 @@ through the Schur complement: it approximates the likelihood-ratio statistic
 the difference keeps the approximation when the start is not exactly stationary
 (added states embedded by simulation).
 
+For a batch that adds no state the statistic is Rao's (:func:`_rao_system`): the
+assumed-density parameters of every record are eliminated too, so the system is that of the
+likelihood of the parameters with the latent path profiled out, and the noise parameters are
+held at their estimates — under the null the expected information between a mean parameter
+and a noise parameter is zero, so this is exact for Rao's statistic; the gradient stays
+exact. Observed, ``∂²/∂φ ∂log σ`` is about twice the gradient of φ, so it grows with the
+effect: a strongly supported candidate had a negative or nearly zero profiled curvature (no
+statistic, or an inflated one). On a linear model the statistic equals the exact
+Kalman-filter Rao statistic (a sensor bias: 17.193 against 17.197; grid delays within
+0.6 %: tests/test_score_states.py, tests/test_delay_screen.py).
+
 A direction along which the ELBO is flat at the nesting point (a time constant
 whose gain is still zero, e.g. the lag of an α̇ term with zero gain) carries no
 information at the null (Davies' problem): such parameters are held at their
@@ -109,14 +120,19 @@ class ScoreResult:
     #: current optimum is a saddle of the candidate's ELBO, so the candidate raises the ELBO
     #: for certain, by an amount the quadratic model cannot give (no statistic)
     ascent: bool = False
+    #: Bonferroni factor of a statistic maximised over ``multiplicity`` tests (a profiled
+    #: nonlinear parameter: the grid of delays or time constants, :func:`screen_input_filters`): p = min(1, m·p₁)
+    multiplicity: int = 1
+    #: (value of the profiled parameter, statistic or None) per grid value
+    profile: tuple = ()
 
     @property
     def log10p(self) -> float:
-        """−log10 p (inf-safe), the screening priority."""
+        """−log10 p (inf-safe, Bonferroni factor included), the screening priority."""
         if self.statistic is None or self.dof < 1:
             return math.nan
         lp = float(stats.chi2.logsf(max(self.statistic, 0.0), self.dof))
-        return -lp / math.log(10.0)
+        return max(-(lp + math.log(max(self.multiplicity, 1))) / math.log(10.0), 0.0)
 
     def to_json(self) -> dict:
         f = finite_or_none
@@ -124,7 +140,8 @@ class ScoreResult:
                 "minus_log10_p": f(self.log10p), "tested": list(self.tested),
                 "held": list(self.held), "gain_full": f(self.gain_full),
                 "gain_rest": f(self.gain_rest), "one_step": {k: f(v) for k, v in self.step.items()},
-                "note": self.note, "ascent": self.ascent}
+                "note": self.note, "ascent": self.ascent, "multiplicity": self.multiplicity,
+                "profile": [[float(v), f(st)] for v, st in self.profile]}
 
 
 
@@ -293,7 +310,9 @@ def condition_added_states(blk, added, x0_precision, inert, coupling_cols, noise
     * ``noise_cols``: likewise the cross blocks between the new parameters and the noise
       parameters (``∂²/∂θ_new ∂log G = 2 ∂/∂θ_new`` of the equation's error term, zero in
       expectation). Observed, they grow with the gradient itself, so a strongly supported
-      candidate (a large statistic) would make the profiled curvature negative.
+      candidate (a large statistic) would make the profiled curvature negative. (A batch without added
+      states takes the null expectation after the latent path is profiled out instead,
+      :func:`_rao_system`.)
     """
     import jax.numpy as jnp
 
@@ -348,6 +367,38 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
     return batch_statistics(cands, current, m, P, bnames, det_std=det_std)
 
 
+def _rao_system(S, rhs, lay, gpos):
+    """The reduced system ``S``, ``rhs`` (state means eliminated) of a batch that adds no state,
+    in Rao's form: (S, rhs, positions, size) on the free parameters θ alone.
+
+    The assumed-density parameters ``r`` of every record are eliminated too (the latent path
+    profiled out: the system of the likelihood of the parameters), and the noise parameters
+    are held at their estimates. Under the null the expected information between a mean
+    parameter and a noise parameter is zero (``E[∂²ℓ/∂θ∂w] = 0`` for Gaussian errors), so
+    Rao's statistic of a mean parameter is block-diagonal in the noise and holding the noise
+    is exact there. The observed cross terms are about twice the gradient of θ and grow with
+    the effect: profiled through them, strong candidates had a negative or nearly zero
+    curvature (no statistic, or an inflated one), and nearly confounded ones (a sensor bias
+    absorbed by a trim constant: 99.9998 % of its curvature explained by the other
+    parameters) a negative one. Against an exact Kalman filter's Rao statistic: a sensor
+    bias 17.193 against 17.197 (zeroing the cross terms before the path is profiled out:
+    40.0; observed: 23.3; tests/test_score_states.py)."""
+    off = lay.shared_offset
+    keep = np.arange(off, off + lay.n_theta)
+    if off:
+        lat = np.arange(off)
+        try:
+            Lc = np.linalg.cholesky(S[np.ix_(lat, lat)])
+        except np.linalg.LinAlgError:
+            return None, None, gpos, 0
+        B = np.linalg.solve(Lc, np.column_stack([S[np.ix_(lat, keep)], rhs[lat]]))
+        S = S[np.ix_(keep, keep)] - B[:, :-1].T @ B[:, :-1]
+        rhs = rhs[keep] - B[:, :-1].T @ B[:, -1]
+    else:
+        S, rhs = S[np.ix_(keep, keep)].copy(), rhs[keep].copy()
+    return S, rhs, {n: j - off for n, j in gpos.items()}, len(keep)
+
+
 def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
     """Score statistics of the candidates ``cands`` of the batch model ``m`` (names ``bnames``,
     :func:`batch_spec_dict`) from the problem ``P`` of ``m`` on the current records: ``P.model``
@@ -383,12 +434,17 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
     new_noise = [j for j in (P.process_noise_index(n) for n in new_states) if j is not None]
     new_par = {bnames[c.key][p.name] for c in cands for p in c.parameters if not p.fixed}
     Hdiag = np.diag(P.gather(blks)[1])
+    curv = {n: float(Hdiag[j]) for n, j in gpos.items()}    # unprofiled curvature per name
     informative = set(new_par)
     held_r: set = set()
+    lay = P.layout
+    # columns of a record's border block (r_i, then the shared vector): the new parameters'
+    # and the noise parameters' (their cross blocks take the null expectation, zero)
+    cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
+    ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
     if new_states:
         import jax.numpy as jnp
 
-        lay = P.layout
         ni = [m.state_names.index(z) for z in new_states]
         informative, reach = nesting_reach(
             m, new_states, sorted(new_par & set(gpos)),
@@ -396,9 +452,6 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
             np.concatenate([np.asarray(r.u, float) for r in records]), theta_m)
         Gd = np.abs(np.diag(np.asarray(P.nm.G(jnp.asarray(s[lay.n_theta:]), P.cfg["noise"]),
                                        float)))
-        # columns of a record's border block (r_i, then the shared vector)
-        cols = [lay.nq + gpos[q] - lay.shared_offset for q in sorted(new_par & set(gpos))]
-        ncols = list(lay.nq + lay.noise_index - lay.shared_offset)
         inert = [m.state_names.index(z) for z in new_states if z not in reach]
         blks = [condition_added_states(b, ni, 1.0 / (float(r.dt) * Gd[ni] ** 2), inert, cols,
                                        ncols)
@@ -411,6 +464,13 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
         for c in cands:
             out[c.key] = ScoreResult(None, 0, None, note="state block not positive definite")
         return out
+    if not new_states:
+        S, rhs, gpos, nglob = _rao_system(S, rhs, lay, gpos)
+        if S is None:
+            for c in cands:
+                out[c.key] = ScoreResult(None, 0, None,
+                                         note="assumed-density block not positive definite")
+            return out
     # null: every new parameter and new-state noise held at its nesting value
     held_all = (set(gpos[n] for n in new_par if n in gpos) | set(new_noise) | held_r
                 | {gpos[n] for n in pads if n in gpos})
@@ -432,7 +492,7 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
     for c in cands:
         names = [p.name for p in c.parameters if not p.fixed and bnames[c.key][p.name] in gpos]
         bn = bnames[c.key]
-        tested = [n for n in names if Hdiag[gpos[bn[n]]] > 1e-300 and bn[n] in informative]
+        tested = [n for n in names if curv[bn[n]] > 1e-300 and bn[n] in informative]
         held = [n for n in names if n not in tested]
         if not tested:
             out[c.key] = ScoreResult(None, 0, None, held=tuple(held),
@@ -601,6 +661,210 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
     return out
 
 
+#: name prefixes of the gates and difference channels of :func:`gate_bank`
+GATE_PREFIX, DIFF_PREFIX = "__filter_gate_", "__filter_diff_"
+
+#: grid of a filter time constant: geometric, ratio √2, from the parameter's lower bound to
+#: its upper bound (at most ``MAX_FILTER_GRID`` values)
+FILTER_GRID_RATIO, MAX_FILTER_GRID = math.sqrt(2.0), 16
+
+
+def filter_input(kind: str, u, t, tau: float) -> np.ndarray:
+    """The recorded input ``u`` (N,) at times ``t`` through an input filter of parameter τ:
+
+    * ``"delay"``: the pure transport delay ``u(t − τ)`` (:func:`vsidgen.data.delay_input`);
+    * ``"lag"``: the first-order lag ``τ ż = u − z``, ``z(t₀) = u(t₀)``, exact for an input
+      linear between samples: ``z_{k+1} = a z_k + (1 − a) u_k + b (u_{k+1} − u_k)`` with
+      ``a = e^{−T/τ}``, ``b = 1 − (τ/T)(1 − a)``;
+    * ``"pade"``: the first-order Padé delay ``2z − u`` with ``(τ/2) ż = u − z`` (the
+      ``control_delay`` candidate's state).
+    """
+    from scipy import signal
+
+    from ..data import delay_input
+
+    u = np.asarray(u, np.float64)
+    if kind == "delay":
+        return delay_input(u, np.asarray(t, np.float64), tau)
+    if kind not in ("lag", "pade"):
+        raise ValueError(f"unknown input filter {kind!r}")
+    T = float(np.median(np.diff(np.asarray(t, np.float64))))
+    tc = tau if kind == "lag" else 0.5 * tau
+    a = math.exp(-T / tc)
+    b = 1.0 - (tc / T) * (1.0 - a)
+    num, den = [b, (1.0 - a) - b], [1.0, -a]
+    z, _ = signal.lfilter(num, den, u, zi=signal.lfilter_zi(num, den) * u[0])
+    return z if kind == "lag" else 2.0 * z - u
+
+
+def filter_grid(c, dt: float) -> tuple[str, list[float]]:
+    """(filter kind, grid of its parameter in s) of an input-filter candidate ``c``
+    (``info["filter"]``): a transport delay the delay grid (:func:`.delay.delay_grid`), a lag
+    or Padé delay geometric over its time constant's bounds."""
+    from .delay import delay_grid
+
+    kind = c.info["filter"]
+    if kind == "delay":
+        return kind, delay_grid(dt)
+    p = c.parameters[0]
+    lo = float(p.lower if p.lower is not None else dt)
+    hi = float(p.upper if p.upper is not None else 1.0)
+    n = min(MAX_FILTER_GRID, 1 + int(math.floor(math.log(hi / lo) / math.log(FILTER_GRID_RATIO)
+                                                 + 1e-9)))
+    return kind, [lo * FILTER_GRID_RATIO ** k for k in range(max(n, 2))]
+
+
+@dataclasses.dataclass(frozen=True)
+class GateBank:
+    """The current model with input gates (:func:`gate_bank`): ``model``, its ``records``
+    (extra input channels) and the gate names in channel order."""
+
+    model: object
+    records: tuple
+    gates: tuple
+
+
+def gate_bank(model, records, theta, channels) -> GateBank:
+    """``model`` with one gate ``g_k`` per channel of ``channels``, ``(input name, label,
+    [difference (N,) per record])``, for the score test of moving input ``u_j`` by ``g_k d_k``
+    (``d_k``: e.g. a filtered copy of the recorded input minus the input, :func:`filter_input`,
+    an extra input channel of the returned records).
+
+    The gate enters as the first-order change of the model in that direction, with the
+    parameters of its coefficient frozen at the current estimates ``θ̂ = theta``:
+
+        ``ẋ = f(x, u; θ) + Σ_k g_k ∂f/∂u_j(x, u; θ̂) d_k``,  ``y = h(x, u; θ) + Σ_k g_k ∂h/∂u_j(x, u; θ̂) d_k``.
+
+    At ``g = 0`` it is exactly ``model``, and its gradient in ``g_k`` there is that of the
+    family ``u_j + g_k d_k`` (whose input at ``g_k = 1`` is the filtered one); the state stays
+    live in the coefficient, so the expectation over the assumed density is exact. Its cross
+    derivatives of ``g_k`` with θ are the expected-information ones: the equation error times
+    ``∂²f/∂u∂θ`` (e.g. ``d_k`` for ``B·u``), zero in expectation under the current model, is left
+    out, as in Rao's form of the test. Observed, that term grows with the effect itself and
+    made the profiled curvature of a strong lag indefinite (no statistic at 0.28–1.13 s for a
+    0.3 s lag) or nearly zero next to it (an inflated 3585 at 0.2 s). ``model``'s own
+    parameters start at ``theta``; the gates are free and start at 0."""
+    import jax.numpy as jnp
+
+    from ..metadata import Parameter, Variable
+
+    nu, npm = model.nu, model.np
+    names = list(model.input_names)
+    idx = jnp.asarray([names.index(u) for u, _, _ in channels], dtype=jnp.int32)
+    extra_in = tuple(Variable(f"{DIFF_PREFIX}{k}", model.inputs[names.index(u)].unit,
+                              f"{label} minus {u}") for k, (u, label, _) in enumerate(channels))
+    gates = tuple(Parameter(f"{GATE_PREFIX}{k}", "1", f"gate of {u} towards {label}",
+                            initial=0.0) for k, (u, label, _) in enumerate(channels))
+    base = tuple(p if p.fixed else dataclasses.replace(p, initial=_clip(float(v), p))
+                 for p, v in zip(model.parameters, np.asarray(theta, float)))
+    th = jnp.asarray(np.asarray(theta, float))
+    drift, output = model.drift, model.output
+
+    def gdrift(x, u, p):
+        fu = model.drift_jacobian(x, u[:nu], th)[1]
+        return drift(x, u[:nu], p[:npm]) + fu[:, idx] @ (u[nu:] * p[npm:])
+
+    def goutput(x, u, p):
+        hu = model.output_jacobian(x, u[:nu], th)[1]
+        return output(x, u[:nu], p[:npm]) + hu[:, idx] @ (u[nu:] * p[npm:])
+
+    m = dataclasses.replace(model, drift=gdrift, output=goutput,
+                            inputs=model.inputs + extra_in, parameters=base + gates,
+                            jacobians=None)
+    recs = []
+    for i, r in enumerate(records):
+        d = np.stack([np.asarray(diffs[i], np.float64) for _, _, diffs in channels], axis=1)
+        ua = np.concatenate([np.asarray(r.u, np.float64), d], axis=1)
+        ua.setflags(write=False)
+        recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
+                                        + tuple(v.name for v in extra_in)))
+    return GateBank(m, tuple(recs), tuple(g.name for g in gates))
+
+
+def _clip(v: float, p) -> float:
+    from .specwrite import clip_to_bounds
+
+    return clip_to_bounds(v, [p.lower, p.upper]) if (p.lower is not None
+                                                     or p.upper is not None) else v
+
+
+def screen_input_filters(cands, current, *, det_std: float) -> dict:
+    """Profiled score statistics of the input-filter candidates ``cands`` (transport delays,
+    lags, Padé delays: ``info["filter"]``): {key: :class:`ScoreResult`}.
+
+    For each grid value τ_k of the candidate's parameter (:func:`filter_grid`) the family
+    ``u + g_k (F_{τ_k} u − u)`` (:func:`filter_input`) contains the current model at
+    ``g_k = 0`` and the input through the filter at ``g_k = 1``, for any model. All gates of
+    all candidates are parameters of one model (:func:`gate_bank`): one compilation and one
+    Hessian assembly at the current optimum give every grid value's one-degree-of-freedom
+    score statistic ``S_k`` (:func:`batch_statistics`). The candidate's statistic is
+    ``max_k S_k``, its p-value ``min(1, K·P(χ²₁ > max_k S_k))`` (Bonferroni over its ``K``
+    grid values: ``multiplicity``), the best τ_k is in ``step["tau_s"]`` (where the delay
+    profile and the lag refit start) and every S_k in ``profile``. An input the model
+    already delays (transport delay), or a failed evaluation, gets ``statistic None`` and a
+    note."""
+    from ..estimator import FitOptions, Problem
+    from .base import Candidate, NewParameter
+
+    out: dict = {}
+    todo = []
+    for c in cands:
+        u = c.info["input"]
+        j = list(current.model.input_names).index(u)
+        if c.info["filter"] == "delay" and float(getattr(current.model.inputs[j], "delay", 0.0)
+                                                 or 0.0) > 0.0:
+            out[c.key] = ScoreResult(None, 0, None, note=f"the model already delays {u}")
+        else:
+            todo.append(c)
+    if not todo:
+        return out
+    dt = float(np.median([r.dt for r in current.records]))
+    grids = {c.key: filter_grid(c, dt) for c in todo}
+    channels, owner = [], []
+    for c in todo:
+        u = c.info["input"]
+        j = list(current.model.input_names).index(u)
+        kind, grid = grids[c.key]
+        for tau in grid:
+            diffs = [filter_input(kind, r.u[:, j], r.t, tau) - np.asarray(r.u[:, j], float)
+                     for r in current.records]
+            channels.append((u, f"{u} through a {kind} of {tau:.4g} s", diffs))
+            owner.append((c.key, tau))
+    bank = gate_bank(current.model, current.records, current.fit.theta, channels)
+    pseudo = [Candidate(effect="input_filter", key=g, target="", explanation="",
+                        parameters=(NewParameter(g, "1", initial=0.0),)) for g in bank.gates]
+    try:
+        P = Problem(bank.model, list(bank.records),
+                    FitOptions(deterministic_std=det_std, bucket=False))
+        res = batch_statistics(pseudo, current, bank.model, P,
+                               {p.key: {p.key: p.key} for p in pseudo}, det_std=det_std)
+    except _ERRORS as err:
+        for c in todo:
+            out[c.key] = ScoreResult(None, 0, None, note=f"input-filter screen failed: "
+                                                         f"{str(err).splitlines()[0][:200]}")
+        return out
+    for c in todo:
+        kind, grid = grids[c.key]
+        rows = [(tau, res[g]) for (key, tau), g in zip(owner, bank.gates) if key == c.key]
+        prof = tuple((float(tau), r.statistic) for tau, r in rows)
+        ok = [(tau, r) for tau, r in rows if r.statistic is not None]
+        if not ok:
+            notes = sorted({r.note for _, r in rows if r.note})
+            out[c.key] = ScoreResult(None, 1, None, ("tau",), profile=prof,
+                                     multiplicity=len(grid),
+                                     ascent=any(r.ascent for _, r in rows),
+                                     note=f"no grid {kind} has a statistic: " + "; ".join(notes))
+            continue
+        tau, best = max(ok, key=lambda tr: tr[1].statistic)
+        p = float(min(1.0, len(grid) * stats.chi2.sf(best.statistic, 1)))
+        out[c.key] = ScoreResult(best.statistic, 1, p, ("tau",), (), best.gain_full,
+                                 best.gain_rest, {"tau_s": float(tau)}, profile=prof,
+                                 multiplicity=len(grid),
+                                 note=f"best of {len(grid)} grid values of the {kind}: "
+                                      f"{tau:.4g} s")
+    return out
+
+
 def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, generated_dir,
            det_std: float, include_states: bool = True, shared: bool = True, progress=None,
            engine=None, deadline: float | None = None) -> dict:
@@ -617,6 +881,9 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     (:func:`screen_shared`), one task per number of added states; False: one compilation
     per batch (:func:`screen_group`, the reference path), one task each.
 
+    Input-filter candidates (transport delays, lags, Padé delays: ``info["filter"]``) get the
+    profiled score statistic of :func:`screen_input_filters` (one more task).
+
     ``engine`` (:class:`vsidgen.engine.Engine`, entered): the tasks run in parallel on its
     workers (``deadline``: :func:`time.monotonic` instant after which no task starts);
     without one they run here, one after another. A batch that fails (:func:`screen_group`)
@@ -624,24 +891,28 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     ranked after the tested ones.
     """
     todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
+    filters = [c for c in candidates if (c.info or {}).get("filter")]
     groups = batches(todo)
     out: dict = {}
     if progress is not None:
         progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
-                 f"({sum(1 for c in todo if c.states)} add states)")
+                 f"({sum(1 for c in todo if c.states)} add states)"
+                 + (f", {len(filters)} input filters profiled" if filters else ""))
     plain = [g for g in groups if not any(c.states for c in g)]
     with_states = [g for g in groups if any(c.states for c in g)]
     if shared and with_states:
-        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+        tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(plain)]
         by_states: dict = {}        # batches of one number of added states: one shape, one task
         for g in with_states:
             by_states.setdefault(sum(len(c.states) for c in g), []).append(g)
-        tasks += [(f"s{k}", (True, gs, current, info, workdir, f"s{k}_", name))
+        tasks += [(f"s{k}", ("shared", gs, current, info, workdir, f"s{k}_", name))
                   for k, gs in sorted(by_states.items(), reverse=True)]
     else:
-        tasks = [(f"b{i + 1}", (False, group, current, info, workdir, f"b{i + 1}", name))
+        tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(groups)]
+    if filters:
+        tasks.append(("filters", ("filters", filters, current, info, workdir, "f", name)))
     if engine is None or engine.serial:
         for _, args in tasks:
             out.update(_screen_task(*args, generated_dir, det_std))
@@ -654,17 +925,20 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
         if oc.status is TaskStatus.DONE:
             out.update(oc.value)
         else:
-            cands = [c for g in args[1] for c in g] if args[0] else args[1]
+            cands = [c for g in args[1] for c in g] if args[0] == "shared" else args[1]
             for c in cands:
                 out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
     return out
 
 
-def _screen_task(is_shared, payload, current, info, workdir, tag, name, generated_dir, det_std):
-    """One task of :func:`screen`: the batches ``payload`` through :func:`screen_shared`
-    (``is_shared``) or the one batch ``payload`` through :func:`screen_group`."""
-    if is_shared:
+def _screen_task(kind, payload, current, info, workdir, tag, name, generated_dir, det_std):
+    """One task of :func:`screen`: ``kind`` "shared": the batches ``payload`` through
+    :func:`screen_shared`; "batch": the one batch ``payload`` through :func:`screen_group`;
+    "filters": the input-filter candidates ``payload`` through :func:`screen_input_filters`."""
+    if kind == "shared":
         return screen_shared(payload, current, info, workdir, tag, name,
                              generated_dir=generated_dir, det_std=det_std)
+    if kind == "filters":
+        return screen_input_filters(payload, current, det_std=det_std)
     return screen_group(payload, current, info, workdir, tag, name, generated_dir=generated_dir,
                         det_std=det_std)

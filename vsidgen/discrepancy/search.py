@@ -685,22 +685,26 @@ def _grid_size(c: Candidate) -> int:
 
 
 def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_iter,
-                 deadline) -> Trial | None:
+                 deadline, screen=None) -> Trial | None:
     """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
-    estimate and the test (Bonferroni over the grid; None when the time ran out)."""
+    estimate and the test (Bonferroni over the grid; None when the time ran out).
+    ``screen``: its :class:`.score.ScoreResult` (:func:`.score.screen_input_filters`); the profile
+    starts at its best grid delay."""
     from .delay import delay_p_value, hold_lag, profile_delay
     from .refit import RefitOutcome
 
     u = c.info["input"]
     j = list(current.model.input_names).index(u)
     if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"the model already delays {u}")
     try:
+        start = (screen.step or {}).get("tau_s") if screen is not None \
+            and screen.statistic is not None else None
         prof = profile_delay(current, u, path, name, engine=engine, generated_dir=generated_dir,
-                             max_iter=max_iter, deadline=deadline)
+                             max_iter=max_iter, deadline=deadline, start=start)
     except (FitError, SpecError, VsidgenError, ValueError, ArithmeticError) as err:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"failed: {str(err).splitlines()[0]}")
     if prof is None:
         return None
@@ -708,13 +712,13 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         # no delay: every delayed fit is below the current model (τ = 0); nothing to refit
         c0 = dataclasses.replace(c, info={**c.info, "profile_result": prof.to_json()})
         best = max((e for e in prof.elbos if math.isfinite(e)), default=math.nan)
-        return Trial(c0, score, path, None, 0.0, 1, 1.0,
+        return Trial(c0, score, path, None, 0.0, 1, 1.0, screen=screen,
                      refit=RefitOutcome(elbo_ref=current.elbo, warm="delay profile",
                                         notes=[f"profile highest at τ = 0 (the current model): "
                                                f"best delayed fit {best - current.elbo:+.4g} nats"
                                                ], wall_s=prof.wall_s))
     if prof.state is None:
-        return Trial(c, score, path, None, math.nan, 1, 1.0,
+        return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error="failed: no grid fit or final refit succeeded")
     st = prof.state
     lam = 2.0 * (st.elbo - current.elbo)
@@ -737,11 +741,12 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
     c2 = dataclasses.replace(c, explanation=text,
                              info={**c.info, "delay": ent, "profile_result": prof.to_json()})
     ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
-                      notes=[f"profile over {len(prof.grid)} delays; best grid value "
+                      notes=[f"profile over {sum(map(math.isfinite, prof.elbos))} of "
+                             f"{len(prof.grid)} grid delays; best grid value "
                              f"{prof.best_grid:.4g} s, refined {prof.estimate:.4g} s"],
                       wall_s=prof.wall_s)
     return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
-                 statistic_vs_base=lam, converged=refit_converged(st.fit),
+                 statistic_vs_base=lam, converged=refit_converged(st.fit), screen=screen,
                  verdict=refit_verdict(lam, {}, {}))
 
 
@@ -1058,7 +1063,9 @@ def _gated_round_models(run: _RunConfig, current: FitState, info: ModelInfo, rnd
 def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
                 ranked: list) -> _RoundPlan:
     """Spec paths, gated models and engine tasks of the round's selected candidates;
-    transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted."""
+    transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted; lags
+    and Padé delays are refitted from the screen's best time constant (:func:`filter_start`)."""
+    ranked = [(pr, loc, filter_start(c, sr), sr) for pr, loc, c, sr in ranked]
     paths = [run.out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
              for i, (_, _, c, _) in enumerate(ranked)]
     profiled = [i for i, (_, _, c, _) in enumerate(ranked) if c.info.get("profile") == "delay"]
@@ -1074,6 +1081,25 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
     # test (score_test); the priority that ranked it is in the round's screen
     by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
     return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key)
+
+
+def filter_start(c: Candidate, sr) -> Candidate:
+    """``c`` with its time constant starting at the best grid value of its screen
+    (:func:`.score.screen_input_filters`) when ``c`` is a lag or Padé delay of an input that
+    has one: the likelihood of a time constant is multimodal and a refit from the smallest
+    (a sample) stops in the nearest optimum. Any other candidate is returned unchanged."""
+    from .specwrite import clip_to_bounds
+
+    kind = (c.info or {}).get("filter")
+    tau = (getattr(sr, "step", None) or {}).get("tau_s") if sr is not None else None
+    if kind not in ("lag", "pade") or tau is None or sr.statistic is None \
+            or not math.isfinite(tau) or not c.parameters:
+        return c
+    p = c.parameters[0]
+    start = clip_to_bounds(float(tau), [p.lower, p.upper])
+    return dataclasses.replace(c, parameters=(dataclasses.replace(p, initial=start),)
+                               + tuple(c.parameters[1:]),
+                               info={**c.info, "start_from_screen_s": start})
 
 
 def _refit_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
@@ -1126,7 +1152,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
                         engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
-                        deadline=run.deadline)
+                        deadline=run.deadline, screen=sr)
         if t is None:
             return None
         st.unfinished["pending"].remove(c.key)

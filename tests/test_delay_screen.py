@@ -1,0 +1,237 @@
+"""Profiled score statistics of input filters (:func:`vsidgen.discrepancy.score.screen_input_filters`):
+transport delays, and lags.
+
+The record is simulated independently (numpy, 20 sub-steps per sample, an input that moves
+between samples, the state driven by the input ``TAU_TRUE`` seconds late). The statistic
+of each grid delay is checked against an independent reference: a numpy Kalman filter of
+the Euler-discrete model with input ``B u + g B₀ (u_τ − u)`` (the gate's coefficient frozen
+at the null estimate B₀, as the screen's gates are), whose exact log-likelihood is
+maximised under the null (g = 0) with scipy and differentiated by central finite
+differences; Rao's statistic ``g_k² / (I_kk − I_k,rest I_rest⁻¹ I_rest,k)`` with the cross
+terms of g and the noise parameters at their null expectation, zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from test_score_states import DT, fit_lin1, null_mle, rao_statistic
+
+TAU_TRUE = 0.15
+TAU_LAG = 0.12
+
+
+def _input(t):
+    """Doublets through a 0.1 s first-order lag: continuous, moving between samples."""
+    out = np.zeros_like(t)
+    for t0, w, amp in ((1, 2, 1.0), (3, 1.5, -1.0), (4.5, 1, 1.0), (5.5, 1, -1.0),
+                       (12, 3, 0.8), (20, 2, -0.8), (28, 4, 1.0), (35, 1, -1.0)):
+        for s0, sg in ((t0, 1.0), (t0 + w, -1.0)):
+            out += sg * amp * (1 - np.exp(-np.maximum(t - s0, 0.0) / 0.1)) * (t >= s0)
+    return out
+
+
+def _simulate(n=800, seed=3, tau=TAU_TRUE):
+    rng = np.random.default_rng(seed)
+    a, b, gw, sv = -1.2, 2.0, 0.08, 0.02
+    sub = 20
+    h = DT / sub
+    uf = _input(np.arange(n * sub) * h - tau)
+    x = 0.0
+    xs = np.empty(n)
+    for i in range(n):
+        xs[i] = x
+        for k in range(sub):
+            x = x + h * (a * x + b * uf[i * sub + k]) + gw * math.sqrt(h) * rng.standard_normal()
+    t = np.arange(n) * DT
+    return t, _input(t), xs + sv * rng.standard_normal(n)
+
+
+def _kf_loglik(p, u, d, y, b0=None):
+    """Exact log-likelihood of y under x_{k+1} = x_k + T(A x_k + B u_k + g B₀ d_k) + w_k
+    (B₀ = B unless given: the gate's coefficient frozen at the null estimate)."""
+    A, B, lg, ls, g = p
+    b0 = B if b0 is None else b0
+    T = DT
+    q, R = T * math.exp(2 * lg), math.exp(2 * ls)
+    xh, P = y[0], R
+    ll = 0.0
+    for i in range(len(y)):
+        S = P + R
+        e = y[i] - xh
+        ll -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
+        K = P / S
+        xh, P = xh + K * e, P - K * P
+        xh = (1 + T * A) * xh + T * (B * u[i] + g * b0 * d[i])
+        P = (1 + T * A) ** 2 * P + q
+    return ll
+
+
+def _kf_scores(u, y, ds):
+    """Rao's statistic of the gate g for each difference channel of ``ds`` (the gate's
+    coefficient frozen at the null estimate B₀, so its cross derivatives with A and B are the
+    expected-information ones)."""
+    p0 = null_mle(lambda p: -_kf_loglik(np.append(p, 0.0), u, u, y))
+    return [rao_statistic(lambda z, d=d: _kf_loglik(z, u, d, y, b0=p0[1]), np.append(p0, 0.0),
+                          [1e-4, 1e-4, 1e-4, 1e-4, 1e-3]) for d in ds]
+
+
+@pytest.fixture(scope="module")
+def delayed(tmp_path_factory):
+    from vsidgen.discrepancy import propose
+
+    tmp = tmp_path_factory.mktemp("delay")
+    t, u, y = _simulate()
+    st, info = fit_lin1(tmp, t, u, y)
+    cand = next(c for c in propose(info) if c.effect == "transport_delay")
+    return tmp, st, info, cand, (t, u, y)
+
+
+def test_grid_statistics_match_kalman_filter_and_peak_at_the_true_delay(delayed):
+    from vsidgen.data import delay_input
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
+    from vsidgen.discrepancy.score import screen
+
+    tmp, st, info, cand, (t, u, y) = delayed
+    res = screen([cand], st, info, tmp / "screen", "t", generated_dir=tmp / "gen",
+                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
+    taus = [tau for tau, _ in res.profile]
+    grid_stats = [s for _, s in res.profile]
+    assert all(s is not None for s in grid_stats), res
+    # the best grid delay brackets the true one as the model sees it (the model's zero-order
+    # hold already delays the input by half a sample: TAU_TRUE − DT/2 = 0.125 s); the
+    # statistic is the largest of the grid's, its p-value carries the grid's Bonferroni factor
+    print("delay screen:", res.profile)
+    seen = TAU_TRUE - DT / 2
+    lo, hi = max(x for x in taus if x <= seen), min(x for x in taus if x >= seen)
+    assert res.step["tau_s"] in (lo, hi) and res.dof == 1
+    assert res.statistic == max(grid_stats) and res.multiplicity == len(taus)
+    assert res.p_value == pytest.approx(min(1.0, len(taus) * stats.chi2.sf(res.statistic, 1)))
+    pick = [taus.index(x) for x in taus if x in (0.05, 0.1, TAU_TRUE, 0.4) or
+            math.isclose(x, TAU_TRUE)]
+    ref = _kf_scores(u, y, [delay_input(u, t, taus[i]) - u for i in pick])
+    got = [grid_stats[i] for i in pick]
+    print("grid delay, score statistic, Kalman-filter reference:",
+          [(taus[i], g, r) for i, g, r in zip(pick, got, ref)])
+    assert min(ref) > 50.0, ref          # a clear effect at every checked delay
+    # measured (grid delay: statistic, reference): 0.05 s: 120.40, 119.73; 0.1 s: 171.67,
+    # 171.02; 0.15 s: 167.87, 167.17; 0.4 s: 58.02, 57.78
+    for g, r in zip(got, ref):
+        assert g == pytest.approx(r, rel=0.02), (got, ref)
+    # the reference's ranking of the checked delays is the screen's
+    assert int(np.argmax(got)) == int(np.argmax(ref))
+
+
+def test_delay_ranks_on_the_p_value_scale_with_its_bonferroni_factor():
+    from vsidgen.discrepancy.score import ScoreResult
+
+    one = ScoreResult(30.0, 1, float(stats.chi2.sf(30.0, 1)), ("p",))
+    prof = ScoreResult(30.0, 1, float(min(1, 10 * stats.chi2.sf(30.0, 1))), ("tau",),
+                       multiplicity=10)
+    assert prof.log10p == pytest.approx(one.log10p - 1.0)
+    assert ScoreResult(1.0, 1, 1.0, ("tau",), multiplicity=10).log10p == 0.0
+    js = prof.to_json()
+    assert js["multiplicity"] == 10 and js["minus_log10_p"] == pytest.approx(prof.log10p)
+
+
+def test_an_input_already_delayed_is_not_screened(delayed):
+    import dataclasses
+
+    from vsidgen.discrepancy.score import screen_input_filters as screen_delays
+
+    tmp, st, info, cand, _ = delayed
+    m = dataclasses.replace(st.model, inputs=tuple(dataclasses.replace(v, delay=0.1)
+                                                   for v in st.model.inputs))
+    res = screen_delays([cand], dataclasses.replace(st, model=m), det_std=1e-3)[cand.key]
+    assert res.statistic is None and "already delays u" in res.note
+
+
+def test_profile_climbs_the_grid_from_the_screened_delay(monkeypatch):
+    """With the screen's best delay the profile refits it and its neighbours, then climbs to
+    the higher neighbour until a maximum is bracketed: fewer refits, the same optimum as the
+    full grid (a profile with one maximum at 0.3 s)."""
+    import pathlib
+    import types
+
+    from vsidgen.discrepancy import delay as D
+    from vsidgen.engine import Engine
+
+    calls = []
+
+    def grid_task(cur, j, tau, it):
+        calls.append(tau)
+        return 100.0 + 40.0 * math.exp(-((tau - 0.3) / 0.15) ** 2), True
+
+    monkeypatch.setattr(D, "_grid_task", grid_task)
+    monkeypatch.setattr(D, "_final_task", lambda *a: types.SimpleNamespace(elbo=150.0))
+    rec = types.SimpleNamespace(dt=0.05)
+    model = types.SimpleNamespace(input_names=("de",), inputs=(types.SimpleNamespace(delay=0.0),))
+    current = types.SimpleNamespace(records=(rec,), elbo=100.0, model=model)
+    kw = dict(engine=Engine(workers=1), generated_dir=None, max_iter=10)
+    full = D.profile_delay(current, "de", pathlib.Path("x.yaml"), "x", **kw)
+    n_full = len(calls)
+    calls.clear()
+    climb = D.profile_delay(current, "de", pathlib.Path("x.yaml"), "x", start=0.1, **kw)
+    grid = D.delay_grid(0.05)
+    assert n_full == len(grid) and len(calls) < n_full
+    assert climb.best_grid == full.best_grid == pytest.approx(0.3)
+    assert climb.estimate == pytest.approx(full.estimate)
+    # the grid delays refitted: 0.075, 0.1, 0.15 (start), then 0.2, 0.3, 0.4 (climbing)
+    assert sorted(calls) == pytest.approx([0.075, 0.1, 0.15, 0.2, 0.3, 0.4])
+    assert sum(map(math.isfinite, climb.elbos)) == len(calls)
+
+
+def test_filter_input_against_scipy_lsim():
+    """The lag (exact for inputs linear between samples) and the Padé delay against scipy's
+    continuous-time simulation with linearly interpolated input."""
+    from scipy import signal
+
+    from vsidgen.discrepancy.score import filter_input
+
+    t = np.arange(0, 6.0, 0.05)
+    u = _input(t)
+    for tau in (0.05, 0.3, 2.0):
+        _, ref, _ = signal.lsim(([1.0], [tau, 1.0]), u, t, X0=[tau * u[0]])
+        np.testing.assert_allclose(filter_input("lag", u, t, tau), ref, atol=1e-9)
+        _, pade, _ = signal.lsim(([-tau / 2, 1.0], [tau / 2, 1.0]), u, t, X0=[0.0])
+        np.testing.assert_allclose(filter_input("pade", u, t, tau), pade, atol=1e-9)
+    np.testing.assert_allclose(filter_input("delay", u, t, 0.1), np.interp(t - 0.1, t, u))
+
+
+def test_lag_screen_finds_the_time_constant_and_starts_the_refit_there(tmp_path):
+    """An actuator lag of 0.3 s (independent simulation: the state driven by the lagged
+    input, 20 sub-steps): the screen's best time constant is the grid value nearest 0.3 s,
+    significant, and the lag's refit starts there."""
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
+    from vsidgen.discrepancy.score import filter_grid, screen
+    from vsidgen.discrepancy.search import filter_start
+
+    rng = np.random.default_rng(4)
+    n, sub = 800, 20
+    h = DT / sub
+    uf = _input(np.arange(n * sub) * h)
+    x = z = 0.0
+    xs = np.empty(n)
+    for i in range(n):
+        xs[i] = x
+        for k in range(sub):
+            x, z = (x + h * (-1.2 * x + 2.0 * z) + 0.08 * math.sqrt(h) * rng.standard_normal(),
+                    z + h * (uf[i * sub + k] - z) / TAU_LAG)
+    t = np.arange(n) * DT
+    st, info = fit_lin1(tmp_path, t, _input(t), xs + 0.02 * rng.standard_normal(n))
+    cand = next(c for c in propose(info) if c.effect == "actuator_lag")
+    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
+                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
+    _, grid = filter_grid(cand, DT)
+    print("lag screen:", res.profile)
+    assert res.multiplicity == len(grid) and res.p_value < 1e-6
+    # within one grid step (a factor √2) of the true time constant
+    assert abs(math.log(res.step["tau_s"] / TAU_LAG)) <= math.log(math.sqrt(2.0)) + 1e-9
+    started = filter_start(cand, res)
+    assert started.parameters[0].initial == pytest.approx(res.step["tau_s"])
+    assert filter_start(cand, None) is cand
