@@ -398,15 +398,170 @@ def _smooth_jaxpr(jaxpr) -> bool:
     return True
 
 
-def curvature_vars(fn, na: int, nu: int, *, points: int = 3, seed: int = 0):
+#: primitives that only move elements (their structure is that of the numpy operation)
+_MOVE_PRIMS = frozenset("slice squeeze reshape broadcast_in_dim concatenate stack transpose "
+                        "expand_dims rev convert_element_type copy copy_p".split())
+#: linear element-wise primitives
+_LINEAR_PRIMS = frozenset("add add_any sub neg".split())
+#: non-linear analytic primitives of one or two operands: every variable they depend on has
+#: curvature in their result
+_NONLINEAR_PRIMS = frozenset("""
+exp exp2 log log1p expm1 sin cos tan asin acos atan sinh cosh tanh asinh acosh atanh sqrt
+rsqrt cbrt square logistic erf pow atan2
+""".split())
+#: call wrappers whose sub-jaxpr is analysed in place
+_CALL_PRIMS = frozenset("pjit jit closed_call core_call remat checkpoint custom_jvp_call "
+                        "custom_vjp_call".split())
+
+
+def _bits_move(name, params, ops, shape):
+    """An element-moving primitive applied to object arrays of bit masks."""
+    a = ops[0]
+    if name == "slice":
+        st = params.get("strides") or (1,) * a.ndim
+        return a[tuple(slice(b, e, k) for b, e, k in zip(params["start_indices"],
+                                                          params["limit_indices"], st))]
+    if name == "squeeze":
+        return np.squeeze(a, axis=tuple(params["dimensions"]))
+    if name == "reshape":
+        return np.reshape(a, shape)
+    if name == "broadcast_in_dim":
+        dims = tuple(params["broadcast_dimensions"])
+        inter = [1] * len(shape)
+        for d, k in zip(dims, a.shape):
+            inter[d] = k
+        return np.broadcast_to(np.reshape(a, inter), shape).copy()
+    if name == "concatenate":
+        return np.concatenate(ops, axis=params["dimension"])
+    if name == "stack":
+        return np.stack(ops, axis=params.get("axis", 0))
+    if name == "transpose":
+        return np.transpose(a, params["permutation"])
+    if name == "expand_dims":
+        return np.expand_dims(a, tuple(params["dimensions"]))
+    if name == "rev":
+        return np.flip(a, axis=tuple(params["dimensions"]))
+    return a.copy()             # convert_element_type, copy
+
+
+def _zeros_bits(shape):
+    out = np.empty(shape, object)
+    out.fill(0)
+    return out
+
+
+def _obj(x):
+    """``x`` as an object array (an operation on 0-d object arrays returns a Python int)."""
+    return np.asarray(x, dtype=object)
+
+
+def _or_all(a) -> int:
+    v = 0
+    for x in np.asarray(a, object).ravel():
+        v |= x
+    return v
+
+
+def _jaxpr_curvature(jaxpr, ins):
+    """Dependence and curvature bit masks of the outputs of ``jaxpr`` (see :func:`curvature_vars`);
+    ``ins``: one (dep, curv) pair of object arrays per input variable. None when a primitive has
+    no rule."""
+    from jax.extend.core import Literal
+
+    env = {}
+
+    def read(v):
+        if isinstance(v, Literal):
+            z = _zeros_bits(np.shape(v.val))
+            return z, z
+        if v not in env:            # constants of the jaxpr
+            z = _zeros_bits(tuple(v.aval.shape))
+            return z, z
+        return env[v]
+
+    for v, dc in zip(jaxpr.invars, ins):
+        env[v] = dc
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        ops = [read(v) for v in eqn.invars]
+        shape = tuple(eqn.outvars[0].aval.shape) if eqn.outvars else ()
+        if name in _CALL_PRIMS:
+            sub = next((p for k, p in eqn.params.items()
+                        if k in ("jaxpr", "call_jaxpr", "fun_jaxpr")), None)
+            if sub is None:
+                return None
+            subj = getattr(sub, "jaxpr", sub)
+            res = _jaxpr_curvature(subj, ops[len(ops) - len(subj.invars):])
+            if res is None:
+                return None
+            for v, dc in zip(eqn.outvars, res):
+                env[v] = dc
+            continue
+        if len(eqn.outvars) != 1:
+            return None
+        deps = [d for d, _ in ops]
+        curvs = [c for _, c in ops]
+        if name in _MOVE_PRIMS:
+            d = _bits_move(name, eqn.params, deps, shape)
+            c = _bits_move(name, eqn.params, curvs, shape)
+        elif name in _LINEAR_PRIMS or name in ("mul", "div", "integer_pow") \
+                or name in _NONLINEAR_PRIMS:
+            bd = np.broadcast_arrays(*deps)
+            bc = np.broadcast_arrays(*curvs)
+            d = _zeros_bits(bd[0].shape)
+            c = _zeros_bits(bd[0].shape)
+            for x in bd:
+                d = _obj(d | x)
+            for x in bc:
+                c = _obj(c | x)
+            if name == "mul":
+                both = np.vectorize(lambda a, b: (a | b) if (a and b) else 0, otypes=[object])
+                c = _obj(c | both(bd[0], bd[1]))
+            elif name == "div":
+                den = np.vectorize(lambda a, b: (a | b) if b else 0, otypes=[object])
+                c = _obj(c | den(bd[0], bd[1]))
+            elif name == "integer_pow":
+                y = int(eqn.params["y"])
+                if y == 0:
+                    d = c = _zeros_bits(d.shape)
+                elif y != 1:
+                    c = _obj(c | d)
+            elif name in _NONLINEAR_PRIMS:
+                c = _obj(c | d)
+            d = np.broadcast_to(d, shape).copy()
+            c = np.broadcast_to(c, shape).copy()
+        elif name == "iota":
+            d, c = _zeros_bits(shape), _zeros_bits(shape)
+        elif name == "reduce_sum":
+            axes = tuple(eqn.params["axes"])
+            d = np.bitwise_or.reduce(deps[0], axis=axes) if axes else deps[0]
+            c = np.bitwise_or.reduce(curvs[0], axis=axes) if axes else curvs[0]
+            d, c = _obj(d).reshape(shape), _obj(c).reshape(shape)
+        elif name == "dot_general":
+            da, db = _or_all(deps[0]), _or_all(deps[1])
+            cv = _or_all(curvs[0]) | _or_all(curvs[1]) | ((da | db) if (da and db) else 0)
+            d, c = _zeros_bits(shape), _zeros_bits(shape)
+            d.fill(da | db)
+            c.fill(cv)
+        else:
+            return None
+        env[eqn.outvars[0]] = (d, c)
+    return [read(v) for v in jaxpr.outvars]
+
+
+def curvature_vars(fn, na: int, nu: int):
     """Indices of the arguments a of ``fn(a, u)`` that enter its second derivatives (None: all).
 
     Used to restrict the model curvature K = ∇²_a(λ·fn) to the variables that actually have
-    curvature (e.g. the state–parameter products of a model linear in the states): the
-    Hessian of fn is evaluated at a few random points and the variables with a non-zero
-    row are kept. This is exact for functions built from analytic primitives only
-    (checked on the jaxpr); anything else (comparisons, select, abs, custom rules, ...)
-    keeps all variables.
+    curvature (e.g. the state–parameter products of a model linear in the states). Found
+    structurally on the jaxpr of ``fn``, without compiling anything: every value carries the
+    set of variables it depends on (dep) and of those with curvature in it (curv); a linear
+    primitive unites them, ``a·b`` adds dep(a) ∪ dep(b) to curv when both depend on
+    variables, ``a/b`` when b does, an analytic non-linear primitive (exp, sin, integer
+    powers, ...) makes its whole dep curved, and element-moving primitives move the sets
+    like the elements. The result contains every variable with a non-zero second derivative
+    (a superset only where terms cancel exactly). A primitive without a rule (comparisons,
+    select, abs, custom rules, ...) keeps all variables.
     """
     try:
         jx = jax.make_jaxpr(fn)(jnp.zeros(na), jnp.zeros(nu))
@@ -414,17 +569,17 @@ def curvature_vars(fn, na: int, nu: int, *, points: int = 3, seed: int = 0):
         return None
     if not _smooth_jaxpr(jx.jaxpr):
         return None
-    rng = np.random.default_rng(seed)
-    hes = jax.jit(jax.hessian(fn), compiler_options=compiler_options())
-    mask = np.zeros(na, bool)
-    for _ in range(points):
-        a = rng.normal(size=na) * rng.uniform(0.3, 3.0)
-        uu = rng.normal(size=nu)
-        Hm = np.asarray(hes(jnp.asarray(a), jnp.asarray(uu)))
-        if not np.all(np.isfinite(Hm)):
-            return None
-        mask |= np.any(Hm != 0, axis=(0, 1)) | np.any(Hm != 0, axis=(0, 2))
-    return np.nonzero(mask)[0]
+    dep_a = np.empty(na, object)
+    for i in range(na):
+        dep_a[i] = 1 << i
+    res = _jaxpr_curvature(jx.jaxpr, [(dep_a, _zeros_bits(na)),
+                                      (_zeros_bits(nu), _zeros_bits(nu))])
+    if res is None:
+        return None
+    mask = 0
+    for _, c in res:
+        mask |= _or_all(c)
+    return np.array([i for i in range(na) if mask >> i & 1], int)
 
 
 # --------------------------------------------------------------------------- objective
@@ -921,21 +1076,20 @@ class SwitchedObjective(Objective):
         self.point_jacobians = "autodiff"
 
     def _curvature_structure(self, na: int, nu: int):
-        """The union over the models of their variables with curvature: those of one random
-        positive combination Σ_k w_k F_k (and Σ_k w_k h_k), one probe instead of one per model.
-        A second derivative that is non-zero for some model cancels in the combination only on
-        a set of weights and points of measure zero (the argument of :func:`curvature_vars`),
-        and the combination is analytic exactly when every model is."""
+        """The union over the models of their variables with curvature (:func:`curvature_vars`,
+        structural: nothing is compiled); None (all variables) when one model has no structure."""
         n = self.n
-        w = np.random.default_rng(1).uniform(0.5, 1.5, len(self.models))
-        Fs, hs = self.transitions, [m.output for m in self.models]
 
-        def F_sum(a, u):
-            return sum(wk * F(a[:n], u, a[n:], 0.05) for wk, F in zip(w, Fs))
+        def union(fns):
+            sets = [curvature_vars(f, na, nu) for f in fns]
+            if any(v is None for v in sets):
+                return None
+            return np.array(sorted(set().union(*(set(map(int, v)) for v in sets))), int)
 
-        def h_sum(a, u):
-            return sum(wk * h(a[:n], u, a[n:]) for wk, h in zip(w, hs))
-        return curvature_vars(F_sum, na, nu), curvature_vars(h_sum, na, nu)
+        return (union([functools.partial(lambda a, u, F: F(a[:n], u, a[n:], 0.05), F=F)
+                       for F in self.transitions]),
+                union([functools.partial(lambda a, u, h: h(a[:n], u, a[n:]), h=m.output)
+                       for m in self.models]))
 
     def transition_of(self, cfg):
         k, Fs = cfg["branch"], self.transitions
