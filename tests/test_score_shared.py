@@ -119,3 +119,40 @@ def test_a_shape_without_shared_objective_is_screened_batch_by_batch(lin1, monke
     assert set(out) == {g[0].key for g in groups}
     assert any(r.statistic is not None and np.isfinite(r.statistic) for r in out.values())
     assert not any(r.note.startswith("failed") for r in out.values()), out
+
+
+def test_plain_batch_blocks_by_hessian_vector_products_equal_the_assembly(lin1):
+    """The plain batch's blocks from the current model's blocks and Hessian-vector products of
+    the batch (:func:`~vsidgen.discrepancy.score.blocks_by_hvp`, no block assembly of the batch
+    model) give the statistics of the batch's own assembled blocks."""
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
+    from vsidgen.discrepancy.score import _batch_model, batch_statistics, batches
+    from vsidgen.estimator import FitOptions, Problem
+
+    tmp, st, info, _ = lin1
+    plain = [c for c in propose(info) if c.screenable and not c.states]
+    g = batches(plain)[0]
+    assert len(g) >= 3
+    m, bnames = _batch_model(g, st, info, tmp / "plain.yaml", "t_plain", generated_dir=tmp / "gen")
+    opts = FitOptions(deterministic_std=DET, bucket=False)
+    recs = list(st.records)
+    ref = batch_statistics(g, st, m, Problem(m, recs, opts), bnames, det_std=DET, hvp=False)
+    Pb = Problem(m, recs, opts)
+
+    def no_assembly(*a, **k):
+        raise AssertionError("the batch model's blocks were assembled")
+    Pb.blocks = no_assembly
+    got = batch_statistics(g, st, m, Pb, bnames, det_std=DET, hvp=True)
+    tested = 0
+    for c in g:
+        a, b = ref[c.key], got[c.key]
+        assert (a.tested, a.held, a.dof, a.ascent) == (b.tested, b.held, b.dof, b.ascent), (a, b)
+        if a.statistic is None:
+            assert b.statistic is None
+            continue
+        tested += 1
+        assert b.statistic == pytest.approx(a.statistic, rel=1e-6, abs=1e-8), (c.key, a, b)
+        for n in a.step:
+            assert b.step[n] == pytest.approx(a.step[n], rel=1e-6, abs=1e-10)
+    assert tested >= 2, (tested, got)

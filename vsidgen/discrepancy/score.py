@@ -399,11 +399,106 @@ def _rao_system(S, rhs, lay, gpos):
     return S, rhs, {n: j - off for n, j in gpos.items()}, len(keep)
 
 
-def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
+#: new parameters per vmapped chunk of Hessian-vector products (:func:`blocks_by_hvp`)
+HVP_CHUNK = 16
+
+
+def blocks_by_hvp(P, current, s, recs, *, det_std: float):
+    """The Hessian blocks of the batch problem ``P`` (a batch that adds no state) at the nesting
+    point ``(s, recs)``, without compiling the batch model's block assembly.
+
+    At the nesting point the batch model *is* the current model, so every block over the
+    current variables (state means, assumed-density parameters, current parameters, noise) is
+    the current model's: they come from the current problem's blocks (its own compiled
+    assembly, one per record length, shared by every batch and with the fits). The rows of
+    the new parameters γ are exact Hessian–vector products of the batch's negative ELBO,
+    ``H e_γ = ∂/∂ε ∇f(v + ε e_γ)`` (forward over reverse mode on the flat decision vector;
+    one compilation of its gradient, ``HVP_CHUNK`` directions per vmapped call), and their
+    gradient the exact gradient there. The shared-vector entries of the new rows (sums over
+    records) are put into the first record's blocks; every consumer sums over records.
+    Returns None when the layouts do not match (the caller assembles the blocks itself).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from ..estimator import FitOptions, Problem
+
+    P0 = Problem(current.model, list(current.records),
+                 FitOptions(deterministic_std=det_std, bucket=False))
+    lay, lay0 = P.layout, P0.layout
+    if ((lay.nx, lay.nq, lay.n_proc, lay.n_meas, lay.lengths)
+            != (lay0.nx, lay0.nq, lay0.n_proc, lay0.n_meas, lay0.lengths)
+            or P.nm.static_key() != P0.nm.static_key() or P.padded != P.lengths):
+        return None
+    names, names0 = P.free_names, P0.free_names
+    zpos = {n: j for j, n in enumerate(names)}
+    if not set(names0) <= set(zpos):
+        return None
+    cur = [zpos[n] for n in names0]
+    new = [j for j, n in enumerate(names) if n not in set(names0)]
+    nt, nq, ng = lay.n_theta, lay.nq, lay.ng
+    s = np.asarray(s, float)
+    blk0 = P0.blocks(np.concatenate([s[cur], s[nt:]]), recs)
+    k = len(new)
+    spos = lay.n_mu + lay.shared_offset + np.arange(ng)       # s in the flat vector
+    v = jnp.asarray(lay.pack(s, recs))
+    grad_f = jax.grad(P.flat_value)
+
+    def hvps(v, E, cfg, data):
+        def col(w):
+            return jax.jvp(lambda x: grad_f(x, cfg, data), (v,), (w,))
+        g, h = jax.vmap(col)(E)
+        return g[0], h
+
+    fn = jax.jit(hvps)
+    kc = max(1, min(HVP_CHUNK, k))
+    cols, g = [], None
+    for a in range(0, k, kc):
+        E = np.zeros((kc, lay.size))
+        for r, j in enumerate(new[a:a + kc]):
+            E[r, spos[j]] = 1.0
+        gg, hh = fn(v, jnp.asarray(E), P.cfg, P.data)
+        g = np.asarray(gg, float)
+        cols.append(np.asarray(hh, float)[:len(new[a:a + kc])])
+    Hc = np.concatenate(cols) if cols else np.zeros((0, lay.size))
+    Hc[:, spos[new]] = 0.5 * (Hc[:, spos[new]] + Hc[:, spos[new]].T)
+    nb = nq + ng
+    src = np.full(nb, -1)                      # position in the current record border
+    src[:nq] = np.arange(nq)
+    src[nq + np.asarray(cur, int)] = nq + np.arange(len(cur))
+    src[nq + nt:] = nq + lay0.n_theta + np.arange(ng - nt)
+    keep = np.nonzero(src >= 0)[0]
+    newb = nq + np.asarray(new, int)
+    out, off = [], 0
+    for i, b in enumerate(blk0):
+        N = lay.lengths[i]
+        W0, H0, gb0 = (np.asarray(b[x], float) for x in ("W", "Hbb", "gb"))
+        W = np.zeros(W0.shape[:2] + (nb,))
+        W[:, :, keep] = W0[:, :, src[keep]]
+        W[:N, :, newb] = Hc[:, off:off + N * lay.nx].reshape(k, N, lay.nx).transpose(1, 2, 0)
+        off += N * lay.nx
+        H = np.zeros((nb, nb))
+        H[np.ix_(keep, keep)] = H0[np.ix_(src[keep], src[keep])]
+        rpos = lay.n_mu + lay.r_index(i)
+        H[np.ix_(np.arange(nq), newb)] = Hc[:, rpos].T
+        H[np.ix_(newb, np.arange(nq))] = Hc[:, rpos]
+        gb = np.zeros(nb)
+        gb[keep] = gb0[src[keep]]
+        if i == 0:
+            H[np.ix_(nq + np.arange(ng), newb)] = Hc[:, spos].T
+            H[np.ix_(newb, nq + np.arange(ng))] = Hc[:, spos]
+            gb[newb] = g[spos[new]]
+        out.append({**b, "W": W, "Hbb": H, "gb": gb})
+    return out
+
+
+def batch_statistics(cands, current, m, P, bnames, *, det_std: float, hvp: bool = True) -> dict:
     """Score statistics of the candidates ``cands`` of the batch model ``m`` (names ``bnames``,
     :func:`batch_spec_dict`) from the problem ``P`` of ``m`` on the current records: ``P.model``
     is ``m`` or ``m`` with inert parameters appended (:func:`padded_model`; they are held, so
-    the statistics are those of ``m``)."""
+    the statistics are those of ``m``). ``hvp`` (default True): a batch that adds no state
+    takes its blocks from the current model's and Hessian-vector products of ``m``
+    (:func:`blocks_by_hvp`) instead of compiling ``m``'s own block assembly."""
     from .refit import noise_stds, stage0_start
 
     records = list(current.records)
@@ -427,7 +522,11 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float) -> dict:
     else:
         recs = [(np.asarray(x["mu"], float), np.asarray(x["r"], float))
                 for x in base_fit.decision["records"]]
-    blks = P.blocks(s, recs)
+    blks = None
+    if not new_states and getattr(P, "_shared_obj", None) is None and hvp:
+        blks = blocks_by_hvp(P, current, s, recs, det_std=det_std)
+    if blks is None:
+        blks = P.blocks(s, recs)
     nglob = P.layout.nglob
     free_names = P.free_names
     gpos = {n: int(j) for n, j in zip(free_names, P.layout.theta_index)}
