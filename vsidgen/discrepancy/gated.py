@@ -14,10 +14,11 @@ Candidate ``c``'s refit is therefore a fit of the gated model in which the other
 candidates' parameters are ``fixed`` at their nesting values. Which parameters are free is
 a run-time array of the estimator's parameter map (:class:`~vsidgen.estimator.core.ThetaMap`,
 its static key is only the *number* of free parameters), and fixed values are run-time
-arrays as well, so one compilation of the gated model serves every candidate's stage 1
-(current parameters fixed, the candidate's free: ``k`` free parameters), every stage 2
-(everything free: ``n_θ + k``), the validation smoothing (nothing free) and the projected
-refits (the current parameters free, every candidate at nesting: ``n_θ``) of the round.
+arrays as well, so one compilation of the gated model serves every candidate's stages 1
+and 2 (the candidate's and the current parameters free, the current ones held at their
+estimates in stage 1: ``FitOptions.held_parameters``; ``n_θ + k`` free parameters), the
+validation smoothing (nothing free) and the projected refits (the current parameters free,
+every candidate at nesting: ``n_θ``) of the round.
 Candidates with the same number ``k`` of new parameters share every compiled function.
 
 The stages are those of :func:`.search.staged_refit` for a candidate that adds no state
@@ -173,35 +174,31 @@ def gated_refit(c: Candidate, current: FitState, group: GatedGroup, path: pathli
     base_fit = current.fit
     own = {p.name for p in c.parameters}
     out.elbo_ref = current.elbo
-    # ---- stage 1: current parameters fixed, the candidate's free, the others at nesting
-    m1 = configured(gm, group.base_names, own, {}, free_base=False)
-    z1, _ = parameter_start(m1)
-    opts1 = {}
+    # ---- stage 1: current parameters held, the candidate's free, the others at nesting;
+    # stage 2 is the same problem with nothing held (one layout: shared compiled functions)
+    m2 = configured(gm, group.base_names, own, {}, free_base=True)
+    held = tuple(p.name for p in m2.parameters if not p.fixed and p.name not in own)
+    z1, _ = parameter_start(m2)
+    opts1 = {"held_parameters": held}
     if base_fit.decision is not None:
-        opts1["warm_start"] = _warm(m1, records, base_fit, current.model, z1)
+        opts1["warm_start"] = _warm(m2, records, base_fit, current.model, z1)
         out.warm = "base (gated model)"
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter), **opts1))
+        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter), **opts1))
     except FitError as err:
-        if not opts1:
+        if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter)))
+        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter),
+                                                     held_parameters=held))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     if progress is not None:
         progress(f"    stage 1: ELBO {res1.elbo:.6g} (reference {out.elbo_ref:.6g}, "
                  f"{'converged' if res1.converged else 'not converged'})")
-    # ---- stage 2: everything of c free from stage 1's estimates
-    est1 = {n: float(v) for n, v in zip(m1.parameter_names, res1.theta) if n in own}
-    m2 = configured(gm, group.base_names, own, est1, free_base=True)
-    ws2 = None
-    try:
-        z2, _ = parameter_start(m2)
-        ws2 = _warm(m2, records, res1, m1, z2)
-    except (FitError, ValueError, KeyError, TypeError) as err:
-        out.notes.append(f"no warm start for stage 2 ({err})")
+    # ---- stage 2: everything of c free from stage 1's optimum
+    ws2 = None if res1.decision is None else WarmStart.from_decision(res1.decision)
     res2 = fit_stage2(m2, records, res1, max_iter=max_iter, notes=out.notes, warm_start=ws2)
     out.state = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     out.wall_s = time.perf_counter() - t0

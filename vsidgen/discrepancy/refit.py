@@ -17,12 +17,13 @@ stage 0 (only for candidates that add states)
     the recorded input), their covariance from the scalar stationary solution.
     Its ELBO is the *nested reference* ``ELBO_ref``.
 stage 1
-    base parameters fixed at their estimates (``fixed: true``), the new
-    parameters and the noise free; warm start from stage 0 (or from the base fit
+    base parameters held at their estimates (``FitOptions.held_parameters``), the
+    new parameters and the noise free; warm start from stage 0 (or from the base fit
     when no state is added, where the start *is* the base optimum).
 stage 2
-    everything free, starting from stage 1's estimates (``initial:``) and its
-    decision vector (warm start, same problem shape).
+    everything free, starting from stage 1's optimum (warm start). Stages 1 and 2
+    are the same problem (one spec, one layout), so they share every compiled
+    function.
 
 Because the model has a flat prior on the initial state, an added state
 contributes the entropy of its own initial marginal, ``½ log(2πe P₀)`` per record,

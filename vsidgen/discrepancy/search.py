@@ -199,8 +199,11 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
                  name: str, *, generated_dir, max_iter: int, progress=None):
     """Refit candidate ``c`` in stages (see :mod:`.refit`); returns a RefitOutcome.
 
-    Stage 1 (``<path stem>.stage1.yaml``) fixes the current parameters at their
-    estimates; stage 2 (``path``) releases them from stage 1's estimates.
+    One spec (``path``, the new parameters at their nesting values, the current ones at their
+    estimates) and one compiled problem serve every stage: stage 0 (added states only: the
+    candidate at its nesting point, only the assumed density fitted), stage 1 (the current
+    parameters held at their estimates, ``FitOptions.held_parameters``) and stage 2
+    (everything free, from stage 1's optimum).
     """
     from ..estimator import fit, smooth
     from ..model import load_model
@@ -211,12 +214,12 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     out = RefitOutcome()
     records = list(current.records)
     base_fit = current.fit
-    # ---- stage 1 spec: current parameters fixed, new ones at their nesting values
-    p1 = path.with_name(path.stem + ".stage1.yaml")
-    write_candidate(c, current, info, p1, name + "_s1", fix_base=True)
-    m1 = load_model(p1, generated_dir=generated_dir)
-    new_states = [n for n in m1.state_names if n not in current.model.state_names]
-    z1, theta1 = parameter_start(m1)
+    write_candidate(c, current, info, path, name)
+    m2 = load_model(path, generated_dir=generated_dir)
+    new_states = [n for n in m2.state_names if n not in current.model.state_names]
+    z2, theta2 = parameter_start(m2)
+    base_names = set(current.model.parameter_names)
+    held = tuple(p.name for p in m2.parameters if not p.fixed and p.name in base_names)
     proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     decision0 = base_fit.decision
     warm = base_fit.decision is not None
@@ -224,9 +227,9 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     if new_states and warm:
         # ---- stage 0: candidate at its nesting point, only q fitted
         try:
-            dec0, G1, R1, H0, notes = stage0_start(m1, records, base_fit, current.model, theta1, DET)
+            dec0, G1, R1, H0, notes = stage0_start(m2, records, base_fit, current.model, theta2, DET)
             out.notes += notes
-            r0 = smooth(m1, records, theta1, {"G": G1, "R": R1},
+            r0 = smooth(m2, records, theta2, {"G": G1, "R": R1},
                         options=diag_options(max_iter, warm_start=WarmStart.from_decision(dec0)))
             out.elbo_stage0, out.converged_stage0 = float(r0.elbo), bool(r0.converged)
             out.x0_entropy = H0
@@ -239,10 +242,10 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             warm = False
     elif new_states:
         warm = False
-    opts1 = {}
+    opts1 = {"held_parameters": held}
     if warm:
         try:
-            s1 = np.concatenate([z1, noise_parameters(m1, records, DET, proc_std=proc_std, proc_G=offd,
+            s1 = np.concatenate([z2, noise_parameters(m2, records, DET, proc_std=proc_std, proc_G=offd,
                                               meas_std=meas_std)])
             opts1["warm_start"] = WarmStart.from_decision({"s": s1, "records": decision0["records"]})
             out.warm = out.warm or "base"
@@ -251,29 +254,20 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter), **opts1))
+        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter), **opts1))
     except FitError as err:
         if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m1, records, options=diag_options(stage1_iterations(max_iter)))
+        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter),
+                                                     held_parameters=held))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
-    if not new_states and not opts1:
+    if not new_states and "warm_start" not in opts1:
         out.elbo_ref = current.elbo
     _say(progress, f"    stage 1: ELBO {res1.elbo:.6g} (reference {out.elbo_ref:.6g}, "
                    f"{'converged' if res1.converged else 'not converged'})")
-    # ---- stage 2: everything free from stage 1's estimates
-    est1 = dict(zip(m1.parameter_names, map(float, res1.theta)))
-    write_candidate(c, current, info, path, name, new_initial=est1)
-    m2 = load_model(path, generated_dir=generated_dir)
-    ws2 = None
-    try:
-        z2, _ = parameter_start(m2)
-        ps, od, ms = noise_stds(res1, m1)
-        s2 = np.concatenate([z2, noise_parameters(m2, records, DET, proc_std=ps, proc_G=od, meas_std=ms)])
-        ws2 = WarmStart.from_decision({"s": s2, "records": res1.decision["records"]})
-    except (FitError, ValueError, KeyError, TypeError) as err:
-        out.notes.append(f"no warm start for stage 2 ({err})")
+    # ---- stage 2: everything free from stage 1's estimates (the same problem)
+    ws2 = None if res1.decision is None else WarmStart.from_decision(res1.decision)
     res2 = fit_stage2(m2, records, res1, max_iter=max_iter, notes=out.notes, warm_start=ws2)
     st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:

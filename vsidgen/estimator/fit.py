@@ -100,6 +100,7 @@ class _Measured:
     active: np.ndarray
     relgrad: float
     decrement: float
+    n_held: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,7 +135,8 @@ def _lm_measure(P: Problem, s, recs) -> _Measured:
     active = P.floor_active(s, gs)
     rg = _relgrad(f, s, recs, np.where(active, 0.0, gs), gmus, grs)
     dec = newton_decrement(P, blks, gs, gmus, grs, active)
-    return _Measured(blks=blks, f=f, grad=grad, Hg=Hg, active=active, relgrad=rg, decrement=dec)
+    return _Measured(blks=blks, f=f, grad=grad, Hg=Hg, active=active, relgrad=rg, decrement=dec,
+                     n_held=int(P.held.sum()))
 
 
 def _lm_detail(m: _Measured) -> str:
@@ -159,10 +161,14 @@ def _lm_terminate(m: _Measured, options: FitOptions, it: int, elapsed: float) ->
     elif rg < options.gtol:
         stop = _Stop(StopReason.GRADIENT, f"converged: relative gradient {rg:.3g} < gtol {options.gtol:g}", True)
     if stop is not None:
-        if m.active.any():
+        n_floor = int(m.active.sum()) - m.n_held
+        if n_floor > 0:
             stop = dataclasses.replace(stop, status=stop.status + (
-                f" (projected: {int(m.active.sum())} noise parameter(s) at their floor "
+                f" (projected: {n_floor} noise parameter(s) at their floor "
                 "treated as active bounds)"))
+        if m.n_held:
+            stop = dataclasses.replace(stop, status=stop.status + (
+                f" ({m.n_held} parameter(s) held at their start)"))
         return stop
     if it == options.max_iter:
         return _Stop(StopReason.ITERATION_LIMIT, f"stopped: iteration limit {options.max_iter} reached ({detail})")
@@ -653,6 +659,8 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
     if options.optimizer == "structured-newton":
         out = _multistart(P, options, starts)
     elif options.optimizer == "trust-constr":
+        if P.held.any():
+            raise FitError("held_parameters need the structured optimizer")
         out = _optimize_trust_constr(P, options, next((st for st in starts if st != "release"), "data"))
     else:
         raise FitError(f"unknown optimizer '{options.optimizer}' (use 'structured-newton' or 'trust-constr')")

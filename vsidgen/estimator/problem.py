@@ -366,6 +366,13 @@ class Problem:
         self.nrec = self.layout.nrec
         self.nglob = self.layout.nglob
         self.idx = [self.layout.border_index(i) for i in range(self.nrec)]
+        #: mask over s of the free parameters held at their start (``FitOptions.held_parameters``)
+        self.held = np.zeros(self.layout.ng, bool)
+        free = self.free_names
+        for name in tuple(getattr(options, "held_parameters", ()) or ()):
+            if name not in free:
+                raise FitError(f"held parameter '{name}' is not a free parameter of the model")
+            self.held[free.index(name)] = True
         self.theta_idx = self.layout.theta_index
 
     @functools.cached_property
@@ -466,7 +473,8 @@ class Problem:
         return s, recs
 
     def floor_active(self, s, gs):
-        """Mask over s of noise parameters whose lower bound (floor) is active.
+        """Mask over s of noise parameters whose lower bound (floor) is active, and of the held
+        parameters (``FitOptions.held_parameters``).
 
         σ = floor + exp(w) reaches its floor only asymptotically (w → −∞), so the
         gradient in w never vanishes there; a parameter with floor > 0, σ within
@@ -474,7 +482,7 @@ class Problem:
         is treated as an active bound constraint in the convergence test
         (projected / KKT gradient; flagged by the ``noise_at_floor`` warning).
         """
-        act = np.zeros(len(s), bool)
+        act = self.held.copy()      # held parameters: bounds active on both sides
         nt, nm = self.tm.n_free, self.nm
         w = np.asarray(s[nt:], float)
         gw = np.asarray(gs[nt:], float)

@@ -200,6 +200,12 @@ class FitOptions:
         time_limit: wall-clock budget in seconds (None: none); when it is exceeded the
             optimizer stops after the current iteration (not converged, status says so,
             ``iteration_limit`` warning). Used by the benchmark to bound the reference path.
+        held_parameters: names of free parameters held at their start values (the warm
+            start's, or the spec's initial values): the optimizer never moves them and
+            convergence is judged on the other variables (projected gradient and Newton
+            decrement, like an active bound). The problem's layout is that of the model, so a
+            fit with some parameters held and one with none share every compiled function
+            (diagnose's staged refits). Structured optimizer only.
     """
 
     integrator: str | None = None
@@ -223,6 +229,7 @@ class FitOptions:
     bucket: bool = True
     time_limit: float | None = None
     stall_rtol: float = 1e-8
+    held_parameters: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
