@@ -1005,8 +1005,19 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
         by_states: dict = {}        # batches of one number of added states: one shape, one task
         for g in with_states:
             by_states.setdefault(sum(len(c.states) for c in g), []).append(g)
-        tasks += [(f"s{k}", ("shared", gs, current, info, workdir, f"s{k}_", name))
-                  for k, gs in sorted(by_states.items(), reverse=True)]
+        # a shape's batches split over the engine's workers (one switched objective per part:
+        # the trace grows with the number of branches, so the parts compile side by side)
+        slots = engine_slots(engine)
+        shared_tasks = []
+        for k, gs in sorted(by_states.items(), reverse=True):
+            parts = min(len(gs), slots)
+            size = -(-len(gs) // parts)
+            for j in range(0, len(gs), size):
+                tag = f"s{k}_" if parts == 1 else f"s{k}p{j // size + 1}_"
+                shared_tasks.append((tag.rstrip("_"), ("shared", gs[j:j + size], current, info,
+                                                       workdir, tag, name)))
+        # the largest first (they take longest)
+        tasks = sorted(shared_tasks, key=lambda t: -len(t[1][1])) + tasks
     else:
         tasks = [(f"b{i + 1}", ("batch", group, current, info, workdir, f"b{i + 1}", name))
                  for i, group in enumerate(groups)]
@@ -1028,6 +1039,19 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
             for c in cands:
                 out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
     return out
+
+
+def engine_slots(engine) -> int:
+    """Tasks the engine runs at once (1 without one or when serial)."""
+    if engine is None or engine.serial:
+        return 1
+    client = getattr(engine, "client", None)
+    if client is not None:
+        try:
+            return max(1, int(sum(client.nthreads().values())))
+        except Exception:  # noqa: BLE001 - a scheduler that cannot say: its configured size
+            pass
+    return max(1, int(getattr(engine, "workers", 1) or 1))
 
 
 def _screen_task(kind, payload, current, info, workdir, tag, name, generated_dir, det_std):
