@@ -399,8 +399,10 @@ def _rao_system(S, rhs, lay, gpos):
     return S, rhs, {n: j - off for n, j in gpos.items()}, len(keep)
 
 
-#: new parameters per vmapped chunk of Hessian-vector products (:func:`blocks_by_hvp`)
-HVP_CHUNK = 16
+#: new parameters per vmapped chunk of Hessian-vector products (:func:`blocks_by_hvp`), at
+#: most; fewer on long records: the chunk's reverse-mode residuals grow with chunk × size of
+#: the decision vector, kept below ``HVP_BUDGET`` (16 directions up to 40,000 variables)
+HVP_CHUNK, HVP_BUDGET = 16, 16 * 40_000
 
 
 def blocks_by_hvp(P, current, s, recs, *, det_std: float):
@@ -451,7 +453,7 @@ def blocks_by_hvp(P, current, s, recs, *, det_std: float):
         return g[0], h
 
     fn = jax.jit(hvps)
-    kc = max(1, min(HVP_CHUNK, k))
+    kc = max(1, min(HVP_CHUNK, k, HVP_BUDGET // max(lay.size, 1)))
     cols, g = [], None
     for a in range(0, k, kc):
         E = np.zeros((kc, lay.size))
