@@ -39,9 +39,9 @@ def test_other_backends_keep_xla_defaults(monkeypatch):
 def test_every_objective_jit_compiles_with_the_cpu_options(monkeypatch):
     model, rec = _pend_problem()
     monkeypatch.setattr(core, "CPU_COMPILER_OPTIONS", {"xla_no_such_option_for_vsidgen": True})
-    with pytest.raises(Exception, match="xla_no_such_option_for_vsidgen"):
-        Problem(model, [rec], FitOptions(bucket=False)).obj  # the curvature probe's jit
-    monkeypatch.setattr(core, "curvature_vars", lambda *a, **k: None)  # no probe: general path
+    # the curvature structure is read off the jaxpr: building the objective compiles nothing
+    Problem(model, [rec], FitOptions(bucket=False)).obj
+    monkeypatch.setattr(core, "curvature_vars", lambda *a, **k: None)  # no structure: general path
     P = Problem(model, [rec], FitOptions(bucket=False))
     s, recs = _point(P)
     (m, r), = recs
