@@ -666,7 +666,8 @@ class MissingDynamics(Effect):
                     states=(NewState(m, f"-{m}/{tau} + {k}*{v}", _drift_unit(info, s),
                                      f"missing mode feeding d{s}/dt"),),
                     add_terms={"drift": {s: m}},
-                    info={"state": s, "regressor": f"lp:{v}"}))
+                    info={"state": s, "regressor": f"lp:{v}", "mode_driver": v,
+                          "mode_tau": LOWPASS_TAU, "mode_gain": k}))
         return out
 
     def score(self, c, ev):

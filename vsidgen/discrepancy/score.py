@@ -770,7 +770,7 @@ GATE_PREFIX, DIFF_PREFIX = "__filter_gate_", "__filter_diff_"
 FILTER_GRID_RATIO, MAX_FILTER_GRID = math.sqrt(2.0), 16
 
 
-def filter_input(kind: str, u, t, tau: float) -> np.ndarray:
+def filter_input(kind: str, u, t, tau: float, *, hold: str = "foh") -> np.ndarray:
     """The recorded input ``u`` (N,) at times ``t`` through an input filter of parameter τ:
 
     * ``"delay"``: the pure transport delay ``u(t − τ)`` (:func:`vsidgen.data.delay_input`);
@@ -779,6 +779,9 @@ def filter_input(kind: str, u, t, tau: float) -> np.ndarray:
       ``a = e^{−T/τ}``, ``b = 1 − (τ/T)(1 − a)``;
     * ``"pade"``: the first-order Padé delay ``2z − u`` with ``(τ/2) ż = u − z`` (the
       ``control_delay`` candidate's state).
+
+    ``hold="zoh"``: the lag and Padé filters for an input held over each sample instead
+    (``b = 0``).
     """
     from scipy import signal
 
@@ -792,7 +795,7 @@ def filter_input(kind: str, u, t, tau: float) -> np.ndarray:
     T = float(np.median(np.diff(np.asarray(t, np.float64))))
     tc = tau if kind == "lag" else 0.5 * tau
     a = math.exp(-T / tc)
-    b = 1.0 - (tc / T) * (1.0 - a)
+    b = 1.0 - (tc / T) * (1.0 - a) if hold != "zoh" else 0.0
     num, den = [b, (1.0 - a) - b], [1.0, -a]
     z, _ = signal.lfilter(num, den, u, zi=signal.lfilter_zi(num, den) * u[0])
     return z if kind == "lag" else 2.0 * z - u
@@ -991,14 +994,18 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     or is not run leaves its candidates without a statistic (a note says why): they are
     ranked after the tested ones.
     """
-    todo = [c for c in candidates if c.screenable and (include_states or not c.states)]
+    modes = [c for c in candidates if c.screenable and include_states and is_mode_candidate(c)]
+    todo = [c for c in candidates if c.screenable and (include_states or not c.states)
+            and not is_mode_candidate(c)]
     filters = [c for c in candidates if (c.info or {}).get("filter")]
     groups = batches(todo)
     out: dict = {}
     if progress is not None:
         progress(f"    score screen: {len(todo)} candidates in {len(groups)} batches "
                  f"({sum(1 for c in todo if c.states)} add states)"
-                 + (f", {len(filters)} input filters profiled" if filters else ""))
+                 + (f", {len(filters)} input filters profiled" if filters else "")
+                 + (f", {len(modes)} missing modes through their low-passed drivers"
+                    if modes else ""))
     plain = [g for g in groups if not any(c.states for c in g)]
     with_states = [g for g in groups if any(c.states for c in g)]
     if shared and with_states:
@@ -1025,6 +1032,8 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
                  for i, group in enumerate(groups)]
     if filters:
         tasks.append(("filters", ("filters", filters, current, info, workdir, "f", name)))
+    if modes:
+        tasks.append(("modes", ("modes", modes, current, info, workdir, "m", name)))
     if engine is None or engine.serial:
         for _, args in tasks:
             out.update(_screen_task(*args, generated_dir, det_std))
@@ -1040,6 +1049,132 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
             cands = [c for g in args[1] for c in g] if args[0] == "shared" else args[1]
             for c in cands:
                 out[c.key] = ScoreResult(None, 0, None, note=f"{oc.status.value}: {oc.error}")
+    return out
+
+
+#: name prefixes of the gates and channels of :func:`mode_bank`
+MODE_GATE_PREFIX, MODE_CHANNEL_PREFIX = "__mode_gate_", "__mode_channel_"
+
+
+def is_mode_candidate(c) -> bool:
+    """A first-order missing mode driven by one state or input (``missing_dynamics``), screened
+    through its low-passed driver (:func:`screen_modes`) instead of an added state."""
+    return bool((c.info or {}).get("mode_driver")) and len(c.states) == 1
+
+
+def mode_bank(model, records, theta, channels) -> GateBank:
+    """``model`` with gates ``g_k`` adding known signals ``c_k`` to state equations:
+    ``ẋ_{s_k} = f_{s_k}(x, u; θ) + g_k c_k(t)``, ``channels`` = ``(state, label, [c_k (N,) per
+    record])`` (extra input channels of the returned records). At ``g = 0`` it is ``model``."""
+    import jax.numpy as jnp
+
+    from ..metadata import Parameter, Variable
+
+    nu, npm = model.nu, model.np
+    S = np.zeros((model.nx, len(channels)))
+    for k, (st, _, _) in enumerate(channels):
+        S[list(model.state_names).index(st), k] = 1.0
+    Sj = jnp.asarray(S)
+    extra_in = tuple(Variable(f"{MODE_CHANNEL_PREFIX}{k}", "1", label)
+                     for k, (_, label, _) in enumerate(channels))
+    gates = tuple(Parameter(f"{MODE_GATE_PREFIX}{k}", "1", f"gate of {label} into d{st}/dt",
+                            initial=0.0) for k, (st, label, _) in enumerate(channels))
+    base = tuple(p if p.fixed else dataclasses.replace(p, initial=_clip(float(v), p))
+                 for p, v in zip(model.parameters, np.asarray(theta, float)))
+    drift, output = model.drift, model.output
+
+    def gdrift(x, u, p):
+        return drift(x, u[:nu], p[:npm]) + Sj @ (u[nu:] * p[npm:])
+
+    def goutput(x, u, p):
+        return output(x, u[:nu], p[:npm])
+
+    m = dataclasses.replace(model, drift=gdrift, output=goutput,
+                            inputs=model.inputs + extra_in, parameters=base + gates,
+                            jacobians=None)
+    recs = []
+    for i, r in enumerate(records):
+        d = np.stack([np.asarray(sig[i], np.float64) for _, _, sig in channels], axis=1)
+        ua = np.concatenate([np.asarray(r.u, np.float64), d], axis=1)
+        ua.setflags(write=False)
+        recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
+                                        + tuple(v.name for v in extra_in)))
+    return GateBank(m, tuple(recs), tuple(g.name for g in gates))
+
+
+def screen_modes(cands, current, *, det_std: float) -> dict:
+    """Score statistics of missing-mode candidates (:func:`is_mode_candidate`) without adding
+    their states: {key: :class:`ScoreResult`}.
+
+    The candidate adds ``ṁ = −m/τ + k v`` feeding ``ẋ_s`` and tests the gain ``k`` with τ held
+    at its start (flat at ``k = 0``: Davies' problem). At ``k = 0`` the mode is ``m = k τ
+    lp_τ(v)`` with ``lp_τ`` the unit first-order lag, so ``ẋ_s`` gains ``k τ lp_τ(v)``: the
+    family ``ẋ_s + g lp_τ(v)`` has the same score for ``g ∝ k``. For an input ``v`` the channel
+    ``lp_τ(v)`` is known exactly; for a state it is the low-passed smoothed mean, whose
+    dependence on the path enters the cross information only as the equation error times a
+    sensitivity, zero in expectation under the current model (Rao's form of the test). The lag
+    starts at equilibrium (a mode in steady state at the first sample; its constant part is
+    the equation's own). All channels are gates of one model (:func:`mode_bank`): one
+    compilation, and the plain-batch statistics (:func:`batch_statistics`, Hessian-vector
+    products), one degree of freedom each; ``step`` converts the gate's one-step estimate to
+    ``k``."""
+    from ..estimator import FitOptions, Problem
+    from .base import Candidate, NewParameter
+
+    out: dict = {}
+    recs = list(current.records)
+    names = list(current.model.state_names)
+    inputs = list(current.model.input_names)
+    dec = current.fit.decision
+    # the mode as the model's own transition would carry it: held over each sample (zero-order
+    # hold: states and inputs at the sample) or linear between samples (first-order hold)
+    hold = getattr(current.model, "input_hold", "zoh") or "zoh"
+    channels, scale = [], []
+    for c in cands:
+        v, tau = c.info["mode_driver"], float(c.info["mode_tau"])
+        sig = []
+        for i, r in enumerate(recs):
+            N = np.asarray(r.y).shape[0]
+            if v in inputs:
+                x = np.asarray(r.u, float)[:, inputs.index(v)]
+            elif v in names and dec is not None:
+                x = np.asarray(dec["records"][i]["mu"], float)[:N, names.index(v)]
+            else:
+                x = None
+            if x is None:
+                break
+            sig.append(filter_input("lag", x, np.asarray(r.t, float), tau, hold=hold))
+        if len(sig) != len(recs):
+            out[c.key] = ScoreResult(None, 0, None, note=f"no signal of {v}")
+            continue
+        rms = float(np.sqrt(np.mean(np.concatenate(sig) ** 2))) or 1.0
+        channels.append((c.info["state"], f"{v} through a {tau:.4g} s lag",
+                         [z / rms for z in sig]))
+        scale.append((c, rms, tau))
+    if not channels:
+        return out
+    bank = mode_bank(current.model, recs, current.fit.theta, channels)
+    pseudo = [Candidate(effect="mode", key=g, target="", explanation="",
+                        parameters=(NewParameter(g, "1", initial=0.0),)) for g in bank.gates]
+    try:
+        P = Problem(bank.model, list(bank.records),
+                    FitOptions(deterministic_std=det_std, bucket=False))
+        res = batch_statistics(pseudo, current, bank.model, P,
+                               {p.key: {p.key: p.key} for p in pseudo}, det_std=det_std)
+    except _ERRORS as err:
+        for c, _, _ in scale:
+            out[c.key] = ScoreResult(None, 0, None, note=f"mode screen failed: "
+                                                         f"{str(err).splitlines()[0][:200]}")
+        return out
+    for (c, rms, tau), g in zip(scale, bank.gates):
+        r = res[g]
+        kname = c.info["mode_gain"]
+        held = tuple(p.name for p in c.parameters if p.name != kname)
+        step = {kname: r.step[g] / (rms * tau)} if g in r.step else {}
+        out[c.key] = dataclasses.replace(
+            r, tested=(kname,) if r.statistic is not None else (), held=held, step=step,
+            note=(r.note + "; " if r.note else "")
+            + f"screened through the low-passed {c.info['mode_driver']} (τ = {tau:.4g} s held)")
     return out
 
 
@@ -1065,5 +1200,7 @@ def _screen_task(kind, payload, current, info, workdir, tag, name, generated_dir
                              generated_dir=generated_dir, det_std=det_std)
     if kind == "filters":
         return screen_input_filters(payload, current, det_std=det_std)
+    if kind == "modes":
+        return screen_modes(payload, current, det_std=det_std)
     return screen_group(payload, current, info, workdir, tag, name, generated_dir=generated_dir,
                         det_std=det_std)
