@@ -14,6 +14,9 @@ import pytest
 
 from vsidgen.cli import main
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_cli_fit")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SPEC = ROOT / "specs" / "attas_sp.yaml"
 DATA = ROOT / "data" / "attas_sp_synthetic.csv"

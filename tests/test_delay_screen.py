@@ -21,6 +21,9 @@ from scipy import stats
 
 from test_score_states import DT, fit_lin1, null_mle, rao_statistic
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_delay_screen")
+
 TAU_TRUE = 0.15
 TAU_LAG = 0.12
 

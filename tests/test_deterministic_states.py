@@ -23,6 +23,9 @@ from vsidgen.estimator import FitOptions, fit, smooth
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_deterministic_states")
+
 T = 0.05
 THETA_TRUE = np.array([-0.5, -2.0, -0.8, 1.5])  # a11, a21, a22, b2
 G_TRUE = np.array([0.1, 0.2, 0.0])

@@ -23,6 +23,9 @@ import pytest
 from vsidgen.discrepancy import search
 from vsidgen.discrepancy.refit import RefitOutcome
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_diagnose_resilience")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SPEC = ROOT / "specs" / "attas_sp.yaml"
 DATA = ROOT / "data" / "attas_sp_synthetic.csv"

@@ -16,6 +16,9 @@ import pytest
 
 from vsidgen.cli import main
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_flight_fits")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CASES = {
     "hfb320": ("hfb320.yaml", ["hfb320_1_10.csv"], []),

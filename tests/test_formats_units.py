@@ -13,6 +13,9 @@ from vsidgen.data import load_record
 from vsidgen.errors import DataError, SpecError
 from vsidgen.spec import compile_spec
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_formats_units")
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 SPEC = ROOT / "specs" / "attas_sp.yaml"
 CSV = ROOT / "data" / "attas_sp_synthetic.csv"

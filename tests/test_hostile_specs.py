@@ -21,6 +21,9 @@ import sys
 
 import pytest
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_hostile_specs")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CORPUS = ROOT / "tests" / "hostile" / "specs"
 CASES = sorted(CORPUS.glob("*.yaml"))

@@ -24,6 +24,9 @@ from vsidgen.estimator import FitOptions, fit
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_release_start")
+
 T = 0.05
 THETA_TRUE = np.array([-1.0, 4.0, -3.0, -0.3, 0.1])  # a11, a12, b1, a22, b2
 G_TRUE = np.array([0.05, 0.02])

@@ -15,6 +15,9 @@ from report_fixture import OUTPUTS, STATES, write_results_dir
 from vsidgen.errors import VsidgenError
 from vsidgen.report.html import _autocorrelation, _ljung_box, _readable_tex, write_report
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_report")
+
 REFERENCE = {
     "description": "test reference",
     "oem": {"parameters": {"CLAL": {"value": 4.0, "std": 0.04}, "CMQ": {"value": -27.0, "std": 0.7}},

@@ -14,6 +14,9 @@ import pytest
 
 from test_score_states import _simulate, fit_lin1
 
+# one worker runs the whole module: its module-scoped fixtures are computed once
+pytestmark = pytest.mark.xdist_group("test_score_shared")
+
 
 @pytest.fixture(scope="module")
 def lin1(tmp_path_factory):
