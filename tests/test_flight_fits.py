@@ -54,7 +54,13 @@ def _run_case(case, flight_data_dir, tmp_path_factory):
     return _RUNS[case]
 
 
-@pytest.fixture(scope="module", params=sorted(CASES))
+#: variants of an aircraft already fitted above (another Twin Otter record set, the Tu-144):
+#: in the slow suite, to keep the default suite near ten minutes on the 2-core CI machine
+SLOW_CASES = {"tu144_sp", "totter_sp_020213", "totter_sp_lon_data"}
+
+
+@pytest.fixture(scope="module", params=[pytest.param(c, marks=pytest.mark.slow) if c in SLOW_CASES else c
+                                        for c in sorted(CASES)])
 def flight_fit(request, flight_data_dir, tmp_path_factory):
     return _run_case(request.param, flight_data_dir, tmp_path_factory)
 
@@ -119,6 +125,7 @@ def test_hfb320_against_filter_error_reference(flight_data_dir, tmp_path_factory
     assert set(far) <= {"CM0", "CMV", "CMQ"}, far
 
 
+@pytest.mark.slow  # a second HFB-320 fit (~20-30 s); the reference test above stays in the default suite
 def test_hfb320_reproduces_filter_error_estimates_given_its_noise(flight_data_dir, tmp_path, tmp_path_factory,
                                                                   monkeypatch):
     """With G and R fixed at the filter-error method's own noise estimates (process-noise
@@ -157,6 +164,7 @@ def test_hfb320_reproduces_filter_error_estimates_given_its_noise(flight_data_di
 
 
 
+@pytest.mark.slow  # a second HFB-320 fit (~20-30 s); the reference test above stays in the default suite
 def test_hfb320_auto_keeps_the_best_converged_noise_start(flight_data_dir, tmp_path_factory, tmp_path):
     """`--noise-start auto` runs every start and keeps the best converged optimum.
 
