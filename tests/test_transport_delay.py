@@ -72,31 +72,6 @@ def test_grid_parabola_hold_lag_and_p_value():
     assert delay_p_value(1.0, 10) == 1.0 and delay_p_value(-3.0, 10) == 1.0
 
 
-def test_inputs_held_between_samples_from_the_numerics_stage():
-    """Whether the model's zero-order hold adds half a sample of delay depends on the records:
-    inputs that move in steps at the samples are fitted better with a zero-order than with a
-    first-order hold (same integrator), and then the hold adds no delay."""
-    import types
-
-    from vsidgen.discrepancy.numerics import NumericsResult, NumericsSetting, NumericsTrial
-    from vsidgen.discrepancy.search import inputs_held
-
-    def trial(method, inputs, elbo):
-        return NumericsTrial(NumericsSetting(method, 1, inputs), None,
-                             state=types.SimpleNamespace(elbo=elbo))
-    model = type("M", (), {"input_hold": "zoh", "integrator": "rk4", "substeps": 1})
-    res = NumericsResult(NumericsSetting("euler", 1, "zoh"), 100.0,
-                         (trial("rk4", "foh", 126.9), trial("rk4", "zoh", 168.8)), 0.01)
-    held, stat = inputs_held(res, model)
-    assert held and stat == pytest.approx(83.8)
-    res = NumericsResult(NumericsSetting("rk4", 1, "zoh"), 100.0,
-                         (trial("rk4", "foh", 110.0),), 0.01)
-    assert inputs_held(res, model) == (False, pytest.approx(-20.0))
-    res = NumericsResult(NumericsSetting("euler", 1, "zoh"), 100.0, (trial("rk4", "foh", 1.0),),
-                         0.01)
-    assert inputs_held(res, model) is None and inputs_held(None, model) is None
-
-
 @pytest.mark.slow
 def test_diagnose_names_an_independent_delay_in_seconds(tmp_path):
     """An elevator transport delay of 0.12 s concealed by the independent simulator (continuous

@@ -388,6 +388,10 @@ class Candidate:
         if delay:  # a profiled transport delay (.delay): the spec's input declaration
             out["inputs"] = {self.info["input"]: {"delay": delay.get("spec_value",
                                                                      delay["estimate"])}}
+            hc = delay.get("hold_comparison") or {}
+            if hc and delay.get("input_hold") != hc.get("current_hold"):
+                # the delay profile chose the other input hold (search.delay_trial)
+                out["integrator"] = {"inputs": delay.get("input_hold")}
         return out
 
     def spec_dict(self, base_spec, *, name: str, candidate_path=None,

@@ -678,38 +678,42 @@ def _grid_size(c: Candidate) -> int:
     return len(((c.info or {}).get("profile_result") or {}).get("grid_s") or ())
 
 
-def inputs_held(numres, model) -> tuple[bool, float] | None:
-    """Do the records' inputs behave as held over each sample? (held, 2ΔELBO zoh − foh) from
-    the numerics stage: the fits with the model's integrator and sub-steps under zero- and
-    first-order hold of the inputs (the current setting or a trial); None when both were not
-    fitted. A zero-order hold that fits better says the inputs move in steps at the samples
-    (a 3-2-1-1 or doublet from a sampled command), so the hold adds no delay of its own."""
-    if numres is None:
-        return None
-    meth = getattr(model, "integrator", "euler") or "euler"
-    sub = int(getattr(model, "substeps", 1) or 1)
-    elbo = {}
-    cur = numres.current
-    if (cur.method, cur.substeps) == (meth, sub):
-        elbo[cur.inputs] = float(numres.elbo_current)
-    for t in numres.trials:
-        st = t.setting
-        if (st.method, st.substeps) == (meth, sub) and t.state is not None \
-                and math.isfinite(t.state.elbo):
-            elbo[st.inputs] = float(t.state.elbo)
-    if "zoh" not in elbo or "foh" not in elbo:
-        return None
-    return elbo["zoh"] > elbo["foh"], 2.0 * (elbo["zoh"] - elbo["foh"])
+def hold_alternative(current, path: pathlib.Path, name: str, *, engine, generated_dir,
+                     max_iter: int, deadline=None):
+    """``current`` refitted (warm, on the engine) with the other input hold — zero ↔ first
+    order, same integrator and sub-steps: a FitState, or None when the refit failed or the
+    time ran out."""
+    from ..engine import TaskStatus
+    from .numerics import NumericsSetting, _numerics_task
+
+    cur = NumericsSetting.of(current.model)
+    other = dataclasses.replace(cur, inputs="foh" if cur.inputs == "zoh" else "zoh")
+    oc = engine.run(_numerics_task, [(f"hold:{other.inputs}", (other, current, path, name,
+                                                               generated_dir, max_iter))],
+                    deadline=deadline)[0]
+    return oc.value if oc.status is TaskStatus.DONE else None
 
 
 def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_iter,
-                 deadline, screen=None, held=None) -> Trial | None:
+                deadline, screen=None, alpha: float = 0.01) -> Trial | None:
     """The Trial of a transport-delay candidate: its profile (:mod:`.delay`), the refit at the
     estimate and the test (Bonferroni over the grid; None when the time ran out).
     ``screen``: its :class:`.score.ScoreResult` (:func:`.score.screen_input_filters`); the profile
-    starts at its best grid delay. ``held``: :func:`inputs_held` of the run; when the inputs
-    move in steps at the samples a zero-order hold adds no delay (:func:`.delay.hold_lag` is
-    for continuously moving inputs)."""
+    starts at its best grid delay.
+
+    How the records' inputs move between samples decides what the spec's delay means: a
+    zero-order hold already delays an input that moves continuously by half a sample
+    (:func:`.delay.hold_lag`), and adds nothing to one that steps at the samples. Whether the
+    inputs step or move cannot be read off the fits without the delay (the hold's own half
+    sample absorbs part of a delay, so a zero-order hold fits a delayed record better even
+    when its inputs move continuously). So when the two holds time the input differently, the
+    delay is profiled under both — the other one refitted first (:func:`hold_alternative`) and
+    profiled from the delay that gives the same timing. An input is taken to move
+    continuously (a control surface cannot step; first-order hold) unless the zero-order hold
+    fits significantly better at its own best delay (2ΔELBO above the χ²₁ quantile at
+    ``alpha``: the inputs step at the samples, and the hold adds no delay). That decides the
+    spec (it carries the chosen ``integrator.inputs``) and the physical delay. The statistic
+    stays the one against the current model (the hold change counted in the gain)."""
     from .delay import delay_p_value, hold_lag, profile_delay
     from .refit import RefitOutcome
 
@@ -718,16 +722,53 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
     if float(getattr(current.model.inputs[j], "delay", 0.0) or 0.0) > 0.0:
         return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"the model already delays {u}")
+    dt = float(np.median([r.dt for r in current.records]))
+    base = current
     try:
         start = (screen.step or {}).get("tau_s") if screen is not None \
             and screen.statistic is not None else None
         prof = profile_delay(current, u, path, name, engine=engine, generated_dir=generated_dir,
                              max_iter=max_iter, deadline=deadline, start=start)
+        if prof is None:
+            return None
+        hold_note = None
+        alt_hold = "foh" if (getattr(current.model, "input_hold", "zoh") or "zoh") == "zoh" \
+            else "zoh"
+        alt = None
+        if not prof.at_zero and prof.state is not None:
+            lag0 = hold_lag(current.model, dt)
+            lag1 = hold_lag(type("M", (), {"input_hold": alt_hold,
+                                           "integrator": getattr(current.model, "integrator",
+                                                                 "euler"),
+                                           "substeps": getattr(current.model, "substeps", 1)}),
+                            dt)
+            if lag0 != lag1:
+                hpath = path.with_name(f"{path.stem}_hold_{alt_hold}.yaml")
+                alt = hold_alternative(current, hpath, f"{name}_h", engine=engine,
+                                       generated_dir=generated_dir, max_iter=max_iter,
+                                       deadline=deadline)
+        if alt is not None:
+            dpath = path.with_name(f"{path.stem}_{alt_hold}.yaml")
+            prof2 = profile_delay(alt, u, dpath, f"{name}_{alt_hold}", engine=engine,
+                                  generated_dir=generated_dir, max_iter=max_iter,
+                                  deadline=deadline,
+                                  start=max(prof.estimate + lag0 - lag1, 0.5 * dt))
+            if prof2 is None:
+                return None
+            if prof2.state is not None and not prof2.at_zero:
+                d = 2.0 * (prof2.state.elbo - prof.state.elbo)
+                hold_note = (alt_hold, d, prof.estimate, prof2.estimate)
+                # an input moves continuously (a control surface cannot step) unless the
+                # records say otherwise: the zero-order hold is kept only when it fits
+                # significantly better (chi2_1 at alpha; with the delay absorbing the hold's
+                # half sample the two differ only where the inputs change within a sample)
+                zoh_gain = d if alt_hold == "zoh" else -d
+                use_zoh = zoh_gain > float(stats.chi2.isf(alpha, 1))
+                if use_zoh == (alt_hold == "zoh"):
+                    prof, base, path = prof2, alt, dpath
     except (FitError, SpecError, VsidgenError, ValueError, ArithmeticError) as err:
         return Trial(c, score, path, None, math.nan, 1, 1.0, screen=screen,
                      error=f"failed: {str(err).splitlines()[0]}")
-    if prof is None:
-        return None
     if prof.at_zero:
         # no delay: every delayed fit is below the current model (τ = 0); nothing to refit
         c0 = dataclasses.replace(c, info={**c.info, "profile_result": prof.to_json()})
@@ -742,28 +783,50 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
                      error="failed: no grid fit or final refit succeeded")
     st = prof.state
     lam = 2.0 * (st.elbo - current.elbo)
-    lag = hold_lag(current.model, float(np.median([r.dt for r in current.records])))
-    stepped = lag > 0 and held is not None and held[0]
-    if stepped:
-        lag = 0.0
+    hold = getattr(base.model, "input_hold", "zoh") or "zoh"
+    # a zero-order hold that fits better than a first-order one, both with their delays,
+    # says the inputs step at the samples: the hold then adds no delay of its own
+    stepped = hold_note is not None and hold == "zoh"
+    lag = 0.0 if stepped else hold_lag(base.model, dt)
     ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate + lag,
            "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s",
-           "spec_value": prof.estimate, "hold_lag": lag, "inputs_held": stepped}
+           "spec_value": prof.estimate, "hold_lag": lag, "inputs_held": stepped,
+           "input_hold": hold}
+    if hold_note is not None:
+        ent["hold_comparison"] = {"current_hold": "foh" if hold_note[0] == "zoh" else "zoh",
+                                  "other_hold": hold_note[0],
+                                  "two_delta_elbo_other_minus_current": hold_note[1],
+                                  "spec_delay_current_hold": hold_note[2],
+                                  "spec_delay_other_hold": hold_note[3]}
     from .base import get_effect
     text = get_effect(c.effect).explain(input=u, delay=f"{prof.estimate + lag:.4g}",
                                         spec_delay=f"{prof.estimate:.4g}")
+    if hold_note is not None:
+        other, d = hold_note[0], hold_note[1]
+        zoh_gain = d if other == "zoh" else -d
+        thr = float(stats.chi2.isf(alpha, 1))
+        if hold == "zoh":
+            text += (f" Profiled under both input holds, the zero-order hold (inputs held over "
+                     f"each sample) fits better than a first-order hold at its own best delay "
+                     f"by 2ΔELBO = {zoh_gain:.4g} > {thr:.4g}.")
+        else:
+            text += (f" Profiled under both input holds, a zero-order hold at its own best "
+                     f"delay fits {'better' if zoh_gain > 0 else 'worse'} by 2ΔELBO = "
+                     f"{abs(zoh_gain):.4g}"
+                     + (f", not significantly (≤ {thr:.4g})" if zoh_gain > 0 else "")
+                     + ": the inputs are taken to move continuously between samples "
+                       "(first-order hold, `integrator: {inputs: foh}`"
+                     + ("; the spec uses it)." if other == "foh" else ")."))
     if stepped:
-        text += (f" The records' inputs move in steps at the samples (a zero-order hold fits "
-                 f"them better than a first-order hold, 2ΔELBO = {held[1]:.3g}), so the model's "
-                 f"hold adds no delay of its own: the transport delay is the spec's "
-                 f"{prof.estimate:.4g} s. (Inputs that moved continuously between samples would "
-                 "add half a sample.)")
+        text += (" The records' inputs move in steps at the samples, so the model's hold adds "
+                 f"no delay of its own: the transport delay is the spec's {prof.estimate:.4g} s.")
     elif lag > 0:
-        text += (f" The model holds {u} over each sample, which by itself delays it by "
-                 f"{lag:.4g} s on average; the spec's delay is therefore {prof.estimate:.4g} s "
-                 f"for a physical transport delay of {prof.estimate + lag:.4g} s.")
-    if (getattr(current.model, "integrator", "euler") == "euler"
-            and int(getattr(current.model, "substeps", 1) or 1) == 1):
+        text += (f" The model's transition uses {u} at the start of each step, which by itself "
+                 f"delays it by {lag:.4g} s on average; the spec's delay is therefore "
+                 f"{prof.estimate:.4g} s for a physical transport delay of "
+                 f"{prof.estimate + lag:.4g} s.")
+    if (getattr(base.model, "integrator", "euler") == "euler"
+            and int(getattr(base.model, "substeps", 1) or 1) == 1):
         text += (" The model integrates with one Euler step per sample, whose own phase error is "
                  "of the order of a sample too: the physical value is reliable only with an "
                  "accurate integrator (integrator: {method: rk4}).")
@@ -771,7 +834,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
                              info={**c.info, "delay": ent, "profile_result": prof.to_json()})
     ro = RefitOutcome(state=st, elbo_ref=current.elbo, warm="delay profile",
                       notes=[f"profile over {sum(map(math.isfinite, prof.elbos))} of "
-                             f"{len(prof.grid)} grid delays; best grid value "
+                             f"{len(prof.grid)} grid delays ({hold} hold); best grid value "
                              f"{prof.best_grid:.4g} s, refined {prof.estimate:.4g} s"],
                       wall_s=prof.wall_s)
     return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
@@ -1181,8 +1244,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
                         engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
-                        deadline=run.deadline, screen=sr,
-                        held=inputs_held(st.numres, current.model))
+                        deadline=run.deadline, screen=sr, alpha=run.alpha)
         if t is None:
             return None
         st.unfinished["pending"].remove(c.key)
