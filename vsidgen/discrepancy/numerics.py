@@ -232,7 +232,7 @@ def write_setting_spec(current, setting: NumericsSetting, path: pathlib.Path, na
                        "parameters": warm_parameters(current.model, current.fit.theta)})
 
 
-def _numerics_task(setting, current, path, name, generated_dir, max_iter):
+def refit_setting(setting, current, path, name, generated_dir, max_iter):
     """One setting's warm refit (runs on an engine worker); a FitState."""
     from .fitstate import refit_warm
 
@@ -263,7 +263,7 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
 
     def refit(batch):
         got = []
-        for o in (engine.run(_numerics_task, batch, deadline=deadline) if batch else []):
+        for o in (engine.run(refit_setting, batch, deadline=deadline) if batch else []):
             s, p = paths[o.key]
             if o.status is not TaskStatus.DONE:
                 got.append(NumericsTrial(s, p, error=f"{o.status.value}: {o.error}",
@@ -318,4 +318,4 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
 
 
 __all__ = ["NumericsResult", "NumericsSetting", "NumericsTrial", "NumericsVerdict", "decide",
-           "numerics_settings", "run_numerics"]
+           "numerics_settings", "refit_setting", "run_numerics"]

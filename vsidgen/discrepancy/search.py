@@ -684,11 +684,11 @@ def hold_alternative(current, path: pathlib.Path, name: str, *, engine, generate
     order, same integrator and sub-steps: a FitState, or None when the refit failed or the
     time ran out."""
     from ..engine import TaskStatus
-    from .numerics import NumericsSetting, _numerics_task
+    from .numerics import NumericsSetting, refit_setting
 
     cur = NumericsSetting.of(current.model)
     other = dataclasses.replace(cur, inputs="foh" if cur.inputs == "zoh" else "zoh")
-    oc = engine.run(_numerics_task, [(f"hold:{other.inputs}", (other, current, path, name,
+    oc = engine.run(refit_setting, [(f"hold:{other.inputs}", (other, current, path, name,
                                                                generated_dir, max_iter))],
                     deadline=deadline)[0]
     return oc.value if oc.status is TaskStatus.DONE else None
