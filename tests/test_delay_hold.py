@@ -118,4 +118,5 @@ def test_delay_and_hold_decided_together(tmp_path, stepped):
     else:         # the inputs move: a first-order hold, whose RK4 stages add no lag either
         assert f["added_terms"]["integrator"] == {"inputs": "foh"}
         assert "first-order hold" in f["explanation"]
+        assert "integrator: {inputs: foh}" in res.document["conclusion"]   # the CLI line too
     assert trial["statistic"] > 0

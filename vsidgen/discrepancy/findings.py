@@ -105,6 +105,11 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                       f" found: " + "; ".join(f"{f['effect']} on {f['target']}" for f in findings)
                       + f". Final augmented spec: {final_spec}.")
         for f in findings:
+            hold = (f.get("added_terms") or {}).get("integrator")
+            if hold:   # a delay profiled under both input holds changed the hold
+                conclusion += (f" With {f['key']} modelled, the inputs are taken as "
+                               f"`integrator: {{inputs: {hold['inputs']}}}` (this replaces the "
+                               "hold of the numerics setting; the final spec carries it).")
             if f["alternatives"]:
                 conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
                                f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "
