@@ -637,6 +637,9 @@ def test_held_parameters_stay_at_their_start_and_share_the_compiled_functions():
     model), and a later fit with nothing held reuses every compiled function (same layout)."""
     import dataclasses
 
+    from vsidgen.estimator import core
+
+    core._OBJECTIVES.clear()   # no eviction by the objectives of earlier tests in this worker
     rec = make_record(300, seed=21)
     model = lin_model()
     opts = FitOptions(noise_start="data", max_iter=100)

@@ -1038,12 +1038,12 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
            model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
            theta_map.static_key(), noise_map.static_key())
-    obj = _OBJECTIVES.get(key)
+    obj = _OBJECTIVES.pop(key, None)     # least recently used first: a hit moves to the end
     if obj is None:
         if len(_OBJECTIVES) >= 16:
             _OBJECTIVES.pop(next(iter(_OBJECTIVES)))
         obj = Objective(model, theta_map, noise_map, F)
-        _OBJECTIVES[key] = obj
+    _OBJECTIVES[key] = obj
     return obj
 
 
