@@ -875,14 +875,20 @@ def gate_bank(model, records, theta, channels) -> GateBank:
     m = dataclasses.replace(model, drift=gdrift, output=goutput,
                             inputs=model.inputs + extra_in, parameters=base + gates,
                             jacobians=None)
+    return GateBank(m, _with_channels(records, channels, extra_in), tuple(g.name for g in gates))
+
+
+def _with_channels(records, channels, extra_in) -> tuple:
+    """``records`` with the channels' signals (``(_, _, [signal per record])``) appended as
+    the extra inputs ``extra_in`` (read-only arrays)."""
     recs = []
     for i, r in enumerate(records):
-        d = np.stack([np.asarray(diffs[i], np.float64) for _, _, diffs in channels], axis=1)
+        d = np.stack([np.asarray(sig[i], np.float64) for _, _, sig in channels], axis=1)
         ua = np.concatenate([np.asarray(r.u, np.float64), d], axis=1)
         ua.setflags(write=False)
         recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
                                         + tuple(v.name for v in extra_in)))
-    return GateBank(m, tuple(recs), tuple(g.name for g in gates))
+    return tuple(recs)
 
 
 def _clip(v: float, p) -> float:
@@ -1092,14 +1098,7 @@ def mode_bank(model, records, theta, channels) -> GateBank:
     m = dataclasses.replace(model, drift=gdrift, output=goutput,
                             inputs=model.inputs + extra_in, parameters=base + gates,
                             jacobians=None)
-    recs = []
-    for i, r in enumerate(records):
-        d = np.stack([np.asarray(sig[i], np.float64) for _, _, sig in channels], axis=1)
-        ua = np.concatenate([np.asarray(r.u, np.float64), d], axis=1)
-        ua.setflags(write=False)
-        recs.append(dataclasses.replace(r, u=ua, input_names=tuple(r.input_names)
-                                        + tuple(v.name for v in extra_in)))
-    return GateBank(m, tuple(recs), tuple(g.name for g in gates))
+    return GateBank(m, _with_channels(records, channels, extra_in), tuple(g.name for g in gates))
 
 
 def screen_modes(cands, current, *, det_std: float) -> dict:
