@@ -80,6 +80,12 @@ class ProcessNoiseSpec:
     triangular. ``std`` values are in state-unit/sqrt(s); when ``estimate`` is
     false they are the fixed values (missing = 0). ``floor`` is a lower bound
     on each diagonal std (default 0).
+
+    ``degenerate`` (structure "full" only): states whose diagonal entry G_ii is zero, so
+    that their process noise is a combination of the noise sources of the states before
+    them (state order): a rank-deficient Q, e.g. one vertical gust driving the α and q
+    equations through Z_α/V and M_α/V. The estimator fits such a model as the limit
+    G_ii → 0 (:mod:`vsidgen.estimator.fit`, as for states without process noise).
     """
 
     states: tuple[str, ...] = ()
@@ -87,6 +93,7 @@ class ProcessNoiseSpec:
     estimate: bool = True
     std: Mapping[str, float] = dataclasses.field(default_factory=dict)
     floor: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    degenerate: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -200,6 +200,11 @@ class NoiseMap:
     those states are ``relaxed``). ``hold`` (state indices): noisy states treated as
     deterministic in this problem (the first leg of the release start of an unmeasured
     state, :func:`vsidgen.estimator.fit._release_start`); they are never relaxed.
+    Degenerate states (``ProcessNoiseSpec.degenerate``, or a given G whose Cholesky pivot of
+    a state with noise is zero: a rank-deficient Q) are ``pinned``: their row keeps its free
+    (or given) off-diagonal entries while the diagonal is the fixed ``deterministic_std``,
+    driven to the limit G_ii → 0 like a deterministic state's (also with ``relax``: the
+    first stage of the limit holds them at a data-scale std, see :mod:`vsidgen.estimator.fit`).
     Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
     Starting values (``inits``): the spec's std where given; otherwise "unit":
     exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =
@@ -222,6 +227,7 @@ class NoiseMap:
         held[list(hold)] = True
         self.noisy &= ~held
         self.relaxed = np.zeros(nx, bool)
+        self.pinned = np.zeros(nx, bool)
         self.det = np.broadcast_to(np.asarray(deterministic_std, float), (nx,)).copy()
         self.proc_floor = np.array([float(pn.floor.get(s, 0.0)) if self.noisy[i] else 0.0
                                     for i, s in enumerate(states)])
@@ -239,9 +245,13 @@ class NoiseMap:
             if not pn.estimate:  # process noise fixed in the spec: its stds stay fixed, on the diagonal
                 self._fixed_spec_stds(pn, states)
             est = self.noisy.copy() if pn.estimate else np.zeros(nx, bool)
+            degen = np.array([s in tuple(getattr(pn, "degenerate", ()) or ()) for s in states], bool)
+            degen &= self.noisy if (pn.estimate and pn.structure == "full") else False
             if relax:
                 self.relaxed = ~self.noisy & ~held
                 est |= self.relaxed
+            self.pinned = degen
+            est &= ~degen
             self.proc_est_idx = np.nonzero(est)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)
@@ -312,17 +322,36 @@ class NoiseMap:
                 self.noisy[i] = False
 
     def _fixed_factor(self):
-        """Cholesky factor of the given G Gᵀ, deterministic rows (all zero) replaced by ``det`` on the diagonal."""
-        Gm = self._G_given.copy()
-        for i in np.nonzero(~self.noisy)[0]:
-            Gm[i, i] = self.det[i]
-        return np.linalg.cholesky(Gm @ Gm.T)
+        """Lower-triangular factor of the given Q = G Gᵀ with every zero pivot replaced by ``det``.
+
+        Cholesky–Banachiewicz on the positive-semidefinite Q: a pivot
+        ``d_i = Q_ii − Σ_{k<i} L_ik²`` that vanishes (≤ 1e-12·Q_ii: zero to rounding) marks a
+        state whose noise is fully explained by the states before it — no noise at all (a zero
+        row, deterministic) or a combination of earlier noise sources (``pinned``, a rank-deficient
+        Q). Its column below the pivot is zero (exact for a PSD matrix) and its diagonal is
+        ``det[i]``: the limit ``det → 0`` is the given Q.
+        """
+        Q = self._G_given @ self._G_given.T
+        n = Q.shape[0]
+        L = np.zeros_like(Q)
+        self.pinned = np.zeros(n, bool)
+        for i in range(n):
+            d = Q[i, i] - float(L[i, :i] @ L[i, :i])
+            if not d > 1e-12 * Q[i, i]:
+                L[i, i] = self.det[i]
+                self.pinned[i] = bool(self.noisy[i])
+                continue
+            L[i, i] = math.sqrt(d)
+            for j in range(i + 1, n):
+                L[j, i] = (Q[j, i] - float(L[j, :i] @ L[i, :i])) / L[i, i]
+        return L
 
     @property
     def deterministic(self) -> np.ndarray:
-        """Mask of the states without process noise (in the spec, zero rows of a given G, or held) that
-        are not relaxed: their std is the fixed ``det``."""
-        return ~self.noisy & ~self.relaxed
+        """Mask of the states whose diagonal std is the fixed ``det`` (driven to the limit ``det → 0``):
+        those without process noise (in the spec, zero rows of a given G, or held) that are not
+        relaxed, and the ``pinned`` degenerate ones (their row's off-diagonal noise remains)."""
+        return (~self.noisy & ~self.relaxed) | self.pinned
 
     def set_deterministic_std(self, std) -> None:
         """Set the diagonal std of the deterministic states (one value per such state, state order)."""
@@ -370,6 +399,7 @@ class NoiseMap:
         """G as reported: rows of states without process noise are zero."""
         G = np.array(self.G(jnp.asarray(w)))
         G[~self.noisy, :] = 0.0
+        G[self.pinned, self.pinned] = 0.0
         return G
 
 

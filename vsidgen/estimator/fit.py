@@ -652,8 +652,10 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
             eps = _warm_limit_scale(P, options.warm_start)
         else:
             P0 = Problem(model, records, options, relax=True)
+            if P0.nm.pinned.any():  # degenerate states: the first stage holds them at the data scale
+                P0.nm.set_deterministic_std(_smoothing_start_std(P0))
             out0 = _multistart(P0, options, starts)
-            eps = _relaxed_std(P0, out0)
+            eps = _first_stage_std(P, P0, out0)
         out = _deterministic_limit(P, P0, out0, eps, options, t0)
         return _finish(P, out, mode="fit", options=options)
     if options.optimizer == "structured-newton":
@@ -713,11 +715,12 @@ LIMIT_RATIO = 0.1       # process-noise std of the deterministic states: factor 
 LIMIT_MAX_STAGES = 8    # stages after the first (std down to 1e-8 of the first stage's)
 
 
-def _relaxed_std(P0: Problem, out0) -> np.ndarray:
-    """Process-noise std the relaxed first stage estimated for the deterministic states (their order)."""
+def _first_stage_std(P: Problem, P0: Problem, out0) -> np.ndarray:
+    """Diagonal std of P's deterministic states (their order) at the end of the first stage ``P0``:
+    the std it estimated for a relaxed state, the std it held for a pinned (degenerate) one."""
     nt = P0.tm.n_free
-    G = np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:])))
-    return np.abs(np.diagonal(G))[P0.nm.relaxed]
+    G = np.abs(np.diagonal(np.asarray(P0.nm.G(jnp.asarray(out0["s"][nt:])))))
+    return G[np.nonzero(P.nm.deterministic)[0]]
 
 
 def _warm_limit_scale(P: Problem, ws) -> np.ndarray:
@@ -745,16 +748,22 @@ def _smoothing_start_std(P: Problem) -> np.ndarray:
     return np.asarray(out, float)
 
 
-def _scale_cond_rows(obj, r, rho, cross) -> np.ndarray:
+def _scale_cond_rows(obj, r, rho, cross, diag_only=None) -> np.ndarray:
     """Assumed-density parameters r with the rows of S_c (Σ_cond = S_c S_cᵀ) scaled by ``rho`` (per state).
 
     ``cross`` (per state): scale that state's row of the cross factor C too, so that its
     marginal spread shrinks with its conditional one (a deterministic state whose spread
-    collapses with the process noise).
+    collapses with the process noise). ``diag_only`` (per state): scale only the diagonal
+    entry of that row — the spread of the state *given the states before it* (S_c is lower
+    triangular in state order), which is what vanishes with the diagonal of a degenerate
+    (pinned) state's noise factor while its share of the earlier states' noise remains.
     """
     Sc, C, _, _ = obj.cov_factors(jnp.asarray(r))
     rho = np.asarray(rho, float)
-    Sc = np.asarray(Sc) * rho[:, None]
+    Sc = np.asarray(Sc).copy()
+    dmask = np.zeros(len(rho), bool) if diag_only is None else np.asarray(diag_only, bool)
+    Sc[~dmask] *= rho[~dmask, None]
+    Sc[dmask, dmask] *= rho[dmask]
     dg = np.diagonal(Sc).copy()
     out = np.asarray(r, float).copy()
     n = obj.n
@@ -776,7 +785,7 @@ def _stage_start(P: Problem, s, recs, rho):
     cross = np.zeros(P.model.nx, bool)
 
     def start(cr):
-        return [(np.asarray(m), _scale_cond_rows(P.obj, r, rho, cr)) for m, r in recs]
+        return [(np.asarray(m), _scale_cond_rows(P.obj, r, rho, cr, P.nm.pinned)) for m, r in recs]
 
     best = P.value(s, start(cross))
     for i in det:

@@ -544,7 +544,37 @@ def _process_noise(decl, state_names: list[str]) -> ProcessNoiseSpec:
     structure = decl.structure.value if decl.structure is not None else "diagonal"
     std = _number_map(decl.std, names, "process noise std")
     floor = _number_map(decl.floor, names, "process noise floor")
-    return ProcessNoiseSpec(tuple(names), structure, decl.estimate, std, floor)
+    return ProcessNoiseSpec(tuple(names), structure, decl.estimate, std, floor,
+                            _degenerate(decl, names, state_names, structure))
+
+
+def _degenerate(decl, names: list[str], state_names: list[str], structure: str) -> tuple[str, ...]:
+    """``noise.process.degenerate``: states with process noise, after the first one in state
+    order, under ``structure: full`` with estimated noise."""
+    out: list[str] = []
+    noisy = [s for s in state_names if s in names]
+    for item in decl.degenerate:
+        nm = item.value
+        if structure != "full" or not decl.estimate:
+            raise SpecError("noise.process.degenerate needs `structure: full` and estimated process "
+                            "noise", **item.loc, text=item.text,
+                            hint="a degenerate state's noise is a combination of other states' "
+                                 "noise sources: only a full factor can express that")
+        if nm not in names:
+            raise SpecError(f"noise.process.degenerate: `{nm}` is not a state with process noise",
+                            **item.loc, text=item.text, hint=did_you_mean(nm, names) or
+                            "list the state under noise.process.states")
+        if nm in out:
+            raise SpecError(f"noise.process.degenerate: `{nm}` is listed twice", **item.loc,
+                            text=item.text)
+        if nm == noisy[0]:
+            raise SpecError(f"noise.process.degenerate: `{nm}` is the first state with process noise "
+                            "(state order), so no earlier noise source can drive it", **item.loc,
+                            text=item.text,
+                            hint="a state without any process noise is left out of "
+                                 "noise.process.states instead")
+        out.append(nm)
+    return tuple(s for s in noisy if s in out)
 
 
 def _unit_conversion(name: str, what: str, unit: Located[str], spec_unit: str | None):

@@ -167,6 +167,7 @@ class ProcessNoiseDecl:
     estimate: bool = True
     std: tuple[tuple[Located[str], Located[float]], ...] = ()
     floor: tuple[tuple[Located[str], Located[float]], ...] = ()
+    degenerate: tuple[Located[str], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -421,7 +422,8 @@ def _located_numbers(node: YNode, what: str) -> tuple:
 
 
 def _process_noise(node: YNode) -> ProcessNoiseDecl:
-    fields = keys_check(node, ("states", "structure", "estimate", "std", "floor"), "`noise.process`")
+    fields = keys_check(node, ("states", "structure", "estimate", "std", "floor", "degenerate"),
+                        "`noise.process`")
     states = None
     if "states" in fields:
         s = fields["states"]
@@ -430,6 +432,15 @@ def _process_noise(node: YNode) -> ProcessNoiseDecl:
                             text=s.source_line())
         states = Located.of(s, tuple(Located.of(item, item.string("a process-noise state"))
                                      for item in s.value))
+    degenerate = ()
+    if "degenerate" in fields:
+        d = fields["degenerate"]
+        if d.kind != "seq":
+            raise SpecError("noise.process.degenerate must be a list of state names", **d.loc,
+                            text=d.source_line(),
+                            hint="e.g. degenerate: [q] (with structure: full)")
+        degenerate = tuple(Located.of(item, item.string("a degenerate process-noise state"))
+                           for item in d.value)
     structure = None
     if "structure" in fields:
         structure = Located.of(fields["structure"], fields["structure"].string("noise.process.structure"))
@@ -440,7 +451,8 @@ def _process_noise(node: YNode) -> ProcessNoiseDecl:
     estimate = fields["estimate"].boolean("noise.process.estimate") if "estimate" in fields else True
     std = _located_numbers(fields["std"], "process noise std") if "std" in fields else ()
     floor = _located_numbers(fields["floor"], "process noise floor") if "floor" in fields else ()
-    return ProcessNoiseDecl(Located.of(node, None), states, structure, estimate, std, floor)
+    return ProcessNoiseDecl(Located.of(node, None), states, structure, estimate, std, floor,
+                            degenerate)
 
 
 def _measurement_noise(o: str, node: YNode) -> MeasurementNoiseDecl:
