@@ -248,10 +248,11 @@ class NoiseMap:
             degen = np.array([s in tuple(getattr(pn, "degenerate", ()) or ()) for s in states], bool)
             degen &= self.noisy if (pn.estimate and pn.structure == "full") else False
             if relax:
-                self.relaxed = ~self.noisy & ~held
+                self.relaxed = (~self.noisy & ~held) | degen
                 est |= self.relaxed
-            self.pinned = degen
-            est &= ~degen
+            else:
+                self.pinned = degen
+                est &= ~degen
             self.proc_est_idx = np.nonzero(est)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)

@@ -652,8 +652,6 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
             eps = _warm_limit_scale(P, options.warm_start)
         else:
             P0 = Problem(model, records, options, relax=True)
-            if P0.nm.pinned.any():  # degenerate states: the first stage holds them at the data scale
-                P0.nm.set_deterministic_std(_smoothing_start_std(P0))
             out0 = _multistart(P0, options, starts)
             eps = _first_stage_std(P, P0, out0)
         out = _deterministic_limit(P, P0, out0, eps, options, t0)
