@@ -234,16 +234,16 @@ def _noise_task(current, path, generated_dir, max_iter, start):
 
 
 def _best_start(outs):
-    """The refit to decide with: the converged start with the highest ELBO, else the highest
-    ELBO (a lower bound of the statistic, :func:`decide`); (start, outcome) or None."""
+    """The refit to decide with: the start with the highest ELBO, converged or not; (start,
+    outcome) or None. A converged start below another start's iterate is a worse local
+    optimum (a cold multi-start can land in one), not the alternative's maximum; the highest
+    iterate, if it did not converge, still gives a lower bound of the statistic (:func:`decide`)."""
     from ..engine import TaskStatus
-    from .fitstate import refit_converged
 
     done = [(st, o) for st, o in outs if o is not None and o.status is TaskStatus.DONE]
     if not done:
         return None
-    conv = [(st, o) for st, o in done if refit_converged(o.value.fit)]
-    return max(conv or done, key=lambda so: so[1].value.elbo)
+    return max(done, key=lambda so: so[1].value.elbo)
 
 
 def decide(trial: NoiseModelTrial, elbo_current: float, alpha: float) -> NoiseModelTrial:
