@@ -238,6 +238,8 @@ def test_correlated_gust_is_named_as_noise_model_not_as_a_sensor_position(tmp_pa
     assert res.findings == ()
     assert "structure: full" in pathlib.Path(ad["spec"]).read_text()
     assert res.document["conclusion"].startswith("NOISE MODEL (not a physical effect)")
+    (t,) = nm["trials"]     # the warm refit converged: serially the cold start is not run
+    assert [s["start"] for s in t["starts"]] == ["warm"] and t["start"] == "warm"
 
 
 @pytest.mark.slow
@@ -287,3 +289,30 @@ def test_rank_one_gust_rejects_the_diagonal_noise_even_without_a_finite_optimum(
         assert res.document["conclusion"].startswith("NOISE MODEL UNRESOLVED")
     else:
         assert abs(nm["adopted"]["correlations"][0]["rho"] - rho) < 0.05
+
+
+def _outcome(key, elbo, converged, status=None):
+    from vsidgen.engine import TaskOutcome, TaskStatus
+
+    if status is not None:
+        return TaskOutcome(key, status, error="boom")
+    fit = types.SimpleNamespace(converged=converged, stop_reason=(
+        StopReason.NEWTON_DECREMENT if converged else StopReason.ITERATION_LIMIT))
+    return TaskOutcome(key, TaskStatus.DONE, value=types.SimpleNamespace(elbo=elbo, fit=fit),
+                       wall_s=1.0)
+
+
+def test_the_noise_refit_is_decided_with_the_start_of_the_highest_elbo():
+    """Warm and cold starts of the correlated-noise refit: the highest ELBO decides, converged or
+    not — a converged cold start below the warm iterate is a worse local optimum."""
+    from vsidgen.discrepancy.noisemodel import _best_start
+    from vsidgen.engine import TaskStatus
+
+    warm_hi = ("warm", _outcome("warm", 100.0, False))
+    cold_lo = ("cold", _outcome("cold", 90.0, True))
+    assert _best_start([warm_hi, cold_lo])[0] == "warm"
+    cold_hi = ("cold", _outcome("cold", 100.25, True))
+    assert _best_start([warm_hi, cold_hi])[0] == "cold"
+    failed = ("cold", _outcome("cold", 0.0, False, status=TaskStatus.FAILED))
+    assert _best_start([warm_hi, failed])[0] == "warm"
+    assert _best_start([failed, ("warm", None)]) is None
