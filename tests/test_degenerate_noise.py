@@ -227,3 +227,26 @@ def test_degenerate_spec_loads(tmp_path):
     p.write_text(SPEC.replace("{noise}", "    structure: full\n    degenerate: [q]"))
     m = load_model(p, generated_dir=tmp_path / "gen")
     assert m.process_noise.degenerate == ("q",) and m.process_noise.structure == "full"
+
+
+def test_cli_fit_of_a_degenerate_spec_reports_it(tmp_path, capsys, rec):
+    """End to end through the command line: the spec's `degenerate: [q]`, the line that says so,
+    and results.json's G with the exact zero pivot (the record of the tests above, where the
+    spec's model is the simulated one: ZA = a11, MA = a21, MQ = a22, MDE = b2)."""
+    import json
+
+    from vsidgen.cli import main
+
+    p = tmp_path / "gust.yaml"
+    p.write_text(SPEC.replace("{noise}", "    structure: full\n    degenerate: [q]"))
+    csv = tmp_path / "r.csv"
+    np.savetxt(csv, np.column_stack([rec.t, rec.u[:, 0], rec.y]), delimiter=",",
+               header="t,de,alpha,q", comments="")
+    out = tmp_path / "out"
+    rc = main(["fit", str(p), str(csv), "--out", str(out), "--quiet"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "degenerate process noise: q" in text and "exact limit" in text, text
+    G = np.asarray(json.loads((out / "results.json").read_text())["noise"]["G"])
+    assert G[1, 1] == 0.0 and G[1, 0] != 0.0
+    assert np.allclose(G[:, 0], L_TRUE, rtol=0.15), G

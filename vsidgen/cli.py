@@ -381,6 +381,12 @@ def _cmd_fit(args) -> int:
         how = ("exact limit of vanishing process noise" if lim.get("reached")
                else "limit of vanishing process noise NOT reached" if lim else "quasi-deterministic")
         print(f"states without process noise: {', '.join(det)} ({how})")
+    lim = res.get("deterministic_limit") or {}
+    degen = [x for x in lim.get("states") or () if x not in det]
+    if degen:
+        how = ("exact limit" if lim.get("reached") else "limit NOT reached")
+        print(f"degenerate process noise: {', '.join(degen)} (no independent part: a combination "
+              f"of the earlier states' noise sources, G_ii = 0; {how})")
     issues = res.get("std_error_issues") or []
     if res["parameters"] and not res.get("std_errors_reliable", True):
         codes = ", ".join(f"{i['code']}" + (f" ({', '.join(i['parameters'])})" if i.get("parameters") else "")

@@ -557,11 +557,14 @@ def _noise(res: dict, ref: dict, units_out: dict, units_state: dict) -> dict:
                       and s <= f * 1.001 and f > 0,
                       "ref": _fmt(math.sqrt(rr)) if math.isfinite(rr) and rr >= 0 else "—"})
     prows = []
+    lim = res.get("deterministic_limit") if isinstance(res.get("deterministic_limit"), Mapping) else {}
+    degen = set(lim.get("states") or ()) - set(res.get("deterministic_states") or ())
     for x, v in proc.items():
         u = units_state.get(x)
         prows.append({"name": x, "unit": (f"{u}/√s" if u and u != "1" else "1/√s"),
-                      "std": _fmt(v), "note": ""})
-    lim = res.get("deterministic_limit") if isinstance(res.get("deterministic_limit"), Mapping) else {}
+                      "std": _fmt(v), "note": ("degenerate: no independent part (G_ii = 0), a "
+                                               "combination of the earlier states' noise"
+                                               if x in degen else "")})
     for x in res.get("deterministic_states") or ():
         if x in proc:
             continue
