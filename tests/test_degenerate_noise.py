@@ -237,7 +237,8 @@ def test_cli_fit_of_a_degenerate_spec_reports_it(tmp_path, capsys, rec):
 
     from vsidgen.cli import main
 
-    p = tmp_path / "gust.yaml"
+    (tmp_path / "specs").mkdir()
+    p = tmp_path / "specs" / "gust.yaml"   # generated code goes to tmp_path/generated
     p.write_text(SPEC.replace("{noise}", "    structure: full\n    degenerate: [q]"))
     csv = tmp_path / "r.csv"
     np.savetxt(csv, np.column_stack([rec.t, rec.u[:, 0], rec.y]), delimiter=",",
@@ -250,3 +251,4 @@ def test_cli_fit_of_a_degenerate_spec_reports_it(tmp_path, capsys, rec):
     G = np.asarray(json.loads((out / "results.json").read_text())["noise"]["G"])
     assert G[1, 1] == 0.0 and G[1, 0] != 0.0
     assert np.allclose(G[:, 0], L_TRUE, rtol=0.15), G
+    assert (tmp_path / "generated" / "gust.py").exists()
