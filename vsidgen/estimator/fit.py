@@ -433,7 +433,10 @@ def _uncertainty(P: Problem, blks, s):
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
     info["cond"] = float(ev[-1] / ev[0])
-    Sinv = np.linalg.inv(Ss) / np.sqrt(np.outer(d, d))
+    # the inverse from the eigendecomposition above: positive eigenvalues, so it exists even
+    # where an LU factorisation of a numerically near-singular Ss gives up (seen with numpy 2.4
+    # on a model whose two parameters enter only as their sum: LinAlgError "Singular matrix")
+    Sinv = (V / ev[None, :]) @ V.T / np.sqrt(np.outer(d, d))
     cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
     J = P.tm.dtheta_dz(s[:nt])
     cov = cz * np.outer(J, J)
