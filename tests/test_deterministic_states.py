@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
+from kalman_ref import kalman_rts   # tests/ is on sys.path under pytest
 
 from vsidgen.estimator import FitOptions, fit, smooth
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
@@ -75,35 +76,9 @@ def record(N, seed):
 
 def kalman(theta, g, r, rec, *, smooth=False):
     """Exact log-likelihood (flat prior on x_0) of the discrete model, singular Q allowed; RTS means."""
-    Ad = np.eye(3) + T * _A(theta)
-    Bd = T * np.array([0.0, theta[3], 0.0])
-    Q = T * np.diag(np.asarray(g, float) ** 2)
-    R = np.diag(np.asarray(r, float) ** 2)
-    m, P = np.zeros(3), P0 * np.eye(3)
-    ll = 1.5 * math.log(2 * math.pi * P0)
-    mf, Pf, mp, Pp = [], [], [], []
-    for k in range(len(rec.y)):
-        mp.append(m)
-        Pp.append(P)
-        S = C_OUT @ P @ C_OUT.T + R
-        e = rec.y[k] - C_OUT @ m
-        ll += -0.5 * (e @ np.linalg.solve(S, e) + np.linalg.slogdet(2 * np.pi * S)[1])
-        K = P @ C_OUT.T @ np.linalg.inv(S)
-        m = m + K @ e
-        P = (np.eye(3) - K @ C_OUT) @ P
-        mf.append(m)
-        Pf.append(P)
-        m = Ad @ m + Bd * rec.u[k, 0]
-        P = Ad @ P @ Ad.T + Q
-    if not smooth:
-        return ll
-    ms, Ps = [None] * len(mf), [None] * len(mf)
-    ms[-1], Ps[-1] = mf[-1], Pf[-1]
-    for k in range(len(mf) - 2, -1, -1):
-        J = Pf[k] @ Ad.T @ np.linalg.inv(Pp[k + 1])
-        ms[k] = mf[k] + J @ (ms[k + 1] - mp[k + 1])
-        Ps[k] = Pf[k] + J @ (Ps[k + 1] - Pp[k + 1]) @ J.T
-    return ll, np.array(ms), np.array(Ps)
+    return kalman_rts(np.eye(3) + T * _A(theta), T * np.array([[0.0], [theta[3]], [0.0]]), C_OUT,
+                      T * np.diag(np.asarray(g, float) ** 2), np.diag(np.asarray(r, float) ** 2),
+                      rec.u, rec.y, P0=P0, smooth=smooth)
 
 
 @pytest.fixture(scope="module")

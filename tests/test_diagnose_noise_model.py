@@ -315,4 +315,4 @@ def test_the_noise_refit_is_decided_with_the_start_of_the_highest_elbo():
     assert _best_start([warm_hi, cold_hi])[0] == "cold"
     failed = ("cold", _outcome("cold", 0.0, False, status=TaskStatus.FAILED))
     assert _best_start([warm_hi, failed])[0] == "warm"
-    assert _best_start([failed, ("warm", None)]) is None
+    assert _best_start([failed]) is None

@@ -240,7 +240,7 @@ def _best_start(outs):
     iterate, if it did not converge, still gives a lower bound of the statistic (:func:`decide`)."""
     from ..engine import TaskStatus
 
-    done = [(st, o) for st, o in outs if o is not None and o.status is TaskStatus.DONE]
+    done = [(st, o) for st, o in outs if o.status is TaskStatus.DONE]
     if not done:
         return None
     return max(done, key=lambda so: so[1].value.elbo)
@@ -299,27 +299,27 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
         # reached and converged at. Serially the cold start runs only when the warm one did
         # not converge; with several workers both run at once.
         args = (current, path, generated_dir, max_iter)
+
+        def run(sts):  # engine.run returns one outcome per task, in task order
+            return list(zip(sts, engine.run(_noise_task, [(st, args + (st,)) for st in sts],
+                                            deadline=deadline)))
+
         if engine.serial:
-            outs = [("warm", (engine.run(_noise_task, [("warm", args + ("warm",))],
-                                         deadline=deadline) or [None])[0])]
+            outs = run(STARTS[:1])
             w = outs[0][1]
-            if w is None or w.status is not TaskStatus.DONE or not refit_converged(w.value.fit):
-                outs.append(("cold", (engine.run(_noise_task, [("cold", args + ("cold",))],
-                                                 deadline=deadline) or [None])[0]))
+            if w.status is not TaskStatus.DONE or not refit_converged(w.value.fit):
+                outs += run(STARTS[1:])
         else:
-            res = engine.run(_noise_task, [(st, args + (st,)) for st in STARTS], deadline=deadline)
-            outs = list(zip(STARTS, list(res) + [None] * (len(STARTS) - len(res))))
-        starts = tuple((st, None if o is None or o.status is not TaskStatus.DONE else
+            outs = run(STARTS)
+        starts = tuple((st, None if o.status is not TaskStatus.DONE else
                         (float(o.value.elbo), bool(refit_converged(o.value.fit)),
                          int(getattr(o.value.fit, "iterations", 0)), float(o.wall_s)))
                        for st, o in outs)
         best = _best_start(outs)
         if best is None:
-            errs = [f"{st}: {'not run' if o is None else f'{o.status.value}: {o.error}'}"
-                    for st, o in outs]
+            errs = [f"{st}: {o.status.value}: {o.error}" for st, o in outs]
             trials.append(decide(NoiseModelTrial(alt, path, dof, error="; ".join(errs),
-                                                 wall_s=sum(o.wall_s for _, o in outs
-                                                            if o is not None),
+                                                 wall_s=sum(o.wall_s for _, o in outs),
                                                  starts=starts),
                                  current.elbo, alpha))
             continue
@@ -330,7 +330,7 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
         Gs = np.asarray(st.fit.G, float)[np.ix_(idx, idx)]
         trials.append(decide(NoiseModelTrial(alt, path, dof, st, converged=refit_converged(st.fit),
                                              correlations=correlations(Gs, names),
-                                             wall_s=sum(x.wall_s for _, x in outs if x is not None),
+                                             wall_s=sum(x.wall_s for _, x in outs),
                                              start=start, starts=starts,
                                              stop_reason=getattr(st.fit, "stop_reason", None),
                                              iterations=int(getattr(st.fit, "iterations", 0)),

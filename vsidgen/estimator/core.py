@@ -203,8 +203,8 @@ class NoiseMap:
     Degenerate states (``ProcessNoiseSpec.degenerate``, or a given G whose Cholesky pivot of
     a state with noise is zero: a rank-deficient Q) are ``pinned``: their row keeps its free
     (or given) off-diagonal entries while the diagonal is the fixed ``deterministic_std``,
-    driven to the limit G_ii → 0 like a deterministic state's (also with ``relax``: the
-    first stage of the limit holds them at a data-scale std, see :mod:`vsidgen.estimator.fit`).
+    driven to the limit G_ii → 0 like a deterministic state's; with ``relax`` their diagonal
+    is estimated instead (they are ``relaxed``: the first stage of that limit).
     Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
     Starting values (``inits``): the spec's std where given; otherwise "unit":
     exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =

@@ -926,12 +926,10 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
                     "reached": reached, "elbo_change": float(d_elbo), "theta_change_se": float(d_theta),
                     "scale": scale, "collapsed_directions": collapsed}
     pinned = {P.model.state_names[i] for i in np.nonzero(P.nm.pinned)[0]}
-    label = "; ".join(x for x in (
-        ("deterministic state(s) " + ", ".join(n for n in names if n not in pinned))
-        if any(n not in pinned for n in names) else "",
-        ("degenerate state(s) " + ", ".join(n for n in names if n in pinned)
-         + " (independent process noise)") if pinned else "") if x)
-    what = (f"{label}: limit of vanishing process noise "
+    det_names = [n for n in names if n not in pinned]
+    parts = ([f"deterministic state(s) {', '.join(det_names)}"] if det_names else []) + \
+        ([f"degenerate state(s) {', '.join(sorted(pinned))} (independent process noise)"] if pinned else [])
+    what = (f"{'; '.join(parts)}: limit of vanishing process noise "
             + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
                if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
     if collapsed:
