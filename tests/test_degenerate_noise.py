@@ -60,7 +60,8 @@ def model(*, estimate=True, degenerate=("x2",)):
                                 for o, s in zip(("y1", "y2"), R_STD)))
 
 
-def record(N, seed):
+def record(N, seed, *, independent=0.0):
+    """``independent``: std of a second, independent noise source on x2 (0: one gust only)."""
     rng = np.random.default_rng(seed)
     k = np.arange(N)
     u = (np.sign(np.sin(k * T * 1.3)) + 0.3 * np.sin(k * T * 4.1))[:, None]
@@ -69,7 +70,7 @@ def record(N, seed):
     for i in range(N):
         X[i] = x
         x = x + T * (_A(THETA_TRUE) @ x + np.array([0.0, THETA_TRUE[3]]) * u[i, 0]) \
-            + math.sqrt(T) * L_TRUE * rng.normal()
+            + math.sqrt(T) * (L_TRUE * rng.normal() + np.array([0.0, independent]) * rng.normal())
     y = X + R_STD * rng.normal(size=(N, 2))
     return types.SimpleNamespace(name="r", path=None, t=k * T, dt=T, u=u, y=y,
                                  input_names=("u",), output_names=("y1", "y2"))
@@ -133,6 +134,15 @@ def test_fit_with_a_degenerate_state_matches_the_exact_rank_one_mle(fitted, rec)
     assert np.allclose(res.G[:, 0], lv, rtol=0.1), (res.G[:, 0], lv)   # the gust's loadings
     assert res.elbo <= -opt.fun + 1e-3          # the ELBO cannot exceed the maximised likelihood
     assert -opt.fun - res.elbo < 2.0, -opt.fun - res.elbo
+    assert "degenerate_noise_rejected" not in [w["code"] for w in res.warnings]
+
+
+def test_a_degenerate_constraint_the_data_contradict_is_warned():
+    """x2 with an independent noise source as strong as the gust's: `degenerate: [x2]` is
+    rejected by the likelihood ratio of the relaxed stage against the limit."""
+    res = fit(model(), [record(400, seed=6, independent=0.3)], options=FitOptions(noise_start="data"))
+    (w,) = [w for w in res.warnings if w["code"] == "degenerate_noise_rejected"]
+    assert w["states"] == ["x2"] and w["statistic"] > w["threshold"], w
 
 
 def test_the_degenerate_model_beats_independent_noise_by_the_likelihood_ratio(fitted, rec):

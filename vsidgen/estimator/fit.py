@@ -29,6 +29,7 @@ from collections.abc import Mapping
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.stats import chi2
 
 from ..errors import FitError
 from .core import diff_scale
@@ -574,6 +575,22 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
                              "std": float(Gd[i]), "floor": float(fl),
                              "message": f"process noise std of '{nm}' ({Gd[i]:.3g}) is at its floor ({fl:.3g})"})
     lim = out.get("limit")
+    pinned = [model.state_names[i] for i in np.nonzero(P.nm.pinned)[0]]
+    if (mode == "fit" and lim is not None and pinned and not lim["collapsed_directions"]
+            and lim["stages"] and lim["stages"][0]["converged"]):
+        # likelihood-ratio test of the degenerate constraint: the relaxed first stage is the
+        # full factor with G_ii free, the limit the same family at G_ii = 0 (a boundary, so
+        # χ²ₖ is conservative)
+        lam = 2.0 * (lim["stages"][0]["elbo"] + f)
+        thr = float(chi2.isf(0.01, len(pinned)))
+        if lam > thr:
+            warnings.append({"code": "degenerate_noise_rejected", "reliable": True, "states": pinned,
+                             "statistic": lam, "threshold": thr,
+                             "message": f"the data contradict `degenerate: [{', '.join(pinned)}]`: the "
+                                        f"full factor with independent process noise on "
+                                        f"{', '.join(pinned)} fits better by 2ΔELBO = {lam:.4g} > "
+                                        f"{thr:.4g} (χ²({len(pinned)}), α = 0.01); remove "
+                                        f"them from noise.process.degenerate"})
     if lim is not None and not lim["reached"]:
         warnings.append({"code": "deterministic_limit_not_reached", "reliable": False,
                          "states": list(lim["states"]), "elbo_change": lim["elbo_change"],
