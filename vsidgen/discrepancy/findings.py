@@ -254,7 +254,9 @@ def _trial_table(first: str, rows, *, dof: bool) -> str:
         st = t.get("statistic")
         body.append(f"<tr><td>{cell}</td><td>{'n/a' if st is None else f'{st:.4g}'}</td>"
                     + (f"<td>{int(t['dof'])}</td>" if dof else "")
-                    + f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}</td></tr>")
+                    + f"<td>{(t.get('threshold') or 0):.4g}</td><td>{e(t['verdict'])}"
+                    + (" (Rao's score statistic at the current fit; not refitted)"
+                       if t.get("decided_by") == "score" else "") + "</td></tr>")
     return ("<table border='1' cellpadding='3' style='border-collapse:collapse;font-size:90%'>"
             + head + "".join("\n" + r for r in body) + "\n</table>")
 
@@ -480,6 +482,9 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      + (f"<b>{e(nm['adopted']['explanation'])}</b>" if nm.get("adopted")
                         else f"<b>{e(noise_model_text(nm))}</b>"
                         if nm.get("significant_not_adopted")
+                        else "Kept: the score test of correlated process noise at the "
+                             "current fit is not significant, so it was not refitted."
+                        if all(t.get("decided_by") == "score" for t in nm["trials"])
                         else "Kept: correlated process noise did not improve the fit "
                              "significantly.")
                      + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)

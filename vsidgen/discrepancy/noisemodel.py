@@ -27,6 +27,24 @@ that the search went on with the diagonal noise. Measured on the independent
 benchmark's HFB-320 and lateral null records (``docs/diagnose.md``): the refit stops at the
 iteration limit with an indefinite Hessian while ``Q`` approaches a singular matrix (one gust
 acting on several equations), the ELBO still rising.
+**Score test first.** The refit is slow where the noise must travel far (a funnel: on
+the HFB-320 null record the V noise std grows 38× while its path roughness follows, about
+0.2 nats per Levenberg–Marquardt iteration), and it is needed only when the diagonal
+model is rejected. :func:`score_test` therefore computes Rao's score (Lagrange-multiplier)
+statistic of the off-diagonal factor entries at the nesting point first — the gradient and
+the exact Hessian of the full-factor problem at the current optimum, every other variable
+(state means, assumed density, θ, the diagonal noise) profiled out:
+
+    S = g_γᵀ (H_γγ − H_γρ H_ρρ⁻¹ H_ργ)⁻¹ g_γ  ~  χ²_k under the null,
+
+invariant to the parameterisation of the tested entries (G_ij at G_ij = 0 maps linearly to
+Q_ij = G_jj G_ij), hence to the order of the states. When S is at or below the χ²_k
+quantile and the profiled curvature is positive definite, the diagonal model is kept
+(``decided_by: score``) without refitting. When S is significant, or the profiled
+curvature has a negative eigenvalue (the current optimum is a saddle of the larger family:
+the ELBO rises along a correlation even where its gradient vanishes), or no statistic can
+be formed, the alternative is refitted and decided by the likelihood ratio as above.
+
 It is reported as a **noise-model finding** ("the turbulence is correlated between the
 equations …", with the correlation coefficients ``ρ_ij = Q_ij/√(Q_ii Q_jj)`` of ``Q = G Gᵀ``),
 never as a physical effect, and the physical search continues with it (the final spec carries
@@ -64,6 +82,35 @@ class NoiseAlternative(enum.Enum):
 
 
 @dataclasses.dataclass(frozen=True)
+class NoiseScore:
+    """Rao's score statistic of the alternative's added noise parameters at the nesting
+    point (:func:`score_test`); ``statistic`` None when none could be formed (``note``)."""
+
+    statistic: float | None
+    dof: int
+    threshold: float
+    p_value: float = math.nan
+    ascent: bool = False                 # profiled curvature with a negative eigenvalue
+    per_pair: tuple[tuple[str, str, float], ...] = ()   # one-entry statistics (χ²₁ each)
+    note: str = ""
+    wall_s: float = 0.0
+
+    @property
+    def keeps_current(self) -> bool:
+        """The score test alone keeps the current noise model (no refit needed)."""
+        return (self.statistic is not None and not self.ascent
+                and self.statistic <= self.threshold)
+
+    def to_json(self) -> dict:
+        def f(v):
+            return None if v is None or not math.isfinite(v) else float(v)
+        return {"statistic": f(self.statistic), "dof": self.dof, "threshold": f(self.threshold),
+                "p_value": f(self.p_value), "ascent": self.ascent,
+                "per_pair": [{"states": [a, b], "statistic": f(v)} for a, b, v in self.per_pair],
+                "note": self.note, "wall_s": round(self.wall_s, 2)}
+
+
+@dataclasses.dataclass(frozen=True)
 class NoiseModelTrial:
     """The current model refitted with one noise-model alternative."""
 
@@ -85,6 +132,8 @@ class NoiseModelTrial:
     start: str | None = None             # the start decided with (STARTS)
     #: every start run: (start, (ELBO, converged, iterations, wall s) or None when it failed)
     starts: tuple = ()
+    score: NoiseScore | None = None      # the score test at the nesting point
+    decided_by: str = "likelihood_ratio"  # or "score" (kept without a refit)
 
     def to_json(self) -> dict:
         def f(v):
@@ -103,7 +152,9 @@ class NoiseModelTrial:
                             **({} if v is None else {"elbo": f(v[0]), "converged": v[1],
                                                      "iterations": v[2], "wall_s": round(v[3], 2)})}
                            for st, v in self.starts],
-                "error": self.error, "wall_s": round(self.wall_s, 2)}
+                "error": self.error, "wall_s": round(self.wall_s, 2),
+                "decided_by": self.decided_by,
+                "score": None if self.score is None else self.score.to_json()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,7 +192,10 @@ class NoiseModelResult:
         return {"kind": "noise_model",
                 "test": "2*(ELBO_full - ELBO_diagonal) against chi2(n(n-1)/2) at alpha: the "
                         "diagonal process noise is the full one with zero off-diagonal factor "
-                        "entries (nested, interior point)",
+                        "entries (nested, interior point); refitted only when Rao's score "
+                        "statistic at the current fit is significant, its profiled curvature "
+                        "is not positive definite, or it cannot be formed (trials[].score, "
+                        "trials[].decided_by)",
                 "current": {"structure": self.structure, "states": list(self.states)},
                 "elbo_current": float(self.elbo_current), "alpha": self.alpha,
                 "trials": [t.to_json() for t in self.trials], "adopted": adopted,
@@ -210,8 +264,90 @@ def write_noise_spec(current, path: pathlib.Path, name: str):
                        "parameters": warm_parameters(current.model, current.fit.theta)})
 
 
+def score_test(current, path: pathlib.Path, *, generated_dir, dof: int,
+               alpha: float) -> NoiseScore:
+    """Rao's score statistic of the off-diagonal process-noise factor entries of the spec at
+    ``path`` (the current model with ``structure: full``) at the nesting point: the current
+    fit's θ, noise and assumed density, off-diagonal entries 0 (module docstring).
+
+    The full-factor problem's exact gradient and Hessian blocks there (one evaluation); the
+    state means are eliminated (block-tridiagonal Schur complement), then every other border
+    variable (assumed-density parameters, θ, diagonal and measurement noise; floors that are
+    active stay held) is profiled out of the tested entries' block."""
+    from ..estimator import WarmStart
+    from ..estimator.problem import Problem
+    from ..model import load_model
+    from .fitstate import diag_options
+    from .refit import REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
+    from .score import NEGATIVE_CURVATURE_TOL, _reduced_system
+
+    t0 = time.perf_counter()
+    thr = float(stats.chi2.isf(alpha, max(dof, 1)))
+
+    def none(note):
+        return NoiseScore(None, dof, thr, note=note, wall_s=time.perf_counter() - t0)
+
+    m = load_model(path, generated_dir=generated_dir)
+    records = list(current.records)
+    z, _ = parameter_start(m)
+    ps, od, ms = noise_stds(current.fit, current.model)
+    s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
+                                             proc_G=od, meas_std=ms)])
+    opts = diag_options(1, warm_start=WarmStart.from_decision(
+        {"s": s0, "records": current.fit.decision["records"]}))
+    P = Problem(m, records, opts)
+    s, recs = P.initial(opts)
+    blks = P.blocks(s, recs)
+    S, rhs = _reduced_system(P, blks)
+    if S is None:
+        return none("state-mean block not positive definite at the nesting point")
+    off = P.layout.shared_offset
+    ne = len(P.nm.proc_est_idx)
+    gam = off + P.tm.n_free + ne + np.arange(len(P.nm.offdiag))
+    held = off + np.nonzero(P.floor_active(s, P.gradient(blks).shared))[0]
+    skip = set(gam.tolist()) | set(held.tolist())
+    rest = np.array([j for j in range(S.shape[0]) if j not in skip], int)
+    try:
+        L0 = np.linalg.cholesky(S[np.ix_(rest, rest)])
+    except np.linalg.LinAlgError:
+        return none("the Hessian of the current model is not positive definite at its fit")
+
+    def solve0(B):
+        return np.linalg.solve(L0.T, np.linalg.solve(L0, B))
+
+    SJ = S[np.ix_(gam, rest)]
+    schur = S[np.ix_(gam, gam)] - SJ @ solve0(SJ.T)
+    schur = 0.5 * (schur + schur.T)
+    rJ = rhs[gam] - SJ @ solve0(rhs[rest])
+    eig = np.linalg.eigvalsh(schur)
+    names = m.state_names
+    per = tuple((names[b], names[a], float(rJ[j] ** 2 / schur[j, j]) if schur[j, j] > 0
+                 else math.nan) for j, (a, b) in enumerate(P.nm.offdiag))
+    if eig[0] < -NEGATIVE_CURVATURE_TOL * max(float(np.max(np.abs(eig))), 1e-300):
+        return NoiseScore(None, dof, thr, ascent=True, per_pair=per,
+                          note="negative profiled curvature along the correlations: the "
+                               "current optimum is a saddle of the correlated model",
+                          wall_s=time.perf_counter() - t0)
+    if eig[0] <= 0:
+        return none("profiled curvature of the correlations not positive definite")
+    stat = float(max(rJ @ np.linalg.solve(schur, rJ), 0.0))
+    if not math.isfinite(stat):
+        return none("score statistic not finite")
+    return NoiseScore(stat, dof, thr, float(stats.chi2.sf(stat, max(dof, 1))), per_pair=per,
+                      wall_s=time.perf_counter() - t0)
+
+
 #: the two starts of the alternative's refit (:func:`run_noise_model`)
 STARTS = ("warm", "cold")
+
+
+def _score_errors():
+    from ..errors import VsidgenError
+
+    return (VsidgenError, ValueError, ArithmeticError, np.linalg.LinAlgError, KeyError)
+
+
+_SCORE_ERRORS = _score_errors()
 
 
 def _noise_task(current, path, generated_dir, max_iter, start):
@@ -292,6 +428,24 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
             progress(f"noise model first: refitting with correlated process noise on "
                      f"{', '.join(states)} ({dof} parameter{'s' if dof > 1 else ''} added)")
         write_noise_spec(current, path, f"{safe_name(model.name)[:30]}_noise{i + 1}")
+        try:
+            score = score_test(current, path, generated_dir=generated_dir, dof=dof, alpha=alpha)
+        except _SCORE_ERRORS as err:   # no statistic: the refit decides
+            score = NoiseScore(None, dof, float(stats.chi2.isf(alpha, max(dof, 1))),
+                               note=f"failed: {str(err).splitlines()[0][:200]}")
+        if progress is not None:
+            progress("    score test at the current fit: " + (
+                f"S = {score.statistic:.4g} (threshold {score.threshold:.4g}, χ²({dof}))"
+                if score.statistic is not None else score.note)
+                + ("; no refit needed" if score.keeps_current else "; refitting"))
+        if score.keeps_current:
+            trials.append(NoiseModelTrial(alt, path, dof, statistic=score.statistic,
+                                          threshold=score.threshold, p_value=score.p_value,
+                                          converged=True,
+                                          verdict=NoiseModelVerdict.NOT_SIGNIFICANT,
+                                          wall_s=score.wall_s, score=score,
+                                          decided_by="score"))
+            continue
         # two starts: warm (from the current fit) and cold (the estimator's noise starts). From
         # the diagonal optimum the warm refit can crawl along a curved valley: on the
         # independent HFB-320 null record it rose 0.15 nats per iteration for 400 iterations
@@ -320,7 +474,7 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
             errs = [f"{st}: {o.status.value}: {o.error}" for st, o in outs]
             trials.append(decide(NoiseModelTrial(alt, path, dof, error="; ".join(errs),
                                                  wall_s=sum(o.wall_s for _, o in outs),
-                                                 starts=starts),
+                                                 starts=starts, score=score),
                                  current.elbo, alpha))
             continue
         start, o = best
@@ -334,7 +488,8 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
                                              start=start, starts=starts,
                                              stop_reason=getattr(st.fit, "stop_reason", None),
                                              iterations=int(getattr(st.fit, "iterations", 0)),
-                                             independent_shares=independent_shares(Gs, names)),
+                                             independent_shares=independent_shares(Gs, names),
+                                             score=score),
                              current.elbo, alpha))
     good = [t for t in trials if t.verdict is NoiseModelVerdict.ADOPTED]
     adopted = max(good, key=lambda t: t.state.elbo) if good else None
@@ -360,4 +515,5 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
 
 
 __all__ = ["NoiseAlternative", "NoiseModelResult", "NoiseModelTrial", "NoiseModelVerdict",
-           "correlations", "decide", "independent_shares", "noise_alternatives", "run_noise_model"]
+           "NoiseScore", "correlations", "decide", "independent_shares", "noise_alternatives",
+           "run_noise_model", "score_test"]
