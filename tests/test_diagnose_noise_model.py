@@ -345,8 +345,10 @@ def _outcome(key, elbo, converged, status=None):
 
 
 def test_the_noise_refit_is_decided_with_the_start_of_the_highest_elbo():
-    """Warm and cold starts of the correlated-noise refit: the highest ELBO decides, converged or
-    not — a converged cold start below the warm iterate is a worse local optimum."""
+    """Warm and cold starts of the correlated-noise refit: a converged warm start decides (the
+    cold one is then not needed, whatever the number of workers); otherwise the highest ELBO
+    decides, converged or not — a converged cold start below the warm iterate is a worse
+    local optimum."""
     from vsidgen.discrepancy.noisemodel import _best_start
     from vsidgen.engine import TaskStatus
 
@@ -355,9 +357,27 @@ def test_the_noise_refit_is_decided_with_the_start_of_the_highest_elbo():
     assert _best_start([warm_hi, cold_lo])[0] == "warm"
     cold_hi = ("cold", _outcome("cold", 100.25, True))
     assert _best_start([warm_hi, cold_hi])[0] == "cold"
+    warm_conv = ("warm", _outcome("warm", 100.0, True))
+    assert _best_start([warm_conv, cold_hi])[0] == "warm"
     failed = ("cold", _outcome("cold", 0.0, False, status=TaskStatus.FAILED))
     assert _best_start([warm_hi, failed])[0] == "warm"
     assert _best_start([failed]) is None
+
+
+def test_the_cold_start_stops_itself_when_the_flag_is_raised(monkeypatch):
+    """The cold start's progress callback polls the stop flag and ends the fit early."""
+    import vsidgen.discrepancy.noisemodel as nmod
+    import vsidgen.engine as engine
+
+    raised = {"flag-1"}
+    monkeypatch.setattr(engine, "stop_requested", lambda name: name in raised)
+    poll = nmod._stop_poll("flag-2")
+    for it in range(12):
+        poll(it, 0.0, 1.0, 0.1)        # another flag: nothing happens
+    poll = nmod._stop_poll("flag-1")
+    poll(1, 0.0, 1.0, 0.1)             # polled every POLL_EVERY iterations only
+    with pytest.raises(nmod.Superseded):
+        poll(nmod.POLL_EVERY, 0.0, 1.0, 0.1)
 
 
 def test_score_keeps_the_current_model_only_when_not_significant_and_curvature_positive():

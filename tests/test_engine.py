@@ -38,6 +38,22 @@ def _sleep(s):
     return s
 
 
+def _poll_until_stopped(name, limit):
+    """A long task that ends itself once the stop flag ``name`` is raised."""
+    from vsidgen.engine import stop_requested
+
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < limit:
+        if stop_requested(name):
+            return "stopped"
+        time.sleep(0.05)
+    return "ran to its end"
+
+
+def _quick_or_poll(key, name):
+    return "quick" if key == "quick" else _poll_until_stopped(name, 150.0)
+
+
 @pytest.fixture(autouse=True)
 def _by_value():
     import cloudpickle
@@ -60,10 +76,25 @@ def test_serial_outcomes_failures_and_deadline():
     assert [o.key for o in seen] == ["a", "b"]
 
 
+def test_serial_stop_when_leaves_the_rest_unstarted():
+    from vsidgen.engine import NOT_NEEDED, stop_requested
+
+    ran = []
+    with Engine(workers=1) as eng:
+        out = eng.run(lambda k: ran.append(k) or k, [("a", ("a",)), ("b", ("b",)), ("c", ("c",))],
+                      stop_when=lambda oc: oc.value == "b")
+        eng.request_stop("nothing-to-do-serially")
+    assert ran == ["a", "b"] and [o.status for o in out] == [TaskStatus.DONE, TaskStatus.DONE,
+                                                             TaskStatus.CANCELLED]
+    assert out[2].error == NOT_NEEDED
+    assert not stop_requested("any")   # not on a worker
+
+
 def test_local_cluster_results_failures_and_dead_workers(tmp_path):
     """Two worker processes: values in submission order, an exception stays with its task,
     a worker that dies once is retried (the task succeeds), one that dies every time loses
-    only its own task, and a deadline cancels what has not finished."""
+    only its own task, a decided run (``stop_when``) frees the workers at once, and a
+    deadline cancels what has not finished (last: the cancelled sleep keeps its worker)."""
     with Engine(workers=2) as eng:
         assert not eng.serial and len(eng.client.scheduler_info()["workers"]) == 2
         out = eng.run(_square, [(f"k{i}", (i,)) for i in range(5)])
@@ -78,6 +109,27 @@ def test_local_cluster_results_failures_and_dead_workers(tmp_path):
                         [("dead", ("dead",)), ("alive", ("alive",))],
                         deadline=time.monotonic() + 300.0)
         assert mixed[0].status is TaskStatus.LOST and mixed[1].value == "alive"
+        # stop_when: the first outcome decides; the other task, already running on the second
+        # worker, is cancelled and ends itself at its next poll of the stop flag, so both
+        # workers are free again at once (the next run does not queue behind it)
+        eng.client.wait_for_workers(2, timeout=300)
+        from vsidgen.engine import NOT_NEEDED
+
+        flag = f"vsidgen-test-stop-{os.getpid()}"
+
+        def decided(oc):
+            if oc.value == "quick":
+                eng.request_stop(flag)
+                return True
+            return False
+
+        t0 = time.monotonic()
+        out = eng.run(_quick_or_poll, [("slow", ("slow", flag)), ("quick", ("quick", flag))],
+                      stop_when=decided)
+        assert out[1].value == "quick" and out[0].status is TaskStatus.CANCELLED
+        assert out[0].error == NOT_NEEDED
+        again = eng.run(_square, [("a", (2,)), ("b", (3,))])
+        assert [o.value for o in again] == [4, 9] and time.monotonic() - t0 < 120.0
         eng.client.wait_for_workers(2, timeout=300)
         t0 = time.monotonic()
         slow = eng.run(_sleep, [("s2", (0.0,)), ("s1", (600.0,))], deadline=t0 + 30.0)

@@ -206,16 +206,34 @@ class Engine:
 
     def run(self, fn: Callable, tasks: Sequence[tuple[str, tuple]], *,
             deadline: float | None = None,
-            on_done: Callable[[TaskOutcome], None] | None = None) -> list[TaskOutcome]:
+            on_done: Callable[[TaskOutcome], None] | None = None,
+            stop_when: Callable[[TaskOutcome], bool] | None = None) -> list[TaskOutcome]:
         """Run ``fn(*args)`` for every ``(key, args)``; outcomes in the order of ``tasks``.
 
         ``deadline`` is a :func:`time.monotonic` instant: serially, no task starts after
         it; on a cluster, tasks not finished by then are cancelled. ``on_done`` is called
-        in this process as each task ends (completion order).
+        in this process as each task ends (completion order). ``stop_when``: called with
+        each outcome as it arrives; when it returns True the tasks not yet finished are
+        not needed: serially they are not started, on a cluster they are cancelled (their
+        outcome ``CANCELLED``, error :data:`NOT_NEEDED`). A task already running on a
+        worker is not interrupted by dask; a task that polls :func:`stop_requested` with a
+        name the caller passes to :meth:`request_stop` can end itself early.
         """
         if self.serial:
-            return self._run_serial(fn, tasks, deadline, on_done)
-        return self._run_dask(fn, tasks, deadline, on_done)
+            return self._run_serial(fn, tasks, deadline, on_done, stop_when)
+        return self._run_dask(fn, tasks, deadline, on_done, stop_when)
+
+    def request_stop(self, name: str) -> None:
+        """Raise the stop flag ``name`` (a ``distributed.Event``) that running tasks poll
+        with :func:`stop_requested`; nothing to do serially (tasks run one at a time)."""
+        if self.client is None:
+            return
+        from distributed import Event
+
+        try:
+            Event(name, client=self.client).set()
+        except (OSError, TimeoutError, RuntimeError):
+            pass   # best effort: the task then runs to its own end
 
     @staticmethod
     def _emit(on_done, oc):
@@ -223,9 +241,14 @@ class Engine:
             on_done(oc)
         return oc
 
-    def _run_serial(self, fn, tasks, deadline, on_done):
+    def _run_serial(self, fn, tasks, deadline, on_done, stop_when=None):
         out = []
+        stopped = False
         for key, args in tasks:
+            if stopped:
+                out.append(self._emit(on_done, TaskOutcome(key, TaskStatus.CANCELLED,
+                                                           error=NOT_NEEDED)))
+                continue
             if deadline is not None and time.monotonic() >= deadline:
                 out.append(self._emit(on_done, TaskOutcome(key, TaskStatus.CANCELLED,
                                                            error="time limit reached")))
@@ -240,9 +263,10 @@ class Engine:
                 oc = TaskOutcome(key, TaskStatus.DONE, value=value,
                                  wall_s=time.perf_counter() - t0)
             out.append(self._emit(on_done, oc))
+            stopped = stop_when is not None and bool(stop_when(oc))
         return out
 
-    def _run_dask(self, fn, tasks, deadline, on_done):
+    def _run_dask(self, fn, tasks, deadline, on_done, stop_when=None):
         from distributed import as_completed
         from distributed.client import FutureCancelledError
         from distributed.scheduler import KilledWorker
@@ -254,6 +278,7 @@ class Engine:
                                    key=f"vsidgen-{i}-{key}-{os.urandom(4).hex()}")
             futures[f.key] = (i, key, f)
         results: dict[int, TaskOutcome] = {}
+        why = "time limit reached"
         ac = as_completed([f for _, _, f in futures.values()])
         try:
             while len(results) < len(tasks):
@@ -276,6 +301,9 @@ class Engine:
                     oc = TaskOutcome(key, TaskStatus.FAILED, error=_one_line(err),
                                      wall_s=time.perf_counter() - t0)
                 results[i] = self._emit(on_done, oc)
+                if stop_when is not None and stop_when(oc):
+                    why = NOT_NEEDED
+                    break
         except BaseException:
             self.client.cancel([f for _, _, f in futures.values()])
             raise
@@ -285,8 +313,27 @@ class Engine:
         for i, key, _ in sorted(futures.values(), key=lambda v: v[0]):
             if i not in results:
                 results[i] = self._emit(on_done, TaskOutcome(key, TaskStatus.CANCELLED,
-                                                             error="time limit reached"))
+                                                             error=why))
         return [results[i] for i in range(len(tasks))]
+
+
+#: error of a task cancelled because ``stop_when`` decided without it
+NOT_NEEDED = "not needed: an earlier outcome decided"
+
+
+def stop_requested(name: str) -> bool:
+    """In a task on a dask worker: has :meth:`Engine.request_stop` raised the flag
+    ``name``? False outside a worker (serial runs) and when the scheduler cannot be asked."""
+    try:
+        from distributed import Event, get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return False
+    try:
+        return bool(Event(name).is_set())
+    except (OSError, TimeoutError, RuntimeError, ValueError):
+        return False
 
 
 def _next_within(ac, timeout: float):

@@ -57,6 +57,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import os
 import pathlib
 import time
 from typing import Any
@@ -350,12 +351,33 @@ def _score_errors():
 _SCORE_ERRORS = _score_errors()
 
 
-def _noise_task(current, path, generated_dir, max_iter, start):
+class Superseded(Exception):
+    """A start ended early: another start already decided the stage."""
+
+
+#: iterations between two polls of the stop flag by the cold start on a worker
+POLL_EVERY = 5
+
+
+def _stop_poll(stop_key):
+    """Progress callback of the cold start: raises :class:`Superseded` once the run has
+    raised the stop flag ``stop_key`` (the warm start converged; a worker of a cluster
+    cannot otherwise be interrupted)."""
+    from ..engine import stop_requested
+
+    def poll(it, elbo, relgrad, elapsed):
+        if it % POLL_EVERY == 0 and stop_requested(stop_key):
+            raise Superseded(f"stopped at iteration {it}: the warm start converged")
+    return poll
+
+
+def _noise_task(current, path, generated_dir, max_iter, start, stop_key=None):
     """One start of the alternative's refit (runs on an engine worker); a FitState.
 
     ``warm``: from the current fit's noise and assumed density (off-diagonal factor 0);
     ``cold``: θ from the current estimates (the spec's initial values), the noise and the
-    assumed density from the estimator's own noise starts (multi-start)."""
+    assumed density from the estimator's own noise starts (multi-start); it ends early
+    (:class:`Superseded`) when the flag ``stop_key`` is raised."""
     from ..estimator import fit
     from ..model import load_model
     from .fitstate import diag_options, evaluated, refit_warm
@@ -365,20 +387,37 @@ def _noise_task(current, path, generated_dir, max_iter, start):
                           iterations=2 * max_iter, max_iter=max_iter)
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
-    res = fit(m, records, options=diag_options(2 * max_iter))
+    kw = {} if stop_key is None else {"progress": _stop_poll(stop_key)}
+    res = fit(m, records, options=diag_options(2 * max_iter, **kw))
     return evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
 
 
+def _warm_converged(oc) -> bool:
+    from ..engine import TaskStatus
+    from .fitstate import refit_converged
+
+    return (oc.key == "warm" and oc.status is TaskStatus.DONE
+            and bool(refit_converged(oc.value.fit)))
+
+
 def _best_start(outs):
-    """The refit to decide with: the start with the highest ELBO, converged or not; (start,
-    outcome) or None. A converged start below another start's iterate is a worse local
-    optimum (a cold multi-start can land in one), not the alternative's maximum; the highest
-    iterate, if it did not converge, still gives a lower bound of the statistic (:func:`decide`)."""
+    """The refit to decide with; (start, outcome) or None.
+
+    A converged warm start decides: it is the optimum the current fit leads to, and the
+    cold start is then not needed (serially it is not run, on a cluster it is stopped), so
+    the decision does not depend on the number of workers. Otherwise the start with the
+    highest ELBO, converged or not: a converged start below another start's iterate is a
+    worse local optimum (a cold multi-start can land in one), not the alternative's
+    maximum; the highest iterate, if it did not converge, still gives a lower bound of the
+    statistic (:func:`decide`)."""
     from ..engine import TaskStatus
 
     done = [(st, o) for st, o in outs if o.status is TaskStatus.DONE]
     if not done:
         return None
+    warm = [(st, o) for st, o in done if _warm_converged(o)]
+    if warm:
+        return warm[0]
     return max(done, key=lambda so: so[1].value.elbo)
 
 
@@ -409,7 +448,7 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
                     engine, deadline=None, progress=None) -> NoiseModelResult:
     """Refit ``current`` (a search.FitState) with correlated process noise and decide (see
     the module docstring). The adopted trial's state is the model the run continues from."""
-    from ..engine import TaskStatus
+    from ..engine import NOT_NEEDED, TaskStatus
     from .fitstate import refit_converged
     from .specwrite import safe_name
 
@@ -450,21 +489,23 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
         # the diagonal optimum the warm refit can crawl along a curved valley: on the
         # independent HFB-320 null record it rose 0.15 nats per iteration for 400 iterations
         # (ρ(V, α) → 0.9996) and stopped 0.25 nats below the optimum the cold multi-start
-        # reached and converged at. Serially the cold start runs only when the warm one did
-        # not converge; with several workers both run at once.
-        args = (current, path, generated_dir, max_iter)
+        # reached and converged at (a funnel: the V noise std grows 38× while the smoothed
+        # path's roughness follows). Both starts are submitted in this order; once the warm
+        # start has converged the cold one is not needed: serially it is not started, on a
+        # cluster it is cancelled and, if already running, stops at its next poll of the
+        # flag, so the decision is the same for any number of workers.
+        stop_key = f"vsidgen-noise-stop-{os.urandom(6).hex()}"
 
-        def run(sts):  # engine.run returns one outcome per task, in task order
-            return list(zip(sts, engine.run(_noise_task, [(st, args + (st,)) for st in sts],
-                                            deadline=deadline)))
+        def decided(oc):
+            if _warm_converged(oc):
+                engine.request_stop(stop_key)
+                return True
+            return False
 
-        if engine.serial:
-            outs = run(STARTS[:1])
-            w = outs[0][1]
-            if w.status is not TaskStatus.DONE or not refit_converged(w.value.fit):
-                outs += run(STARTS[1:])
-        else:
-            outs = run(STARTS)
+        outs = [(st, o) for st, o in zip(STARTS, engine.run(
+            _noise_task, [(st, (current, path, generated_dir, max_iter, st, stop_key))
+                          for st in STARTS], deadline=deadline, stop_when=decided))
+                if not (o.status is TaskStatus.CANCELLED and o.error == NOT_NEEDED)]
         starts = tuple((st, None if o.status is not TaskStatus.DONE else
                         (float(o.value.elbo), bool(refit_converged(o.value.fit)),
                          int(getattr(o.value.fit, "iterations", 0)), float(o.wall_s)))
