@@ -147,6 +147,50 @@ def _unit_dim(unit: Located[str] | None):
         raise unit.relocate(err) from None
 
 
+def _coherent(unit: Located[str] | None) -> tuple[float, str | None]:
+    """(factor to the coherent unit, coherent unit text) of a declared unit (1, None: none)."""
+    if unit is None:
+        return 1.0, None
+    try:
+        return _units.coherent(unit.value, path=unit.path, line=1, column=1)
+    except SpecError as err:
+        raise unit.relocate(err) from None
+
+
+def _warn_coherence(warnings: list, spec: Spec) -> None:
+    """Warnings for units that are not coherent SI (rad for angles): constants are converted
+    (said once); states, inputs, outputs and parameters are used with the numbers as they
+    stand, which is right only where every equation they enter is written in those units."""
+    for c in spec.constants:
+        factor, unit = _coherent(c.unit)
+        if factor != 1.0:
+            _warn(warnings, f"constant `{c.name.value}` = {c.value:g} {c.unit.value} is used as "
+                            f"{c.value * factor:.6g} {unit}: the equations are evaluated in "
+                            "coherent units (SI, rad for angles)", c.name, code="constant_converted",
+                  hint=f"write `{{value: {c.value * factor:.6g}, unit: {unit}}}` to say so in the "
+                       "spec")
+    for decls, what in ((spec.states, "state"), (spec.inputs, "input"),
+                        (spec.outputs, "output"), (spec.parameters, "parameter")):
+        for d in decls:
+            factor, unit = _coherent(d.unit)
+            if factor == 1.0:
+                continue
+            if what == "parameter":
+                msg = (f"parameter `{d.name.value}` is declared in `{d.unit.value}`, but the "
+                       "equations use the numbers as they stand: where they meet quantities in "
+                       f"coherent units (SI, rad) the estimate is in `{unit}`, and its initial "
+                       "value and bounds are read in that unit too")
+                hint = f"declare `unit: {unit}` (1 {d.unit.value} = {factor:.6g} {unit})"
+            else:
+                msg = (f"{what} `{d.name.value}` is declared in `{d.unit.value}`: the equations "
+                       f"use its numbers in `{d.unit.value}`, so every equation it enters must be "
+                       "written in that unit (no sin/cos of it, rates and kinematics in the same "
+                       "unit)")
+                hint = (f"declare `unit: {unit}`; a data column in `{d.unit.value}` is converted "
+                        f"by the data map: `{{column: NAME, unit: {d.unit.value}}}`")
+            _warn(warnings, msg, d.name, code="noncoherent_unit", hint=hint)
+
+
 def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
     color: dict[str, int] = {}
     stack: list[str] = []
@@ -271,7 +315,14 @@ def _declarations(spec: Spec, root_loc: dict) -> _Declared:
     for c in spec.constants:
         names.declare(c.name, "a constant")
         dims[_sym(c.name.value)] = _unit_dim(c.unit)
-        constants.append(Constant(c.name.value, c.value, c.unit.value if c.unit else None, c.source,
+        # a constant is a number the equations use as it stands: one given in a non-coherent
+        # unit (deg, ft, km, min, h) is converted to the coherent one (SI, rad), so
+        # `{value: 3, unit: deg}` in cos() is 3 degrees (warning `constant_converted`)
+        factor, unit = _coherent(c.unit)
+        source = c.source
+        if factor != 1.0:
+            source = (f"{c.value:g} {c.unit.value}" + (f"; {source}" if source else ""))
+        constants.append(Constant(c.name.value, c.value * factor, unit, source,
                                   _sym(c.name.value)))
 
     parameters = []
@@ -434,6 +485,7 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     _check_expanded_size(definitions, decl.definitions, drift, decl.states, observations,
                          decl.outputs, eqs.sections)
     _warn_unused(warnings, spec, definitions, deps, drift + observations)
+    _warn_coherence(warnings, spec)
 
     output_names = [o.name for o in decl.outputs]
     process, measurement = _noise(spec, [v.name for v in decl.states], output_names)

@@ -15,6 +15,8 @@ expression unknown; checks involving them are skipped.
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 from collections.abc import Callable, Mapping
 
 import sympy
@@ -44,6 +46,31 @@ UNITS: dict[str, Dimension] = {
 }
 
 _UNIT_SYMBOLS = {name: sympy.Symbol(name, positive=True) for name in UNITS}
+
+#: units that are not coherent SI (rad for angles): their size in the coherent unit. The
+#: equations are evaluated with the numbers as they stand, so a quantity in one of these
+#: is off by the factor wherever it meets coherent ones (a constant of 3 deg in cos() is
+#: 3 rad; a span in ft beside a speed in m/s)
+NON_COHERENT = {"km": ("m", 1000.0), "ft": ("m", 0.3048), "min": ("s", 60.0),
+                "h": ("s", 3600.0), "deg": ("rad", math.pi / 180.0)}
+
+
+def coherent(text, *, path=None, line=None, column=None) -> tuple[float, str]:
+    """``(factor, coherent unit text)`` of a unit: a value in ``text`` times ``factor`` is
+    the value in the coherent unit (SI, rad for angles). ``(1.0, text)`` when it is
+    coherent already (``deg/s`` → ``(π/180, "rad/s")``, ``ft`` → ``(0.3048, "m")``)."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        return 1.0, repr(text)
+    expr = parse_expression(str(text).replace("^", "**"), _UNIT_SYMBOLS, path=path, line=line,
+                            column=column, units=True)
+    present = {name for name in NON_COHERENT if _UNIT_SYMBOLS[name] in expr.free_symbols}
+    if not present:
+        return 1.0, str(text)
+    factor = float(expr.xreplace({_UNIT_SYMBOLS[n]: NON_COHERENT[n][1] if n in NON_COHERENT
+                                  else 1.0 for n in UNITS}))
+    shown = re.sub(r"[A-Za-z_]\w*", lambda m: NON_COHERENT.get(m.group(0), (m.group(0),))[0],
+                   str(text))
+    return factor, shown
 
 
 def parse_unit(text, *, path=None, line=None, column=None) -> Dimension:
