@@ -193,6 +193,25 @@ def test_cli_sigterm_and_time_limit_exit_codes(patched, monkeypatch, tmp_path, c
                  "--time-limit", "-3"]) == 2
 
 
+def test_cli_exit_status_1_and_no_verdict_when_the_base_fit_did_not_converge(monkeypatch,
+                                                                               tmp_path, capsys):
+    """A base fit cut off at 3 iterations: diagnose says INCONCLUSIVE without a verdict on
+    the model and exits 1, as `vsidgen fit` does for an unconverged fit (it exited 0 and said
+    "the model is kept as it is")."""
+    from vsidgen.cli import main
+
+    monkeypatch.setenv("VSIDGEN_CACHE_DIR", "")
+    rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "u"), "--workers", "1",
+               "--max-iter", "3", "--max-rounds", "0", "--no-numerics", "--no-noise-model",
+               "--quiet"])
+    assert rc == 1
+    out = capsys.readouterr().out
+    doc = _doc(tmp_path / "u")
+    assert doc["base_fit"]["converged"] is False
+    assert doc["conclusion"].startswith("INCONCLUSIVE: the base fit did not converge")
+    assert "kept as it is" not in out and "No significant" not in out
+
+
 @pytest.mark.slow
 def test_parallel_refits_give_the_serial_findings(tmp_path):
     """Real refits: the round refitted serially and on a 2-worker local dask cluster gives

@@ -173,9 +173,17 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
         conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
                        "candidates): " + ", ".join(unconv) + ".")
     if not base_converged:
+        # nothing about the model follows from an unconverged base: not "kept as it is", not
+        # "consistent with the turbulence" (the run exits with status 1)
+        tested = [t["key"] for t in tried if t.get("statistic") is not None]
         conclusion = ("INCONCLUSIVE: the base fit did not converge "
                       f"({base_status}); candidates are not accepted against an "
-                      "unconverged base ELBO. " + _capital(conclusion.removeprefix("INCONCLUSIVE: ")))
+                      "unconverged base ELBO, and nothing about missing physics can be "
+                      "concluded"
+                      + (f" (refitted, not tested: {', '.join(tested)})" if tested else "")
+                      + ". Make the base fit converge first (`vsidgen fit SPEC DATA "
+                        "--max-iter 400`, initial values, or the spec's noise settings), then "
+                        "run diagnose again.")
     return conclusion
 
 

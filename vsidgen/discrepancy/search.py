@@ -1553,8 +1553,8 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
 
 def diagnose_command(args) -> int:
     """Handler of ``vsidgen diagnose``; exit status 0 (completed) or 1 (stopped at the time
-    limit; what was found is written). An interrupt (Ctrl-C, SIGTERM) writes the findings
-    and propagates (status 130)."""
+    limit, or the base fit did not converge: inconclusive; what was found is written). An
+    interrupt (Ctrl-C, SIGTERM) writes the findings and propagates (status 130)."""
     from ..compilecache import enable_compilation_cache
     from ..engine import terminate_as_interrupt
     from ..spec.overrides import overrides_of
@@ -1581,4 +1581,5 @@ def diagnose_command(args) -> int:
     from .findings import summary_lines  # the conclusion says when the run stopped early
     for line in summary_lines(res.document, res.out_dir / "findings.json"):
         print(line)
-    return 0 if res.stop is StopReason.COMPLETED else 1
+    base_ok = bool((res.document.get("base_fit") or {}).get("converged", True))
+    return 0 if res.stop is StopReason.COMPLETED and base_ok else 1
