@@ -355,3 +355,30 @@ def test_an_expression_written_as_a_column_name_gets_the_expr_form():
     assert got == 'to combine columns, write {expr: "(da_left_rad - da_right_rad)/2"}'
     assert "expr" not in (column_hint("(da_left - da_right)/2", header) or "")
     assert "expr" not in (column_hint("p_rad", header) or "")
+
+
+def test_missing_output_column_names_its_channel_and_the_same_quantity_in_another_unit(tmp_path):
+    """A data map asking for `ay_g` in a file that has `ay_mps2`: the message names the channel
+    (as for inputs) and the hint offers the same quantity in another unit with the full list."""
+    import pathlib
+
+    from vsidgen.errors import DataError
+    from vsidgen.suggest import column_hint
+
+    hint = column_hint("ay_g", ["t_s", "p_rps", "ay_mps2", "beta_rad"])
+    assert hint.startswith("did you mean 'ay_mps2'?") and "unit" in hint
+    assert column_hint("ay_g", ["t_s", "p_rps"]) is None
+    from vsidgen.model import load_model
+    from vsidgen.data.records import load_record
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    spec_dir = tmp_path / "specs"
+    spec_dir.mkdir()
+    text = (root / "specs" / "attas_sp.yaml").read_text().replace("q: q_radps", "q: q_dps")
+    (spec_dir / "sp.yaml").write_text(text)
+    m = load_model(spec_dir / "sp.yaml", generated_dir=tmp_path / "gen")
+    with pytest.raises(DataError) as ei:
+        load_record(m, root / "data" / "attas_sp_synthetic.csv")
+    msg = str(ei.value)
+    assert "column 'q_dps' (for output `q`) is not in the file" in msg
+    assert "did you mean 'q_radps'?" in msg

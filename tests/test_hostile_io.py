@@ -123,7 +123,7 @@ DATA_CASES = [
     ("time_epoch_1e300_step.csv", ["time_epoch_1e300_step.csv", "column 't_s'"]),
     ("time_nan.csv", ["time_nan.csv", "column 't_s'", "sample 12"]),
     ("code_in_cell.csv", ["code_in_cell.csv", "column 'alpha_rad'", "sample 3", "non-numeric"]),
-    ("code_in_header.csv", ["code_in_header.csv", "'alpha_rad' not found"]),
+    ("code_in_header.csv", ["code_in_header.csv", "'alpha_rad' (for output `alpha`) is not in the file"]),
     ("binary_garbage.csv", ["binary_garbage.csv"]),
 ]
 

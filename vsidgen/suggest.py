@@ -81,6 +81,15 @@ def column_hint(name: str, header: list[str], taken: Mapping[str, str] | None = 
     taken = {c: who for c, who in (taken or {}).items() if c != name}
     free = [h for h in header if h not in taken]
     close = [c for c in closest(name, free, n=3) if _same_quantity(name, c)]
+    if not close and "_" in name:
+        # the same quantity with another unit suffix (`ay_g` missing, `ay_mps2` present):
+        # too different for a spelling match, but what the user most likely means
+        stem = name.split("_", 1)[0]
+        close = [h for h in free if "_" in h and h.split("_", 1)[0] == stem][:3]
+        if close:
+            return ("did you mean " + " or ".join(f"'{c}'" for c in close) + "? (the same "
+                    "quantity in another unit: declare the column's unit, e.g. "
+                    f"`{{column: {close[0]}, unit: ...}}`, and it is converted)")
     if close:
         return "did you mean " + " or ".join(f"'{c}'" for c in close) + "?"
     used = [c for c in closest(name, [h for h in header if h in taken], n=1)

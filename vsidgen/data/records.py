@@ -279,7 +279,7 @@ def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = Non
     hint = column_hint(name, header, taken)
     if hint and hint.startswith("did you mean"):
         return hint
-    shown = ", ".join(header[:12]) + (", ..." if len(header) > 12 else "")
+    shown = ", ".join(header[:60]) + (f", ... ({len(header)} in all)" if len(header) > 60 else "")
     return (hint + "; " if hint else "") + f"columns in the file: {shown}"
 
 
@@ -451,8 +451,11 @@ def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
         seen.setdefault(h, j)
     for c in needed:
         if c not in seen:
-            what = "time column" if c == time_column else "column"
-            raise DataError(f"{what} '{c}' not found", path=path, column=c,
+            what = ("time column" if c == time_column
+                    else f"column '{c}' (for {taken[c]})" if c in taken else f"column '{c}'")
+            if c == time_column:
+                what += f" '{c}'"
+            raise DataError(f"{what} is not in the file", path=path, column=c,
                             hint=_suggest(c, header, taken))
         if header.count(c) > 1:
             raise DataError(f"column '{c}' appears {header.count(c)} times in the header",

@@ -308,6 +308,62 @@ def _negelbo(out) -> float:
     return float(sum(float(b["f"]) for b in out["blks"]))
 
 
+#: a bounded θ whose transform derivative dθ/dz has fallen below this share of its scale
+#: (the bound range, or the one-sided scale) sits at its bound: the bounding transform
+#: saturates there, so the gradient in z vanishes whichever way the ELBO slopes in θ
+SATURATION = 1e-8
+#: where a saturated θ is probed: this share of its scale inside the bound
+RELEASE_SHARE = 0.01
+#: releases per start (each followed by more iterations)
+MAX_RELEASES = 3
+
+
+def _saturation(P: Problem, z) -> np.ndarray:
+    """(dθ/dz) / scale of every free θ: 1 unbounded, → 0 where a bound's transform saturates."""
+    tm = P.tm
+    z = np.asarray(z, float)
+    k = tm.kind
+    with np.errstate(over="ignore", under="ignore"):
+        ez = np.exp(np.where((k == 1) | (k == 2), np.minimum(z, 700.0), 0.0))
+        sig = 1.0 / (1.0 + np.exp(-np.clip(z, -700.0, 700.0)))
+    return np.where(k == 0, 1.0, np.where((k == 1) | (k == 2), ez, sig * (1.0 - sig)))
+
+
+def saturated(P: Problem, s) -> np.ndarray:
+    """Mask over the free θ of parameters at a bound (:data:`SATURATION`)."""
+    nt = P.tm.n_free
+    return _saturation(P, np.asarray(s, float)[:nt]) < SATURATION
+
+
+def _release_saturated(P: Problem, s, recs) -> np.ndarray | None:
+    """A start off the bounds for the saturated θ, or None when every bound holds.
+
+    At a saturated bound the optimizer's gradient in z vanishes, so "converged" there says
+    nothing about the slope in θ (a parameter started at one bound of a two-sided interval
+    overshot to the other and stopped 486 nats below the interior optimum). Each saturated
+    θ is moved :data:`RELEASE_SHARE` of its scale inside its bound, one at a time, and kept
+    there when that raises the ELBO: the bound is then not active (the ELBO rises into the
+    interior), and the iterations continue from there. Bounds where the ELBO falls
+    inwards are active constraints and stay."""
+    nt = P.tm.n_free
+    sat = np.nonzero(saturated(P, s))[0]
+    if not len(sat):
+        return None
+    f0 = P.value(s, recs)
+    s_new, moved = np.array(s, float), False
+    inner = math.log(RELEASE_SHARE / (1.0 - RELEASE_SHARE))
+    for i in sat:
+        trial = s_new.copy()
+        if P.tm.kind[i] == 3:
+            trial[i] = inner if trial[i] < 0 else -inner
+        else:
+            trial[i] = math.log(RELEASE_SHARE)
+        f1 = P.value(trial, recs)
+        if math.isfinite(f1) and f1 < f0:
+            s_new, f0, moved = trial, f1, True
+    return s_new if moved else None
+
+
 def _starts(options: FitOptions):
     if options.warm_start is not None:
         return ["data"]
@@ -407,7 +463,12 @@ def _optimize_trust_constr(P: Problem, options: FitOptions, start: str = "data")
 
 
 def _uncertainty(P: Problem, blks, s):
-    """cov(θ_free) = J [H⁻¹]_zz J (J = dθ/dz), via the undamped Schur complement."""
+    """cov(θ_free) = J [H⁻¹]_zz J (J = dθ/dz), via the undamped Schur complement.
+
+    θ at a saturated bound (:func:`saturated`) are held, as an active constraint: their
+    rows and columns are left out (their s.e. NaN, flagged ``AT_BOUND``), so the others
+    keep theirs — the transform's vanishing derivative would otherwise make the whole
+    Hessian singular and every s.e. undefined."""
     nt = P.tm.n_free
     info = {"pd": True, "cond": float("nan")}
     if nt == 0:
@@ -416,32 +477,44 @@ def _uncertainty(P: Problem, blks, s):
     if red is None:
         info["pd"] = False
         return np.full((nt, nt), np.nan), info
+    sat = saturated(P, s)
+    tidx = np.asarray(P.theta_idx)
     S = red.S
+    keep_t = np.nonzero(~sat)[0]          # free θ (positions in z) that are not at a bound
+    if sat.any():
+        keep = np.setdiff1d(np.arange(S.shape[0]), tidx[sat])
+        S = S[np.ix_(keep, keep)]
+        tidx = np.searchsorted(keep, tidx[keep_t])
+    else:
+        tidx = tidx[keep_t]
+    full = np.full((nt, nt), np.nan)
     d = np.diag(S)
     if np.any(d <= 0):
         info["pd"] = False
-        info["weak"] = [int(i) for i in np.nonzero(d[P.theta_idx] <= 0)[0]]
-        return np.full((nt, nt), np.nan), info
+        info["weak"] = [int(keep_t[i]) for i in np.nonzero(d[tidx] <= 0)[0]]
+        return full, info
     Ss = S / np.sqrt(np.outer(d, d))
     ev, V = np.linalg.eigh(Ss)
-    v = np.abs(V[P.theta_idx, 0])  # θ components of the least-determined direction
-    info["weak"] = [int(i) for i in np.nonzero(v >= 0.3 * v.max())[0]] if v.size and v.max() > 0.1 else []
+    v = np.abs(V[tidx, 0])  # θ components of the least-determined direction
+    info["weak"] = ([int(keep_t[i]) for i in np.nonzero(v >= 0.3 * v.max())[0]]
+                    if v.size and v.max() > 0.1 else [])
     try:
         np.linalg.cholesky(Ss)
     except np.linalg.LinAlgError:
         ev = np.minimum(ev, 0.0)
     if ev[0] <= 0:
         info["pd"] = False
-        return np.full((nt, nt), np.nan), info
+        return full, info
     info["cond"] = float(ev[-1] / ev[0])
     # the inverse from the eigendecomposition above: positive eigenvalues, so it exists even
     # where an LU factorisation of a numerically near-singular Ss gives up (seen with numpy 2.4
     # on a model whose two parameters enter only as their sum: LinAlgError "Singular matrix")
     Sinv = (V / ev[None, :]) @ V.T / np.sqrt(np.outer(d, d))
-    cz = Sinv[np.ix_(P.theta_idx, P.theta_idx)]
-    J = P.tm.dtheta_dz(s[:nt])
+    cz = Sinv[np.ix_(tidx, tidx)]
+    J = P.tm.dtheta_dz(s[:nt])[keep_t]
     cov = cz * np.outer(J, J)
-    return 0.5 * (cov + cov.T), info
+    full[np.ix_(keep_t, keep_t)] = 0.5 * (cov + cov.T)
+    return full, info
 
 
 #: Stated limits of the near-singular-information test (docs/estimator.md): a pair of
@@ -486,10 +559,26 @@ def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: 
                                   f"states {', '.join(limit.get('states', ()))}"))
     if not len(names):
         return tuple(flags)
+    n = len(names)
+    near = []
+    for i in range(n):
+        bounds = ([lo[i]] if kind[i] in (1, 3) else []) + ([hi[i]] if kind[i] in (2, 3) else [])
+        for b in bounds:
+            gap = abs(float(theta[i]) - float(b))
+            if not np.isfinite(se[i]) or gap < Z95 * se[i] or gap <= 1e-9 * max(abs(float(b)), 1.0):
+                near.append(f"{names[i]} = {float(theta[i]):.6g}, bound {float(b):.6g}, s.e. {float(se[i]):.3g}")
+                break
+    at_bound = ()
+    if near:
+        at_bound = (StdErrorFlag(StdErrorIssue.AT_BOUND, tuple(x.split(" = ")[0] for x in near),
+                                 "; ".join(near)),)
     if not positive_definite:
         flags.append(StdErrorFlag(StdErrorIssue.HESSIAN_NOT_PD, tuple(weak)))
-        return tuple(flags)
+        return tuple(flags) + at_bound
     R = np.asarray(corr, float)
+    ok = np.all(np.isfinite(R), axis=0)     # parameters held at a bound have no s.e.
+    names = [nm for nm, k in zip(names, ok) if k]
+    R = R[np.ix_(ok, ok)]
     n = len(names)
     if n > 1 and np.all(np.isfinite(R)):
         A = np.abs(R - np.diag(np.diag(R)))
@@ -506,17 +595,28 @@ def std_error_flags(names, theta, se, corr, *, kind, lo, hi, positive_definite: 
             flags.append(StdErrorFlag(StdErrorIssue.NEAR_SINGULAR, involved,
                                       f"smallest eigenvalue of the correlation matrix {ev[0]:.2g} "
                                       f"(limit {EIGENVALUE_LIMIT:g})"))
-    near = []
-    for i in range(n):
-        bounds = ([lo[i]] if kind[i] in (1, 3) else []) + ([hi[i]] if kind[i] in (2, 3) else [])
-        for b in bounds:
-            gap = abs(float(theta[i]) - float(b))
-            if not np.isfinite(se[i]) or gap < Z95 * se[i] or gap <= 1e-9 * max(abs(float(b)), 1.0):
-                near.append(f"{names[i]} = {float(theta[i]):.6g}, bound {float(b):.6g}, s.e. {float(se[i]):.3g}")
-                break
-    if near:
-        flags.append(StdErrorFlag(StdErrorIssue.AT_BOUND, tuple(x.split(" = ")[0] for x in near), "; ".join(near)))
-    return tuple(flags)
+    return tuple(flags) + at_bound
+
+
+def _limit_message(lim: dict) -> str:
+    """Why the limit of vanishing process noise was not reached, in numbers that exist."""
+    states = ", ".join(lim["states"])
+    std = ", ".join(f"{n} {v:.3g}" for n, v in (lim.get("std") or {}).items())
+    if not math.isfinite(lim["elbo_change"]):
+        tried = max(len(lim.get("stages") or ()) - 1, 0)
+        what = (f"no continuation stage after the first converged ({tried} tried with smaller "
+                "std)" if tried else "the first stage did not converge")
+        return (f"the limit of vanishing process noise on {states} was not reached: {what}; the "
+                f"estimates are those of a small process noise on them (std {std}). A state "
+                "without process noise needs an equation the data determine from the other "
+                "states (a kinematic one, e.g. phi' = p): try more iterations (--max-iter), or "
+                "give it process noise (noise.process.states)")
+    return (f"the limit of vanishing process noise on {states} was not reached: the last stage "
+            f"(std {lim['scale']:.2g} × the first stage's) changed the ELBO by "
+            f"{lim['elbo_change']:.3g} nats and the parameters by {lim['theta_change_se']:.3g} s.e.; "
+            f"the estimates are those of that small process noise (std {std}; a nonlinear "
+            "kinematic equation of a state without process noise, or a model that needs process "
+            "noise on it)")
 
 
 def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
@@ -558,6 +658,12 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         if fl.issue not in (StdErrorIssue.NOT_CONVERGED, StdErrorIssue.DETERMINISTIC_LIMIT):
             warnings.append({"code": fl.issue.value, "reliable": False, "parameters": list(fl.parameters),
                              "message": f"standard errors: {fl.message}"})
+    if out.get("released"):
+        rel = ", ".join(out["released"])
+        warnings.append({"code": "left_bound", "reliable": True, "parameters": list(out["released"]),
+                         "message": f"{rel} stopped at a bound where the ELBO still rose into the "
+                                    f"interior (the bounding transform had saturated); the fit "
+                                    f"continued from inside the bound"})
     # floors
     for j, o in enumerate(model.output_names):
         fl = P.nm.meas_floor[j]
@@ -595,12 +701,7 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         warnings.append({"code": "deterministic_limit_not_reached", "reliable": False,
                          "states": list(lim["states"]), "elbo_change": lim["elbo_change"],
                          "theta_change_se": lim["theta_change_se"],
-                         "message": f"the limit of vanishing process noise on {', '.join(lim['states'])} was "
-                                    f"not reached: the last stage (std {lim['scale']:.2g} × the first stage's) "
-                                    f"changed the ELBO by {lim['elbo_change']:.3g} nats and the parameters by "
-                                    f"{lim['theta_change_se']:.3g} s.e.; the estimates are those of that small "
-                                    f"process noise (a nonlinear kinematic equation of a state without process "
-                                    f"noise, or a model that needs process noise on it)"})
+                         "message": _limit_message(lim)})
     reason = out["reason"]
     if reason is not None and not reason.converged:
         code = {StopReason.ITERATION_LIMIT: "iteration_limit", StopReason.TIME_LIMIT: "iteration_limit",
@@ -703,8 +804,23 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
         # may reach a higher one (multi-start, the best converged ELBO is kept). A start
         # that stalls is abandoned early while another start remains or has converged.
         have_optimum = any(o["converged"] for _, o in tried)
-        out = _optimize(P, options, start, t0=t0,
-                        stall=i < len(starts) - 1 or have_optimum)
+        stall = i < len(starts) - 1 or have_optimum
+        out = _optimize(P, options, start, t0=t0, stall=stall)
+        for _ in range(MAX_RELEASES):
+            # released after any stop at a point (an optimum, or no progress: a saturated
+            # transform also makes the Hessian singular), not after a limit
+            if (out["reason"] in (StopReason.ITERATION_LIMIT, StopReason.TIME_LIMIT,
+                                  StopReason.NONFINITE, None)
+                    or out["iterations"] >= options.max_iter):
+                break
+            s_rel = _release_saturated(P, out["s"], out["recs"])
+            if s_rel is None:
+                break
+            released = [P.free_names[j] for j in np.nonzero(saturated(P, out["s"]))[0]
+                        if s_rel[j] != out["s"][j]]
+            out = _optimize(P, options, start, t0=t0, stall=stall,
+                            resume={**out, "s": s_rel})
+            out["released"] = tuple(dict.fromkeys(list(out.get("released", ())) + released))
         tried.append((start, out))
     converged = [o for _, o in tried if o["converged"]]
     if converged:
