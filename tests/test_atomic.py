@@ -174,17 +174,44 @@ def test_diagnose_style_in_place_run_marks_incomplete_until_done(tmp_path):
     d = tmp_path / "diag"
     _write(d, {"notes.txt": "mine"})
     plan = plan_output_dir(d, overwrite=True)
+    owns = ("candidates", "findings.json")
     with pytest.raises(RuntimeError):
-        with results_in_place(plan, command="diagnose") as out:
+        with results_in_place(plan, command="diagnose", owns=owns) as out:
             _write(out, {"candidates/a.yaml": "a"})
             assert json.loads((out / MANIFEST).read_text())["complete"] is False
             raise RuntimeError("killed")
     man = read_manifest(d)
     assert man["files"] == {"candidates/a.yaml"} and man["kept"] == {"notes.txt"}
-    with results_in_place(plan_output_dir(d, overwrite=True), command="diagnose") as out:
+    with results_in_place(plan_output_dir(d, overwrite=True), command="diagnose",
+                          owns=owns) as out:
         _write(out, {"findings.json": "{}"})
     assert set(_tree(d)) == {"notes.txt", "findings.json", MANIFEST}
     assert read_manifest(d)["files"] == {"findings.json"}
+
+
+def test_files_added_after_a_killed_in_place_run_stay_the_users(tmp_path):
+    """A diagnose killed mid-run leaves an incomplete manifest; files the user puts there
+    afterwards are not vsidgen's (they were deleted by the next fit, even with
+    --overwrite): only the names the run declared are claimed."""
+    d = tmp_path / "dC"
+    with pytest.raises(RuntimeError):
+        with results_in_place(plan_output_dir(d), command="diagnose",
+                              owns=("candidates", "findings.json")) as out:
+            _write(out, {"candidates/a.yaml": "a", ".findings.json.x1y2": "partial"})
+            raise RuntimeError("killed")
+    _write(d, {"notes.txt": "my notes", "mydata/x.csv": "1,2"})
+    man = read_manifest(d)
+    assert man["files"] == {"candidates/a.yaml", ".findings.json.x1y2"}
+    with pytest.raises(VsidgenError):          # mixed: refused without --overwrite
+        plan_output_dir(d)
+    _run(d, {"results.json": "1"}, overwrite=True)
+    assert {"notes.txt", "mydata/x.csv", "results.json"} <= set(_tree(d))
+    assert "candidates/a.yaml" not in _tree(d)
+    assert (d / "notes.txt").read_text() == "my notes"
+    # an older incomplete manifest that declares nothing claims nothing
+    (d / MANIFEST).write_text(json.dumps({**json.loads((d / MANIFEST).read_text()),
+                                          "complete": False, "files": []}))
+    assert read_manifest(d)["files"] == set()
 
 
 # --------------------------------------------------------------------------- report page

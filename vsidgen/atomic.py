@@ -145,17 +145,34 @@ def read_manifest(directory: str | os.PathLike) -> dict | None:
     files = set(doc["files"])
     kept = set(doc.get("kept", []))
     if not doc.get("complete", True):
-        files = listing(directory) - kept - {MANIFEST}
+        # an unfinished run may have written any path it declared (``owns``: top-level
+        # names, and their temporary files); nothing else is assumed to be vsidgen's, so a
+        # file the user put there after a crash is kept (an older manifest without ``owns``
+        # claims nothing)
+        owns = doc.get("owns", [])
+        if not (isinstance(owns, list) and all(isinstance(o, str) and _safe_relative(o)
+                                               for o in owns)):
+            owns = []
+        files |= {f for f in listing(directory) - kept - {MANIFEST} if _owned(f, owns)}
     return {**doc, "files": files, "kept": kept}
 
 
+def _owned(rel: str, owns: Iterable[str]) -> bool:
+    """Is ``rel`` (a relative POSIX path) one of the declared names, below one, or the
+    temporary file of one (``.NAME.xxxx``, :func:`atomic_text_file`)?"""
+    top = rel.split("/", 1)[0]
+    return any(top == o or top.startswith(f".{o}.") for o in owns)
+
+
 def _manifest_text(files: Iterable[str], *, command: str, complete: bool = True,
-                   kept: Iterable[str] = ()) -> str:
+                   kept: Iterable[str] = (), owns: Iterable[str] = ()) -> str:
     from . import __version__
 
     doc = {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION,
            "vsidgen_version": __version__, "command": command, "complete": complete,
            "files": sorted(set(files) - {MANIFEST}), "kept": sorted(set(kept))}
+    if not complete:
+        doc["owns"] = sorted(set(owns))
     return json.dumps(doc, indent=1) + "\n"
 
 
@@ -167,7 +184,8 @@ def add_to_manifest(directory: str | os.PathLike, names: Iterable[str]) -> None:
         return
     write_text_atomic(directory / MANIFEST, _manifest_text(
         doc["files"] | set(names), command=str(doc.get("command", "")),
-        complete=bool(doc.get("complete", True)), kept=doc["kept"] - set(names)))
+        complete=bool(doc.get("complete", True)), kept=doc["kept"] - set(names),
+        owns=doc.get("owns", []) if isinstance(doc.get("owns", []), list) else []))
 
 
 # --------------------------------------------------------------------------- leftovers
@@ -478,13 +496,16 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
 
 
 @contextlib.contextmanager
-def results_in_place(plan: OutputPlan, *, command: str) -> Iterator[pathlib.Path]:
+def results_in_place(plan: OutputPlan, *, command: str,
+                     owns: Iterable[str] = ()) -> Iterator[pathlib.Path]:
     """Write results directly into ``plan.target`` (a long job such as ``diagnose``).
 
     The files vsidgen wrote there before (its manifest) are removed first, other
     files are kept; the manifest marks the run incomplete until it ends, so a
     crashed run still leaves a vsidgen results directory that the next run can
     replace. Not atomic: a failed run leaves partial results, marked incomplete.
+    ``owns``: the top-level names the run may write (files or folders); an incomplete
+    manifest claims only those, so files added after a crash stay the user's.
     """
     target = plan.target
     target.mkdir(parents=True, exist_ok=True)
@@ -492,7 +513,7 @@ def results_in_place(plan: OutputPlan, *, command: str) -> Iterator[pathlib.Path
     for rel in sorted(plan.previous):
         _remove_entry(target / rel)
     write_text_atomic(target / MANIFEST, _manifest_text((), command=command, complete=False,
-                                                        kept=kept))
+                                                        kept=kept, owns=owns))
     yield target
     files = listing(target) - kept - {MANIFEST}
     write_text_atomic(target / MANIFEST, _manifest_text(files, command=command, kept=kept))

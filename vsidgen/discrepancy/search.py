@@ -134,6 +134,10 @@ class Trial:
                 "parameters": params, "spec": str(self.spec_path)}
 
 
+#: the top-level names a diagnose run writes into its results directory
+DIAGNOSE_OUTPUTS = ("findings.json", "diagnose.html", "candidates", "generated", "screen")
+
+
 class StopReason(enum.Enum):
     """Why a diagnose run ended (``findings.json`` → ``stop.reason``)."""
 
@@ -934,7 +938,7 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
-    with results_in_place(plan, command="diagnose") as out:
+    with results_in_place(plan, command="diagnose", owns=DIAGNOSE_OUTPUTS) as out:
         if overrides is not None and not overrides.empty:
             from ..spec.overrides import write_override_spec
 
