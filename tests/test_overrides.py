@@ -83,9 +83,21 @@ def test_output_error_removes_process_noise():
     (["--fix", "MQ"], "expected NAME=VALUE"),
     (["--fix", "MQ=abc"], "is not a number"),
     (["--init-from", "/nonexistent/results.json"], "file not found"),
+    (["--init-from", "/dev/zero"], "a character device, not a regular file"),
+    (["--init-from", "LIST"], "not a vsidgen results.json"),
+    (["--init-from", "NAN"], "is not a finite number"),
+    (["--init-from", "DEEP"], "not a vsidgen results.json"),
     (["--fix", "MQ=1", "--free", "MQ"], "both --fix and --free"),
 ])
 def test_bad_override_exits_2(tmp_path, capsys, argv, expected):
+    # hostile results files (a device would be read without end; a parameter list, a NaN
+    # estimate or a 100000-deep nesting raised AttributeError/RecursionError or got in)
+    files = {"LIST": json.dumps({"parameters": [1, 2]}),
+             "NAN": '{"parameters": {"MQ": {"estimate": NaN}}}',
+             "DEEP": "[" * 100000 + "]" * 100000}
+    argv = [str(tmp_path / a) if a in files else a for a in argv]
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
     code = main(["fit", str(SPEC), str(CSV), "--out", str(tmp_path / "o"), "--quiet"] + argv)
     err = capsys.readouterr().err
     assert code == 2 and expected in err and "Traceback" not in err

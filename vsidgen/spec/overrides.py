@@ -75,16 +75,32 @@ def _name_value(item: str, option: str) -> tuple[str, float]:
 def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit`` (``option``
     names the command-line option that gave ``path`` in error messages)."""
+    from ..limits import check_input_file
+
     path = pathlib.Path(path)
+    if not path.exists() and not path.is_symlink():
+        raise VsidgenError(f"{option} {path}: file not found")
+    # a regular file within VSIDGEN_MAX_JSON_BYTES (a device such as /dev/zero or a named
+    # pipe would be read without end)
+    try:
+        check_input_file(path, what=f"{option} file", kind="json", data_error=False)
+    except VsidgenError as err:
+        raise VsidgenError(f"{option} {err}") from None
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         params = doc["parameters"]
-        return {str(k): float(v["estimate"]) for k, v in params.items()}
+        out = {str(k): float(v["estimate"]) for k, v in params.items()}
     except FileNotFoundError:
         raise VsidgenError(f"{option} {path}: file not found") from None
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError,
+            RecursionError) as exc:
         raise VsidgenError(f"{option} {path}: not a vsidgen results.json with parameter "
-                           f"estimates ({type(exc).__name__}: {exc})") from None
+                           f"estimates ({type(exc).__name__}: {str(exc)[:200]})") from None
+    bad = [k for k, v in out.items() if not math.isfinite(v)]
+    if bad:
+        raise VsidgenError(f"{option} {path}: the estimate of `{bad[0]}` is not a finite "
+                           "number", )
+    return out
 
 
 def parse_overrides(*, fix: Sequence[str] | None = None, free: Sequence[str] | None = None,
