@@ -332,3 +332,16 @@ def test_non_coherent_units_of_parameters_and_variables_are_warned(tmp_path):
     assert set(w) == {"CMA", "alpha"}
     assert "1/rad" in w["CMA"].hint and "57.2958" in w["CMA"].hint and w["CMA"].line == 14
     assert "declare `unit: rad`" in w["alpha"].hint and w["alpha"].line == 4
+
+
+def test_numbers_with_an_exponent_and_no_dot_are_numbers(tmp_path):
+    """PyYAML (YAML 1.1) reads `1e-3` as text; the hint of a refused number suggested writing
+    exactly that. Initial values, bounds and floors accept it."""
+    text = replace("  CD0: {initial: 0.1, bounds: [0, 1]}\n",
+                   "  CD0: {initial: 1e-3, bounds: [-1e2, 1E+1]}\n")
+    m = compile_spec(write(tmp_path, text))
+    p = m.parameters[0]
+    assert (p.initial, p.lower, p.upper) == (1e-3, -100.0, 10.0)
+    err = error(tmp_path, replace("  CD0: {initial: 0.1, bounds: [0, 1]}\n",
+                                  "  CD0: {initial: 1e-3x, bounds: [0, 1]}\n"), "bad.yaml")
+    assert "must be a number" in str(err)

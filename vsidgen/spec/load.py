@@ -26,6 +26,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
 import pathlib
 import stat
 from typing import Any
@@ -56,6 +57,10 @@ _ENTRY_WORD = {
     "definitions": "definition", "parameters": "parameter", "constants": "constant",
     "states": "state", "inputs": "input", "outputs": "output",
 }
+
+
+#: a decimal number with an exponent, as YAML 1.2 reads it (``1e-3``, ``-2.5E+4``, ``.5e1``)
+_EXP_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)[eE][+-]?\d+")
 
 
 @dataclasses.dataclass(eq=False)
@@ -160,6 +165,10 @@ class YNode:
         v = self.value if self.kind == "scalar" else self
         if self.kind == "scalar" and v is None and allow_none:
             return None
+        if self.kind == "scalar" and isinstance(v, str) and _EXP_NUMBER.fullmatch(v.strip()):
+            # YAML 1.1 (PyYAML) reads `1e-3` and `1e5` as text (its floats need a dot); they
+            # are numbers in YAML 1.2 and to every reader of a spec
+            v = float(v.strip())
         if self.kind != "scalar" or isinstance(v, bool) or not isinstance(v, (int, float)):
             raise SpecError(f"{what} must be a number, got {self.describe()}", **self.loc,
                             text=self.source_line(),
