@@ -345,3 +345,14 @@ def test_numbers_with_an_exponent_and_no_dot_are_numbers(tmp_path):
     err = error(tmp_path, replace("  CD0: {initial: 0.1, bounds: [0, 1]}\n",
                                   "  CD0: {initial: 1e-3x, bounds: [0, 1]}\n"), "bad.yaml")
     assert "must be a number" in str(err)
+
+
+def test_substeps_are_bounded(tmp_path):
+    """Sub-steps are unrolled into the compiled transition: 10^8 compiled for ever."""
+    err = error(tmp_path, GOOD + "integrator: {method: rk4, substeps: 100000000}\n")
+    assert "from 1 to 64" in str(err) and err.line == 25 and "rk4" in err.hint
+    from vsidgen.errors import VsidgenError
+    from vsidgen.model.dynamics import transition_fn
+
+    with pytest.raises(VsidgenError, match="from 1 to 64"):
+        transition_fn(lambda x, u, p: x, substeps=10 ** 8)

@@ -28,6 +28,9 @@ import stat
 
 from .errors import DataError, VsidgenError
 
+#: most integration sub-steps per sample: they are unrolled into the compiled transition
+#: (a spec or --substeps of 10^8 compiled for ever); rk4 is the cure for a coarse step
+MAX_SUBSTEPS = 64
 DATA_LIMIT_ENV = "VSIDGEN_MAX_DATA_BYTES"
 DEFAULT_DATA_LIMIT = 2 << 30
 JSON_LIMIT_ENV = "VSIDGEN_MAX_JSON_BYTES"

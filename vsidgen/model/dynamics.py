@@ -82,8 +82,12 @@ def _check(integrator: str, substeps: int, inputs: str = "zoh") -> tuple[str, in
         m = int(substeps)
     except (TypeError, ValueError):
         m = 0
-    if m < 1 or m != substeps:
-        raise VsidgenError(f"substeps must be an integer >= 1, got {substeps!r}")
+    from ..limits import MAX_SUBSTEPS
+
+    if m < 1 or m != substeps or m > MAX_SUBSTEPS:
+        raise VsidgenError(f"substeps must be an integer from 1 to {MAX_SUBSTEPS}, got "
+                           f"{substeps!r}\n  hint: sub-steps are unrolled into the compiled "
+                           "code; for accuracy use the rk4 integrator with a few sub-steps")
     if inputs not in INPUT_HOLDS:
         raise VsidgenError(f"unknown input hold '{inputs}'\n  hint: use one of {', '.join(INPUT_HOLDS)}")
     return integrator, m, inputs

@@ -295,10 +295,14 @@ def _integrator(top: dict) -> tuple[str, int, str]:
                             hint=did_you_mean(method, INTEGRATOR_METHODS) or "use euler or rk4")
     if "substeps" in integ:
         n = integ["substeps"]
+        from ..limits import MAX_SUBSTEPS
+
         if n.kind != "scalar" or isinstance(n.value, bool) or not isinstance(n.value, int) \
-                or n.value < 1:
-            raise SpecError("integrator substeps must be an integer >= 1", **n.loc,
-                            text=n.source_line())
+                or not 1 <= n.value <= MAX_SUBSTEPS:
+            raise SpecError(f"integrator substeps must be an integer from 1 to {MAX_SUBSTEPS}",
+                            **n.loc, text=n.source_line(),
+                            hint="sub-steps are unrolled into the compiled code; for accuracy "
+                                 "use `method: rk4` with a few sub-steps")
         substeps = n.value
     if "inputs" in integ:
         input_hold = integ["inputs"].string("integrator inputs")
