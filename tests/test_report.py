@@ -294,3 +294,33 @@ def test_standard_error_issues_are_listed_with_their_parameters(tmp_path):
     assert "near_singular_information" in warn and "CD0, CDV" in warn
     params = src.split('id="parameters"')[1].split("</table>")[0]
     assert "the information is nearly singular (CD0, CDV): fix one" in params
+
+
+@pytest.mark.parametrize("edit", ["deep", "ragged_correlation", "huge_integer"])
+def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
+    """results.json that parses but is not what vsidgen writes (from the hostile-input
+    report): a 10^5-deep nesting (RecursionError), a ragged correlation matrix, a 5000-digit
+    integer (ValueError) — a message naming the file and exit 2, not an internal error."""
+    import json
+
+    from report_fixture import write_results_dir
+
+    from vsidgen.cli import main
+
+    d = write_results_dir(tmp_path / "res", n_samples=40, validation=False, n_outputs=1)
+    path = d / "results.json"
+    if edit == "deep":
+        path.write_text("[" * 100000 + "]" * 100000)
+    else:
+        doc = json.loads(path.read_text())
+        if edit == "ragged_correlation":
+            doc["correlation"] = {"names": ["a", "b"], "matrix": [[1, 2], [3]]}
+            path.write_text(json.dumps(doc))
+        else:
+            name = next(iter(doc["parameters"]))
+            doc["parameters"][name]["estimate"] = "BIG"
+            path.write_text(json.dumps(doc).replace('"BIG"', "9" * 5000))
+    code = main(["report", str(d), "--out", str(tmp_path / "r.html")])
+    err = capsys.readouterr().err
+    assert code == 2 and "results.json" in err and "internal error" not in err
+    assert not (tmp_path / "r.html").exists()

@@ -93,6 +93,9 @@ def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
         res = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
         raise VsidgenError(f"{path}: error: cannot read results file: {err}") from None
+    except RecursionError:
+        raise VsidgenError(f"{path}: error: results.json is nested too deeply to be one "
+                           "vsidgen wrote") from None
     except json.JSONDecodeError as err:
         raise VsidgenError(f"{path}:{err.lineno}:{err.colno}: error: results.json is not valid "
                            f"JSON: {err.msg}") from None
