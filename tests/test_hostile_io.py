@@ -203,6 +203,11 @@ def test_arguments_checked_before_any_computation(user_dir):
                      "--quiet"], "user", "not a vsidgen results directory")
     _case(user_dir, ["diagnose", "user/attas_sp.yaml", "nope.csv", "--out", "d", "--quiet"],
           "nope.csv", "not found")
+    # an address dask cannot parse, a seed numpy refuses (both were internal errors, exit 3)
+    _case(user_dir, ["diagnose", "user/attas_sp.yaml", "user/flight.csv", "--out", "d",
+                     "--scheduler", "tcp://[::1", "--quiet"], "cannot start or reach")
+    _case(user_dir, ["simulate", "user/attas_sp.yaml", "--out", "s.csv", "--seed", "-1",
+                     "--input", "de=doublet:amplitude=0.02"], "--seed")
 
 
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,

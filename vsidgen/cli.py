@@ -217,7 +217,7 @@ def _add_simulate(sub):
                    help="quantize an output to a resolution step")
     p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
     p.add_argument("--substeps", type=int, default=None)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0, help="random seed (0 to 2**32 - 1)")
     p.set_defaults(handler=_cmd_simulate)
 
 
@@ -436,6 +436,17 @@ def _add_report(sub):
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing HTML file that vsidgen did not write")
     p.set_defaults(handler=_cmd_report)
+
+
+def _seed(text: str) -> int:
+    """--seed: an integer numpy accepts (0 … 2**32 − 1); else a usage error (exit 2)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if not 0 <= v < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"{v} is outside 0 … 2**32 - 1")
+    return v
 
 
 def _cmd_report(args) -> int:

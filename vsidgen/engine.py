@@ -140,6 +140,19 @@ class Engine:
             from .errors import VsidgenError
             raise VsidgenError(f"--workers must be >= 1, got {workers}")
         self.workers = default_workers() if workers is None else int(workers)
+        if scheduler is not None:
+            # refused before anything is written ('garbage address', 'tcp://[::1')
+            from distributed.comm.addressing import parse_address, parse_host_port
+
+            from .errors import VsidgenError
+            try:
+                proto, loc = parse_address(scheduler)
+                if proto in ("tcp", "tls", "ws", "wss"):
+                    parse_host_port(loc)
+            except (ValueError, TypeError) as err:
+                raise VsidgenError(f"cannot start or reach the dask cluster ({scheduler}): "
+                                   f"not a scheduler address ({err})\n  hint: give it as "
+                                   "tcp://HOST:PORT") from None
         self.scheduler = scheduler
         self.client = None
         self.cluster = None
@@ -177,7 +190,8 @@ class Engine:
                                                 processes=True, dashboard_address=None,
                                                 silence_logs=logging.ERROR, env=env)
                     self.client = Client(self.cluster)
-        except (OSError, TimeoutError) as err:
+        except (OSError, TimeoutError, ValueError, TypeError) as err:
+            # ValueError/TypeError: an address dask cannot parse ('garbage address', 'tcp://[::1')
             self.close()
             raise VsidgenError(f"cannot start or reach the dask cluster "
                                f"({self.scheduler or 'local'}): {err}") from None
