@@ -64,3 +64,28 @@ def test_fleet_bad_records_only_serial(tmp_path, capsys):
     assert not (tmp_path / "f2").exists()
     assert main(["fleet", str(SPEC), str(bad), "--out", str(tmp_path / "f3"),
                  "--workers", "0"]) == 2
+
+
+def test_fleet_follows_the_results_directory_rules(tmp_path, capsys):
+    """A folder with the user's files (their own fleet.json among them) is refused without
+    --overwrite, and with it only vsidgen's files are written (the user's stay); options a
+    fit refuses are refused too. Records with bad input: no fit runs (fast)."""
+    from vsidgen.cli import main
+
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,nothing\n0,1\n0.04,2\n")
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "fleet.json").write_text("my own notes")
+    (user / "notes.txt").write_text("keep me")
+    argv = ["fleet", str(SPEC), str(bad), "--out", str(user), "--workers", "1", "--quiet"]
+    assert main(argv) == 2
+    assert "not a vsidgen results directory" in capsys.readouterr().err
+    assert (user / "fleet.json").read_text() == "my own notes"
+    assert main(argv + ["--overwrite"]) == 2          # bad input, but the run took place
+    assert (user / "notes.txt").read_text() == "keep me"
+    assert json.loads((user / "fleet.json").read_text())["records"][0]["status"] == "bad_input"
+    for opt in (["--max-iter", "0"], ["--substeps", "0"]):
+        assert main(["fleet", str(SPEC), str(bad), "--out", str(tmp_path / "o"), "--workers",
+                     "1", "--quiet", *opt]) == 2
+        assert not (tmp_path / "o").exists()

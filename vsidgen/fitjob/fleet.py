@@ -85,27 +85,48 @@ def _fit_one(spec: str, data: str, out: str, generated_dir: str | None, kwargs: 
 def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
               scheduler: str | None = None, generated_dir=None, max_iter: int = 200,
               integrator: str | None = None, substeps: int | None = None,
-              report: bool = False,
+              report: bool = False, overwrite: bool = False,
               progress: Callable[[str], None] | None = None) -> FleetResult:
     """Fit ``spec`` to every record of ``data`` separately; results in ``out/<record>/``.
 
     ``workers`` worker processes of a local dask cluster (1: serially in this process; None:
     every local core) or the cluster at ``scheduler``. The spec is compiled once here
-    first (a bad spec is an error before any fit starts).
+    first (a bad spec is an error before any fit starts). ``out`` follows the rules of every
+    results directory (:mod:`vsidgen.atomic`): a folder holding files vsidgen did not write
+    is refused unless ``overwrite`` (then only vsidgen's files are replaced), and the
+    files the command reads are never written over.
     """
-    from ..atomic import write_text_atomic
-    from ..engine import Engine, TaskStatus
-    from ..model import default_generated_dir, load_model
-    from ..report import dumps
+    from ..atomic import plan_output_dir, print_recovered, results_in_place
+    from ..engine import Engine
+    from ..model import load_model
+    from ..model.dynamics import _check
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")
+    if max_iter < 1:
+        raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
+    if substeps is not None:
+        _check(integrator or "euler", substeps)
     engine = Engine(workers=workers, scheduler=scheduler)
+    plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data])
+    print_recovered(plan)
     load_model(spec, generated_dir=generated_dir)
+    names = _dir_names(data)
+    with results_in_place(plan, command="fleet", owns=(*names, "fleet.json")) as out_dir:
+        return _run_fleet(spec, data, names, out_dir, engine, generated_dir=generated_dir,
+                          max_iter=max_iter, integrator=integrator, substeps=substeps,
+                          report=report, progress=progress)
+
+
+def _run_fleet(spec, data, names, out, engine, *, generated_dir, max_iter, integrator, substeps,
+               report, progress) -> FleetResult:
+    from ..atomic import write_text_atomic
+    from ..engine import TaskStatus
+    from ..model import default_generated_dir
+    from ..report import dumps
+
     gen = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec)
     out = pathlib.Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    names = _dir_names(data)
     kwargs = {"max_iter": max_iter, "integrator": integrator, "substeps": substeps,
               "report": report}
     tasks = [(n, (str(spec), str(d), str(out / n), str(gen.resolve()), kwargs))
@@ -172,6 +193,9 @@ def add_fleet_parser(subparsers):
     p.add_argument("--max-iter", type=int, default=200)
     p.add_argument("--report", action="store_true", help="also write a report per record")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.add_argument("--overwrite", action="store_true",
+                   help="write into a non-empty DIR that is not a vsidgen results directory "
+                        "(only vsidgen's files are replaced; other files are kept)")
     p.set_defaults(handler=fleet_command)
     return p
 
@@ -186,7 +210,7 @@ def fleet_command(args) -> int:
         res = run_fleet(args.spec, args.data, out=args.out, workers=args.workers,
                         scheduler=args.scheduler, max_iter=args.max_iter,
                         integrator=args.integrator, substeps=args.substeps, report=args.report,
-                        progress=progress)
+                        overwrite=args.overwrite, progress=progress)
     for e in res.entries:
         extra = f"ELBO {e.elbo:.6g}" if e.elbo is not None else (e.error or "")
         print(f"{e.record}: {e.status.value} {extra} -> {e.out_dir}")
