@@ -356,3 +356,17 @@ def test_substeps_are_bounded(tmp_path):
 
     with pytest.raises(VsidgenError, match="from 1 to 64"):
         transition_fn(lambda x, u, p: x, substeps=10 ** 8)
+
+
+def test_hints_a_new_user_needs(tmp_path):
+    """Case-only typos suggest the case variant; `unit: g` in the spec points to the data map;
+    a comma inside an unquoted {...} value says to quote it."""
+    from vsidgen.suggest import closest
+
+    assert closest("Cl_P", ["Cl_b", "Cl_p", "Cl_r"]) == ["Cl_p"]
+    err = error(tmp_path, replace("outputs:\n  V: {unit: m/s}\n", "outputs:\n  V: {unit: g}\n"))
+    assert "unknown unit `g`" in str(err) and "data column" in err.hint and "m/s^2" in err.hint
+    err = error(tmp_path, replace("  MDE: {unit: 1/s}\n",
+                                  "  MDE: {unit: 1/s, description: M_de (per rad, nose down)}\n"),
+                "comma.yaml")
+    assert "unknown key" in str(err) and "quotes" in err.hint

@@ -32,10 +32,14 @@ def _score(name: str, cand: str) -> tuple[int, float] | None:
 
 def closest(name: str, candidates: Iterable[str], n: int = 1) -> list[str]:
     """Up to ``n`` candidates similar to ``name``, best first (see the module docstring)."""
-    scored = [(s, c) for c in dict.fromkeys(candidates) if c != name
+    cands = [c for c in dict.fromkeys(candidates) if c != name]
+    # a name that differs only in case is the likeliest meaning (`Cl_P` for `Cl_p`, not the
+    # equally close `Cl_b`)
+    folded = [c for c in cands if c.casefold() == name.casefold()]
+    scored = [(s, c) for c in cands if c not in folded
               for s in [_score(name, c)] if s is not None]
     scored.sort(key=lambda sc: (-sc[0][0], -sc[0][1], sc[1]))
-    return [c for _, c in scored[:n]]
+    return (folded + [c for _, c in scored])[:n]
 
 
 def suggest(name: str, same_role: Iterable[str], others: Mapping[str, str] | None = None, *,

@@ -386,6 +386,13 @@ def _name(ctx: _Ctx, node: ast.Name):
     spelt = _ascii_greek(name)
     hint = (f"did you mean `{spelt}`? (names are ASCII: spell Greek letters out)"
             if spelt != name and spelt in known else did_you_mean(name, known))
+    if ctx.units and name in ("g", "kt", "knot", "lbf", "lb", "mph"):
+        # units the data map converts (pint) but the equations cannot use as they stand
+        hint = (f"`{name}` is a unit for a data column (the data map converts it: "
+                f"`{{column: NAME, unit: {name}}}`); the spec's own units are SI and rad"
+                + (", e.g. m/s^2 for accelerations" if name == "g" else
+                   ", e.g. m/s for speeds" if name in ("kt", "knot", "mph") else
+                   ", e.g. N for forces or kg for masses"))
     if hint is None:
         hint = ("declare it under states, inputs, constants, parameters or definitions"
                 if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))

@@ -218,6 +218,11 @@ def keys_check(node: YNode, allowed, what: str) -> dict:
     for key, child in mapping.items():
         if key not in allowed:
             hint = did_you_mean(key, allowed) or ("allowed keys: " + ", ".join(allowed))
+            if not re.fullmatch(r"[A-Za-z_][\w-]*", str(key)):
+                # `{description: Z_alpha (per rad, positive up)}`: in a {...} mapping a comma
+                # ends the value, and the rest becomes a "key"
+                hint = ("a comma inside an unquoted value in `{...}` starts a new entry: put "
+                        "the value in quotes, e.g. `description: \"... , ...\"`; " + hint)
             raise SpecError(f"unknown key `{key}` in {what}", **child.key_loc,
                             text=_line_text(child.src, child.key_line),
                             hint=hint)
