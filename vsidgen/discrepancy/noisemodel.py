@@ -280,7 +280,7 @@ def score_test(current, path: pathlib.Path, *, generated_dir, dof: int,
     from ..model import load_model
     from .fitstate import diag_options
     from .refit import REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
-    from .score import NEGATIVE_CURVATURE_TOL, _reduced_system
+    from ..estimator.problem import NEGATIVE_CURVATURE_TOL
 
     t0 = time.perf_counter()
     thr = float(stats.chi2.isf(alpha, max(dof, 1)))
@@ -299,7 +299,7 @@ def score_test(current, path: pathlib.Path, *, generated_dir, dof: int,
     P = Problem(m, records, opts)
     s, recs = P.initial(opts)
     blks = P.blocks(s, recs)
-    S, rhs = _reduced_system(P, blks)
+    S, rhs = P.score_system(blks)
     if S is None:
         return none("state-mean block not positive definite at the nesting point")
     off = P.layout.shared_offset

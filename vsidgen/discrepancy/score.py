@@ -100,6 +100,7 @@ import pathlib
 import numpy as np
 from scipy import stats
 
+from ..estimator.problem import NEGATIVE_CURVATURE_TOL, SCORE_DAMPING
 from ..report import finite_or_none
 
 
@@ -221,27 +222,10 @@ def batch_spec_dict(cands, base_spec, *, name, path, info) -> tuple[dict, dict]:
     return d, names
 
 
-#: relative Marquardt damping of the score system: keeps the elimination of the state means and the
-#: Cholesky factor of the global system defined where a curvature vanishes at the nesting point
-SCORE_DAMPING = 1e-10
-
-
-#: a profiled curvature eigenvalue below −tol·(largest |eigenvalue|) is negative curvature,
-#: not rounding of a flat direction (about √ε of double precision)
-NEGATIVE_CURVATURE_TOL = 1e-8
-
-
 def _reduced_system(problem, blks, lam=SCORE_DAMPING):
-    """Global Schur complement S (μ eliminated, :meth:`~vsidgen.estimator.Problem.reduced_system`) and
-    reduced rhs, with the tiny Marquardt damping λ·max(|diag|, 1e-300) on every diagonal."""
-    dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
-            for b in blks]
-    red = problem.reduced_system(blks, lam=lam, dmus=dmus)
-    if red is None:
-        return None, None
-    S = red.S
-    S += lam * np.diag(np.maximum(np.abs(np.diag(S)), 1e-300))
-    return S, red.rhs
+    """Global Schur complement S (μ eliminated) and reduced rhs, slightly damped
+    (:meth:`vsidgen.estimator.problem.Problem.score_system`)."""
+    return problem.score_system(blks, lam=lam)
 
 
 def nesting_reach(model, new_states, new_params, X, U, theta):

@@ -278,6 +278,15 @@ class Layout:
         return v[o + self.nrec * self.nq:], list(zip(mus, rs))
 
 
+#: relative Marquardt damping of a score system (:meth:`Problem.score_system`): keeps the
+#: elimination of the state means and the Cholesky factor of the global system defined where a
+#: curvature vanishes at the nesting point
+SCORE_DAMPING = 1e-10
+#: a profiled curvature eigenvalue below −tol·(largest |eigenvalue|) is negative curvature,
+#: not rounding of a flat direction (about √ε of double precision)
+NEGATIVE_CURVATURE_TOL = 1e-8
+
+
 def split_density(r, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(d, L, C) of one record's assumed-density parameters r = (d, strict-lower L row by row, vec C)
     for n states: Σ_cond = L diag(eᵈ) Lᵀ (L unit lower triangular), C the cross factor."""
@@ -567,6 +576,20 @@ class Problem:
         if dglob is not None:
             S += lam * np.diag(dglob)
         return ReducedSystem(S=0.5 * (S + S.T), rhs=rhs, factors=tuple(facs))
+
+    def score_system(self, blks, *, lam: float = SCORE_DAMPING):
+        """(S, rhs) of :meth:`reduced_system` with the tiny Marquardt damping
+        λ·max(|diag|, 1e-300) on every diagonal (state means and the global system), the
+        system of score (Lagrange-multiplier) statistics at a nesting point; (None, None)
+        when the state-mean blocks are not positive definite."""
+        dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
+                for b in blks]
+        red = self.reduced_system(blks, lam=lam, dmus=dmus)
+        if red is None:
+            return None, None
+        S = red.S
+        S += lam * np.diag(np.maximum(np.abs(np.diag(S)), 1e-300))
+        return S, red.rhs
 
     def back_substitute(self, red: ReducedSystem, db):
         """(Δs, [Δμ_i], [Δr_i]) of the border step Δb: Δμ_i = −A_i⁻¹(g_μ_i + W_i Δb_i), unpadded."""

@@ -99,14 +99,14 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     from ..atomic import plan_output_dir, print_recovered, results_in_place
     from ..engine import Engine
     from ..model import load_model
-    from ..model.dynamics import _check
+    from ..model.dynamics import check_settings
 
     if not data:
         raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")
     if max_iter < 1:
         raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
     if substeps is not None:
-        _check(integrator or "euler", substeps)
+        check_settings(integrator or "euler", substeps)
     engine = Engine(workers=workers, scheduler=scheduler)
     plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data])
     print_recovered(plan)

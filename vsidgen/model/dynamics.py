@@ -74,6 +74,11 @@ INTEGRATORS = ("euler", "rk4")
 INPUT_HOLDS = ("zoh", "foh")
 
 
+def check_settings(integrator: str, substeps: int, inputs: str = "zoh") -> tuple[str, int, str]:
+    """(integrator, sub-steps, input hold) checked (VsidgenError with a hint otherwise)."""
+    return _check(integrator, substeps, inputs)
+
+
 def _check(integrator: str, substeps: int, inputs: str = "zoh") -> tuple[str, int, str]:
     if integrator not in INTEGRATORS:
         raise VsidgenError(
@@ -305,5 +310,5 @@ def transition(model, *, integrator: str | None = "euler", substeps: int | None 
                                          if getattr(model, "jacobians", None) is not None else None))
 
 
-__all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "input_hold", "settings", "transition",
+__all__ = ["INPUT_HOLDS", "INTEGRATORS", "Transition", "check_settings", "input_hold", "settings", "transition",
            "transition_fn", "transition_jacobian"]
