@@ -382,3 +382,21 @@ def test_missing_output_column_names_its_channel_and_the_same_quantity_in_anothe
     msg = str(ei.value)
     assert "column 'q_dps' (for output `q`) is not in the file" in msg
     assert "did you mean 'q_radps'?" in msg
+
+
+@pytest.mark.parametrize("cell, expected", [("abc", "non-numeric value 'abc'"),
+                                            ("", "input `de` is missing or not finite")])
+def test_check_blames_the_cell_not_the_spec_for_a_bad_first_input(tmp_path, capsys, cell,
+                                                                  expected):
+    """A text or empty input cell in the first row: `check --data` names the column and sample
+    0 (it said 'specs/attas_sp.yaml:32:10: non-finite value ... drift of alpha')."""
+    import pathlib
+
+    from vsidgen.cli import main
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    csv = tmp_path / "x.csv"
+    csv.write_text(f"t_s,de_rad,alpha_rad,q_radps\n0,{cell},0.1,0.2\n0.04,0.1,0.1,0.2\n")
+    assert main(["check", str(root / "specs" / "attas_sp.yaml"), "--data", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert "column 'de_rad', sample 0" in err and expected in err and "attas_sp.yaml:" not in err

@@ -63,10 +63,18 @@ def read_first_row(csv_path) -> dict[str, float]:
                         path=csv_path, sample=0)
     out = {}
     for h, cell in zip(header, row):
+        if not cell.strip():
+            out[h] = float("nan")      # a missing sample (allowed in outputs)
+            continue
         try:
             out[h] = float(cell)
         except ValueError:
-            out[h] = float("nan")
+            # the cell, not the spec, is at fault (it was read as NaN and the drift at the
+            # first sample then blamed the spec's equation)
+            raise DataError(f"non-numeric value {cell[:40]!r}", path=csv_path,
+                            column=h, sample=0,
+                            hint="cells must be plain numbers with a decimal point "
+                                 "(no decimal commas, units or text)") from None
     return out
 
 
@@ -113,8 +121,11 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     for v, ch in zip(symbolic.inputs, symbolic.data.inputs):
         val = _channel_value(ch, row, csv_path, columns, taken)
         if not math.isfinite(val):
-            warnings.append(SpecWarning(f"input `{v.name}` is not finite at the first sample",
-                                        path=csv_path, code="nonfinite_input"))
+            # a record's inputs must be present at every sample: the data are at fault, not
+            # the spec's equations (which a NaN input would make non-finite below)
+            raise DataError(f"input `{v.name}` is missing or not finite at the first sample",
+                            path=csv_path, column=ch.columns[0] if ch.columns else None,
+                            sample=0, hint="every sample needs a value for each input")
         values[v.symbol] = val
     x0 = {s.symbol: 0.0 for s in symbolic.states}
     for o, ch, h in zip(symbolic.outputs, symbolic.data.outputs, symbolic.observations):
