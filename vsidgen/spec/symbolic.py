@@ -158,17 +158,19 @@ def _coherent(unit: Located[str] | None) -> tuple[float, str | None]:
 
 
 def _warn_coherence(warnings: list, spec: Spec) -> None:
-    """Warnings for units that are not coherent SI (rad for angles): constants are converted
-    (said once); states, inputs, outputs and parameters are used with the numbers as they
-    stand, which is right only where every equation they enter is written in those units."""
+    """Warnings for units that are not coherent SI (rad for angles): every number is used as
+    it stands, which is right only where each equation it enters is written in those units
+    (3 deg inside cos() is 3 rad; a span in ft beside a speed in m/s is not metres). A
+    conversion factor between a unit and its coherent counterpart (`deg/rad`, `ft/m`) is
+    written to convert, and is not warned about."""
     for c in spec.constants:
         factor, unit = _coherent(c.unit)
-        if factor != 1.0:
-            _warn(warnings, f"constant `{c.name.value}` = {c.value:g} {c.unit.value} is used as "
-                            f"{c.value * factor:.6g} {unit}: the equations are evaluated in "
-                            "coherent units (SI, rad for angles)", c.name, code="constant_converted",
-                  hint=f"write `{{value: {c.value * factor:.6g}, unit: {unit}}}` to say so in the "
-                       "spec")
+        if factor != 1.0 and not _units.is_conversion_factor(c.unit.value):
+            _warn(warnings, f"constant `{c.name.value}` is {c.value:g} {c.unit.value}, and the "
+                            f"equations use the number {c.value:g} as it stands: where it meets "
+                            f"quantities in coherent units (SI, rad) it counts as {c.value:g} "
+                            f"{unit}", c.name, code="noncoherent_unit",
+                  hint=f"write `{{value: {c.value * factor:.6g}, unit: {unit}}}`")
     for decls, what in ((spec.states, "state"), (spec.inputs, "input"),
                         (spec.outputs, "output"), (spec.parameters, "parameter")):
         for d in decls:
@@ -315,15 +317,8 @@ def _declarations(spec: Spec, root_loc: dict) -> _Declared:
     for c in spec.constants:
         names.declare(c.name, "a constant")
         dims[_sym(c.name.value)] = _unit_dim(c.unit)
-        # a constant is a number the equations use as it stands: one given in a non-coherent
-        # unit (deg, ft, km, min, h) is converted to the coherent one (SI, rad), so
-        # `{value: 3, unit: deg}` in cos() is 3 degrees (warning `constant_converted`)
-        factor, unit = _coherent(c.unit)
-        source = c.source
-        if factor != 1.0:
-            source = (f"{c.value:g} {c.unit.value}" + (f"; {source}" if source else ""))
-        constants.append(Constant(c.name.value, c.value * factor, unit, source,
-                                  _sym(c.name.value)))
+        constants.append(Constant(c.name.value, c.value, c.unit.value if c.unit else None,
+                                  c.source, _sym(c.name.value)))
 
     parameters = []
     for q in spec.parameters:

@@ -55,6 +55,17 @@ NON_COHERENT = {"km": ("m", 1000.0), "ft": ("m", 0.3048), "min": ("s", 60.0),
                 "h": ("s", 3600.0), "deg": ("rad", math.pi / 180.0)}
 
 
+def is_conversion_factor(text) -> bool:
+    """A ratio of a non-coherent unit and its coherent counterpart (``deg/rad``, ``rad/deg``,
+    ``ft/m``): a constant in it exists to convert, e.g. an output in deg = R2D·α."""
+    try:
+        expr = parse_expression(str(text).replace("^", "**"), _UNIT_SYMBOLS, units=True)
+    except SpecError:
+        return False
+    names = {n for n, s in _UNIT_SYMBOLS.items() if s in expr.free_symbols}
+    return any(n in names and NON_COHERENT[n][0] in names for n in NON_COHERENT)
+
+
 def coherent(text, *, path=None, line=None, column=None) -> tuple[float, str]:
     """``(factor, coherent unit text)`` of a unit: a value in ``text`` times ``factor`` is
     the value in the coherent unit (SI, rad for angles). ``(1.0, text)`` when it is
