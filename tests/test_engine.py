@@ -184,3 +184,13 @@ def test_close_survives_a_shutdown_that_times_out():
     assert [c for c, _ in calls] == ["client", "cluster"]
     assert all(t is not None and t > 0 for _, t in calls)
     assert eng.client is None and eng.cluster is None
+
+
+def test_workers_bounded_by_the_machine():
+    """--workers 100000 would start 100000 processes: refused with a hint to use a cluster."""
+    from vsidgen.engine import max_local_workers
+    from vsidgen.errors import VsidgenError
+
+    with pytest.raises(VsidgenError, match="--scheduler"):
+        Engine(workers=max_local_workers() + 1)
+    assert Engine(workers=max_local_workers()).workers == max_local_workers()

@@ -102,6 +102,12 @@ def add_engine_arguments(parser, *, what: str) -> None:
                              "tcp://host:8786; DIR must be on a file system its workers share)")
 
 
+def max_local_workers() -> int:
+    """Most worker processes of a local cluster: 4 per core (each runs one fit at a time;
+    more only compete for the cores and memory)."""
+    return 4 * (os.cpu_count() or 1)
+
+
 def default_workers() -> int:
     """Cores this process may use (``os.sched_getaffinity`` where available)."""
     try:
@@ -139,6 +145,11 @@ class Engine:
         if workers is not None and workers < 1:
             from .errors import VsidgenError
             raise VsidgenError(f"--workers must be >= 1, got {workers}")
+        if workers is not None and workers > max_local_workers():
+            from .errors import VsidgenError
+            raise VsidgenError(f"--workers {workers} is more than this machine can run "
+                               f"(at most {max_local_workers()}: 4 per core)\n  hint: for more, "
+                               "start a dask cluster and pass --scheduler ADDRESS")
         self.workers = default_workers() if workers is None else int(workers)
         if scheduler is not None:
             # refused before anything is written ('garbage address', 'tcp://[::1')
