@@ -174,3 +174,12 @@ def test_diagnose_override_spec_equals_the_overrides(tmp_path):
     assert sym.drift == want.drift and sym.name == "attas_sp_cli"
     with pytest.raises(VsidgenError, match="did you mean `MQ`"):
         write_override_spec(SPEC, parse_overrides(fix=["MQQ=1"]), tmp_path / "x")
+
+
+def test_a_non_finite_start_says_where_and_why(tmp_path, capsys):
+    """--fix MQ=1e200: the ELBO overflows at the start; the message names the parameter (it
+    said only 'not finite at the initial point')."""
+    code = main(["fit", str(SPEC), str(CSV), "--out", str(tmp_path / "o"), "--quiet",
+                 "--fix", "MQ=1e200"])
+    err = capsys.readouterr().err
+    assert code == 2 and "MQ = 1e+200" in err and "overflow" in err and "Traceback" not in err

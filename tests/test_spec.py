@@ -357,3 +357,13 @@ def test_hints_a_new_user_needs(tmp_path):
                                   "  MDE: {unit: 1/s, description: M_de (per rad, nose down)}\n"),
                 "comma.yaml")
     assert "unknown key" in str(err) and "quotes" in err.hint
+
+
+def test_a_constant_that_makes_an_equation_infinite_is_refused_at_the_equation(tmp_path):
+    """`1/K` with `K: {value: 0}`: refused by check at the equation, naming the constant (it
+    passed check and ended in an internal error, ZeroDivisionError, in the generated code)."""
+    text = replace("  G0: {value: 9.80665, unit: m/s^2}\n",
+                   "  G0: {value: 9.80665, unit: m/s^2}\n  K: {value: 0, unit: \"1\"}\n")
+    text = replace("  alpha: MDE*de\n", "  alpha: MDE*de + 1/(K + 0*alpha)\n", text)
+    err = error(tmp_path, text)
+    assert "drift equation of `alpha`" in str(err) and "K = 0" in str(err) and err.line == 19

@@ -119,11 +119,48 @@ def _lm_init(P: Problem, options: FitOptions, start: str, resume):
         s, recs = P.initial(options, start)
         f0 = P.value(s, recs)
         if not math.isfinite(f0):
-            raise FitError("the negative ELBO is not finite at the initial point "
-                           "(check initial parameter values and the measured-state initialisation)")
+            raise FitError("the negative ELBO is not finite at the initial point"
+                           + _nonfinite_where(P, s, recs))
         return s, recs, float(options.lambda0), [], 0
     # the last point of a resumed history is evaluated again
     return resume["s"], resume["recs"], resume["lam"], list(resume["history"])[:-1], resume["iterations"]
+
+
+def _nonfinite_where(P: Problem, s, recs) -> str:
+    """Where the model is not finite at the initial point: the first equation (drift or
+    output) and sample of each record at the initial θ and state means, for the message."""
+    import jax
+
+    m = P.model
+    theta = jnp.asarray(P.tm.theta(jnp.asarray(s[:P.tm.n_free])))
+    parts = []
+    for rec, (mu, _) in zip(P.records, recs):
+        u = jnp.asarray(np.asarray(rec.u, float))
+        x = jnp.asarray(mu)
+        for what, fn, names in (("drift", m.drift, m.state_names),
+                                ("output", m.output, m.output_names)):
+            try:
+                v = np.asarray(jax.vmap(lambda a, b: fn(a, b, theta))(x, u))
+            except Exception:  # noqa: BLE001 - only for the message
+                continue
+            bad = np.argwhere(~np.isfinite(v))
+            if len(bad):
+                k, j = (int(i) for i in bad[0])
+                parts.append(f"{what} of `{names[j]}` at sample {k} of "
+                             f"{getattr(rec, 'name', 'the record')}")
+                break
+        if parts:
+            break
+    th = np.asarray(theta, float)
+    vals = ", ".join(f"{n} = {float(v):.6g}" for n, v in zip(m.parameter_names, th))
+    if parts:
+        return (f": {parts[0]} is not finite (initial parameter values {vals[:300]}; the "
+                "states start at their direct measurements, else 0)\n  hint: check divisions, "
+                "log, sqrt and exp in that equation at these values, and --fix/--init values")
+    big = [f"{n} = {float(v):.3g}" for n, v in zip(m.parameter_names, th) if abs(v) > 1e10]
+    return (": the drift and outputs are finite there, but their squared residuals overflow"
+            + (f" ({', '.join(big)})" if big else "")
+            + "\n  hint: check for very large initial values, --fix or --init values")
 
 
 def _lm_measure(P: Problem, s, recs) -> _Measured:

@@ -479,6 +479,7 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     observations = eqs.equations("observations", decl.outputs, "output")
     _check_expanded_size(definitions, decl.definitions, drift, decl.states, observations,
                          decl.outputs, eqs.sections)
+    _check_constant_singularities(decl, definitions, drift, observations, eqs.sections)
     _warn_unused(warnings, spec, definitions, deps, drift + observations)
     _warn_coherence(warnings, spec)
 
@@ -526,6 +527,37 @@ def _tree_size(expr, memo: dict) -> int:
         stack.append((node, True))
         stack.extend((a, False) for a in node.args if a not in memo)
     return memo[expr]
+
+
+def _check_constant_singularities(decl, definitions, drift, observations, sections) -> None:
+    """Refuse an expression that the constants' values alone make infinite or undefined
+    (``1/K`` with ``K: {value: 0}``): it cannot be evaluated at any state, and it used to
+    end in an internal error when the generated code was first run."""
+    consts = {c.symbol: sympy.Float(c.value) for c in decl.constants}
+    if not consts:
+        return
+    items = [("definition", nm, e, decl.definitions[nm].name, True) for nm, e in definitions]
+    items += [("drift equation of", v.name, e, sections["drift"][v.name].expression, False)
+              for v, e in zip(decl.states, drift)]
+    items += [("observation of", v.name, e, sections["observations"][v.name].expression, False)
+              for v, e in zip(decl.outputs, observations)]
+    bad_values = (sympy.zoo, sympy.oo, -sympy.oo, sympy.nan)
+    for what, name, e, at, key in items:
+        used = [c for c in decl.constants if c.symbol in e.free_symbols]
+        if not used:
+            continue
+        try:
+            val = e.xreplace(consts)
+        except (ZeroDivisionError, ValueError, TypeError):
+            val = sympy.zoo
+        if any(val.has(b) for b in bad_values) or val in bad_values:
+            loc = at.key_loc if key else at.loc
+            raise SpecError(f"{what} `{name}` is infinite or undefined for every state with the "
+                            "constants' values (" + ", ".join(f"{c.name} = {c.value:g}"
+                                                               for c in used) + ")",
+                            **loc, text=at.key_text if key else at.text,
+                            hint="a division by a constant that is 0, or log/sqrt of a constant "
+                                 "outside its domain: check the constants' values")
 
 
 def _check_expanded_size(definitions, def_at, drift, states, observations, outputs,
