@@ -383,7 +383,9 @@ def _release_saturated(P: Problem, s, recs) -> np.ndarray | None:
     interior), and the iterations continue from there. Bounds where the ELBO falls
     inwards are active constraints and stay."""
     nt = P.tm.n_free
-    sat = np.nonzero(saturated(P, s))[0]
+    # held parameters (FitOptions.held_parameters, e.g. a staged refit's base parameters or a
+    # candidate's lag held at its nesting bound) stay where they are
+    sat = np.nonzero(saturated(P, s) & ~np.asarray(P.held[:nt], bool))[0]
     if not len(sat):
         return None
     f0 = P.value(s, recs)
