@@ -154,6 +154,7 @@ def read_manifest(directory: str | os.PathLike) -> dict | None:
                                                for o in owns)):
             owns = []
         files |= {f for f in listing(directory) - kept - {MANIFEST} if _owned(f, owns)}
+        return {**doc, "files": files, "kept": kept, "owns": owns}
     return {**doc, "files": files, "kept": kept}
 
 
@@ -185,7 +186,7 @@ def add_to_manifest(directory: str | os.PathLike, names: Iterable[str]) -> None:
     write_text_atomic(directory / MANIFEST, _manifest_text(
         doc["files"] | set(names), command=str(doc.get("command", "")),
         complete=bool(doc.get("complete", True)), kept=doc["kept"] - set(names),
-        owns=doc.get("owns", []) if isinstance(doc.get("owns", []), list) else []))
+        owns=doc.get("owns", ())))
 
 
 # --------------------------------------------------------------------------- leftovers

@@ -451,10 +451,8 @@ def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
         seen.setdefault(h, j)
     for c in needed:
         if c not in seen:
-            what = ("time column" if c == time_column
+            what = (f"time column '{c}'" if c == time_column
                     else f"column '{c}' (for {taken[c]})" if c in taken else f"column '{c}'")
-            if c == time_column:
-                what += f" '{c}'"
             raise DataError(f"{what} is not in the file", path=path, column=c,
                             hint=_suggest(c, header, taken))
         if header.count(c) > 1:

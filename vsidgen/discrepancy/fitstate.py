@@ -106,6 +106,16 @@ def stage1_iterations(max_iter: int) -> int:
     return max(10, min(max_iter, 40))
 
 
+def warm_start_from(m, records, source: FitState) -> WarmStart:
+    """The start of a fit of model ``m`` (same state layout as ``source``'s) on ``records``:
+    ``m``'s parameter initial values, ``source``'s noise and assumed density."""
+    z, _ = parameter_start(m)
+    ps, od, ms = noise_stds(source.fit, source.model)
+    s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
+                                             proc_G=od, meas_std=ms)])
+    return WarmStart.from_decision({"s": s0, "records": source.fit.decision["records"]})
+
+
 def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
                iterations: int, max_iter: int) -> FitState:
     """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
@@ -115,14 +125,10 @@ def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, gener
 
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
-    z, _ = parameter_start(m)
-    ps, od, ms = noise_stds(source.fit, source.model)
-    s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
-                                             proc_G=od, meas_std=ms)])
-    res = fit(m, records, options=diag_options(iterations, warm_start=WarmStart.from_decision(
-        {"s": s0, "records": source.fit.decision["records"]})))
+    res = fit(m, records, options=diag_options(
+        iterations, warm_start=warm_start_from(m, records, source)))
     return evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
 
 
 __all__ = ["FitState", "conv_label", "diag_options", "evaluated", "refit_converged", "refit_warm",
-           "stage1_iterations"]
+           "stage1_iterations", "warm_start_from"]

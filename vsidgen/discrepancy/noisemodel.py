@@ -275,12 +275,9 @@ def score_test(current, path: pathlib.Path, *, generated_dir, dof: int,
     state means are eliminated (block-tridiagonal Schur complement), then every other border
     variable (assumed-density parameters, θ, diagonal and measurement noise; floors that are
     active stay held) is profiled out of the tested entries' block."""
-    from ..estimator import WarmStart
-    from ..estimator.problem import Problem
+    from ..estimator.problem import NEGATIVE_CURVATURE_TOL, Problem
     from ..model import load_model
-    from .fitstate import diag_options
-    from .refit import REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
-    from ..estimator.problem import NEGATIVE_CURVATURE_TOL
+    from .fitstate import diag_options, warm_start_from
 
     t0 = time.perf_counter()
     thr = float(stats.chi2.isf(alpha, max(dof, 1)))
@@ -290,12 +287,8 @@ def score_test(current, path: pathlib.Path, *, generated_dir, dof: int,
 
     m = load_model(path, generated_dir=generated_dir)
     records = list(current.records)
-    z, _ = parameter_start(m)
-    ps, od, ms = noise_stds(current.fit, current.model)
-    s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
-                                             proc_G=od, meas_std=ms)])
-    opts = diag_options(1, warm_start=WarmStart.from_decision(
-        {"s": s0, "records": current.fit.decision["records"]}))
+    # exactly the warm refit's start (refit_warm): the nesting point
+    opts = diag_options(1, warm_start=warm_start_from(m, records, current))
     P = Problem(m, records, opts)
     s, recs = P.initial(opts)
     blks = P.blocks(s, recs)

@@ -99,7 +99,7 @@ def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     bad = [k for k, v in out.items() if not math.isfinite(v)]
     if bad:
         raise VsidgenError(f"{option} {path}: the estimate of `{bad[0]}` is not a finite "
-                           "number", )
+                           "number")
     return out
 
 

@@ -550,7 +550,7 @@ def _check_constant_singularities(decl, definitions, drift, observations, sectio
             val = e.xreplace(consts)
         except (ZeroDivisionError, ValueError, TypeError):
             val = sympy.zoo
-        if any(val.has(b) for b in bad_values) or val in bad_values:
+        if any(val.has(b) for b in bad_values):
             loc = at.key_loc if key else at.loc
             raise SpecError(f"{what} `{name}` is infinite or undefined for every state with the "
                             "constants' values (" + ", ".join(f"{c.name} = {c.value:g}"
