@@ -357,6 +357,10 @@ def test_hints_a_new_user_needs(tmp_path):
                                   "  MDE: {unit: 1/s, description: M_de (per rad, nose down)}\n"),
                 "comma.yaml")
     assert "unknown key" in str(err) and "quotes" in err.hint
+    err = error(tmp_path, replace("  MDE: {unit: 1/s}\n",
+                                  "  MDE: {unit: 1/s, description: elevator, measured}\n"),
+                "comma2.yaml")
+    assert "unknown key `measured`" in str(err) and "quotes" in err.hint
 
 
 def test_a_constant_that_makes_an_equation_infinite_is_refused_at_the_equation(tmp_path):

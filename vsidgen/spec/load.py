@@ -218,9 +218,10 @@ def keys_check(node: YNode, allowed, what: str) -> dict:
     for key, child in mapping.items():
         if key not in allowed:
             hint = did_you_mean(key, allowed) or ("allowed keys: " + ", ".join(allowed))
-            if not re.fullmatch(r"[A-Za-z_][\w-]*", str(key)):
-                # `{description: Z_alpha (per rad, positive up)}`: in a {...} mapping a comma
-                # ends the value, and the rest becomes a "key"
+            if (child.kind == "scalar" and child.value is None) \
+                    or not re.fullmatch(r"[A-Za-z_][\w-]*", str(key)):
+                # `{description: roll rate, measured}`: in a {...} mapping a comma ends the
+                # value, and the rest becomes a key without a value (or one with spaces)
                 hint = ("a comma inside an unquoted value in `{...}` starts a new entry: put "
                         "the value in quotes, e.g. `description: \"... , ...\"`; " + hint)
             raise SpecError(f"unknown key `{key}` in {what}", **child.key_loc,
