@@ -353,15 +353,15 @@ RELEASE_SHARE = 0.01
 MAX_RELEASES = 3
 
 
-def saturated(P: Problem, s) -> np.ndarray:
+def saturated(P: Problem, s, share: float = SATURATION) -> np.ndarray:
     """Mask over the free θ of parameters at a bound: |dθ/dz| (the bounding transform's
-    derivative, :meth:`ThetaMap.dtheta_dz`) below :data:`SATURATION` of its scale (the
-    interval for two-sided bounds, the one-sided scale, 1 unbounded)."""
+    derivative, :meth:`ThetaMap.dtheta_dz`) below ``share`` of its scale (the interval for
+    two-sided bounds, the one-sided scale, 1 unbounded)."""
     tm = P.tm
     scale = np.where(tm.kind == 3, tm.hi - tm.lo, np.where(tm.kind == 0, 1.0, tm.sc))
     with np.errstate(over="ignore", under="ignore"):
         d = np.abs(tm.dtheta_dz(np.asarray(s, float)[:tm.n_free]))
-    return d < SATURATION * scale
+    return d < share * scale
 
 
 def _release_saturated(P: Problem, s, recs) -> np.ndarray | None:
@@ -375,9 +375,14 @@ def _release_saturated(P: Problem, s, recs) -> np.ndarray | None:
     interior), and the iterations continue from there. Bounds where the ELBO falls
     inwards are active constraints and stay."""
     nt = P.tm.n_free
-    # held parameters (FitOptions.held_parameters, e.g. a staged refit's base parameters or a
-    # candidate's lag held at its nesting bound) stay where they are
-    sat = np.nonzero(saturated(P, s) & ~np.asarray(P.held[:nt], bool))[0]
+    # every θ closer to its bound than the probe point is probed: there the gradient in z is
+    # the θ-gradient times a small dθ/dz, so a "converged" stop says nothing about the
+    # slope in θ (ATTAS yaw model of a new user: N_r stopped at its bound −5 with
+    # dθ/dz ≈ 1e-7 of the interval and an indefinite Hessian). Held parameters
+    # (FitOptions.held_parameters: a staged refit's base parameters, a candidate's lag held
+    # at its nesting bound) stay where they are.
+    near = saturated(P, s, RELEASE_SHARE * (1.0 - RELEASE_SHARE))
+    sat = np.nonzero(near & ~np.asarray(P.held[:nt], bool))[0]
     if not len(sat):
         return None
     f0 = P.value(s, recs)
