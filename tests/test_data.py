@@ -156,6 +156,24 @@ def test_non_numeric_cell(tmp_path):
     assert "'abc'" in str(err) and "sample 7" in str(err)
 
 
+@pytest.mark.parametrize("cell, fragment", [
+    ("1_5", "no digit separators"),                      # float() would read 15
+    ("\u0661.\u0665", "U+0661 ARABIC-INDIC DIGIT ONE"),    # float() would read 1.5
+    ("\uff11.5", "U+FF11 FULLWIDTH DIGIT ONE"),
+    ("1,5", None),
+])
+def test_cells_python_float_takes_but_numpy_does_not_are_refused(tmp_path, cell, fragment):
+    """One rule for every cell, whichever reader meets it: the cell-by-cell reader used to
+    take what Python's float() takes (digit separators, other-script digits) silently."""
+    rows = _good_rows()
+    rows[7][2] = f'"{cell}"' if "," in cell else cell
+    err = _err(tmp_path, rows)
+    assert (err.column, err.sample) == ("alpha_rad", 7)
+    assert "non-numeric value" in str(err)
+    if fragment:
+        assert fragment in str(err)
+
+
 def test_truncated_row(tmp_path):
     rows = _good_rows()
     rows[5] = rows[5][:2]

@@ -67,6 +67,33 @@ def test_unknown_name_location_and_hint():
     assert "\n          ^^^^" in str(err)
 
 
+def test_non_ascii_names_are_located_by_character_and_named():
+    """ast reports UTF-8 byte offsets; the caret and column count characters, and a
+    look-alike letter pasted from a document is named."""
+    with pytest.raises(SpecError) as ei:
+        parse_expression("q + V\u0430 + V", NS, path="m.yaml", line=2, column=5)
+    err = ei.value
+    assert err.span == (5, 2) and err.column == 5 + 4
+    assert "U+0430 CYRILLIC SMALL LETTER A" in err.hint
+    with pytest.raises(SpecError) as ei:
+        parse_expression("q*\u03b1\u03b1 + V", NS, path="m.yaml", line=2, column=5)
+    assert ei.value.span == (3, 2)
+
+
+@pytest.mark.parametrize("text, hint", [
+    ("V \u2212 q", "ASCII `-` instead of `\u2212`"),
+    ("V \u00d7 q", "ASCII `*`"),
+    ("V\u00b2", "`**2`, not as superscripts"),
+    ("V +\u00a0q", "invisible character U+00A0"),
+    ("V + q\u200b", "invisible character U+200B"),
+    ("V * \uff12", "ASCII `2` instead of"),
+])
+def test_typographic_characters_get_a_hint(text, hint):
+    with pytest.raises(SpecError) as ei:
+        parse_expression(text, NS, path="s.yaml", line=3, column=1)
+    assert hint in (ei.value.hint or "")
+
+
 @pytest.mark.parametrize("text, fragment, col", [
     ("V.real", "attribute access", 1),
     ("V[0]", "subscript", 1),

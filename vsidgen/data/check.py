@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .records import load_record, refuse_other_delimiter
+from .records import cell_hint, cell_value, load_record, refuse_other_delimiter
 from ..errors import DataError, Location, SpecError, SpecWarning
 from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
@@ -67,14 +67,12 @@ def read_first_row(csv_path) -> dict[str, float]:
             out[h] = float("nan")      # a missing sample (allowed in outputs)
             continue
         try:
-            out[h] = float(cell)
+            out[h] = cell_value(cell)
         except ValueError:
             # the cell, not the spec, is at fault (it was read as NaN and the drift at the
             # first sample then blamed the spec's equation)
-            raise DataError(f"non-numeric value {cell[:40]!r}", path=csv_path,
-                            column=h, sample=0,
-                            hint="cells must be plain numbers with a decimal point "
-                                 "(no decimal commas, units or text)") from None
+            raise DataError(f"non-numeric value {cell.strip()[:40]!r}", path=csv_path,
+                            column=h, sample=0, hint=cell_hint(cell)) from None
     return out
 
 

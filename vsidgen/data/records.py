@@ -54,6 +54,7 @@ import dataclasses
 import io
 import math
 import pathlib
+import re
 import warnings
 from collections.abc import Mapping, Sequence
 
@@ -76,6 +77,9 @@ RESOLUTION = 1e-3
 MIN_DT = 1e-6
 MAX_DT = 86400.0
 _MISSING = {"", "nan", "na", "n/a", "null", "none"}
+#: a cell's number as numpy's reader takes it: ASCII digits, point, exponent; inf and nan
+_PLAIN_NUMBER = re.compile(r"[+-]?(?:(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|inf|infinity|nan)",
+                           re.IGNORECASE)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -149,16 +153,46 @@ def _read_header(path: pathlib.Path) -> list[str]:
         raise DataError(f"cannot read file: {exc.strerror or exc}", path=path) from None
 
 
-def _parse_cell(text: str, path, column: str, sample: int) -> float:
+def cell_value(text: str) -> float:
+    """The number in one CSV cell, by the rule of numpy's reader (ASCII digits, a decimal
+    point, an exponent; inf and nan); NaN for an empty or missing-marker cell.
+
+    Raises:
+        ValueError: anything else. Python's ``float`` would also take ``"1_000"`` and
+            full-width or other-script digits, which the fast reader refuses: one rule for
+            every cell, whichever reader meets it.
+    """
     s = text.strip()
     if s.lower() in _MISSING:
         return math.nan
+    if not _PLAIN_NUMBER.fullmatch(s):
+        raise ValueError(s)
+    return float(s)
+
+
+def cell_hint(text: str) -> str:
+    """What is wrong with a cell :func:`cell_value` refused, in words."""
+    import unicodedata
+
+    odd = [ch for ch in dict.fromkeys(text) if not ch.isascii()]
+    if odd:
+        ch = odd[0]
+        return (f"the cell contains U+{ord(ch):04X} {unicodedata.name(ch, 'a non-ASCII character')}: "
+                "write numbers with ASCII digits and a decimal point")
+    if "_" in text and _PLAIN_NUMBER.fullmatch(text.strip().replace("_", "")):
+        return "no digit separators: write 1000.5, not 1_000.5"
+    if "," in text:
+        return "no decimal commas: write 1.5, not 1,5"
+    return "use plain decimal numbers, an empty cell or 'nan' for a missing output sample"
+
+
+def _parse_cell(text: str, path, column: str, sample: int) -> float:
     try:
-        return float(s)
+        return cell_value(text)
     except ValueError:
-        raise DataError(f"non-numeric value {s!r}", path=path, column=column, sample=sample,
-                        hint=f"file line {sample + 2}; use plain decimal numbers, "
-                             "an empty cell or 'nan' for a missing output sample") from None
+        s = text.strip()
+        raise DataError(f"non-numeric value {s[:40]!r}", path=path, column=column, sample=sample,
+                        hint=f"file line {sample + 2}; {cell_hint(s)}") from None
 
 
 def _fill_empty_cells(body: str) -> str:

@@ -169,13 +169,31 @@ class _Ctx:
 def _error(ctx: _Ctx, message: str, node: ast.AST | None = None, *, hint: str | None = None,
            offset: int | None = None, length: int | None = None):
     if node is not None and hasattr(node, "col_offset"):
-        offset = node.col_offset
+        offset = _char_offset(ctx.text, node.col_offset)
         end = getattr(node, "end_col_offset", None)
         if getattr(node, "end_lineno", 1) != getattr(node, "lineno", 1):
             end = None
-        length = (end - offset) if end is not None else 1
+        length = (_char_offset(ctx.text, end) - offset) if end is not None else 1
     return _make_error(ctx.text, message, path=ctx.path, line=ctx.line, column=ctx.column,
                        offset=offset, length=length, hint=hint)
+
+
+def _char_offset(text: str, byte_offset: int) -> int:
+    """The character offset in ``text`` of the UTF-8 byte offset ``ast`` reports (they
+    differ after a non-ASCII character, e.g. a Greek or a look-alike Cyrillic letter)."""
+    return len(text.encode("utf-8")[:byte_offset].decode("utf-8", "ignore"))
+
+
+def non_ascii_note(name: str) -> str | None:
+    """Names the non-ASCII characters of ``name`` (a look-alike letter pasted from a
+    document is invisible in the message otherwise)."""
+    import unicodedata
+
+    odd = [ch for ch in dict.fromkeys(name) if not ch.isascii()]
+    if not odd:
+        return None
+    return "`{}` contains {}".format(name, ", ".join(
+        f"U+{ord(ch):04X} {unicodedata.name(ch, 'unnamed character')}" for ch in odd))
 
 
 def _make_error(text, message, *, path, line, column, offset, length, hint=None):
@@ -207,6 +225,33 @@ def _implicit_product_hint(text: str) -> str | None:
         if keyword.iskeyword(left) or keyword.iskeyword(right):
             continue
         return f"write `*` for a product: `{left}{m.group(2)}{right}` → `{left}*{right}`"
+    return None
+
+
+#: typographic characters pasted from documents, and what to write instead
+_TYPOGRAPHY = {"\u2212": "-", "\u2013": "-", "\u2014": "-", "\u00d7": "*", "\u00b7": "*",
+               "\u22c5": "*", "\u2219": "*", "\u00f7": "/", "\u2044": "/", "\u2215": "/"}
+_SUPERSCRIPT = dict(zip("\u2070\u00b9\u00b2\u00b3\u2074\u2075\u2076\u2077\u2078\u2079\u207b",
+                        "0123456789-"))
+
+
+def _typography_hint(text: str, units: bool) -> str | None:
+    """A hint for a typographic or invisible character in an expression (U+2212 minus,
+    × and · for products, superscript powers, no-break and zero-width spaces)."""
+    import unicodedata
+
+    power = "^" if units else "**"
+    for ch in text:
+        if ch in _TYPOGRAPHY:
+            return f"write the ASCII `{_TYPOGRAPHY[ch]}` instead of `{ch}` ({unicodedata.name(ch, '')})"
+        if ch in _SUPERSCRIPT:
+            return f"write powers as `{power}2`, not as superscripts (`{ch}`)"
+        if unicodedata.category(ch) in ("Zs", "Cf", "Cc") and ch != " ":
+            return (f"remove the invisible character U+{ord(ch):04X} "
+                    f"({unicodedata.name(ch, 'control character')}) or replace it with a space")
+        plain = unicodedata.normalize("NFKC", ch)
+        if not ch.isascii() and plain.isascii() and plain.strip():
+            return f"write the ASCII `{plain}` instead of `{ch}` ({unicodedata.name(ch, '')})"
     return None
 
 
@@ -396,6 +441,9 @@ def _name(ctx: _Ctx, node: ast.Name):
     if hint is None:
         hint = ("declare it under states, inputs, constants, parameters or definitions"
                 if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))
+    note = non_ascii_note(name) if spelt == name else None
+    if note:
+        hint = f"{note} (names are ASCII); {hint}"
     raise _error(ctx, f"unknown {what} `{name}`", node, hint=hint)
 
 
@@ -543,7 +591,8 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
         if off is not None and (off < 0 or off > len(flat)):
             off = None
         raise _make_error(text, f"syntax error: {exc.msg}", path=path, line=line, column=column,
-                          offset=off, length=1, hint=_implicit_product_hint(flat)) from None
+                          offset=off, length=1,
+                          hint=_typography_hint(flat, units) or _implicit_product_hint(flat)) from None
     except (RecursionError, MemoryError):
         raise _make_error(text, "expression is nested too deeply", path=path, line=line,
                           column=column, offset=None, length=None) from None

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 from ..errors import SpecError
-from .expr import FUNCTIONS, did_you_mean
+from .expr import FUNCTIONS, did_you_mean, non_ascii_note
 from .load import RawSpec, YNode, keys_check, load_spec
 
 T = TypeVar("T")
@@ -248,9 +248,11 @@ def check_name(name: str, node: YNode, what: str) -> None:
     """A declared name: valid, not reserved by the generated module, not a function name."""
     at = Located.of(node, name)
     if not valid_name(name):
+        note = non_ascii_note(name) if isinstance(name, str) and len(name) <= 200 else None
         raise SpecError(f"invalid {what} name {show_name(name)}", **at.key_loc, text=at.key_text,
-                        hint="names start with an ASCII letter and contain only letters, digits "
-                             f"and _ (at most {MAX_NAME_LENGTH} characters)")
+                        hint=(f"{note}; " if note else "")
+                        + "names start with an ASCII letter and contain only letters, digits "
+                          f"and _ (at most {MAX_NAME_LENGTH} characters)")
     if name in GENERATED_MODULE_NAMES:
         raise SpecError(f"{what} name `{name}` is reserved by the generated module",
                         **at.key_loc, text=at.key_text,
