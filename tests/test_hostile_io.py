@@ -208,6 +208,11 @@ def test_arguments_checked_before_any_computation(user_dir):
                      "--scheduler", "tcp://[::1", "--quiet"], "cannot start or reach")
     _case(user_dir, ["simulate", "user/attas_sp.yaml", "--out", "s.csv", "--seed", "-1",
                      "--input", "de=doublet:amplitude=0.02"], "--seed")
+    # non-finite values (NaN x0 was reported as a divergence at sample 0)
+    _case(user_dir, ["simulate", "user/attas_sp.yaml", "--out", "s.csv", "--x0", "alpha=nan",
+                     "--duration", "2", "--dt", "0.1"], "--x0", "must be finite")
+    _case(user_dir, ["simulate", "user/attas_sp.yaml", "--out", "s.csv", "--quantize",
+                     "alpha=-1", "--duration", "2", "--dt", "0.1"], "--quantize", "> 0")
 
 
 @pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0,

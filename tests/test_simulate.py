@@ -181,9 +181,36 @@ def test_simulate_errors(kw, frag):
 
 def test_divergence_is_reported():
     t = np.arange(0, 200, 0.5)
-    with pytest.raises(VsidgenError, match="diverged at sample"):
+    with pytest.raises(VsidgenError, match="simulation diverged: state `(alpha|q)` .* at sample"):
         simulate(linear_model(), theta={"Za": 3.0, "Ma": 50.0, "Mq": 3.0, "Mde": 0.0}, t=t,
                  u={"de": 0.0, "da": 0.0}, x0=[1.0, 0.0])
+
+
+@pytest.mark.parametrize("kw, frag", [
+    (dict(u={"de": 1e300, "da": 0.0}), "input `de` reaches 1e+300 at sample 0"),
+    (dict(measurement_std={"alpha": 1e300}), "output `alpha` reaches"),
+    (dict(quantize={"alpha": -1.0}), "must be finite and > 0"),
+    (dict(quantize={"alpha": float("nan")}), "must be finite and > 0"),
+])
+def test_absurd_amplitudes_and_steps_are_refused(kw, frag):
+    """Values whose squares overflow float64 cannot be fitted: refused with the channel and
+    sample, like a divergence (they were written to the record); a quantisation step must be
+    positive (a negative one was ignored silently)."""
+    t = np.arange(0, 1, 0.1)
+    args = dict(theta=THETA, t=t, u={"de": 0.01, "da": 0.0}, x0=[0.0, 0.0])
+    args.update(kw)
+    with pytest.raises(VsidgenError) as info:
+        simulate(linear_model(), **args)
+    assert frag in str(info.value)
+
+
+def test_quantising_an_output_to_one_level_is_warned():
+    t = np.arange(0, 3, 0.05)
+    res = simulate(linear_model(), theta=THETA, t=t, u=_inputs(t), x0=[0.02, 0.0],
+                   quantize={"alpha": 1e3})
+    assert len(res.warnings) == 1 and "`alpha` quantised to a single level" in res.warnings[0]
+    assert simulate(linear_model(), theta=THETA, t=t, u=_inputs(t), x0=[0.02, 0.0],
+                    quantize={"alpha": 1e-3}).warnings == ()
 
 
 # ---------------------------------------------------------------- CSV round trip

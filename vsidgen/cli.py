@@ -12,6 +12,7 @@ stderr without a traceback and give exit status 2; Ctrl-C gives 130.
 from __future__ import annotations
 
 import argparse
+import math
 import pathlib
 import sys
 
@@ -174,6 +175,8 @@ def _name_values(items, what):
             out[name.strip()] = float(value)
         except ValueError:
             raise VsidgenError(f"--{what} {item!r}: {value!r} is not a number") from None
+        if not math.isfinite(out[name.strip()]):
+            raise VsidgenError(f"--{what} {item!r}: the value must be finite")
     return out
 
 
@@ -243,6 +246,18 @@ def _cmd_simulate(args) -> int:
 
         rec = load_record(compile_spec(args.spec), args.inputs_from)
 
+    # every NAME=VALUE option parsed (finite numbers) before the model is built
+    given = _name_values(args.param, "param")
+    x0 = _name_values(args.x0, "x0")
+    pstd = _name_values(args.process_std, "process-std")
+    mstd = _name_values(args.measurement_std, "measurement-std")
+    quant = _name_values(args.quantize, "quantize")
+    for what, values in (("process-std", pstd), ("measurement-std", mstd), ("quantize", quant)):
+        for name, v in values.items():
+            if v < 0 or (what == "quantize" and v == 0):
+                raise VsidgenError(f"--{what} {name}={v:g}: the value must be "
+                                   + ("> 0" if what == "quantize" else ">= 0"))
+
     enable_compilation_cache()
     from .model import load_model
     from .data.simulate import parse_input_spec, simulate_to_csv
@@ -251,15 +266,11 @@ def _cmd_simulate(args) -> int:
     theta = {}
     if args.params_from:
         theta.update(read_estimates(args.params_from, option="--params-from"))
-    theta.update(_name_values(args.param, "param"))
+    theta.update(given)
     _check_names(theta, model.parameter_names, "parameter", model, "--param")
-    x0 = _name_values(args.x0, "x0")
     _check_names(x0, model.state_names, "state", model, "--x0")
-    pstd = _name_values(args.process_std, "process-std")
     _check_names(pstd, model.state_names, "state", model, "--process-std")
-    mstd = _name_values(args.measurement_std, "measurement-std")
     _check_names(mstd, model.output_names, "output", model, "--measurement-std")
-    quant = _name_values(args.quantize, "quantize")
     _check_names(quant, model.output_names, "output", model, "--quantize")
     if args.inputs_from:
         if args.input:
@@ -288,10 +299,12 @@ def _cmd_simulate(args) -> int:
             if name in gens:
                 u[:, j] = gens[name](t)
     x0v = np.array([x0.get(s, 0.0) for s in model.state_names])
-    simulate_to_csv(model, args.out, theta=theta, t=t, u=u, x0=x0v, process_std=pstd,
-                    measurement_std=mstd, integrator=args.integrator or model.integrator,
-                    substeps=args.substeps or model.substeps, seed=args.seed,
-                    quantize=quant or None)
+    res = simulate_to_csv(model, args.out, theta=theta, t=t, u=u, x0=x0v, process_std=pstd,
+                          measurement_std=mstd, integrator=args.integrator or model.integrator,
+                          substeps=args.substeps or model.substeps, seed=args.seed,
+                          quantize=quant or None)
+    for note in res.warnings:
+        print(f"warning: {note}", file=sys.stderr)
     print(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)")
     return 0
 

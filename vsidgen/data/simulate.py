@@ -224,6 +224,13 @@ class SimulationResult:
     x: np.ndarray
     y: np.ndarray
     u: np.ndarray
+    #: what the user should know about the record (e.g. an output quantised to one level)
+    warnings: tuple[str, ...] = ()
+
+
+#: the largest magnitude whose square float64 holds: a record beyond it cannot be fitted (its
+#: squared residuals overflow), so a simulation reaching it is refused like a divergence
+LARGEST_VALUE = math.sqrt(np.finfo(np.float64).max)
 
 
 def _named_vector(model, values, names, what) -> np.ndarray:
@@ -312,6 +319,12 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
     if not (T > 0) or np.abs(steps - T).max() > 1e-9 * max(1.0, abs(t[-1])) + 1e-6 * T:
         raise VsidgenError("simulate: t must be increasing and uniformly spaced")
     n = t.shape[0]
+    for k, q in (quantize or {}).items():
+        if k not in model.output_names:
+            raise VsidgenError(f"quantize: unknown output {k!r}")
+        if not (math.isfinite(float(q)) and float(q) > 0):
+            raise VsidgenError(f"quantize: the step of {k!r} must be finite and > 0, got {q}\n"
+                               "  hint: leave the output out of --quantize for no quantisation")
     p = theta_vector(model, theta)
     U = _input_matrix(model, u, t)
     x0v = _named_vector(model, x0, model.state_names, "x0")
@@ -338,20 +351,28 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
     X, Y = run(jnp.asarray(x0v), jnp.asarray(U), jnp.asarray(p), jnp.asarray(W))
     X = np.asarray(X)
     Y = np.asarray(Y) + V
-    bad = ~np.isfinite(X).all(axis=1)
-    if bad.any():
-        k = int(np.flatnonzero(bad)[0])
-        raise VsidgenError(f"simulation diverged at sample {k} (t = {t[k]:.6g} s)\n"
-                           "  hint: check theta, x0 and the input amplitudes, or use a smaller "
-                           "sample period / more substeps")
-    if quantize:
-        for k, q in quantize.items():
-            if k not in model.output_names:
-                raise VsidgenError(f"quantize: unknown output {k!r}")
-            if q and q > 0:
-                j = model.output_names.index(k)
-                Y[:, j] = np.round(Y[:, j] / q) * q
-    return SimulationResult(t=t, x=X, y=Y, u=U)
+    for arr, names, what in ((U, model.input_names, "input"), (X, model.state_names, "state"),
+                             (Y, model.output_names, "output")):
+        big = ~(np.abs(arr) <= LARGEST_VALUE)          # also NaN and inf
+        if big.any():
+            k, j = (int(i[0]) for i in np.nonzero(big))
+            how = "is not finite" if not np.isfinite(arr[k, j]) else f"reaches {arr[k, j]:.3g}"
+            raise VsidgenError(
+                ("" if what == "input" else "simulation diverged: ")
+                + f"{what} `{names[j]}` {how} at sample {k} "
+                f"(t = {t[k]:.6g} s)\n"
+                f"  hint: values beyond {LARGEST_VALUE:.3g} cannot be fitted (their squares "
+                "overflow); check theta, x0, the input amplitudes and the noise stds, or use a "
+                "smaller sample period / more substeps")
+    notes = []
+    for k, q in (quantize or {}).items():
+        j = model.output_names.index(k)
+        before = np.ptp(Y[:, j])
+        Y[:, j] = np.round(Y[:, j] / q) * q
+        if before > 0 and np.ptp(Y[:, j]) == 0:
+            notes.append(f"output `{k}` quantised to a single level (step {q:g} against a range "
+                         f"of {before:.3g}): the channel carries no information")
+    return SimulationResult(t=t, x=X, y=Y, u=U, warnings=tuple(notes))
 
 
 def _inverse_columns(cmap, values: np.ndarray) -> dict[str, np.ndarray]:
