@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from vsidgen.discrepancy import search
+from vsidgen.discrepancy import findings, search
 from vsidgen.discrepancy.refit import RefitOutcome
 
 # one worker runs the whole module: its module-scoped fixtures are computed once
@@ -202,14 +202,23 @@ def test_cli_exit_status_1_and_no_verdict_when_the_base_fit_did_not_converge(mon
 
     monkeypatch.setenv("VSIDGEN_CACHE_DIR", "")
     rc = main(["diagnose", str(SPEC), str(DATA), "--out", str(tmp_path / "u"), "--workers", "1",
-               "--max-iter", "3", "--max-rounds", "0", "--no-numerics", "--no-noise-model",
-               "--quiet"])
+               "--max-iter", "3", "--max-rounds", "0", "--quiet"])
     assert rc == 1
     out = capsys.readouterr().out
     doc = _doc(tmp_path / "u")
     assert doc["base_fit"]["converged"] is False
     assert doc["conclusion"].startswith("INCONCLUSIVE: the base fit did not converge")
     assert "kept as it is" not in out and "No significant" not in out
+    # numerics and noise model are not tested against a non-optimum (a refit would gain by
+    # finishing the fit: the numerics stage adopted RK4 on such gains)
+    for stage in ("numerics", "noise_model"):
+        trials = doc[stage]["trials"]
+        assert trials and all(t["verdict"] == "not_tested_base_unconverged"
+                              and t["elbo"] is None for t in trials), stage
+        assert doc[stage]["adopted"] is None
+    html = findings.report_section(doc)
+    assert html.count("<b>Not tested</b>: the base fit did not converge") == 2
+    assert "Kept: no other setting" not in html
 
 
 @pytest.mark.slow

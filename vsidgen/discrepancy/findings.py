@@ -469,6 +469,14 @@ def plot_finding(finding, base, final) -> str | None:
     return png_data_uri(fig)
 
 
+_NOT_TESTED_TEXT = ("<b>Not tested</b>: the base fit did not converge, so a refit's gain would "
+                    "measure the unfinished fit, not this setting.")
+
+
+def _not_tested(stage: dict) -> bool:
+    return all(t.get("verdict") == "not_tested_base_unconverged" for t in stage["trials"])
+
+
 def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ()) -> str:
     """HTML section "Discrepancy diagnosis" for the report (findings table, text, plots)."""
     e = html.escape
@@ -479,6 +487,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         parts.append("<h3>Modelling numerics (tested before physics)</h3>"
                      f"<p>Current setting: <code>{e(num['current']['text'])}</code>. "
                      + (f"<b>{e(num['adopted']['explanation'])}</b>" if num.get("adopted")
+                        else _NOT_TESTED_TEXT if _not_tested(num)
                         else "Kept: no other setting improved the fit significantly.")
                      + "</p>" + _trial_table("setting", [(f"<code>{e(t['setting']['text'])}</code>", t)
                                                        for t in num["trials"]], dof=False))
@@ -488,6 +497,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      f"<p>Current process noise: <code>structure: {e(nm['current']['structure'])}"
                      f"</code> on {e(', '.join(nm['current']['states']))}. "
                      + (f"<b>{e(nm['adopted']['explanation'])}</b>" if nm.get("adopted")
+                        else _NOT_TESTED_TEXT if _not_tested(nm)
                         else f"<b>{e(noise_model_text(nm))}</b>"
                         if nm.get("significant_not_adopted")
                         else "Kept: the score test of correlated process noise at the "

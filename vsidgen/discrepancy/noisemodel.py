@@ -73,6 +73,7 @@ class NoiseModelVerdict(enum.Enum):
     NOT_SIGNIFICANT = "not_significant"
     NOT_CONVERGED = "not_converged"                        # refit not at an optimum, Λ ≤ threshold
     SIGNIFICANT_NOT_CONVERGED = "significant_not_converged"  # Λ (a lower bound) > threshold
+    NOT_TESTED = "not_tested_base_unconverged"   # nothing can be decided against a non-optimum
     FAILED = "failed"
 
 
@@ -452,6 +453,16 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
     alts = noise_alternatives(model)
     if not alts:
         return NoiseModelResult(structure, states, current.elbo, (), alpha)
+    if not refit_converged(current.fit):
+        # neither the score (the gradient is not zero at a non-optimum) nor a refit's gain
+        # (it also finishes the fit) tests the noise model against an unconverged fit
+        if progress is not None:
+            progress("noise model: not tested (the current fit did not converge)")
+        return NoiseModelResult(structure, states, current.elbo, tuple(
+            NoiseModelTrial(alt, pathlib.Path(out) / "candidates"
+                            / f"r0_n{i + 1:02d}_noise_{alt.value}.yaml", dof,
+                            verdict=NoiseModelVerdict.NOT_TESTED)
+            for i, (alt, dof) in enumerate(alts)), alpha)
     t0 = time.perf_counter()
     trials = []
     for i, (alt, dof) in enumerate(alts):

@@ -58,6 +58,7 @@ class NumericsVerdict(enum.Enum):
     NOT_SIGNIFICANT = "not_significant"
     NOT_CONVERGED = "not_converged"
     NOT_TRIED = "not_tried"              # the most accurate setting was not significant
+    NOT_TESTED = "not_tested_base_unconverged"   # nothing can be decided against a non-optimum
     FAILED = "failed"
 
 
@@ -252,6 +253,16 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
 
     cur = NumericsSetting.of(current.model)
     settings = numerics_settings(cur)
+    if not refit_converged(current.fit):
+        # the current ELBO is below its optimum: any refit gains by merely finishing the fit,
+        # so a setting's 2ΔELBO says nothing about the numerics (it would be a false finding)
+        if progress is not None:
+            progress("modelling numerics: not tested (the current fit did not converge, so a "
+                     "refit's gain would not measure the integrator setting)")
+        return NumericsResult(cur, current.elbo, tuple(
+            NumericsTrial(s, pathlib.Path(out) / "candidates" / f"r0_{i + 1:02d}_numerics_{s.label}.yaml",
+                          verdict=NumericsVerdict.NOT_TESTED) for i, s in enumerate(settings)),
+            alpha)
     tasks = []
     paths = {}
     for i, s in enumerate(settings):
