@@ -130,3 +130,57 @@ def test_channel_expression_evaluated(tmp_path):
     csv = tmp_path / "rec.csv"
     csv.write_text("t_s,u1_mps2,p_right_rad,p_left_rad,y1_m,y2_rad,y3\n0,0.1,0.3,0.1,0.5,0.2,0.1\n")
     assert check_first_sample(compile_spec(SPECS / "nonlinear.yaml"), csv) == []
+
+
+def test_show_prints_what_is_fitted_besides_the_equations(tmp_path, capsys):
+    """Integrator, sub-steps, input hold and delays, and the noise settings, after the equations."""
+    d = tmp_path / "specs"
+    d.mkdir()
+    spec = d / "settings.yaml"
+    spec.write_text("""\
+name: settings
+integrator: {method: rk4, substeps: 2, inputs: foh}
+states:
+  alpha: {unit: rad}
+  q: {unit: rad/s}
+  theta: {unit: rad}
+inputs:
+  de: {unit: rad, delay: 0.08}
+outputs:
+  alpha: {unit: rad}
+  q: {unit: rad/s}
+parameters:
+  Za: {unit: 1/s}
+drift:
+  alpha: Za*alpha + q
+  q: de
+  theta: q
+observations:
+  alpha: alpha
+  q: q
+noise:
+  process:
+    states: [alpha, q]
+    structure: full
+    degenerate: [q]
+    floor: {alpha: 0.001}
+  measurement:
+    alpha: {estimate: false, std: 0.002}
+    q: {floor: 0}
+data:
+  time: t
+  inputs: {de: de}
+  outputs: {alpha: a, q: q}
+""")
+    assert main(["show", str(spec)]) == 0
+    out = capsys.readouterr().out
+    settings = out[out.index("\nsettings:"):]
+    assert out.index("outputs:") < out.index("\nsettings:")
+    for text in ("integrator: rk4, 2 sub-steps per sample; inputs: first-order hold",
+                 "input delay: de 0.08 s",
+                 "process noise: alpha, q (full lower-triangular G, correlated, estimated)",
+                 "floor: alpha 0.001 [rad/sqrt(s)]",
+                 "degenerate (no independent noise, G_ii = 0): q",
+                 "without process noise (fitted in the limit of vanishing noise): theta",
+                 "alpha: fixed, std 0.002 [rad], floor auto", "q: estimated, no floor"):
+        assert text in settings, (text, settings)

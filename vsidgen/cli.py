@@ -97,7 +97,10 @@ def _add_show(subparsers) -> None:
     p = subparsers.add_parser(
         "show", help="print the model equations",
         description="Print the model: states, inputs, outputs, parameters, definitions, "
-                    "drift dx/dt = f(x, u, p) and outputs y = h(x, u, p), with units.")
+                    "drift dx/dt = f(x, u, p) and outputs y = h(x, u, p), with units; then the "
+                    "settings that change what is fitted: integrator, sub-steps, input hold and "
+                    "delays, process noise (states, structure, estimate, floors, degenerate, "
+                    "states without it) and measurement noise per output.")
     p.add_argument("spec", metavar="SPEC", help="spec file (YAML)")
     p.add_argument("--latex", action="store_true", help="print the equations as LaTeX")
     p.set_defaults(handler=_cmd_show)
@@ -128,7 +131,6 @@ def _cmd_show(args) -> int:
         return 0
     # spec text is shown with non-printable characters escaped (no terminal control sequences)
     print(f"model {m.name}: {printable(m.description)}".rstrip(": "))
-    print(f"integrator: {m.integrator}, substeps {m.substeps}")
     for title, items in (("states", m.states), ("inputs", m.inputs), ("outputs", m.outputs)):
         print(f"{title}:")
         for v in items:
@@ -159,7 +161,59 @@ def _cmd_show(args) -> int:
     print("outputs:")
     for o, e in zip(m.outputs, m.observations):
         print(f"  {o.name}{_unit(o.unit)} = {sympy.sstr(e)}")
+    for line in _settings_lines(m):
+        print(line)
     return 0
+
+
+_HOLD = {"zoh": "zero-order hold (held over each sample)",
+         "foh": "first-order hold (interpolated linearly between samples)"}
+
+
+def _std_text(values: dict, unit_of) -> str:
+    return ", ".join(f"{n} {v:g}{_unit(unit_of.get(n))}" for n, v in values.items())
+
+
+def _settings_lines(m) -> list[str]:
+    """What the fit uses besides the equations: integration, input hold and delays, noise."""
+    lines = ["settings:",
+             f"  integrator: {m.integrator}, {m.substeps} sub-step{'s' if m.substeps != 1 else ''} "
+             f"per sample; inputs: {_HOLD.get(m.input_hold, m.input_hold)}"]
+    delays = [f"{v.name} {v.delay:g} s" for v in m.inputs if getattr(v, "delay", 0.0)]
+    lines.append(f"  input delay: {', '.join(delays)} (the model sees u(t - delay))" if delays
+                 else "  input delay: none")
+    pn = m.process_noise
+    states = [v.name for v in m.states]
+    noisy = [s for s in states if s in pn.states] if pn.states else list(states)
+    if not pn.estimate:  # fixed in the spec: a state without a positive std has none
+        noisy = [s for s in noisy if float(pn.std.get(s, 0.0) or 0.0) > 0]
+    quiet = [s for s in states if s not in noisy]
+    unit_of = {v.name: (f"{v.unit}/sqrt(s)" if v.unit else "1/sqrt(s)") for v in m.states}
+    what = "estimated" if pn.estimate else "fixed"
+    structure = {"diagonal": "diagonal G", "full": "full lower-triangular G, correlated"}.get(
+        pn.structure, pn.structure)
+    proc = (f"  process noise: {', '.join(noisy)} ({structure}, {what})" if noisy
+            else "  process noise: none")
+    lines.append(proc)
+    if pn.std:
+        lines.append(f"    {'initial std' if pn.estimate else 'std'}: {_std_text(dict(pn.std), unit_of)}")
+    if any(float(v) > 0 for v in pn.floor.values()):
+        lines.append(f"    floor: {_std_text({k: v for k, v in pn.floor.items() if float(v) > 0}, unit_of)}")
+    if getattr(pn, "degenerate", ()):
+        lines.append(f"    degenerate (no independent noise, G_ii = 0): {', '.join(pn.degenerate)}")
+    if quiet:
+        lines.append(f"    without process noise (fitted in the limit of vanishing noise): {', '.join(quiet)}")
+    lines.append("  measurement noise:")
+    out_unit = {v.name: v.unit for v in m.outputs}
+    for mn in m.measurement_noise:
+        parts = ["estimated" if mn.estimate else "fixed"]
+        if mn.std is not None:
+            parts.append(f"{'initial ' if mn.estimate else ''}std {mn.std:g}{_unit(out_unit.get(mn.output))}")
+        fl = mn.floor
+        parts.append("floor auto (data resolution / sqrt(12))" if fl == "auto"
+                     else "no floor" if not fl else f"floor {float(fl):g}{_unit(out_unit.get(mn.output))}")
+        lines.append(f"    {mn.output}: {', '.join(parts)}")
+    return lines
 
 
 # ---------------------------------------------------------------- simulate / fit / report
@@ -409,7 +463,9 @@ def _cmd_fit(args) -> int:
     val_ok = val.get("converged", True) is not False
     if val.get("elbo") is not None:
         vstate = "converged" if val_ok else "NOT CONVERGED — " + str(val.get("status"))
-        print(f"validation smoothing: {vstate}; validation ELBO {val['elbo']:.6g}")
+        far = any(w.get("code") == "validation_elbo_far_below" for w in res["warnings"])
+        print(f"validation smoothing: {vstate}; validation ELBO {val['elbo']:.6g}"
+              + (" (FAR BELOW the estimation's per sample: see the warning)" if far else ""))
     return 0 if res["converged"] and val_ok else 1
 
 
