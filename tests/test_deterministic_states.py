@@ -194,3 +194,45 @@ def test_a_warm_started_limit_fit_restarts_at_its_optimum(fitted, rec):
     assert first["std"] == fitted.deterministic_limit["std"]     # starts where the previous limit ended
     assert first["iterations"] <= 3, res.deterministic_limit["stages"]
     np.testing.assert_allclose(res.theta, fitted.theta, atol=0.1 * float(np.min(fitted.std_errors)))
+
+
+class _Phases:
+    """A progress callback that records the phases the estimator announces."""
+
+    def __init__(self):
+        self.phases, self.calls = [], 0
+
+    def phase(self, ph):
+        self.phases.append(ph)
+
+    def __call__(self, it, elbo, grad, elapsed):
+        self.calls += 1
+
+
+def test_validation_smoothing_ends_at_the_estimations_noise_and_names_its_stages(rec):
+    """Validation smoothing of a fit that took the deterministic limit follows the estimation's
+    stds, from its first stage to exactly the std it ended with, never further; each stage is
+    announced as a continuation stage, not as another noise start."""
+    from vsidgen.estimator import FitPhase, PhaseKind
+
+    val = record(300, seed=11)
+    first, end = 0.05, 5e-5   # an estimation that stopped three stages down
+    noise = {"G": np.diag(G_TRUE), "R": np.diag(R_STD ** 2),
+             "deterministic_limit": {"states": ["x3"], "std": {"x3": end},
+                                     "stages": [{"stage": 0, "std": {"x3": first}}]}}
+    prog = _Phases()
+    res = smooth(model(estimate=False), [val], THETA_TRUE, noise,
+                 options=FitOptions(progress=prog))
+    assert res.converged, res.status
+    lim = res.deterministic_limit
+    stds = [s["std"]["x3"] for s in lim["stages"]]
+    assert stds[0] == pytest.approx(first) and stds[-1] == pytest.approx(end, rel=1e-12), stds
+    assert min(stds) >= end * (1 - 1e-12), stds            # never beyond the estimation's noise
+    assert lim["std"]["x3"] == pytest.approx(end, rel=1e-12) and lim["reached"], lim
+    assert len(stds) == 4, stds                              # 0.05 -> 5e-3 -> 5e-4 -> 5e-5
+    assert all(isinstance(p, FitPhase) and p.kind is PhaseKind.LIMIT_STAGE and p.smoothing
+               for p in prog.phases), prog.phases
+    assert [p.stage for p in prog.phases] == [0, 1, 2, 3]
+    assert str(prog.phases[2]).startswith("validation smoothing: deterministic limit, stage 2")
+    assert "noise start" not in " ".join(map(str, prog.phases))
+    assert all("phase" in h for h in res.history if h)

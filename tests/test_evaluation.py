@@ -142,3 +142,53 @@ def test_fit_metrics_hand_computed():
     assert empty["n"] == 0 and math.isnan(empty["rms"])
     const = fit_metrics([2.0, 2.0], [2.0, 3.0])
     assert math.isnan(const["r2"])
+
+
+def _signals_with(y, **predicted):
+    from vsidgen.evaluation import Signals
+
+    metrics = {k: {"y": fit_metrics(y, v)} for k, v in predicted.items()}
+    n = len(y)
+    return Signals(record="r1", t=np.arange(n) * 0.1, y_meas=y[:, None], y_smooth=y[:, None],
+                   y_sim=y[:, None], y_pred=y[:, None], x_smooth=np.zeros((n, 1)),
+                   xdot_fd=np.zeros((n - 1, 1)), f_smooth=np.zeros((n - 1, 1)), metrics=metrics,
+                   output_names=("y",), state_names=("x",))
+
+
+def test_an_output_the_model_does_not_explain_is_named_with_its_r2():
+    """R² <= 0 (no better than the channel's mean) of the free simulation or the one-step
+    prediction is a warning naming record, output, signal and number; a good fit has none."""
+    from vsidgen.evaluation import unexplained_outputs
+
+    rng = np.random.default_rng(1)
+    y = np.sin(np.linspace(0, 20, 400)) + 0.05 * rng.normal(size=400)
+    good = _signals_with(y, smoother=y, simulation=y + 0.1 * rng.normal(size=400), prediction=y)
+    assert unexplained_outputs(good) == []
+    flat = np.full_like(y, y.mean() + 0.3)        # explains nothing (and is offset)
+    bad = _signals_with(y, smoother=y, simulation=flat, prediction=y)
+    (w,) = unexplained_outputs(bad, kind="validation")
+    r2 = fit_metrics(y, flat)["r2"]
+    assert w["code"] == "output_not_explained" and w["output"] == "y" and w["record"] == "r1"
+    assert w["r2"] == {"simulation": r2} and r2 < 0
+    assert "validation record 'r1', output 'y'" in w["message"] and f"{r2:.3g}" in w["message"]
+
+
+def test_validation_elbo_per_sample_below_a_model_without_dynamics_is_flagged():
+    """Scale-free: per-sample ELBOs against the log-likelihood of independent Gaussians at each
+    validation channel's mean and variance; the same in any unit of the outputs."""
+    from vsidgen.evaluation import iid_gaussian_loglik, validation_elbo_warning
+
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=(500, 2)) * [0.02, 0.05]
+    base = iid_gaussian_loglik(y)
+    assert validation_elbo_warning(7375.0, 626, base + 50.0, [y]) is None
+    w = validation_elbo_warning(7375.0, 626, -3.9e6, [y])
+    assert w["code"] == "validation_elbo_far_below"
+    assert w["elbo_per_sample"] == pytest.approx(-3.9e6 / 500)
+    assert w["no_dynamics_per_sample"] == pytest.approx(base / 500)
+    assert "-3.9e+06" in w["message"] and "per sample" in w["message"]
+    # outputs in units 1000× smaller: every log-likelihood shifts by the same amount per sample
+    shift = -2 * 500 * math.log(1000.0)
+    assert iid_gaussian_loglik(y * 1000.0) == pytest.approx(base + shift)
+    assert validation_elbo_warning(7375.0 + shift * 626 / 500, 626, base + 50.0 + shift, [y * 1000.0]) is None
+    assert validation_elbo_warning(7375.0, 626, base - 1.0, [y]) is not None

@@ -63,3 +63,28 @@ def test_fit_percent_matches_matlab_compare_definition():
                    / np.linalg.norm(y[keep] - y[keep].mean()))
     assert fit_metrics(y_nan, yhat)["fit_percent"] == pytest.approx(ref, rel=1e-12)
     assert math.isnan(fit_metrics(np.ones(5), np.ones(5))["fit_percent"])
+
+
+def test_log_mode_names_the_phases_the_estimator_announces():
+    """Continuation stages of the deterministic limit are labelled as such, not as noise starts."""
+    from vsidgen.estimator import FitPhase, PhaseKind
+
+    out = io.StringIO()
+    p = FitProgress(out, live=False)
+    p.phase(FitPhase(PhaseKind.NOISE_START, start="data"))
+    for it in range(3):
+        p(it, 100.0 + it, 1e-3, 0.1 * it)
+    p.phase(FitPhase(PhaseKind.NOISE_START, start="data"))   # a bound release: same phase, counting on
+    p(3, 104.0, 1e-4, 0.4)
+    for k in (1, 2):
+        p.phase(FitPhase(PhaseKind.LIMIT_STAGE, stage=k, scale=10.0 ** -k, max_stages=12))
+        for it in range(2):
+            p(it, 90.0 - k, 1e-5, 1.0 + k)
+    p.close()
+    lines = out.getvalue().splitlines()
+    assert lines == ["noise start data: 3 iterations, ELBO 104, |grad| 0.0001, 0.4 s",
+                     "deterministic limit, stage 1 of at most 12, std × 0.1: 1 iterations, ELBO 89, "
+                     "|grad| 1e-05, 2.0 s",
+                     "deterministic limit, stage 2 of at most 12, std × 0.01: 1 iterations, ELBO 88, "
+                     "|grad| 1e-05, 3.0 s"]
+    assert "noise start 2" not in out.getvalue()

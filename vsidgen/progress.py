@@ -2,10 +2,13 @@
 
 :class:`FitProgress` is the estimator's ``progress(iteration, elbo,
 grad_norm, elapsed)`` callback. On a terminal it keeps one live line (rich)
-with the noise start, iteration, ELBO, relative gradient and elapsed time;
-otherwise (CI logs, pipes) it writes one summary line per noise start — the
-estimator restarts its iteration count at each start of ``--noise-start
-auto``, which is how a new start is recognised. :class:`DiagnoseProgress`
+with the phase, iteration, ELBO, relative gradient and elapsed time;
+otherwise (CI logs, pipes) it writes one summary line per phase. The
+estimator restarts its iteration count with each phase and names it
+beforehand through :meth:`FitProgress.phase` (its ``str()`` is the label:
+``noise start data``, ``deterministic limit, stage 2/12, std × 0.01`` —
+the continuation of one fit towards vanishing process noise, not another
+start); iterations that restart without a name are counted as noise starts. :class:`DiagnoseProgress`
 prints diagnose's messages and, on a terminal, keeps a live line with the
 round, the candidate being refitted and an estimate of the time left in the
 round (mean refit time so far × candidates left).
@@ -21,6 +24,7 @@ from typing import TextIO
 @dataclasses.dataclass
 class _Start:
     index: int
+    label: str = ""
     iterations: int = 0
     elbo: float = float("nan")
     grad: float = float("nan")
@@ -28,7 +32,7 @@ class _Start:
 
 
 class FitProgress:
-    """Estimator progress callback: live line on a terminal, a line per noise start otherwise.
+    """Estimator progress callback: live line on a terminal, a line per phase otherwise.
 
     Args:
         stream: where to write (stderr in the CLI).
@@ -40,6 +44,8 @@ class FitProgress:
         self.live = stream.isatty() if live is None else bool(live)
         self._start: _Start | None = None
         self._last_it = -1
+        self._phase: str | None = None   # announced, not yet iterated
+        self._named = False              # the estimator names its phases
         self._console = None
         self._live = None
         if self.live:
@@ -51,15 +57,30 @@ class FitProgress:
             self._live.start()
 
     def _summary(self, st: _Start) -> str:
-        return (f"noise start {st.index}: {st.iterations} iterations, ELBO {st.elbo:.8g}, "
+        return (f"{st.label or f'noise start {st.index}'}: {st.iterations} iterations, ELBO {st.elbo:.8g}, "
                 f"|grad| {st.grad:.3g}, {st.elapsed:.1f} s")
 
+    def phase(self, phase) -> None:
+        """The next iterations belong to ``phase`` (``str(phase)`` is its label, e.g. an
+        :class:`vsidgen.estimator.FitPhase`)."""
+        self._phase = str(phase)
+        self._named = True
+
     def __call__(self, iteration: int, elbo: float, grad_norm: float, elapsed: float) -> None:
-        if self._start is None or iteration < self._last_it:
+        label = self._phase
+        new = (self._start is None or iteration < self._last_it
+               or (label is not None and label != self._start.label))
+        # (a phase announced again, e.g. after a bound release, continues its segment)
+        self._phase = None
+        if new:
             if self._start is not None and not self.live:
                 self.stream.write(self._summary(self._start) + "\n")
                 self.stream.flush()
-            self._start = _Start(1 if self._start is None else self._start.index + 1)
+            index = 1 if self._start is None else self._start.index + 1
+            if label is None:  # restarted without a name: a noise start of an unnamed sequence
+                label = (f"{self._start.label} (restarted)" if self._named and self._start is not None
+                         else "")
+            self._start = _Start(index, label)
         self._last_it = iteration
         st = self._start
         st.iterations, st.elbo, st.grad, st.elapsed = iteration, elbo, grad_norm, elapsed
@@ -67,7 +88,7 @@ class FitProgress:
             from rich.text import Text
 
             line = Text.assemble(
-                ("fit ", "bold"), (f"start {st.index}  ", "dim"),
+                ("fit ", "bold"), (f"{st.label or f'start {st.index}'}  ", "dim"),
                 f"iter {iteration:4d}  ", ("ELBO ", "bold"), f"{elbo: .8e}  ",
                 ("|grad| ", "bold"), f"{grad_norm:.2e}  ", (f"{elapsed:7.1f} s", "cyan"))
             self._live.update(line, refresh=True)

@@ -4,7 +4,7 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    FitOptions, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
+    FitOptions, FitPhase, PhaseKind, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
     Problem(model, records, options)    # decision-vector layout, objective, reduced Newton system
     Layout, ReducedSystem, Gradient, parameter_start, split_density, join_density
 """
@@ -12,8 +12,9 @@ Public API::
 from .fit import fit, smooth
 from .problem import (DirectMeasurement, Gradient, Layout, Problem, ReducedSystem, direct_measurements, join_density,
                       measured_states, parameter_start, split_density)
-from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason, WarmStart
+from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
+                      StopReason, WarmStart)
 
-__all__ = ["DirectMeasurement", "FitOptions", "FitResult", "Gradient", "Layout", "Problem", "ReducedSystem",
-           "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "direct_measurements", "fit",
+__all__ = ["DirectMeasurement", "FitOptions", "FitPhase", "FitResult", "Gradient", "Layout", "PhaseKind", "Problem",
+           "ReducedSystem", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "direct_measurements", "fit",
            "join_density", "measured_states", "parameter_start", "smooth", "split_density"]

@@ -34,7 +34,8 @@ from scipy.stats import chi2
 from ..errors import FitError
 from .core import diff_scale
 from .problem import Gradient, Problem, initial_means
-from .results import FitOptions, FitResult, SmootherPath, StdErrorFlag, StdErrorIssue, StopReason
+from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
+                      StopReason, announce)
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -274,7 +275,7 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
 
 
 def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
-              stall: bool = False):
+              stall: bool = False, phase: FitPhase | None = None):
     """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
 
     Each iteration measures the iterate (:func:`_lm_measure`), asks whether to stop
@@ -282,16 +283,21 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
     ``options.stall_rtol`` (relative) over ``options.stall_window`` iterations without meeting the
     convergence criteria, reason :attr:`StopReason.STALLED`, resumable; used while other noise
     starts remain to be tried) and otherwise takes one damped step (:func:`_lm_step`).
+    ``phase`` (what these iterations are part of) is announced to the progress callback
+    (:func:`~vsidgen.estimator.results.announce`) and its label kept in each history entry.
     """
     t0 = time.perf_counter() if t0 is None else t0
     s, recs, lam, history, it0 = _lm_init(P, options, start, resume)
+    label = None if phase is None else str(phase)
+    if phase is not None and options.progress is not None:
+        announce(options.progress, phase)
     ws = []  # noise parameters per iteration (stall test)
     it, stop, m = it0, None, None
     for it in range(it0, options.max_iter + 1):
         m = _lm_measure(P, s, recs)
         elapsed = time.perf_counter() - t0
         history.append({"iteration": it, "elbo": -m.f, "grad_norm": m.relgrad, "lambda": lam, "elapsed_s": elapsed,
-                        "decrement": m.decrement})
+                        "decrement": m.decrement, **({"phase": label} if label else {})})
         if options.progress is not None:
             options.progress(it, -m.f, m.relgrad, elapsed)
         if options.verbose:
@@ -426,6 +432,8 @@ def _optimize_trust_constr(P: Problem, options: FitOptions, start: str = "data")
 
     t0 = time.perf_counter()
     s0, recs0 = P.initial(options, start)
+    if options.progress is not None:
+        announce(options.progress, FitPhase(PhaseKind.NOISE_START, start=start))
     lay = P.layout
     total = P.flat_value
     vg = jax.jit(jax.value_and_grad(total))
@@ -837,7 +845,8 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
         # that stalls is abandoned early while another start remains or has converged.
         have_optimum = any(o["converged"] for _, o in tried)
         stall = i < len(starts) - 1 or have_optimum
-        out = _optimize(P, options, start, t0=t0, stall=stall)
+        phase = FitPhase(PhaseKind.NOISE_START, start=start)
+        out = _optimize(P, options, start, t0=t0, stall=stall, phase=phase)
         released: list[str] = []
         for _ in range(MAX_RELEASES):
             # released after any stop at a point (an optimum, or no progress: a saturated
@@ -851,7 +860,7 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
                 break
             released += [P.free_names[j] for j in np.nonzero(s_rel != out["s"])[0]]
             out = _optimize(P, options, start, t0=t0, stall=stall,
-                            resume={**out, "s": s_rel})
+                            resume={**out, "s": s_rel}, phase=phase)
             out["released"] = tuple(dict.fromkeys(released))
         tried.append((start, out))
     converged = [o for _, o in tried if o["converged"]]
@@ -861,7 +870,9 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
         stalled = [k for k, (_, o) in enumerate(tried) if o["reason"] is StopReason.STALLED]
         if stalled:  # none converged: continue the best stalled start with its remaining iterations
             k = min(stalled, key=lambda k: _negelbo(tried[k][1]))
-            tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1]))
+            tried[k] = (tried[k][0], _optimize(P, options, tried[k][0], t0=t0, resume=tried[k][1],
+                                               phase=FitPhase(PhaseKind.NOISE_START, start=tried[k][0],
+                                                              continued=True)))
         out = next((o for _, o in tried if o["converged"]), None)
         if out is None:  # none converged: keep the highest ELBO
             out = min((o for _, o in tried), key=_negelbo)
@@ -973,7 +984,8 @@ def _from_relaxed(P0: Problem, P: Problem, s0) -> np.ndarray:
     return np.concatenate([np.asarray(s0[:nt], float), w0[keep], w0[ne0:]])
 
 
-def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> dict:
+def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, target=None,
+                         start_name: str | None = None, smoothing: bool = False) -> dict:
     """Fit (or smooth) in the limit of vanishing process noise on the deterministic states.
 
     A state without process noise has a degenerate transition, x_{k+1,i} = F_i(x_k): the
@@ -999,14 +1011,41 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
     Two consecutive stages with the same factor ρ and the same whole number k of ln(1/ρ)
     (within ``limit_tol`` per decade) and converged estimates end the continuation too
     (reported as k collapsed directions: such ELBOs compare only at equal ε).
+
+    ``target`` (validation smoothing of a fit that took the limit; per deterministic state):
+    the std at which the estimation's continuation ended. The stages then go from ``eps``
+    (the estimation's first-stage std) down to exactly ``target`` and stop there — never
+    further, so the smoothing's ELBO belongs to the same noise as the estimation's (a limit
+    taken further than the estimation's scores the validation record with a sharper
+    constraint than the one fitted; the ELBO of a collapsing direction falls by ln(1/ρ) per
+    stage and a constraint the data violate costs ~1/ε²).
+    Each stage is announced to the progress callback as a :class:`FitPhase` of kind
+    ``LIMIT_STAGE`` (``start_name``: the noise start it belongs to; ``smoothing``: a
+    validation smoothing).
     """
     det_idx = np.nonzero(P.nm.deterministic)[0]
     names = [P.model.state_names[i] for i in det_idx]
     eps = np.asarray(eps, float)
+    if target is not None:
+        target = np.asarray(target, float)
+        eps = np.maximum(eps, target)
     nt = P.tm.n_free
     history, iterations, stages = [], 0, []
     budget = max(30, int(options.max_iter) // 4)
     stage_opts = dataclasses.replace(options, max_iter=budget)
+    max_full = LIMIT_MAX_STAGES
+    if target is not None:  # as many full stages as the way down to the target takes
+        with np.errstate(divide="ignore", invalid="ignore"):
+            need = np.log(eps / target) / math.log(1.0 / LIMIT_RATIO)
+        need = need[np.isfinite(need)]
+        max_full = max(max_full, int(math.ceil(float(need.max()) - 1e-9)) if need.size else 0)
+    max_attempts = max_full + 4  # full stages plus at most four milder retries
+
+    def phase(stage, e):
+        ref = np.where(eps > 0, eps, 1.0)
+        return FitPhase(PhaseKind.LIMIT_STAGE, start=start_name, stage=stage, max_stages=max_attempts,
+                        scale=float(np.max(np.asarray(e, float) / ref)) if len(e) else None,
+                        smoothing=smoothing)
 
     def record(stage, e, o, ratio):
         stages.append({"stage": stage, "std": {n: float(v) for n, v in zip(names, e)}, "elbo": -_negelbo(o),
@@ -1025,7 +1064,7 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
         status0 = out0["status"]
     else:  # smoothing or a warm start: the first stage is P itself at ``eps``
         P.set_deterministic_std(eps)
-        o = _optimize(P, options, t0=t0)
+        o = _optimize(P, options, t0=t0, phase=phase(0, eps))
         history += list(o["history"])
         iterations += int(o["iterations"])
         record(0, eps, o, None)
@@ -1044,12 +1083,20 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
     ratio = LIMIT_RATIO
     full = 0
     failed = None
-    for attempt in range(1, LIMIT_MAX_STAGES + 5):  # full stages plus at most four milder retries
+    for attempt in range(1, max_attempts + 1):
+        if target is not None and np.all(base["eps"] <= target):
+            reached = True  # at the estimation's noise: not a stage further
+            break
         e = base["eps"] * ratio
+        if target is not None:  # down to the target, and onto it when within rounding of it
+            e = np.where(e <= target * (1.0 + 1e-9), target, e)
         P.set_deterministic_std(e)
-        start = _stage_start(P, base["s"], base["recs"], np.where(P.nm.deterministic, ratio, 1.0))
+        rho = np.ones(P.model.nx)
+        rho[det_idx] = e / base["eps"]
+        start = _stage_start(P, base["s"], base["recs"], rho)
         o = _optimize(P, stage_opts, t0=t0, resume=dict(s=base["s"], recs=start, lam=float(options.lambda0),
-                                                        history=[{}], iterations=0))
+                                                        history=[{}], iterations=0),
+                      phase=phase(len(stages), e))
         history += list(o["history"])
         iterations += int(o["iterations"])
         record(len(stages), e, o, ratio)
@@ -1075,13 +1122,15 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
         steady_k = (k >= 1 and abs(d_elbo + k * ln_step) < options.limit_tol * ln_step / math.log(10.0)
                     and prev_k == (k, ratio))
         prev_k = (k, ratio)
-        if d_theta < options.limit_tol and (steady_k or (ratio == LIMIT_RATIO and abs(d_elbo) < options.limit_tol)):
+        # with a target the stopping rule is the target (checked before the next stage)
+        if target is None and d_theta < options.limit_tol and (
+                steady_k or (ratio == LIMIT_RATIO and abs(d_elbo) < options.limit_tol)):
             reached = True
             collapsed = k if steady_k else 0
             break
         if ratio == LIMIT_RATIO:
             full += 1
-            if full >= LIMIT_MAX_STAGES:
+            if full >= max_full and not (target is not None and np.all(e <= target)):
                 break
         ratio = max(LIMIT_RATIO, ratio * ratio)
     out = base["out"] if base["out"] is not None else failed
@@ -1090,13 +1139,21 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0) -> 
     out["limit"] = {"states": names, "std": {n: float(v) for n, v in zip(names, eps)}, "stages": stages,
                     "reached": reached, "elbo_change": float(d_elbo), "theta_change_se": float(d_theta),
                     "scale": scale, "collapsed_directions": collapsed}
+    if target is not None:
+        out["limit"]["target_std"] = {n: float(v) for n, v in zip(names, target)}
     pinned = {P.model.state_names[i] for i in np.nonzero(P.nm.pinned)[0]}
     det_names = [n for n in names if n not in pinned]
     parts = ([f"deterministic state(s) {', '.join(det_names)}"] if det_names else []) + \
         ([f"degenerate state(s) {', '.join(sorted(pinned))} (independent process noise)"] if pinned else [])
-    what = (f"{'; '.join(parts)}: limit of vanishing process noise "
-            + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
-               if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
+    if target is not None:
+        what = (f"{'; '.join(parts)}: process noise taken to the std at which the estimation's limit "
+                f"ended ({', '.join(f'{n} {v:.3g}' for n, v in zip(names, target))}) "
+                + (f"in {len(stages) - 1} stage(s)" if reached else
+                   f"NOT reached in {len(stages) - 1} stage(s)"))
+    else:
+        what = (f"{'; '.join(parts)}: limit of vanishing process noise "
+                + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
+                   if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
     if collapsed:
         what += (f"; the estimates converged while the ELBO falls by ln(1/ρ) per stage (ρ: the stage's "
                  f"process-noise factor) in {collapsed} "
@@ -1180,7 +1237,7 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     # leg 1: noise fixed at the data start, held states to the deterministic limit
     Pa = Problem(P.model, P.records, options, fixed_G=Gd, fixed_R=Rd)
     Pa.noise_scaled_start = True
-    leg1 = _deterministic_limit(Pa, None, None, eps0, options, t0)
+    leg1 = _deterministic_limit(Pa, None, None, eps0, options, t0, start_name="release")
     lim = leg1["limit"]
     end = np.asarray([lim["std"][n] for n in (names[i] for i in np.nonzero(Pa.nm.deterministic)[0])], float)
     # leg 2: the other noise free, held states at the limit's std
@@ -1188,7 +1245,8 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     nt = P.tm.n_free
     s2 = np.concatenate([np.asarray(leg1["s"], float)[:nt], w_data])
     leg2 = _optimize(Ph, options, t0=t0, resume=dict(s=s2, recs=leg1["recs"], lam=float(options.lambda0),
-                                                      history=[{}], iterations=0))
+                                                      history=[{}], iterations=0),
+                     phase=FitPhase(PhaseKind.RELEASE_LEG, start="release", leg="other noise free"))
     # leg 3: release; P's process-noise parameters: held ones where the limit ended, new off-diagonal ones 0
     sh = np.asarray(leg2["s"], float)
     wh = {int(i): sh[nt + a] for a, i in enumerate(Ph.nm.proc_est_idx)}
@@ -1205,7 +1263,8 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     w += [off_h.get(ab, 0.0) for ab in P.nm.offdiag]
     s3 = np.concatenate([sh[:nt], np.asarray(w, float), sh[nt + Ph.nm.n_proc:]])
     out = _optimize(P, options, t0=t0, resume=dict(s=s3, recs=leg2["recs"], lam=float(options.lambda0),
-                                                    history=[{}], iterations=0))
+                                                    history=[{}], iterations=0),
+                    phase=FitPhase(PhaseKind.RELEASE_LEG, start="release", leg="released"))
     held_names = [names[i] for i in held]
     out["status"] += (f" (release start: {', '.join(held_names)} held deterministic first: noise fixed, "
                       f"{'limit reached' if lim['reached'] else 'limit NOT reached'} after "
@@ -1215,6 +1274,32 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     out["history"] = tuple(leg1["history"]) + tuple(leg2["history"]) + tuple(out["history"])
     out["iterations"] = int(out["iterations"]) + int(leg1["iterations"]) + int(leg2["iterations"])
     return out
+
+
+def _limit_of_estimation(P: Problem, noise):
+    """(first-stage std, final std) of the estimation's deterministic-limit continuation for the
+    deterministic states of the smoothing problem ``P`` (their order), or (None, None).
+
+    ``noise`` is the estimation's FitResult (or a mapping) with its ``deterministic_limit``
+    record; it is used when it names exactly P's deterministic states with positive stds.
+    Validation smoothing then follows the estimation's noise path and ends at its noise
+    (:func:`_deterministic_limit` ``target``)."""
+    lim = noise.get("deterministic_limit") if isinstance(noise, Mapping) else getattr(
+        noise, "deterministic_limit", None)
+    if not isinstance(lim, Mapping):
+        return None, None
+    names = [P.model.state_names[i] for i in np.nonzero(P.nm.deterministic)[0]]
+    end = lim.get("std") or {}
+    first = ((lim.get("stages") or [{}])[0] or {}).get("std") or {}
+    if set(end) != set(names):
+        return None, None
+    target = np.asarray([float(end[n]) for n in names], float)
+    if not np.all(np.isfinite(target) & (target > 0)):
+        return None, None
+    start = (np.asarray([float(first[n]) for n in names], float) if set(first) == set(names) else None)
+    if start is None or not np.all(np.isfinite(start) & (start > 0)):
+        start = _smoothing_start_std(P)
+    return np.maximum(start, target), target
 
 
 def _noise_from(noise, model):
@@ -1237,7 +1322,11 @@ def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) 
     ``theta``: all parameters in model order; ``noise``: a FitResult, or a mapping with
     ``G`` (nx×nx) and ``R`` (ny×ny), or ``process_std``/``measurement_std`` dicts.
     The returned FitResult has the maximised ELBO (a lower bound on log p(y | θ)) and the
-    smoother paths; std_errors are NaN.
+    smoother paths; std_errors are NaN. States without process noise are smoothed in the
+    limit of vanishing noise by the same continuation as the fit; when ``noise`` carries the
+    estimation's ``deterministic_limit`` record, the continuation follows its stds from its
+    first stage and ends at exactly the std the estimation ended with (never further), so the
+    validation ELBO is that of the estimated noise.
     """
     theta = np.asarray(theta, float)
     if theta.shape != (model.np,):
@@ -1245,7 +1334,9 @@ def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) 
     G, R = _noise_from(noise, model)
     P = Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
     if options.deterministic == "limit" and P.nm.deterministic.any():
-        out = _deterministic_limit(P, None, None, _smoothing_start_std(P), options, time.perf_counter())
+        start, target = _limit_of_estimation(P, noise)
+        out = _deterministic_limit(P, None, None, _smoothing_start_std(P) if start is None else start,
+                                   options, time.perf_counter(), target=target, smoothing=True)
     else:
-        out = _optimize(P, options)
+        out = _optimize(P, options, phase=FitPhase(PhaseKind.SMOOTHING, smoothing=True))
     return _finish(P, out, mode="smooth", options=options)

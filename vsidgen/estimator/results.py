@@ -123,6 +123,64 @@ class StdErrorFlag:
                 "message": self.message}
 
 
+class PhaseKind(enum.Enum):
+    """What a run of optimizer iterations is part of (typed; ``value`` is the stable code).
+
+    The optimizer restarts its iteration count for each of them; they are not all noise
+    starts: the stages of the deterministic-limit continuation (process noise of states
+    without it taken to zero, docs/estimator.md) are one fit continued at a smaller noise.
+    """
+
+    NOISE_START = "noise_start"      # one start of --noise-start (auto: each tried in turn)
+    RELEASE_LEG = "release_leg"      # legs 2 and 3 of the release start (noise freed, released)
+    LIMIT_STAGE = "limit_stage"      # stage k >= 1 of the deterministic-limit continuation
+    SMOOTHING = "smoothing"          # validation smoothing (θ and noise fixed)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitPhase:
+    """The phase a progress callback is told about before its iterations (``str()``: the label).
+
+    ``start``: the noise start it belongs to; ``stage``: the continuation stage (numbered as
+    ``FitResult.deterministic_limit["stages"]``, 0 = the first) and ``scale`` its process-noise
+    std relative to the first stage's; ``max_stages``: the most full stages the continuation
+    takes; ``leg``: the release start's leg; ``continued``: more iterations of a phase run
+    before (a stalled start continued when no start converged).
+    """
+
+    kind: PhaseKind
+    start: str | None = None
+    stage: int | None = None
+    scale: float | None = None
+    max_stages: int | None = None
+    leg: str | None = None
+    continued: bool = False
+    smoothing: bool = False
+
+    def __str__(self) -> str:
+        parts = []
+        if self.smoothing:
+            parts.append("validation smoothing")
+        if self.start is not None:
+            parts.append(f"noise start {self.start}")
+        if self.kind is PhaseKind.RELEASE_LEG and self.leg:
+            parts.append(self.leg)
+        if self.kind is PhaseKind.LIMIT_STAGE:
+            of = f" of at most {self.max_stages}" if self.max_stages else ""
+            std = f", std × {self.scale:.2g}" if self.scale is not None else ""
+            parts.append(f"deterministic limit, stage {self.stage}{of}{std}")
+        text = ": ".join(parts) or self.kind.value
+        return text + (" (continued)" if self.continued else "")
+
+
+def announce(progress, phase: FitPhase) -> None:
+    """Tell a progress callback that has a ``phase`` method which phase the next iterations
+    belong to (a plain ``progress(iteration, elbo, grad_norm, elapsed)`` callback has none)."""
+    hook = getattr(progress, "phase", None)
+    if callable(hook):
+        hook(phase)
+
+
 @dataclasses.dataclass(frozen=True)
 class FitOptions:
     """Options of :func:`vsidgen.estimator.fit` and :func:`~vsidgen.estimator.smooth`.
@@ -143,7 +201,10 @@ class FitOptions:
         optimizer: "structured-newton" (default: Levenberg–Marquardt damped
             Newton exploiting the block-tridiagonal Hessian) or "trust-constr"
             (scipy.optimize.minimize reference path, dense Hessian–vector products).
-        progress: callback(iteration, elbo, grad_norm, elapsed_s) called each iteration.
+        progress: callback(iteration, elbo, grad_norm, elapsed_s) called each iteration; the
+            iteration count restarts with each phase (noise start, continuation stage of the
+            deterministic limit). A callback with a ``phase(FitPhase)`` method is told the
+            phase before its iterations (:func:`announce`; ``str(phase)`` is its label).
         verbose: print one line per iteration.
         deterministic: how states without process noise (deterministic states, e.g.
             φ̇ = p) are treated. "limit" (default): the fit is the limit of process-noise

@@ -5,8 +5,12 @@ Public API::
 
     evaluate(model, record, theta, *, mu, G, R) -> Signals
     fit_metrics(measured, predicted) -> dict
+    unexplained_outputs(signals, *, kind) -> list[dict]   # warnings: R² <= 0 per output
+    iid_gaussian_loglik(y) -> float                       # log-likelihood without dynamics
+    validation_elbo_warning(elbo, n, val_elbo, val_ys) -> dict | None   # per-sample ELBO check
 """
 
-from .signals import Signals, evaluate, fit_metrics
+from .signals import Signals, evaluate, fit_metrics, iid_gaussian_loglik, unexplained_outputs, validation_elbo_warning
 
-__all__ = ["Signals", "evaluate", "fit_metrics"]
+__all__ = ["Signals", "evaluate", "fit_metrics", "iid_gaussian_loglik", "unexplained_outputs",
+           "validation_elbo_warning"]

@@ -277,4 +277,98 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
                    warnings=tuple(warnings), gain=K)
 
 
-__all__ = ["Signals", "evaluate", "fit_metrics", "steady_state_gain"]
+def iid_gaussian_loglik(y) -> float:
+    """Log-likelihood (nats) of the outputs ``y`` (N, ny; NaN = missing) under the model that
+    knows nothing of the dynamics: each channel independent Gaussian samples at its own mean
+    and variance (maximum likelihood), −½ Σ_j n_j (ln(2π s_j²) + 1). In the units of ``y``,
+    like the ELBO: the difference of the two per sample does not depend on the units. A
+    channel without spread (s_j = 0) is left out."""
+    y = np.asarray(y, float)
+    y = y.reshape(len(y), -1)
+    total = 0.0
+    for j in range(y.shape[1]):
+        col = y[:, j][np.isfinite(y[:, j])]
+        var = float(np.var(col)) if col.size > 1 else 0.0
+        if var > 0:
+            total += -0.5 * col.size * (math.log(2.0 * math.pi * var) + 1.0)
+    return total
+
+
+def validation_elbo_warning(elbo, n_samples: int, validation_elbo, validation_y) -> dict | None:
+    """A warning when the validation ELBO per sample is far below the estimation's, else None.
+
+    ``elbo``/``n_samples``: the estimation's ELBO and its number of samples (all records);
+    ``validation_elbo``: the validation smoothing's; ``validation_y``: the outputs (N, ny) of
+    each validation record. "Far below" on a scale-free yardstick: the ELBO per sample drops
+    from estimation to validation by more than the model gains, per sample, over a model
+    without dynamics on the validation records (:func:`iid_gaussian_loglik`) — the validation
+    ELBO per sample is below that model's log-likelihood per sample, i.e. the model scores the
+    validation records worse than knowing nothing of their dynamics. Differences per sample of
+    log-likelihoods of the same channels depend neither on their units nor on the records'
+    lengths. A non-finite validation ELBO is always named.
+    """
+    ys = [np.asarray(y, float) for y in validation_y]
+    n_val = sum(len(y) for y in ys)
+    if not n_samples or not n_val or not math.isfinite(float(elbo)):
+        return None
+    per_est = float(elbo) / n_samples
+    per_val = float(validation_elbo) / n_val
+    per_base = sum(iid_gaussian_loglik(y) for y in ys) / n_val
+    if per_val >= per_base:
+        return None
+    return {"code": "validation_elbo_far_below", "reliable": True,
+            "elbo_per_sample": per_val, "estimation_elbo_per_sample": per_est,
+            "no_dynamics_per_sample": per_base,
+            "message": f"validation ELBO {float(validation_elbo):.6g} = {per_val:.4g} nats per sample, far "
+                       f"below the estimation's {per_est:.4g} nats per sample: below the {per_base:.4g} "
+                       f"nats per sample of a model without dynamics on the validation records (each "
+                       f"output independent Gaussian at its mean and variance); the model does not "
+                       f"describe the validation records (check them, their data map and the states "
+                       f"without process noise)"}
+
+
+#: the evaluation signals judged by :func:`unexplained_outputs`, in the order they are named
+OUTPUT_SIGNALS = ("smoother", "simulation", "prediction")
+_SIGNAL_WORDS = {"smoother": "smoother-mean output", "simulation": "free simulation",
+                 "prediction": "one-step Kalman prediction"}
+
+
+def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[dict]:
+    """Warnings for output channels that an evaluation signal does not explain at all.
+
+    A channel is named when the fraction of its variance that the smoother-mean output, the
+    free simulation or the one-step Kalman prediction explains, R² = 1 − Σe²/Σ(y − ȳ)² (the
+    ``r2`` of :func:`fit_metrics`; NRMSE fit ≤ 0 %), is at most 0: that signal predicts the
+    channel no better than the channel's own mean does — the model explains none of it. The
+    criterion is scale free and needs no threshold; R² ≤ 0 of the prediction or the smoother
+    (which see the data) says the model or its noise settings miss the channel altogether, of
+    the free simulation that the model does not reproduce the channel without the data.
+    (Persistence, ŷ_k = y_{k−1}, is no reference for the one-step prediction: at the sample
+    rates of flight records it beats good models on slowly varying channels — ATTAS lateral,
+    textbook model, simulation R² 0.97, prediction of ay 2.1× the persistence RMS.)
+
+    One warning per record and output: ``{"code": "output_not_explained", "reliable": True,
+    "record", "output", "kind" (estimation|validation), "r2": {signal: R²}, "message"}``.
+    """
+    out = []
+    for o in signals.output_names:
+        bad = {}
+        for sig in OUTPUT_SIGNALS:
+            r2 = (signals.metrics.get(sig) or {}).get(o, {}).get("r2", math.nan)
+            if r2 is not None and not math.isnan(r2) and r2 <= 0.0:
+                bad[sig] = float(r2)
+        if not bad:
+            continue
+        what = "; ".join(f"{_SIGNAL_WORDS[k]} R² = {v:.3g}" for k, v in bad.items())
+        where = f"{'validation ' if kind == 'validation' else ''}record '{signals.record}'"
+        out.append({"code": "output_not_explained", "reliable": True, "record": signals.record,
+                    "output": o, "kind": kind, "r2": bad,
+                    "message": f"{where}, output '{o}': the model explains none of its variance "
+                               f"({what}; R² ≤ 0: no better than the channel's mean); check the "
+                               f"equation of '{o}', its data column and its measurement-noise "
+                               f"settings"})
+    return out
+
+
+__all__ = ["OUTPUT_SIGNALS", "Signals", "evaluate", "fit_metrics", "iid_gaussian_loglik", "steady_state_gain",
+           "unexplained_outputs", "validation_elbo_warning"]

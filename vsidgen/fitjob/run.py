@@ -79,14 +79,26 @@ def _reason(result) -> str | None:
     return None if r is None else r.value
 
 
-def _validation_warnings(vresult) -> list[dict]:
-    """A warning when the validation smoothing (θ and noise fixed) did not reach its optimum."""
-    if vresult is None or vresult.converged:
+def _validation_warnings(result, vresult, records, vrecords) -> list[dict]:
+    """Warnings about the validation smoothing (θ and noise fixed): not at its optimum, or a
+    validation ELBO per sample far below the estimation's
+    (:func:`vsidgen.evaluation.validation_elbo_warning`).
+    """
+    if vresult is None:
         return []
-    r = _reason(vresult)
-    return [{"code": "validation_not_converged", "reliable": True, "stop_reason": r,
-             "message": f"validation smoothing did not converge ({vresult.status}): the validation "
-                        f"ELBO {vresult.elbo:.6g} is not its maximum and must not be compared"}]
+    out = []
+    if not vresult.converged:
+        r = _reason(vresult)
+        out.append({"code": "validation_not_converged", "reliable": True, "stop_reason": r,
+                    "message": f"validation smoothing did not converge ({vresult.status}): the validation "
+                               f"ELBO {vresult.elbo:.6g} is not its maximum and must not be compared"})
+    from ..evaluation import validation_elbo_warning
+
+    w = validation_elbo_warning(result.elbo, sum(len(r.t) for r in records), vresult.elbo,
+                                [r.y for r in vrecords])
+    if w is not None:
+        out.append(w)
+    return out
 
 
 def _fit_located(fit, model, records, options):
@@ -173,6 +185,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     vsignals = (_evaluate_all(model, vrecords, vresult, integrator=integrator, substeps=substeps)
                 if vresult is not None else [])
     total_time = time.perf_counter() - t0
+    from ..evaluation import unexplained_outputs
 
     names = model.parameter_names
     params: dict[str, Any] = {}
@@ -222,9 +235,12 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),
                         "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
         "warnings": [w.to_json() for r in records + vrecords
-                     for w in r.warnings] + list(result.warnings) + _validation_warnings(vresult) + [
+                     for w in r.warnings] + list(result.warnings)
+        + _validation_warnings(result, vresult, records, vrecords) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
-            for s in signals + vsignals for w in getattr(s, "warnings", ())],
+            for s in signals + vsignals for w in getattr(s, "warnings", ())]
+        + [w for s in signals for w in unexplained_outputs(s, kind="estimation")]
+        + [w for s in vsignals for w in unexplained_outputs(s, kind="validation")],
         "std_errors_reliable": bool(getattr(result, "std_errors_reliable", True)),
         "std_error_issues": [f.to_json() for f in getattr(result, "std_error_flags", ())],
         "signals": {s.record: f"signals_{s.record}.csv" for s in signals + vsignals},
