@@ -193,3 +193,24 @@ def test_parameters_entering_only_as_a_sum_are_flagged_in_results_cli_and_report
     assert "standard errors: UNRELIABLE" in captured.out and "ZDE2" in captured.out.split("UNRELIABLE")[1]
     html = (out / "report.html").read_text()
     assert flagged[0]["code"] in html and "ZDE2" in html
+
+
+def test_the_estimation_record_given_again_for_validation_or_twice_is_warned(tmp_path):
+    """A validation record holding the estimation samples (the same file, or a copy under
+    another name) measures the fit itself; an estimation record given twice counts its
+    evidence twice. Both are named; distinct records raise nothing."""
+    from vsidgen.data import load_record, unique_names
+    from vsidgen.fitjob.run import repeated_record_warnings
+    from vsidgen.spec import compile_spec
+
+    copy = tmp_path / "renamed.csv"
+    shutil.copy(DATA, copy)
+    sym = compile_spec(SPEC)
+    est, val, dup = (load_record(sym, p) for p in (DATA, VAL, copy))
+    assert repeated_record_warnings([est], [val]) == []
+    got = repeated_record_warnings([est], [val, dup])
+    assert [w["code"] for w in got] == ["validation_is_estimation_record"]
+    assert got[0]["records"] == ["attas_sp_synthetic", "renamed"]
+    both = unique_names([est, load_record(sym, DATA)])
+    got = repeated_record_warnings(both, [])
+    assert [w["code"] for w in got] == ["estimation_record_repeated"] and "sqrt(2)" in got[0]["message"]

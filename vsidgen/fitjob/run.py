@@ -101,6 +101,37 @@ def _validation_warnings(result, vresult, records, vrecords) -> list[dict]:
     return out
 
 
+def _same_data(a, b) -> bool:
+    """Two records hold the same samples (the same file given twice, or a copy of it)."""
+    return (a.n == b.n and a.dt == b.dt and np.array_equal(a.u, b.u)
+            and np.array_equal(a.y, b.y, equal_nan=True))
+
+
+def repeated_record_warnings(records, vrecords) -> list[dict]:
+    """Warnings for a validation record that holds the estimation data (validation then says
+    nothing about prediction) and for an estimation record given twice (its evidence counted
+    twice: standard errors √2 too small)."""
+    out = []
+    for j, b in enumerate(records):
+        for a in records[:j]:
+            if _same_data(a, b):
+                out.append({"code": "estimation_record_repeated", "reliable": True,
+                            "records": [a.name, b.name],
+                            "message": f"estimation records '{a.name}' and '{b.name}' hold the same "
+                                       "samples: the fit counts them twice (the standard errors are "
+                                       "too small by a factor of sqrt(2)); give each record once"})
+    for b in vrecords:
+        for a in records:
+            if _same_data(a, b):
+                out.append({"code": "validation_is_estimation_record", "reliable": True,
+                            "records": [a.name, b.name],
+                            "message": f"validation record '{b.name}' holds the same samples as the "
+                                       f"estimation record '{a.name}': its ELBO and fit metrics "
+                                       "measure the fit itself, not prediction; validate on "
+                                       "another record"})
+    return out
+
+
 def _fit_located(fit, model, records, options):
     """``fit(...)``, turning a start-up failure caused by the data into a located DataError.
 
@@ -167,6 +198,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
     records = unique_names([load_record(symbolic, p) for p in data])
     vrecords = unique_names([load_record(symbolic, p) for p in validate])
+    repeated = repeated_record_warnings(records, vrecords)
     from ..estimator import FitOptions, fit, smooth
 
     model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
@@ -236,7 +268,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                         "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
         "warnings": [w.to_json() for r in records + vrecords
                      for w in r.warnings] + list(result.warnings)
-        + _validation_warnings(result, vresult, records, vrecords) + [
+        + repeated + _validation_warnings(result, vresult, records, vrecords) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())]
         + [w for s in signals for w in unexplained_outputs(s, kind="estimation")]
