@@ -28,8 +28,8 @@ PACKAGE = ROOT / "vsidgen"
 
 #: The pipeline, first stage first (docs/architecture.md, "Dependency direction").
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("foundation", ("vsidgen", "errors", "precision", "limits", "atomic", "suggest", "metadata",
-                    "compilecache", "progress", "engine")),
+    ("foundation", ("vsidgen", "errors", "interrupts", "precision", "limits", "atomic", "suggest",
+                    "metadata", "compilecache", "progress", "engine")),
     ("spec", ("spec.expr", "spec.units", "spec.dataunits", "spec.load", "spec.typed",
               "spec.symbolic", "spec.overrides", "spec")),
     ("codegen", ("codegen.jaxmodule", "codegen")),

@@ -10,3 +10,8 @@ from __future__ import annotations
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+# JAX's gc callback must not swallow Ctrl-C (vsidgen.interrupts)
+from .interrupts import guard_gc_callbacks  # noqa: E402
+
+guard_gc_callbacks()
