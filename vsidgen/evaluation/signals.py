@@ -189,10 +189,24 @@ def _scans(model, F):
         _, yps = jax.lax.scan(body, x0, (U, V, Y))
         return yps
 
+    f = model.drift
+
+    @jax.jit
+    def on_path(mu, U, p):
+        """Outputs along the smoother mean and the drift at its samples (one compilation;
+        evaluated op by op, each operation compiled on its own)."""
+        return (jax.vmap(lambda x, uk: h(x, uk, p))(mu, U),
+                jax.vmap(lambda x, uk: f(x, uk, p))(mu[:-1], U[:-1]))
+
+    @jax.jit
+    def linearised(x0, u0, v0, p, T):
+        """(∂F/∂x, ∂h/∂x) at one sample, for the steady-state Kalman predictor."""
+        return F.jacobian(x0, v0, p, T)[0], model.output_jacobian(x0, u0, p)[0]
+
     if len(_SCANS) >= 32:
         _SCANS.pop(next(iter(_SCANS)))
-    _SCANS[key] = (free_sim, predictor)
-    return free_sim, predictor
+    _SCANS[key] = (free_sim, predictor, on_path, linearised)
+    return _SCANS[key]
 
 
 def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
@@ -229,17 +243,15 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     R = _matrix(R, model.ny, "R", square=True)
     T = float(record.dt)
     F = transition(model, integrator=integrator, substeps=substeps, inputs=input_hold)
-    h, f = model.output, model.drift
     warnings: list[str] = []
 
     mu_j, u_j = jnp.asarray(mu), jnp.asarray(u)
-    y_smooth = np.asarray(jax.vmap(lambda x, uk: h(x, uk, p))(mu_j, u_j))
-    f_smooth = np.asarray(jax.vmap(lambda x, uk: f(x, uk, p))(mu_j[:-1], u_j[:-1]))
+    free_sim, predictor, on_path, linearised = _scans(model, F)
+    y_smooth, f_smooth = (np.asarray(a) for a in on_path(mu_j, u_j, p))
     xdot_fd = np.diff(mu, axis=0) / T
 
     v_j = F.scan_inputs(u_j)  # step input per sample (the last one is never used)
 
-    free_sim, predictor = _scans(model, F)
     Tj = jnp.asarray(T)
     y_sim = np.asarray(free_sim(mu_j[0], u_j, v_j, p, Tj))
     if not np.isfinite(y_sim).all():
@@ -248,8 +260,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
 
     # steady-state Kalman filter, linearised at the first sample
     x0, u0, v0 = mu_j[0], u_j[0], v_j[0]
-    A = np.asarray(F.jacobian(x0, v0, p, T)[0])
-    H = np.asarray(model.output_jacobian(x0, u0, p)[0])
+    A, H = (np.asarray(a) for a in linearised(x0, u0, v0, p, Tj))
     Q = T * G @ G.T
     K = None
     try:
