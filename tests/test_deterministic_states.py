@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.optimize
-from kalman_ref import kalman_rts   # tests/ is on sys.path under pytest
+from kalman_ref import kalman_loglik_jax, kalman_rts, maximum_likelihood   # tests/ is on sys.path
 
 from vsidgen.estimator import FitOptions, fit, smooth
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
@@ -117,11 +117,16 @@ def test_fit_with_a_deterministic_state_from_null_guesses_matches_the_exact_mle(
     assert np.all(np.abs(res.theta - THETA_TRUE) < 3 * se), (res.theta, se)
     # exact maximum likelihood of the model with Q33 = 0 (Kalman filter, BFGS)
 
-    def nll(v):
-        return -kalman(v[:4], np.r_[np.exp(v[4:6]), 0.0], np.exp(v[6:9]), rec)
+    def loglik(v):    # the model with Q33 = 0, in jax.numpy for exact gradients
+        A = jnp.array([[v[0], 1.0, 0.0], [v[1], v[2], 0.0], [1.0, 0.0, 0.0]])
+        g = jnp.concatenate([jnp.exp(v[4:6]), jnp.zeros(1)])
+        return kalman_loglik_jax(jnp.eye(3) + T * A, T * jnp.array([[0.0], [v[3]], [0.0]]), C_OUT,
+                                 T * jnp.diag(g ** 2), jnp.diag(jnp.exp(v[6:9]) ** 2), rec.u, rec.y,
+                                 P0=P0)
 
     v0 = np.concatenate([THETA_TRUE, np.log(G_TRUE[:2]), np.log(R_STD)])
-    opt = scipy.optimize.minimize(nll, v0, method="BFGS", options={"gtol": 1e-6})
+    assert abs(float(loglik(v0)) - kalman(v0[:4], np.r_[G_TRUE[:2], 0.0], R_STD, rec)) < 1e-6
+    opt = maximum_likelihood(loglik, v0)
     assert np.all(np.abs(res.theta - opt.x[:4]) < 0.5 * se), (res.theta, opt.x[:4], se)
     assert res.elbo <= -opt.fun + 1e-3          # the ELBO cannot exceed the maximised likelihood
     assert -opt.fun - res.elbo < 2.0, -opt.fun - res.elbo

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.optimize
 
+from kalman_ref import kalman_loglik_jax, maximum_likelihood   # tests/ is on sys.path
 from vsidgen.errors import FitError
 from vsidgen.estimator import FitOptions, WarmStart, fit, smooth
 from vsidgen.estimator import Problem
@@ -162,11 +162,15 @@ def test_full_fit_recovers_truth_and_matches_kalman_mle(full_fit, rec400):
     assert np.all(np.isfinite(se)) and np.all(se > 0)
     assert np.all(np.abs(res.theta - THETA_TRUE) < 3 * se), (res.theta, se)
 
-    def nll(v):
-        return -kalman(v[:4], np.exp(v[4:6]), np.exp(v[6:8]), rec400)
+    def loglik(v):    # the same Kalman likelihood in jax.numpy: exact gradient and Hessian
+        A = jnp.array([[v[0], 1.0], [v[1], v[2]]])
+        return kalman_loglik_jax(jnp.eye(2) + T * A, T * jnp.array([[0.0], [v[3]]]), C_OUT,
+                                 T * jnp.diag(jnp.exp(v[4:6]) ** 2), jnp.diag(jnp.exp(v[6:8]) ** 2),
+                                 rec400.u, rec400.y) - math.log(2 * math.pi * 1e6)
 
     v0 = np.concatenate([THETA_TRUE, np.log(G_TRUE), np.log(R_STD)])
-    opt = scipy.optimize.minimize(nll, v0, method="BFGS", options={"gtol": 1e-6})
+    assert abs(float(loglik(v0)) - kalman(v0[:4], G_TRUE, R_STD, rec400)) < 1e-6
+    opt = maximum_likelihood(loglik, v0)
     mle = opt.x[:4]
     assert np.all(np.abs(res.theta - mle) < 0.5 * se), (res.theta, mle, se)
     np.testing.assert_allclose([res.process_std["x1"], res.process_std["x2"]], np.exp(opt.x[4:6]), rtol=0.15)
@@ -175,14 +179,7 @@ def test_full_fit_recovers_truth_and_matches_kalman_mle(full_fit, rec400):
     # the maximised ELBO cannot exceed the maximised likelihood
     assert res.elbo <= -opt.fun + math.log(2 * math.pi * 1e6) + 1e-6
     # standard errors agree with the KF curvature (finite-difference Hessian of the KF likelihood)
-    h = 1e-4 * np.maximum(np.abs(opt.x), 1.0)
-    n = len(opt.x)
-    H = np.zeros((n, n))
-    for i in range(n):
-        for j in range(n):
-            ei, ej = np.eye(n)[i] * h[i], np.eye(n)[j] * h[j]
-            H[i, j] = (nll(opt.x + ei + ej) - nll(opt.x + ei - ej) - nll(opt.x - ei + ej)
-                       + nll(opt.x - ei - ej)) / (4 * h[i] * h[j])
+    H = -np.asarray(jax.hessian(loglik)(jnp.asarray(opt.x)))
     se_kf = np.sqrt(np.diag(np.linalg.inv(H)))[:4]
     np.testing.assert_allclose(se, se_kf, rtol=0.25)
     # result bookkeeping
