@@ -1,10 +1,10 @@
 """Score statistics of candidates that add states, and the refit ranking rule.
 
 The statistic of a state-adding candidate is checked against an independent reference: a
-numpy Kalman filter of the same discrete-time linear model (Euler step on the sample
-grid, the added mode's time constant at the candidate's nesting value), whose exact
-log-likelihood is maximised under the null with scipy and differentiated by central
-finite differences; Rao's score statistic ``g_k² / (I_kk − I_k,rest I_rest⁻¹ I_rest,k)``
+hand-written Kalman filter (jax.numpy, sharing nothing with vsidgen) of the same
+discrete-time linear model (Euler step on the sample grid, the added mode's time constant
+at the candidate's nesting value), whose exact log-likelihood is maximised under the null
+(BFGS) and differentiated exactly (jax.grad, jax.hessian); Rao's score statistic ``g_k² / (I_kk − I_k,rest I_rest⁻¹ I_rest,k)``
 with the Fisher information's cross terms of the mean parameter ``k`` and the noise
 parameters at their null expectation, zero.
 """
@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy import optimize
+from kalman_ref import maximum_likelihood   # tests/ is on sys.path
 
 from vsidgen.discrepancy.base import Candidate, NewParameter
 from vsidgen.discrepancy.score import ScoreResult
@@ -80,50 +82,46 @@ def _simulate(n=800, seed=5, k_true=3.0):
 
 
 def _kf_loglik(p, u, y, k):
-    """Exact log-likelihood of y under the Euler-discrete model with states (x, m)."""
-    A, B, lg, ls = p
+    """Exact log-likelihood of y under the Euler-discrete model with states (x, m) (a Kalman
+    filter in jax.numpy: exact derivatives for the references below)."""
+    A, B, lg, ls = p[0], p[1], p[2], p[3]
     T = DT
-    Phi = np.array([[1 + T * A, T], [0.0, 1 - T / TAU]])
-    Gam = np.array([T * B, T * k])
-    Q = np.diag([T * math.exp(2 * lg), T * DET ** 2])
-    R = math.exp(2 * ls)
-    xh = np.array([y[0], 0.0])
-    P = np.diag([R, T * DET ** 2])
-    ll = 0.0
-    for i in range(len(y)):
+    Phi = jnp.array([[1 + T * A, T], [0.0, 1 - T / TAU]])
+    Gam = jnp.stack([T * B, T * k])
+    Q = jnp.diag(jnp.stack([T * jnp.exp(2 * lg), jnp.asarray(T * DET ** 2)]))
+    R = jnp.exp(2 * ls)
+
+    def step(carry, inp):
+        xh, P, ll = carry
+        ui, yi = inp
         S = P[0, 0] + R
-        e = y[i] - xh[0]
-        ll -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
+        e = yi - xh[0]
+        ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
         K = P[:, 0] / S
         xh = xh + K * e
-        P = P - np.outer(K, P[0, :])
-        xh = Phi @ xh + Gam * u[i]
-        P = Phi @ P @ Phi.T + Q
-    return ll
+        P = P - jnp.outer(K, P[0, :])
+        return (Phi @ xh + Gam * ui, Phi @ P @ Phi.T + Q, ll), None
+
+    init = (jnp.stack([jnp.asarray(y[0]), jnp.asarray(0.0)]),
+            jnp.diag(jnp.stack([R, jnp.asarray(T * DET ** 2)])), jnp.asarray(0.0))
+    return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]
 
 
-def null_mle(negll):
-    """The null maximum-likelihood estimate of (A, B, log process std, log measurement std)."""
-    p0 = optimize.minimize(negll, np.array([-1.0, 1.5, math.log(0.05), math.log(0.03)]),
-                           method="Nelder-Mead",
-                           options={"xatol": 1e-8, "fatol": 1e-10, "maxiter": 4000}).x
-    return optimize.minimize(negll, p0, method="BFGS", options={"gtol": 1e-7}).x
+def null_mle(loglik):
+    """The null maximum-likelihood estimate of (A, B, log process std, log measurement std)
+    of ``loglik(p)`` (BFGS with exact gradients)."""
+    return maximum_likelihood(loglik, [-1.0, 1.5, math.log(0.05), math.log(0.03)]).x
 
 
-def rao_statistic(ll, z0, hs):
+def rao_statistic(ll, z0):
     """Rao's score statistic of the last variable of ``z0`` (its null value) for the
-    log-likelihood ``ll`` of (A, B, log process std, log measurement std, new), by central
-    finite differences (steps ``hs``); the cross terms of the new variable with the two noise
-    parameters at their null expectation, zero."""
+    log-likelihood ``ll`` of (A, B, log process std, log measurement std, new), with its exact
+    gradient and Hessian; the cross terms of the new variable with the two noise parameters at
+    their null expectation, zero."""
+    z0 = jnp.asarray(z0, float)
     n = len(z0)
-    E = np.eye(n) * np.asarray(hs, float)
-    g = np.array([(ll(z0 + E[i]) - ll(z0 - E[i])) / (2 * hs[i]) for i in range(n)])
-    H = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i, n):
-            H[i, j] = H[j, i] = -(ll(z0 + E[i] + E[j]) - ll(z0 + E[i] - E[j])
-                                  - ll(z0 - E[i] + E[j]) + ll(z0 - E[i] - E[j])) / (
-                4 * hs[i] * hs[j])
+    g = np.asarray(jax.grad(ll)(z0), float)
+    H = -np.array(jax.hessian(ll)(z0), float)
     k, r = n - 1, list(range(n - 1))
     H[k, 2:4] = H[2:4, k] = 0.0
     # profiled gradient (the null MLE is stationary in the rest: g_rest ≈ 0)
@@ -132,11 +130,10 @@ def rao_statistic(ll, z0, hs):
 
 
 def _kf_score(u, y):
-    """Rao's score statistic of k at the null MLE (finite differences of the exact
+    """Rao's score statistic of k at the null MLE (exact derivatives of the exact
     log-likelihood; Fisher cross terms of k with the noise parameters zero)."""
-    p0 = null_mle(lambda p: -_kf_loglik(p, u, y, 0.0))
-    return rao_statistic(lambda z: _kf_loglik(z[:4], u, y, z[4]), np.append(p0, 0.0),
-                         [1e-4, 1e-4, 1e-4, 1e-4, 1e-3])
+    p0 = null_mle(lambda p: _kf_loglik(p, u, y, 0.0))
+    return rao_statistic(lambda z: _kf_loglik(z[:4], u, y, z[4]), np.append(p0, 0.0))
 
 
 def fit_lin1(tmp, t, u, y):
@@ -246,25 +243,29 @@ def test_ascent_candidates_are_refitted_before_non_significant_score_tests():
 
 def _kf_bias(p, u, y, b):
     """Exact log-likelihood of y_k = x_k + b + v_k, x_{k+1} = (1 + T A) x_k + T B u_k + w_k
-    (numpy Kalman filter)."""
-    A, B, lg, ls = p
+    (a scalar Kalman filter in jax.numpy)."""
+    A, B, lg, ls = p[0], p[1], p[2], p[3]
     T = DT
-    q, R = T * math.exp(2 * lg), math.exp(2 * ls)
-    xh, P, ll = y[0] - b, R, 0.0
-    for i in range(len(y)):
+    q, R = T * jnp.exp(2 * lg), jnp.exp(2 * ls)
+
+    def step(carry, inp):
+        xh, P, ll = carry
+        ui, yi = inp
         S = P + R
-        e = y[i] - b - xh
-        ll -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
+        e = yi - b - xh
+        ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
         K = P / S
-        xh, P = (1 + T * A) * (xh + K * e) + T * B * u[i], (1 + T * A) ** 2 * (P - K * P) + q
-    return ll
+        return ((1 + T * A) * (xh + K * e) + T * B * ui, (1 + T * A) ** 2 * (P - K * P) + q, ll), None
+
+    init = (y[0] - b, R, jnp.asarray(0.0))
+    return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]
 
 
 def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
     """A sensor bias (y = x + 0.03, independent numpy simulation): the screen's statistic of
     ``sensor_bias:y`` (a candidate that adds no state; the cross terms of the bias with the
     noise parameters at their null expectation, zero) against a numpy Kalman filter's Rao
-    statistic, by central finite differences at the null maximum-likelihood estimate."""
+    statistic, with exact derivatives at the null maximum-likelihood estimate."""
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
     from vsidgen.discrepancy.score import screen
@@ -283,8 +284,8 @@ def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
     cand = next(c for c in propose(info) if c.key == "sensor_bias:y")
     res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    p0 = null_mle(lambda p: -_kf_bias(p, u, y, 0.0))
-    ref = rao_statistic(lambda z: _kf_bias(z[:4], u, y, z[4]), np.append(p0, 0.0), [1e-4] * 5)
+    p0 = null_mle(lambda p: _kf_bias(p, u, y, 0.0))
+    ref = rao_statistic(lambda z: _kf_bias(z[:4], u, y, z[4]), np.append(p0, 0.0))
     print("sensor_bias:y score statistic", res.statistic, "Kalman-filter reference", ref)
     assert res.dof == 1 and 10.0 < ref < 5000.0, (res, ref)
     # measured: 17.1928 against 17.1967 (zeroing the noise cross terms before the latent
