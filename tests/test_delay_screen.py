@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
@@ -56,31 +58,34 @@ def _simulate(n=800, seed=3, tau=TAU_TRUE):
 
 def _kf_loglik(p, u, d, y, b0=None):
     """Exact log-likelihood of y under x_{k+1} = x_k + T(A x_k + B u_k + g B₀ d_k) + w_k
-    (B₀ = B unless given: the gate's coefficient frozen at the null estimate)."""
-    A, B, lg, ls, g = p
+    (B₀ = B unless given: the gate's coefficient frozen at the null estimate); a scalar
+    Kalman filter in jax.numpy (exact derivatives for the references)."""
+    A, B, lg, ls, g = p[0], p[1], p[2], p[3], p[4]
     b0 = B if b0 is None else b0
     T = DT
-    q, R = T * math.exp(2 * lg), math.exp(2 * ls)
-    xh, P = y[0], R
-    ll = 0.0
-    for i in range(len(y)):
+    q, R = T * jnp.exp(2 * lg), jnp.exp(2 * ls)
+
+    def step(carry, inp):
+        xh, P, ll = carry
+        ui, di, yi = inp
         S = P + R
-        e = y[i] - xh
-        ll -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
+        e = yi - xh
+        ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
         K = P / S
         xh, P = xh + K * e, P - K * P
-        xh = (1 + T * A) * xh + T * (B * u[i] + g * b0 * d[i])
-        P = (1 + T * A) ** 2 * P + q
-    return ll
+        return ((1 + T * A) * xh + T * (B * ui + g * b0 * di), (1 + T * A) ** 2 * P + q, ll), None
+
+    init = (jnp.asarray(y[0]), R, jnp.asarray(0.0))
+    return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(d), jnp.asarray(y)))[0][2]
 
 
 def _kf_scores(u, y, ds):
     """Rao's statistic of the gate g for each difference channel of ``ds`` (the gate's
     coefficient frozen at the null estimate B₀, so its cross derivatives with A and B are the
     expected-information ones)."""
-    p0 = null_mle(lambda p: -_kf_loglik(np.append(p, 0.0), u, u, y))
-    return [rao_statistic(lambda z, d=d: _kf_loglik(z, u, d, y, b0=p0[1]), np.append(p0, 0.0),
-                          [1e-4, 1e-4, 1e-4, 1e-4, 1e-3]) for d in ds]
+    p0 = null_mle(lambda p: _kf_loglik(jnp.append(p, 0.0), u, u, y))
+    return [rao_statistic(lambda z, d=d: _kf_loglik(z, u, d, y, b0=p0[1]), np.append(p0, 0.0))
+            for d in ds]
 
 
 @pytest.fixture(scope="module")

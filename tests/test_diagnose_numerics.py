@@ -112,7 +112,8 @@ class _FakeEngine:
 def _run(tmp_path, gains):
     from vsidgen.discrepancy.numerics import run_numerics
     model = types.SimpleNamespace(integrator="euler", substeps=1, input_hold="zoh", name="m")
-    current = types.SimpleNamespace(model=model, elbo=100.0)
+    current = types.SimpleNamespace(model=model, elbo=100.0,
+                                    fit=types.SimpleNamespace(converged=True, stop_reason=None))
     eng = _FakeEngine(gains)
     res = run_numerics(current, tmp_path, alpha=0.01, generated_dir=None, max_iter=10, engine=eng)
     return res, eng
