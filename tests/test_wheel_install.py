@@ -27,6 +27,11 @@ def _run(cmd, *, cwd, env=None, timeout=600):
     return proc
 
 
+def _pip_has_vsidgen(cwd) -> bool:
+    return subprocess.run([sys.executable, "-m", "pip", "show", "-q", "vsidgen"], cwd=cwd,
+                          capture_output=True).returncode == 0
+
+
 def test_wheel_installs_and_runs_outside_checkout(tmp_path):
     if shutil.which("git") is None:
         pytest.skip("git is needed to copy the tracked files")
@@ -47,13 +52,17 @@ def test_wheel_installs_and_runs_outside_checkout(tmp_path):
           "-w", str(wheels), str(src)], cwd=tmp_path)
     (wheel,) = wheels.glob("vsidgen-*.whl")
 
+    installed_before = _pip_has_vsidgen(tmp_path)
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(system_site_packages=True, with_pip=False, symlinks=True).create(env_dir)
     py = env_dir / "bin" / "python"
     exe = env_dir / "bin" / "vsidgen"
-    # pip of the running interpreter installs into the new environment's prefix
+    # pip of the running interpreter installs into the new environment's prefix;
+    # --ignore-installed: without it pip first *uninstalls* the vsidgen of the running
+    # environment (the developer's editable install, the one CI's `pip install -e .` made)
     _run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-index",
-          "--prefix", str(env_dir), str(wheel)], cwd=tmp_path)
+          "--ignore-installed", "--prefix", str(env_dir), str(wheel)], cwd=tmp_path)
+    assert _pip_has_vsidgen(tmp_path) == installed_before, "the running environment's vsidgen was removed"
 
     work = tmp_path / "user"
     (work / "specs").mkdir(parents=True)
