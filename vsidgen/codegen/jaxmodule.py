@@ -299,7 +299,10 @@ def _used_locals(exprs, rename) -> set[str]:
 def _jacobian_body(printer, exprs, variables, rename, shape, allowed) -> dict:
     rows = []
     for e in exprs:
-        rows.append([_clean(sympy.diff(e, v)) for v in variables])
+        # an entry whose variable does not occur is zero without differentiating (a model of
+        # n states has n² + n·n_p entries, most of them zero in a large sparse model)
+        occurs = e.free_symbols
+        rows.append([_clean(sympy.diff(e, v)) if v in occurs else sympy.S.Zero for v in variables])
     flat = [entry for row in rows for entry in row]
     if not flat:
         return {"cse": [], "matrix": None, "shape": shape, "used": set(), "unpack": []}
@@ -307,7 +310,14 @@ def _jacobian_body(printer, exprs, variables, rename, shape, allowed) -> dict:
     replacements, reduced = sympy.cse(flat, symbols=gen, order="canonical")
     cse_lines = [(identifier(str(s)), _print(printer, _clean(v).xreplace(rename), allowed))
                  for s, v in replacements]
-    printed = [_print(printer, _clean(r).xreplace(rename), allowed) for r in reduced]
+    memo: dict = {}      # equal entries (zeros above all) printed and checked once
+
+    def printed_entry(r):
+        if r not in memo:
+            memo[r] = _print(printer, _clean(r).xreplace(rename), allowed)
+        return memo[r]
+
+    printed = [printed_entry(r) for r in reduced]
     ncol = shape[1]
     matrix = [Code(", ".join(printed[i * ncol:(i + 1) * ncol])) for i in range(shape[0])]
     used = _used_locals([v for _, v in replacements] + list(reduced), rename)
