@@ -20,6 +20,7 @@ def test_jax_gc_callback_is_guarded():
 SCENARIO = """
 import gc, sys, time
 from vsidgen import precision                      # imports jax, guards its callback
+from vsidgen.interrupts import guard_gc_callbacks
 
 fired = []
 
