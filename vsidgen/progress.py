@@ -6,7 +6,7 @@ with the phase, iteration, ELBO, relative gradient and elapsed time;
 otherwise (CI logs, pipes) it writes one summary line per phase. The
 estimator restarts its iteration count with each phase and names it
 beforehand through :meth:`FitProgress.phase` (its ``str()`` is the label:
-``noise start data``, ``deterministic limit, stage 2/12, std × 0.01`` —
+``noise start data``, ``deterministic limit, stage 2 of at most 12, std × 0.01`` —
 the continuation of one fit towards vanishing process noise, not another
 start); iterations that restart without a name are counted as noise starts. :class:`DiagnoseProgress`
 prints diagnose's messages and, on a terminal, keeps a live line with the

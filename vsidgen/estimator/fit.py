@@ -1299,7 +1299,7 @@ def _limit_of_estimation(P: Problem, noise):
     start = (np.asarray([float(first[n]) for n in names], float) if set(first) == set(names) else None)
     if start is None or not np.all(np.isfinite(start) & (start > 0)):
         start = _smoothing_start_std(P)
-    return np.maximum(start, target), target
+    return start, target      # _deterministic_limit starts at max(start, target)
 
 
 def _noise_from(noise, model):

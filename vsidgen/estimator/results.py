@@ -133,7 +133,7 @@ class PhaseKind(enum.Enum):
 
     NOISE_START = "noise_start"      # one start of --noise-start (auto: each tried in turn)
     RELEASE_LEG = "release_leg"      # legs 2 and 3 of the release start (noise freed, released)
-    LIMIT_STAGE = "limit_stage"      # stage k >= 1 of the deterministic-limit continuation
+    LIMIT_STAGE = "limit_stage"      # a stage of the deterministic-limit continuation
     SMOOTHING = "smoothing"          # validation smoothing (θ and noise fixed)
 
 
