@@ -344,7 +344,11 @@ def test_structured_hessian_and_newton_step_equal_dense():
     np.testing.assert_allclose(got, dense, rtol=1e-7, atol=1e-9 * np.abs(dense).max())
 
 
-def test_btd_solve_detects_indefinite():
+@pytest.mark.parametrize("small_block", [12, 0], ids=["unrolled", "lapack"])
+def test_btd_solve_detects_indefinite(monkeypatch, small_block):
+    from vsidgen.estimator import linalg
+
+    monkeypatch.setattr(linalg, "SMALL_BLOCK", small_block)  # both block paths
     rng = np.random.default_rng(0)
     N, n = 7, 3
     M = rng.normal(size=(N * n, N * n))

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..data import resolution
 from ..errors import FitError
-from .linalg import btd_solve
+from .linalg import btd_solve, chol_small, tri_solve_small
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -53,33 +53,6 @@ def step_inputs(F, u):
     """The step inputs of transition ``F`` for the (N, nu) inputs ``u`` (u[:-1] for a bare function)."""
     fn = getattr(F, "step_inputs", None)
     return u[:-1] if fn is None else fn(u)
-
-
-# --------------------------------------------------------------------------- small dense linear algebra
-# Unrolled Cholesky / triangular solve for the small (n ≲ 12) matrices of the
-# assumed density: plain arithmetic differentiates twice into a much smaller
-# XLA graph than the LAPACK-backed primitives (compile time of the Hessians).
-def chol_small(A):
-    """Lower Cholesky factor of a small SPD matrix (NaN if not positive definite)."""
-    n = A.shape[0]
-    L = [[None] * n for _ in range(n)]
-    for j in range(n):
-        acc = A[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
-        L[j][j] = jnp.sqrt(acc)
-        for i in range(j + 1, n):
-            L[i][j] = (A[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
-    zero = jnp.zeros((), A.dtype)
-    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
-
-
-def tri_solve_small(L, B):
-    """Solve L X = B for small lower-triangular L; B (n, m)."""
-    n = L.shape[0]
-    X = []
-    for i in range(n):
-        acc = B[i] - sum(L[i, k] * X[k] for k in range(i)) if i else B[i]
-        X.append(acc / L[i, i])
-    return jnp.stack(X)
 
 
 # --------------------------------------------------------------------------- θ map
@@ -877,7 +850,6 @@ class Objective:
         scols = nq + nt + self.nm.n_proc + np.arange(self.nm.n_meas)
         Ep = jnp.asarray(np.eye(nb)[pcols])  # (npc, nb) selection
         Es = jnp.asarray(np.eye(nb)[scols])
-        kidx = np.concatenate([np.arange(n), 2 * n + np.arange(npar)])
         return dict(
             n=n, npar=npar, nz=nz, nza=nza, b=b, lift=lift,
             d0=d0, d1=d1, dn=dn, theta=theta, sig=sig, P=P, Jth=Jth, Az=Az, An=An,
@@ -886,82 +858,132 @@ class Objective:
             Jsigc=Jsig[:, scols],  # (ny, nsc)
             Ar=jnp.concatenate([Jd0, Jd1], axis=1)[:, :, :nq],  # (4n, 2n, nq): ∂(x_k, x_k+1)/∂r
             Arn=Jdn[:, :, :nq],  # (2n, n, nq)
-            K_F=self._curvature(Fa, self.kv_F, kidx, nz, nza),
-            K_h=self._curvature(ha, self.kv_h, np.arange(nza), nza, nza),
-            negI=-jnp.broadcast_to(jnp.eye(n), (4 * n, n, n)),
+            K_F=self._curvature(Fa, self.kv_F, nza),
+            K_h=self._curvature(ha, self.kv_h, nza),
             cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
     @staticmethod
-    def _curvature(fun, kv, zidx, nzz, nza):
-        """Per-point curvature K_i = ∇²_a(λ_i·fun) restricted to the variables kv, embedded in z-space."""
+    def _curvature(fun, kv, na):
+        """Per-point curvature K = ∇²_a(λ·fun) over a = (x, θ), zero outside the variables ``kv``.
+
+        Returns ``K(A, lam, u)`` for a chunk: A (K, P, na) points, lam (K, P, nout) multipliers,
+        u (K, …) the items' inputs; result (K, P, na, na). The Hessian is formed only over the
+        ``kv`` variables (forward-over-reverse) and placed into a-space by a gather."""
         if kv is None:
-            kv = np.arange(nza)
+            kv = np.arange(na)
         if len(kv) == 0:
             return None
-        Esel = jnp.asarray(np.eye(nza)[kv])  # (nv, na)
-        keep = jnp.asarray(np.isin(np.arange(nza), kv, invert=True).astype(float))
-        Ez = jnp.asarray(np.eye(nzz)[zidx[kv]])  # (nv, nz)
+        kv = np.asarray(kv, int)
+        full = len(kv) == na and bool(np.all(kv == np.arange(na)))
+        Esel = jnp.asarray(np.eye(na)[kv])  # (nv, na)
+        keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
         hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, fun(a * keep + av @ Esel, uk)))
+        # a-index -> position in kv (len(kv): a zero row/column appended)
+        where = np.full(na, len(kv), int)
+        where[kv] = np.arange(len(kv))
 
-        def K(A, lam, uk):
-            Kv = jax.vmap(hes, (0, 0, 0, None))(A[:, kv], A, lam, uk)  # (P, nv, nv)
-            return jnp.einsum("jz,ijk,kw->izw", Ez, Kv, Ez)
+        def K(A, lam, u):
+            per_item = jax.vmap(hes, (0, 0, 0, None))
+            Kv = jax.vmap(per_item, (0, 0, 0, 0))(A[..., kv], A, lam, u)  # (K, P, nv, nv)
+            if full:  # every variable, in order: already a-space
+                return Kv
+            Kp = jnp.pad(Kv, [(0, 0), (0, 0), (0, 1), (0, 1)])
+            return Kp[..., where[:, None], where[None, :]]
         return K
 
     @staticmethod
+    def _points(fn, A, u):
+        """``fn(a, u_k)`` at every point of every item of a chunk: A (K, P, na), u (K, …)."""
+        return jax.vmap(jax.vmap(fn, (0, None)), (0, 0))(A, u)
+
+    @staticmethod
     def _pair_term(c, mu0, mu1, uk, wk):
-        """Pair k's blocks: D (rows μ_k, μ_{k+1}), B, its border couplings (r, θ and noise parts) and
-        gradient; keys 's…' are the per-point pieces summed over pairs for the border."""
+        """One chunk of pairs (leading axis k): per pair the blocks D (rows μ_k, μ_{k+1}), B,
+        the border couplings (r, θ and noise parts) and the gradient; keys 's…' are the
+        per-point pieces summed over the chunk's pairs for the border.
+
+        Per sigma point i of pair k, with Ĵ = [J_x, −I, J_θ] and c_k = w_k/(4n):
+        H_ki = c_k ĴᵀPĴ + K_ki (K only in the x_k, θ rows and columns), g_ki = −c_k ĴᵀPe,
+        C_ki = −c_k Ĵᵀ(∂P/∂b)e. The sums the border needs (over k, per point) and the
+        per-pair blocks (over the points) are contracted directly from the factors, never
+        forming a per-point, per-pair H."""
         n, npar, P, cp = c["n"], c["npar"], c["P"], c["cp"]
-        X0 = mu0 + c["d0"]
-        X1 = mu1 + c["d1"]
-        A0 = jnp.concatenate([X0, jnp.broadcast_to(c["theta"], (4 * n, npar))], axis=1)
-        Fs = jax.vmap(c["Fa"], (0, None))(A0, uk)
-        J = jax.vmap(c["F_jac"], (0, None))(A0, uk)  # (4n, n, n+np)
+        n2 = 2 * n
+        X0 = mu0[:, None, :] + c["d0"][None]  # (K, 4n, n)
+        X1 = mu1[:, None, :] + c["d1"][None]
+        K_, npt = X0.shape[0], X0.shape[1]
+        A0 = jnp.concatenate([X0, jnp.broadcast_to(c["theta"], (K_, npt, npar))], axis=2)
+        Fs = Objective._points(c["Fa"], A0, uk)  # (K, 4n, n)
+        J = Objective._points(c["F_jac"], A0, uk)  # (K, 4n, n, n+np)
         e = X1 - Fs
         Pe = e @ P
-        cw = cp * wk
-        Jh = jnp.concatenate([J[:, :, :n], c["negI"], J[:, :, n:]], axis=2)  # (4n, n, nz)
-        PJ = jnp.einsum("ab,ibw->iaw", P, Jh)
-        Hz = cw * jnp.einsum("iaz,iaw->izw", Jh, PJ)
+        cw = cp * wk  # (K,)
+        Jh = jnp.concatenate([J[..., :n], jnp.broadcast_to(-jnp.eye(n), (K_, npt, n, n)), J[..., n:]],
+                             axis=3)  # (K, 4n, n, nz)
+        PJ = jnp.einsum("ab,kibw->kiaw", P, Jh)
+        cJ = Jh * cw[:, None, None, None]
+        cJm = cJ[..., :n2]  # rows μ_k, μ_{k+1}
+        Hm = jnp.einsum("kiaz,kiaw->kzw", cJm, PJ)  # (K, 2n, nz): Σ_i H_ki rows μ
+        HAr = jnp.einsum("kiaz,kiab->kzb", cJm, jnp.einsum("kiaw,iwb->kiab", PJ[..., :n2], c["Ar"]))
+        sHz = jnp.einsum("kiaz,kiaw->izw", cJ, PJ)  # (4n, nz, nz)
+        gz = -jnp.einsum("kiaz,kia->kiz", cJ, Pe)
+        JPe = jnp.einsum("abl,kib->kial", c["JPc"], e)  # (K, 4n, n, npc)
+        sCz = -jnp.einsum("kiaz,kial->izl", cJ, JPe)
+        Cs = -jnp.einsum("kiaz,kial->kzl", cJm, JPe)
         if c["K_F"] is not None:
-            Hz = Hz + c["K_F"](A0, -cw * Pe, uk)
-        gz = -cw * jnp.einsum("iaz,ia->iz", Jh, Pe)
-        JPe = jnp.einsum("abl,ib->ial", c["JPc"], e)
-        Cz = -cw * jnp.einsum("iaz,ial->izl", Jh, JPe)  # (4n, nz, npc): columns pcols of b
-        S = cw * (e.T @ e)
-        HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :2 * n, :2 * n], c["Ar"])  # rows μ_k, μ_{k+1}; columns r
-        HAt = jnp.sum(Hz[:, :2 * n, 2 * n:], 0)  # (2n, np), times ∂θ/∂b later
-        Cs = jnp.sum(Cz[:, :2 * n, :], 0)
-        Hs = jnp.sum(Hz[:, :2 * n, :2 * n], 0)
-        return dict(D0=Hs[:n, :n], D1=Hs[n:, n:], B=Hs[:n, n:], Wr0=HAr[:n], Wr1=HAr[n:], Wt0=HAt[:n],
-                    Wt1=HAt[n:], Wc0=Cs[:n], Wc1=Cs[n:],
-                    g0=jnp.sum(gz[:, :n], 0), g1=jnp.sum(gz[:, n:2 * n], 0),
-                    sHz=Hz, sCz=Cz, sgz=gz, sS=S)
+            Ka = c["K_F"](A0, -cw[:, None, None] * Pe, uk)  # (K, 4n, na, na), a = (x_k, θ)
+            sKa = jnp.sum(Ka, 0)
+            Z1 = jnp.zeros((npt, n, n + npar))
+            Kz = jnp.concatenate([sKa[:, :n], Z1, sKa[:, n:]], axis=1)  # rows into z
+            Z2 = jnp.zeros((npt, n2 + npar, n))
+            sHz = sHz + jnp.concatenate([Kz[:, :, :n], Z2, Kz[:, :, n:]], axis=2)
+            Kx = jnp.sum(Ka[:, :, :n, :], 1)  # (K, n, na): rows x_k
+            Kx_z = jnp.concatenate([Kx[:, :, :n], jnp.zeros((K_, n, n)), Kx[:, :, n:]], axis=2)
+            Hm = Hm.at[:, :n, :].add(Kx_z)
+            HAr = HAr.at[:, :n, :].add(jnp.einsum("kivw,iwb->kvb", Ka[:, :, :n, :n], c["Ar"][:, :n, :]))
+        return dict(D0=Hm[:, :n, :n], D1=Hm[:, n:, n:n2], B=Hm[:, :n, n:n2], Wr0=HAr[:, :n],
+                    Wr1=HAr[:, n:], Wt0=Hm[:, :n, n2:], Wt1=Hm[:, n:, n2:], Wc0=Cs[:, :n],
+                    Wc1=Cs[:, n:], g0=jnp.sum(gz[:, :, :n], 1), g1=jnp.sum(gz[:, :, n:n2], 1),
+                    sHz=sHz, sCz=sCz, sgz=jnp.sum(gz, 0),
+                    sS=jnp.einsum("k,kia,kib->ab", cw, e, e))
 
     @staticmethod
     def _node_term(c, muk, uk, yk, mk, wk):
-        """Node k's blocks: D (row μ_k), its border couplings and gradient; keys 's…' summed for the border."""
+        """One chunk of nodes (leading axis k): D (row μ_k), its border couplings and gradient;
+        keys 's…' summed over the chunk for the border (contracted as in :meth:`_pair_term`)."""
         n, npar, sig, cn = c["n"], c["npar"], c["sig"], c["cn"]
-        X = muk + c["dn"]
-        A = jnp.concatenate([X, jnp.broadcast_to(c["theta"], (2 * n, npar))], axis=1)
-        Hx = jax.vmap(c["ha"], (0, None))(A, uk)
-        J = jax.vmap(c["h_jac"], (0, None))(A, uk)  # (2n, ny, n+np)
-        mw = mk * wk
-        e = yk - Hx
+        X = muk[:, None, :] + c["dn"][None]  # (K, 2n, n)
+        K_, npt = X.shape[0], X.shape[1]
+        A = jnp.concatenate([X, jnp.broadcast_to(c["theta"], (K_, npt, npar))], axis=2)
+        Hx = Objective._points(c["ha"], A, uk)  # (K, 2n, ny)
+        J = Objective._points(c["h_jac"], A, uk)  # (K, 2n, ny, n+np)
+        mw = mk * wk[:, None]  # (K, ny)
+        e = yk[:, None, :] - Hx
         iv = mw / sig ** 2
-        Hz = cn * jnp.einsum("iaz,iaw->izw", J, J * iv[None, :, None])
+        cJ = cn * J
+        Jw = J * iv[:, None, :, None]
+        cJx = cJ[..., :n]
+        Hm = jnp.einsum("kiaz,kiaw->kzw", cJx, Jw)  # (K, n, na)
+        HAr = jnp.einsum("kiaz,kiab->kzb", cJx, jnp.einsum("kiaw,iwb->kiab", Jw[..., :n], c["Arn"]))
+        sHz = jnp.einsum("kiaz,kiaw->izw", cJ, Jw)
+        ei = e * iv[:, None, :]
+        gz = -jnp.einsum("kiaz,kia->kiz", cJ, ei)
+        JE = (e * (mw / sig ** 3)[:, None, :])[..., None] * c["Jsigc"]  # (K, 2n, ny, nsc)
+        sCz = 2.0 * jnp.einsum("kiaz,kial->izl", cJ, JE)
+        Cs = 2.0 * jnp.einsum("kiaz,kial->kzl", cJx, JE)
         if c["K_h"] is not None:
-            Hz = Hz + c["K_h"](A, -cn * e * iv, uk)
-        gz = -cn * jnp.einsum("iaz,ia->iz", J, e * iv)
-        Cz = (2 * cn) * jnp.einsum("iaz,ial->izl", J, (e * (mw / sig ** 3))[:, :, None] * c["Jsigc"][None])
-        HAr = jnp.einsum("iaw,iwb->ab", Hz[:, :n, :n], c["Arn"])
-        return dict(D0=jnp.sum(Hz[:, :n, :n], 0), Wr0=HAr, Wt0=jnp.sum(Hz[:, :n, n:], 0),
-                    Wc0=jnp.sum(Cz[:, :n, :], 0), g0=jnp.sum(gz[:, :n], 0),
-                    sHz=Hz, sCz=Cz, sgz=gz, sSe=cn * jnp.sum(mw * e ** 2, 0), sM=mw)
+            Ka = c["K_h"](A, -cn * ei, uk)  # (K, 2n, na, na)
+            sHz = sHz + jnp.sum(Ka, 0)
+            Hm = Hm + jnp.sum(Ka[:, :, :n, :], 1)
+            HAr = HAr + jnp.einsum("kivw,iwb->kvb", Ka[:, :, :n, :n], c["Arn"])
+        return dict(D0=Hm[:, :, :n], Wr0=HAr, Wt0=Hm[:, :, n:], Wc0=Cs, g0=jnp.sum(gz[:, :, :n], 1),
+                    sHz=sHz, sCz=sCz, sgz=jnp.sum(gz, 0),
+                    sSe=cn * jnp.sum(mw[:, None, :] * e ** 2, (0, 1)), sM=jnp.sum(mw, 0))
 
     def _chunked(self, fn, args, count, w):
-        """vmap ``fn`` over ``count`` items in chunks (lax.scan); keys 's…' are summed, others stacked.
+        """``fn`` over ``count`` items in chunks (lax.scan); ``fn`` takes a chunk (leading
+        axis: items) and returns per-item arrays and keys 's…' already summed over the
+        chunk, which are summed over the chunks here; the others are stacked.
 
         ``w`` (count,): per-item weight passed last to ``fn`` (0 for padded samples)."""
         nc = -(-count // self.chunk)  # chunks of at most self.chunk items,
@@ -971,12 +993,12 @@ class Objective:
         args = [jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])]) if pad else a
                 for a in args] + [wts]
         args = [a.reshape((nc, ch) + a.shape[1:]) for a in args]
-        shapes = jax.eval_shape(jax.vmap(fn), *[a[0] for a in args])
-        acc0 = {k: jnp.zeros(v.shape[1:]) for k, v in shapes.items() if k.startswith("s")}
+        shapes = jax.eval_shape(fn, *[a[0] for a in args])
+        acc0 = {k: jnp.zeros(v.shape) for k, v in shapes.items() if k.startswith("s")}
 
         def body(acc, xs):
-            out = jax.vmap(fn)(*xs)
-            acc = {k: acc[k] + jnp.sum(out[k], 0) for k in acc}
+            out = fn(*xs)
+            acc = {k: acc[k] + out[k] for k in acc}
             return acc, {k: v for k, v in out.items() if not k.startswith("s")}
 
         acc, rest = jax.lax.scan(body, acc0, args)

@@ -14,6 +14,11 @@ assumed-density parameters plus the shared θ/noise parameters) is
 run with :func:`jax.lax.scan`. A non positive-definite ``A`` shows up as NaN in
 the factor (JAX's Cholesky returns NaN instead of raising); callers test
 ``ok`` and increase the damping.
+
+For the small blocks of aircraft models (n ≤ :data:`SMALL_BLOCK`) the per-step Cholesky and
+triangular solves are unrolled arithmetic (:func:`chol_small`, :func:`tri_solve_small`)
+instead of LAPACK calls: each LAPACK call inside the sequential scan costs more in dispatch
+than the 4×4 arithmetic it does (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -23,6 +28,45 @@ import jax.numpy as jnp
 from jax.scipy.linalg import solve_triangular
 
 from .. import precision  # noqa: F401  (float64, set once)
+
+
+#: largest block size whose Cholesky factor and triangular solves are unrolled arithmetic
+SMALL_BLOCK = 12
+
+# Unrolled Cholesky / triangular solves for small (n ≲ 12) matrices: plain arithmetic runs
+# faster than LAPACK calls inside a scan and differentiates twice into a much smaller XLA
+# graph than the LAPACK-backed primitives (compile time of the Hessians).
+def chol_small(A):
+    """Lower Cholesky factor of a small SPD matrix (NaN if not positive definite)."""
+    n = A.shape[0]
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        acc = A[j, j] - sum(L[j][k] * L[j][k] for k in range(j))
+        L[j][j] = jnp.sqrt(acc)
+        for i in range(j + 1, n):
+            L[i][j] = (A[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    zero = jnp.zeros((), A.dtype)
+    return jnp.stack([jnp.stack([L[i][j] if j <= i else zero for j in range(n)]) for i in range(n)])
+
+
+def tri_solve_small(L, B):
+    """Solve L X = B for small lower-triangular L; B (n, m)."""
+    n = L.shape[0]
+    X = []
+    for i in range(n):
+        acc = B[i] - sum(L[i, k] * X[k] for k in range(i)) if i else B[i]
+        X.append(acc / L[i, i])
+    return jnp.stack(X)
+
+
+def tri_solve_small_upper(U, B):
+    """Solve U X = B for small upper-triangular U; B (n, m)."""
+    n = U.shape[0]
+    X = [None] * n
+    for i in reversed(range(n)):
+        acc = B[i] - sum(U[i, k] * X[k] for k in range(i + 1, n)) if i < n - 1 else B[i]
+        X[i] = acc / U[i, i]
+    return jnp.stack(X)
 
 
 def btd_solve(D, B, R):
@@ -40,13 +84,21 @@ def btd_solve(D, B, R):
     N, n, _ = D.shape
     m = R.shape[-1]
     Bp = jnp.concatenate([B, jnp.zeros((1, n, n), D.dtype)], axis=0)
+    small = n <= SMALL_BLOCK
+    chol = chol_small if small else jnp.linalg.cholesky
+
+    def lower(L, X):
+        return tri_solve_small(L, X) if small else solve_triangular(L, X, lower=True)
+
+    def upper(U, X):
+        return tri_solve_small_upper(U, X) if small else solve_triangular(U, X, lower=False)
 
     def fwd(carry, inp):
         loff, zprev = carry  # L[k, k-1], z_{k-1}
         Dk, Bk, Rk = inp
-        Lkk = jnp.linalg.cholesky(Dk - loff @ loff.T)
-        zk = solve_triangular(Lkk, Rk - loff @ zprev, lower=True)
-        lnext = solve_triangular(Lkk, Bk, lower=True).T  # L[k+1, k] = B_kᵀ L_kk⁻ᵀ
+        Lkk = chol(Dk - loff @ loff.T)
+        zk = lower(Lkk, Rk - loff @ zprev)
+        lnext = lower(Lkk, Bk).T  # L[k+1, k] = B_kᵀ L_kk⁻ᵀ
         return (lnext, zk), (Lkk, lnext, zk)
 
     init = (jnp.zeros((n, n), D.dtype), jnp.zeros((n, m), D.dtype))
@@ -54,7 +106,7 @@ def btd_solve(D, B, R):
 
     def bwd(xnext, inp):
         Lk, Ln, zk = inp
-        xk = solve_triangular(Lk.T, zk - Ln.T @ xnext, lower=False)
+        xk = upper(Lk.T, zk - Ln.T @ xnext)
         return xk, xk
 
     _, X = jax.lax.scan(bwd, jnp.zeros((n, m), D.dtype), (Lkk, Lnext, Z), reverse=True)
