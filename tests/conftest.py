@@ -51,13 +51,15 @@ def pytest_configure(config):
     through ``JAX_COMPILATION_CACHE_DIR``."""
     if os.environ.get("VSIDGEN_TEST_JAX_CACHE", "1") == "0" or getattr(config, "cache", None) is None:
         return
+    from vsidgen.compilecache import MIN_COMPILE_SECS  # every compilation, as the CLI keeps
+
     try:
         cache = config.cache.mkdir("jax-compilation-cache")
         import jax
 
         jax.config.update("jax_compilation_cache_dir", str(cache))
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
     except (OSError, AttributeError, ValueError):  # read-only checkout, older jax: uncached
         return
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(cache))
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(MIN_COMPILE_SECS))

@@ -671,7 +671,10 @@ class Objective:
 
     # -- local terms (negative expected log densities)
     def pair_offsets(self, r):
-        """Sigma-point offsets (4n, n) of x_k and x_{k+1} for the pair density."""
+        """Sigma-point offsets (4n, n) of x_k and x_{k+1} for the pair density.
+
+        The last 2n points move x_{k+1} only (z₁ = 0): their x_k is the mean μ_k exactly, for
+        every r, which the Hessian assembly uses (:meth:`_pair_term`)."""
         n = self.n
         Sc, C, Sm, _ = self.cov_factors(r)
         a = math.sqrt(2 * n)
@@ -859,6 +862,7 @@ class Objective:
             Ar=jnp.concatenate([Jd0, Jd1], axis=1)[:, :, :nq],  # (4n, 2n, nq): ∂(x_k, x_k+1)/∂r
             Arn=Jdn[:, :, :nq],  # (2n, n, nq)
             K_F=self._curvature(Fa, self.kv_F, nza),
+            T_F=self._curvature_tensor(Fa, self.kv_F, nza),
             K_h=self._curvature(ha, self.kv_h, nza),
             cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
@@ -892,6 +896,32 @@ class Objective:
         return K
 
     @staticmethod
+    def _curvature_tensor(fun, kv, na):
+        """Second derivatives ∇²_a fun_j of every output j (zero outside ``kv``).
+
+        Returns ``T(A, u)`` for a chunk: A (K, na) one point per item, u (K, …); result
+        (K, nout, na, na). K(λ) of :meth:`_curvature` is Σ_j λ_j T_j at that point."""
+        if kv is None:
+            kv = np.arange(na)
+        if len(kv) == 0:
+            return None
+        kv = np.asarray(kv, int)
+        full = len(kv) == na and bool(np.all(kv == np.arange(na)))
+        Esel = jnp.asarray(np.eye(na)[kv])
+        keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
+        hes = jax.hessian(lambda av, a, uk: fun(a * keep + av @ Esel, uk))
+        where = np.full(na, len(kv), int)
+        where[kv] = np.arange(len(kv))
+
+        def T(A, u):
+            Tv = jax.vmap(hes, (0, 0, 0))(A[..., kv], A, u)  # (K, nout, nv, nv)
+            if full:
+                return Tv
+            Tp = jnp.pad(Tv, [(0, 0), (0, 0), (0, 1), (0, 1)])
+            return Tp[..., where[:, None], where[None, :]]
+        return T
+
+    @staticmethod
     def _points(fn, A, u):
         """``fn(a, u_k)`` at every point of every item of a chunk: A (K, P, na), u (K, …)."""
         return jax.vmap(jax.vmap(fn, (0, None)), (0, 0))(A, u)
@@ -913,8 +943,16 @@ class Objective:
         X1 = mu1[:, None, :] + c["d1"][None]
         K_, npt = X0.shape[0], X0.shape[1]
         A0 = jnp.concatenate([X0, jnp.broadcast_to(c["theta"], (K_, npt, npar))], axis=2)
-        Fs = Objective._points(c["Fa"], A0, uk)  # (K, 4n, n)
-        J = Objective._points(c["F_jac"], A0, uk)  # (K, 4n, n, n+np)
+        # points 2n.. sit at x_k = μ_k (pair_offsets): the model and its derivatives are
+        # evaluated once there, at the centre Ac
+        Ao = A0[:, :n2]
+        Ac = jnp.concatenate([mu0, jnp.broadcast_to(c["theta"], (K_, npar))], axis=1)
+        Fo = Objective._points(c["Fa"], Ao, uk)  # (K, 2n, n)
+        Jo = Objective._points(c["F_jac"], Ao, uk)  # (K, 2n, n, n+np)
+        Fc = jax.vmap(c["Fa"])(Ac, uk)  # (K, n)
+        Jc = jax.vmap(c["F_jac"])(Ac, uk)  # (K, n, n+np)
+        Fs = jnp.concatenate([Fo, jnp.broadcast_to(Fc[:, None], (K_, npt - n2, n))], axis=1)
+        J = jnp.concatenate([Jo, jnp.broadcast_to(Jc[:, None], (K_, npt - n2) + Jc.shape[1:])], axis=1)
         e = X1 - Fs
         Pe = e @ P
         cw = cp * wk  # (K,)
@@ -931,16 +969,20 @@ class Objective:
         sCz = -jnp.einsum("kiaz,kial->izl", cJ, JPe)
         Cs = -jnp.einsum("kiaz,kial->kzl", cJm, JPe)
         if c["K_F"] is not None:
-            Ka = c["K_F"](A0, -cw[:, None, None] * Pe, uk)  # (K, 4n, na, na), a = (x_k, θ)
-            sKa = jnp.sum(Ka, 0)
+            lam = -cw[:, None, None] * Pe  # (K, 4n, n)
+            Ko = c["K_F"](Ao, lam[:, :n2], uk)  # (K, 2n, na, na), a = (x_k, θ)
+            Tc = c["T_F"](Ac, uk)  # (K, n, na, na) at the centre
+            sKa = jnp.concatenate([jnp.sum(Ko, 0), jnp.einsum("kia,kavw->ivw", lam[:, n2:], Tc)])
             Z1 = jnp.zeros((npt, n, n + npar))
             Kz = jnp.concatenate([sKa[:, :n], Z1, sKa[:, n:]], axis=1)  # rows into z
             Z2 = jnp.zeros((npt, n2 + npar, n))
             sHz = sHz + jnp.concatenate([Kz[:, :, :n], Z2, Kz[:, :, n:]], axis=2)
-            Kx = jnp.sum(Ka[:, :, :n, :], 1)  # (K, n, na): rows x_k
+            Kx = (jnp.sum(Ko[:, :, :n, :], 1)
+                  + jnp.einsum("ka,kavw->kvw", jnp.sum(lam[:, n2:], 1), Tc[:, :, :n, :]))  # (K, n, na)
             Kx_z = jnp.concatenate([Kx[:, :, :n], jnp.zeros((K_, n, n)), Kx[:, :, n:]], axis=2)
             Hm = Hm.at[:, :n, :].add(Kx_z)
-            HAr = HAr.at[:, :n, :].add(jnp.einsum("kivw,iwb->kvb", Ka[:, :, :n, :n], c["Ar"][:, :n, :]))
+            # ∂x_k/∂r is 0 at the centre points: only the others couple the curvature to r
+            HAr = HAr.at[:, :n, :].add(jnp.einsum("kivw,iwb->kvb", Ko[:, :, :n, :n], c["Ar"][:n2, :n, :]))
         return dict(D0=Hm[:, :n, :n], D1=Hm[:, n:, n:n2], B=Hm[:, :n, n:n2], Wr0=HAr[:, :n],
                     Wr1=HAr[:, n:], Wt0=Hm[:, :n, n2:], Wt1=Hm[:, n:, n2:], Wc0=Cs[:, :n],
                     Wc1=Cs[:, n:], g0=jnp.sum(gz[:, :, :n], 1), g1=jnp.sum(gz[:, :, n:n2], 1),
@@ -983,7 +1025,8 @@ class Objective:
     def _chunked(self, fn, args, count, w):
         """``fn`` over ``count`` items in chunks (lax.scan); ``fn`` takes a chunk (leading
         axis: items) and returns per-item arrays and keys 's…' already summed over the
-        chunk, which are summed over the chunks here; the others are stacked.
+        chunk, which are summed over the chunks here (the chunk sums are small: per-point
+        border pieces); the others are stacked.
 
         ``w`` (count,): per-item weight passed last to ``fn`` (0 for padded samples)."""
         nc = -(-count // self.chunk)  # chunks of at most self.chunk items,
@@ -993,15 +1036,13 @@ class Objective:
         args = [jnp.concatenate([a, jnp.broadcast_to(a[-1:], (pad,) + a.shape[1:])]) if pad else a
                 for a in args] + [wts]
         args = [a.reshape((nc, ch) + a.shape[1:]) for a in args]
-        shapes = jax.eval_shape(fn, *[a[0] for a in args])
-        acc0 = {k: jnp.zeros(v.shape) for k, v in shapes.items() if k.startswith("s")}
 
-        def body(acc, xs):
-            out = fn(*xs)
-            acc = {k: acc[k] + out[k] for k in acc}
-            return acc, {k: v for k, v in out.items() if not k.startswith("s")}
+        def body(carry, xs):  # fn is traced once (no eval_shape pass for the accumulators)
+            return carry, fn(*xs)
 
-        acc, rest = jax.lax.scan(body, acc0, args)
+        _, out = jax.lax.scan(body, None, args)
+        acc = {k: jnp.sum(v, 0) for k, v in out.items() if k.startswith("s")}
+        rest = {k: v for k, v in out.items() if not k.startswith("s")}
         rest = {k: v.reshape((nc * ch,) + v.shape[2:])[:count] for k, v in rest.items()}
         return acc, rest
 
