@@ -867,32 +867,47 @@ class Objective:
             cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
     @staticmethod
+    def _restricted(kv, na):
+        """(kv, select, place) for second derivatives over the variables ``kv`` of a = (x, θ)
+        only, or None when ``kv`` is empty. ``select(fun)`` is ``g(av, a, …) = fun(a with its
+        kv entries replaced by av, …)`` (differentiate g in av); ``place(M)`` puts the
+        trailing (nv, nv) axes of M into a-space (zero outside kv; a gather)."""
+        kv = np.arange(na) if kv is None else np.asarray(kv, int)
+        if len(kv) == 0:
+            return None
+        Esel = jnp.asarray(np.eye(na)[kv])  # (nv, na)
+        keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
+        where = np.full(na, len(kv), int)  # a-index -> position in kv (len(kv): zero row)
+        where[kv] = np.arange(len(kv))
+        full = bool(np.array_equal(kv, np.arange(na)))
+
+        def select(fun):
+            return lambda av, a, *rest: fun(a * keep + av @ Esel, *rest)
+
+        def place(M):
+            if full:  # every variable, in order: already a-space
+                return M
+            pad = [(0, 0)] * (M.ndim - 2) + [(0, 1), (0, 1)]
+            return jnp.pad(M, pad)[..., where[:, None], where[None, :]]
+        return kv, select, place
+
+    @staticmethod
     def _curvature(fun, kv, na):
         """Per-point curvature K = ∇²_a(λ·fun) over a = (x, θ), zero outside the variables ``kv``.
 
         Returns ``K(A, lam, u)`` for a chunk: A (K, P, na) points, lam (K, P, nout) multipliers,
         u (K, …) the items' inputs; result (K, P, na, na). The Hessian is formed only over the
-        ``kv`` variables (forward-over-reverse) and placed into a-space by a gather."""
-        if kv is None:
-            kv = np.arange(na)
-        if len(kv) == 0:
+        ``kv`` variables (forward-over-reverse)."""
+        r = Objective._restricted(kv, na)
+        if r is None:
             return None
-        kv = np.asarray(kv, int)
-        full = len(kv) == na and bool(np.all(kv == np.arange(na)))
-        Esel = jnp.asarray(np.eye(na)[kv])  # (nv, na)
-        keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
-        hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, fun(a * keep + av @ Esel, uk)))
-        # a-index -> position in kv (len(kv): a zero row/column appended)
-        where = np.full(na, len(kv), int)
-        where[kv] = np.arange(len(kv))
+        kv, select, place = r
+        g = select(fun)
+        hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, g(av, a, uk)))
 
         def K(A, lam, u):
             per_item = jax.vmap(hes, (0, 0, 0, None))
-            Kv = jax.vmap(per_item, (0, 0, 0, 0))(A[..., kv], A, lam, u)  # (K, P, nv, nv)
-            if full:  # every variable, in order: already a-space
-                return Kv
-            Kp = jnp.pad(Kv, [(0, 0), (0, 0), (0, 1), (0, 1)])
-            return Kp[..., where[:, None], where[None, :]]
+            return place(jax.vmap(per_item, (0, 0, 0, 0))(A[..., kv], A, lam, u))
         return K
 
     @staticmethod
@@ -901,24 +916,14 @@ class Objective:
 
         Returns ``T(A, u)`` for a chunk: A (K, na) one point per item, u (K, …); result
         (K, nout, na, na). K(λ) of :meth:`_curvature` is Σ_j λ_j T_j at that point."""
-        if kv is None:
-            kv = np.arange(na)
-        if len(kv) == 0:
+        r = Objective._restricted(kv, na)
+        if r is None:
             return None
-        kv = np.asarray(kv, int)
-        full = len(kv) == na and bool(np.all(kv == np.arange(na)))
-        Esel = jnp.asarray(np.eye(na)[kv])
-        keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
-        hes = jax.hessian(lambda av, a, uk: fun(a * keep + av @ Esel, uk))
-        where = np.full(na, len(kv), int)
-        where[kv] = np.arange(len(kv))
+        kv, select, place = r
+        hes = jax.hessian(select(fun))
 
         def T(A, u):
-            Tv = jax.vmap(hes, (0, 0, 0))(A[..., kv], A, u)  # (K, nout, nv, nv)
-            if full:
-                return Tv
-            Tp = jnp.pad(Tv, [(0, 0), (0, 0), (0, 1), (0, 1)])
-            return Tp[..., where[:, None], where[None, :]]
+            return place(jax.vmap(hes, (0, 0, 0))(A[..., kv], A, u))
         return T
 
     @staticmethod
@@ -947,10 +952,10 @@ class Objective:
         # evaluated once there, at the centre Ac
         Ao = A0[:, :n2]
         Ac = jnp.concatenate([mu0, jnp.broadcast_to(c["theta"], (K_, npar))], axis=1)
-        Fo = Objective._points(c["Fa"], Ao, uk)  # (K, 2n, n)
-        Jo = Objective._points(c["F_jac"], Ao, uk)  # (K, 2n, n, n+np)
-        Fc = jax.vmap(c["Fa"])(Ac, uk)  # (K, n)
-        Jc = jax.vmap(c["F_jac"])(Ac, uk)  # (K, n, n+np)
+        Aoc = jnp.concatenate([Ao, Ac[:, None]], axis=1)  # one evaluation (one compiled copy)
+        Foc = Objective._points(c["Fa"], Aoc, uk)  # (K, 2n+1, n)
+        Joc = Objective._points(c["F_jac"], Aoc, uk)  # (K, 2n+1, n, n+np)
+        Fo, Fc, Jo, Jc = Foc[:, :n2], Foc[:, n2], Joc[:, :n2], Joc[:, n2]
         Fs = jnp.concatenate([Fo, jnp.broadcast_to(Fc[:, None], (K_, npt - n2, n))], axis=1)
         J = jnp.concatenate([Jo, jnp.broadcast_to(Jc[:, None], (K_, npt - n2) + Jc.shape[1:])], axis=1)
         e = X1 - Fs
