@@ -274,8 +274,13 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
                                        f"stopped: damping overflow, no acceptable step ({_lm_detail(m)})")
 
 
+class _Cancelled(Exception):
+    """A start of a concurrent multi-start stopped because another start failed or the run
+    was interrupted (:func:`_multistart`); never leaves this module."""
+
+
 def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
-              stall: bool = False, phase: FitPhase | None = None):
+              stall=False, phase: FitPhase | None = None, cancel=None):
     """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
 
     Each iteration measures the iterate (:func:`_lm_measure`), asks whether to stop
@@ -285,6 +290,9 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
     starts remain to be tried) and otherwise takes one damped step (:func:`_lm_step`).
     ``phase`` (what these iterations are part of) is announced to the progress callback
     (:func:`~vsidgen.estimator.results.announce`) and its label kept in each history entry.
+    ``stall`` may also be a callable, asked when the stall test fires whether this start may be
+    abandoned (the last start of a concurrent multi-start: only when an earlier one converged).
+    ``cancel`` (a ``threading.Event``): when set, the iterations end with :class:`_Cancelled`.
     """
     t0 = time.perf_counter() if t0 is None else t0
     s, recs, lam, history, it0 = _lm_init(P, options, start, resume)
@@ -294,6 +302,8 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
     ws = []  # noise parameters per iteration (stall test)
     it, stop, m = it0, None, None
     for it in range(it0, options.max_iter + 1):
+        if cancel is not None and cancel.is_set():
+            raise _Cancelled(start)
         m = _lm_measure(P, s, recs)
         elapsed = time.perf_counter() - t0
         history.append({"iteration": it, "elbo": -m.f, "grad_norm": m.relgrad, "lambda": lam, "elapsed_s": elapsed,
@@ -307,7 +317,8 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
         if stop is not None:
             break
         ws.append(np.asarray(s[P.tm.n_free:], float).copy())
-        if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it):
+        if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it) \
+                and (not callable(stall) or stall()):
             stop = _Stop(StopReason.STALLED, f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) "
                                              f"over {options.stall_window} iterations ({_lm_detail(m)})")
             break
@@ -839,30 +850,15 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
             tried.append(("release", out))
         elif not starts:
             starts = ["data"]  # nothing to release: the release start is the data start
-    for i, start in enumerate(starts):
-        # every start is run: a converged start is a local optimum, and another start
-        # may reach a higher one (multi-start, the best converged ELBO is kept). A start
-        # that stalls is abandoned early while another start remains or has converged.
-        have_optimum = any(o["converged"] for _, o in tried)
-        stall = i < len(starts) - 1 or have_optimum
-        phase = FitPhase(PhaseKind.NOISE_START, start=start)
-        out = _optimize(P, options, start, t0=t0, stall=stall, phase=phase)
-        released: list[str] = []
-        for _ in range(MAX_RELEASES):
-            # released after any stop at a point (an optimum, or no progress: a saturated
-            # transform also makes the Hessian singular), not after a limit
-            if (out["reason"] in (StopReason.ITERATION_LIMIT, StopReason.TIME_LIMIT,
-                                  StopReason.NONFINITE, None)
-                    or out["iterations"] >= options.max_iter):
-                break
-            s_rel = _release_saturated(P, out["s"], out["recs"])
-            if s_rel is None:
-                break
-            released += [P.free_names[j] for j in np.nonzero(s_rel != out["s"])[0]]
-            out = _optimize(P, options, start, t0=t0, stall=stall,
-                            resume={**out, "s": s_rel}, phase=phase)
-            out["released"] = tuple(dict.fromkeys(released))
-        tried.append((start, out))
+    # every start is run: a converged start is a local optimum, and another start may reach
+    # a higher one (multi-start, the best converged ELBO is kept). A start that stalls is
+    # abandoned early while another start remains or an earlier one has converged.
+    if options.parallel_starts and len(starts) > 1:
+        tried += _concurrent_starts(P, options, starts, t0, have_optimum=any(o["converged"] for _, o in tried))
+    else:
+        for i, start in enumerate(starts):
+            have_optimum = any(o["converged"] for _, o in tried)
+            tried.append((start, _run_start(P, options, start, t0, stall=i < len(starts) - 1 or have_optimum)))
     converged = [o for _, o in tried if o["converged"]]
     if converged:
         out = min(converged, key=_negelbo)
@@ -885,6 +881,132 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
     out["history"] = tuple(h for _, o in tried for h in o["history"])
     out["iterations"] = sum(o["iterations"] for _, o in tried)
     return out
+
+
+def _run_start(P: Problem, options: FitOptions, start: str, t0, *, stall, cancel=None) -> dict:
+    """One noise start of :func:`_multistart`: the iterations, then up to ``MAX_RELEASES``
+    releases of saturated parameters (each followed by more iterations)."""
+    phase = FitPhase(PhaseKind.NOISE_START, start=start)
+    out = _optimize(P, options, start, t0=t0, stall=stall, phase=phase, cancel=cancel)
+    released: list[str] = []
+    for _ in range(MAX_RELEASES):
+        # released after any stop at a point (an optimum, or no progress: a saturated
+        # transform also makes the Hessian singular), not after a limit
+        if (out["reason"] in (StopReason.ITERATION_LIMIT, StopReason.TIME_LIMIT,
+                              StopReason.NONFINITE, None)
+                or out["iterations"] >= options.max_iter):
+            break
+        s_rel = _release_saturated(P, out["s"], out["recs"])
+        if s_rel is None:
+            break
+        released += [P.free_names[j] for j in np.nonzero(s_rel != out["s"])[0]]
+        out = _optimize(P, options, start, t0=t0, stall=stall,
+                        resume={**out, "s": s_rel}, phase=phase, cancel=cancel)
+        out["released"] = tuple(dict.fromkeys(released))
+    return out
+
+
+class _LeadProgress:
+    """The progress callback of a concurrent multi-start: each start reports through its own
+    view, and only the first unfinished start (the *lead*) reaches the user's callback, so
+    the live line shows one start at a time, in the serial order. When the lead finishes,
+    the next start's current phase is announced. The lead's view also opens ``gate`` after
+    its first step (every function of an iteration is then compiled once, for all starts)."""
+
+    def __init__(self, progress, n: int, gate):
+        import threading
+
+        self.progress, self.n, self.gate = progress, n, gate
+        self.lock = threading.Lock()
+        self.done: set[int] = set()
+        self.phases: dict[int, FitPhase] = {}
+        self.first_it: dict[int, int] = {}
+
+    def lead(self) -> int:
+        return next((i for i in range(self.n) if i not in self.done), self.n)
+
+    def finished(self, i: int) -> None:
+        with self.lock:
+            self.done.add(i)
+            j = self.lead()
+            ph = self.phases.get(j)
+        if i == 0:
+            self.gate.set()
+        if ph is not None and self.progress is not None:
+            announce(self.progress, ph)
+
+    def view(self, i: int):
+        owner = self
+
+        class _View:
+            def __call__(self, it, elbo, grad, elapsed):
+                first = owner.first_it.setdefault(i, it)
+                if i == 0 and it > first:
+                    owner.gate.set()
+                if owner.progress is not None and owner.lead() == i:
+                    owner.progress(it, elbo, grad, elapsed)
+
+            def phase(self, ph):
+                with owner.lock:
+                    owner.phases[i] = ph
+                    lead = owner.lead() == i
+                if lead and owner.progress is not None:
+                    announce(owner.progress, ph)
+        return _View()
+
+
+def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_optimum: bool) -> list:
+    """The noise starts of :func:`_multistart`, one thread each; [(start, output)] in start order.
+
+    The first start runs alone until it has taken one step (its trace and compilation serve
+    every start), then the others join. Stall rules as in the serial loop: every start but
+    the last may be abandoned as stalled; the last only when an earlier start converged
+    (``have_optimum``, or one of the earlier starts, which it then waits for), so the outputs
+    are those of the serial run. An exception in one start (or an interrupt of the caller)
+    cancels the others at their next iteration and is raised once they have stopped."""
+    import concurrent.futures as cf
+    import threading
+
+    n = len(starts)
+    cancel, gate = threading.Event(), threading.Event()
+    lead = _LeadProgress(options.progress, n, gate)
+    futures: list = [None] * n
+
+    def earlier_converged() -> bool:
+        if have_optimum:
+            return True
+        cf.wait(futures[:-1])
+        return any(not f.cancelled() and f.exception() is None and f.result()["converged"]
+                   for f in futures[:-1])
+
+    def task(i: int, start: str) -> dict:
+        try:
+            if i > 0:
+                gate.wait()
+            if cancel.is_set():
+                raise _Cancelled(start)
+            opts = dataclasses.replace(options, progress=lead.view(i))
+            stall = True if i < n - 1 else earlier_converged
+            return _run_start(P, opts, start, t0, stall=stall, cancel=cancel)
+        finally:
+            lead.finished(i)
+
+    ex = cf.ThreadPoolExecutor(max_workers=n, thread_name_prefix="vsidgen-start")
+    try:
+        for i, st in enumerate(starts):
+            futures[i] = ex.submit(task, i, st)
+        done, _ = cf.wait(futures, return_when=cf.FIRST_EXCEPTION)
+        errors = [f.exception() for f in futures if f.done() and f.exception() is not None]
+        if errors:
+            raise next((e for e in errors if not isinstance(e, _Cancelled)), errors[0])
+        return [(st, f.result()) for st, f in zip(starts, futures)]
+    except BaseException:
+        cancel.set()
+        gate.set()
+        cf.wait(futures)
+        raise
+    finally:
+        ex.shutdown(wait=True)
 
 
 # --------------------------------------------------------------------------- deterministic states

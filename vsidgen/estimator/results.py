@@ -254,6 +254,13 @@ class FitOptions:
             while its gradient stays large. If no start converges, the stalled start with
             the highest ELBO is continued with its remaining iterations.
             ``stall_window=0`` disables the test.
+        parallel_starts: run the noise starts of ``"auto"`` concurrently, one thread each
+            (they share the problem's compiled functions; XLA runs them in parallel while
+            each start's sequential scans and host-side steps leave cores idle). The result
+            is the serial one: every start follows its own deterministic path, and the last
+            start is abandoned as stalled exactly when the serial run would abandon it —
+            only if an earlier start converged (it waits for them to decide). Progress is
+            reported for the first unfinished start. False: one start after the other.
         bucket: pad each record to a bucket length (:func:`vsidgen.estimator.core.bucket_length`,
             ≤ 12.5 % longer) for the structured optimizer, with the padding masked out of every
             term, so records of different lengths in one bucket reuse the compiled functions;
@@ -291,6 +298,7 @@ class FitOptions:
     time_limit: float | None = None
     stall_rtol: float = 1e-8
     held_parameters: tuple[str, ...] = ()
+    parallel_starts: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

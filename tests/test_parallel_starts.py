@@ -1,0 +1,95 @@
+"""Concurrent noise starts (``FitOptions.parallel_starts``): the fit of one start after the other.
+
+The noise starts of ``noise_start="auto"`` run one thread each. Each start follows its own
+deterministic path, and the last start may be abandoned as stalled only when an earlier start
+converged, as in the serial loop: the outputs must be identical, bit for bit, to the serial
+run's — including the stall decisions, which these tests force with a huge ``stall_rtol``.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from test_estimator import lin_model, make_record
+from vsidgen.estimator import FitOptions, StopReason, fit
+
+
+def _fit(parallel: bool, **kw):
+    calls = []
+
+    def progress(it, elbo, grad, elapsed):
+        calls.append(("iteration", it, elbo))
+
+    progress.phase = lambda ph: calls.append(("phase", str(ph)))
+    res = fit(lin_model(), [make_record(300, seed=11)],
+              options=FitOptions(parallel_starts=parallel, progress=progress, **kw))
+    return res, calls
+
+
+def _same(a, b):
+    np.testing.assert_array_equal(a.theta, b.theta)
+    assert a.elbo == b.elbo
+    assert a.iterations == b.iterations
+    assert a.status == b.status
+    assert [(h["iteration"], h["elbo"], h.get("phase")) for h in a.history] == \
+        [(h["iteration"], h["elbo"], h.get("phase")) for h in b.history]
+
+
+def _starts(res) -> list[str]:
+    return [part.split(" (")[0] for part in res.status.split("noise starts tried: ")[1].split("), ")]
+
+
+def _start_threads() -> set[str]:
+    return {t.name for t in threading.enumerate() if t.name.startswith("vsidgen-start")}
+
+
+def test_concurrent_starts_give_the_serial_fit():
+    serial, _ = _fit(False)
+    par, calls = _fit(True)
+    _same(serial, par)
+    assert _starts(par) == ["data", "data-meas", "unit"]
+    # the live progress follows one start at a time, from the first start on
+    phases = [c[1] for c in calls if c[0] == "phase"]
+    assert phases[0] == "noise start data"
+    assert not _start_threads()
+
+
+def test_the_last_start_stalls_only_when_an_earlier_one_converged():
+    # every start "stalls" after three iterations unless it has converged: the first two are
+    # abandoned, the last (no earlier optimum) must run on to its optimum, in both runs
+    kw = dict(stall_window=2, stall_rtol=1.0)
+    serial, _ = _fit(False, **kw)
+    par, _ = _fit(True, **kw)
+    _same(serial, par)
+    assert "data (stalled" in par.status and "data-meas (stalled" in par.status
+    assert "unit (converged" in par.status
+    assert par.converged
+
+
+def test_no_start_converges_continues_the_best_stalled_start_as_serially():
+    kw = dict(stall_window=2, stall_rtol=1.0, max_iter=6)
+    serial, _ = _fit(False, **kw)
+    par, _ = _fit(True, **kw)
+    _same(serial, par)
+    assert not par.converged
+
+
+def test_an_error_in_one_start_stops_all_of_them_and_is_raised():
+    def progress(it, elbo, grad, elapsed):
+        if it == 3:
+            raise RuntimeError("stop here")
+
+    with pytest.raises(RuntimeError, match="stop here"):
+        fit(lin_model(), [make_record(300, seed=11)],
+            options=FitOptions(parallel_starts=True, progress=progress))
+    assert not _start_threads()
+
+
+def test_single_start_and_warm_start_stay_serial():
+    res = fit(lin_model(), [make_record(300, seed=11)],
+              options=FitOptions(parallel_starts=True, noise_start="data"))
+    assert res.converged and res.stop_reason in (StopReason.NEWTON_DECREMENT, StopReason.GRADIENT)
+    assert "noise starts tried" not in res.status
