@@ -74,7 +74,7 @@ MAGNITUDES = {
             "alpha_vane": [3.0, 10.0], "az_position": [2.0, 8.0], "q_bias": [0.001, 0.005],
             "alpha_scale": [0.03, 0.1], "missing_CLde": [0.15, 0.5], "lift_stall": [1.0, 4.0],
             "gust": [0.5, 2.0]},
-    "sp": {"none": [0.0], "phugoid": [0.4, 1.0], "de_delay": [0.04, 0.12]},
+    "sp": {"none": [0.0], "phugoid": [0.4, 1.0, 5.0], "de_delay": [0.04, 0.12]},
     "lat": {"none": [0.0], "beta_vane": [3.0, 8.0]},
 }
 
