@@ -53,7 +53,10 @@ def test_concurrent_starts_give_the_serial_fit():
     assert _starts(par) == ["data", "data-meas", "unit"]
     # the live progress follows one start at a time, from the first start on
     phases = [c[1] for c in calls if c[0] == "phase"]
+    order = ["noise start data", "noise start data-meas", "noise start unit"]
     assert phases[0] == "noise start data"
+    # each start announced at most once, in the serial order (no release happens here)
+    assert [order.index(p) for p in phases] == sorted({order.index(p) for p in phases}), phases
     assert not _start_threads()
 
 

@@ -927,9 +927,9 @@ class _LeadProgress:
 
     def finished(self, i: int) -> None:
         with self.lock:
+            was_lead = self.lead() == i
             self.done.add(i)
-            j = self.lead()
-            ph = self.phases.get(j)
+            ph = self.phases.get(self.lead()) if was_lead else None
         if i == 0:
             self.gate.set()
         if ph is not None and self.progress is not None:
