@@ -163,6 +163,7 @@ def test_every_effect_instantiates_a_compilable_spec(spec, tmp_path):
     expected = set(BUILTIN_EFFECTS)
     if spec == ATTAS:     # every linear term is already in both attas_sp equations
         expected.discard("missing_derivative")
+        expected.discard("coefficient_derivative")   # no coefficient definitions
     if spec == HFB:       # the speed candidate is for models without a speed state
         expected.discard("speed_dynamics")
     assert expected <= set(by_effect), expected - set(by_effect)
@@ -586,3 +587,44 @@ def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
     assert quiet_base.startswith("INCONCLUSIVE")
     for contradiction in ("No significant discrepancy", "kept as it is", "consistent with"):
         assert contradiction not in quiet_base
+
+
+def test_coefficient_derivative_reaches_every_user_of_the_coefficient(tmp_path):
+    """A derivative added to the lift coefficient of hfb320 changes the α equation and both
+    accelerometers by exactly the geometry the spec gives CL (and nothing else), is zero at
+    its nesting value, and has the unit of CL over the variable's."""
+    import sympy
+    from vsidgen.spec import compile_spec
+
+    info = model_info(HFB, dt=0.1)
+    assert info.definition_users["CL"] == ("drift:alpha", "observations:ax", "observations:az")
+    from vsidgen.discrepancy.base import get_effect
+
+    cands = {c.key: c for c in get_effect("coefficient_derivative").applies_to(info)}
+    assert "coefficient_derivative:Cm:de" not in cands       # Cm already has CMDE*de
+    c = cands["coefficient_derivative:CL:de"]
+    assert c.target == "definition:CL" and c.parameters[0].unit == "1/(rad)"
+    sym = compile_spec(_write(c, HFB, tmp_path, info))
+    base = compile_spec(HFB)
+    d = sympy.Symbol("D_CL_de", real=True)
+    de, al, V = (sympy.Symbol(n, real=True) for n in ("de", "alpha", "V"))
+    names = [v.name for v in sym.states]
+    new_f = dict(zip(names, sym.drift_expanded()))
+    old_f = dict(zip(names, base.drift_expanded()))
+    consts = {sympy.Symbol(k.name, real=True): k.value for k in base.constants}
+    for s_ in names:
+        diff = sympy.simplify((new_f[s_] - old_f[s_]).subs(consts))
+        if s_ == "alpha":     # -S/m qbar/V * dCL
+            want = -consts[sympy.Symbol("SBYM", real=True)] * consts[sympy.Symbol("RHO", real=True)] \
+                * V ** 2 / 2 / V * d * de
+            assert sympy.simplify(diff - want) == 0, diff
+        else:
+            assert diff == 0, (s_, diff)
+    outs = [v.name for v in sym.outputs]
+    changed = {o for o, a, b in zip(outs, sym.observations_expanded(), base.observations_expanded())
+               if sympy.simplify(a - b) != 0}
+    assert changed == {"ax", "az"}
+    # at D_CL_de = 0 the augmented model is the base model
+    for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
+                    base.drift_expanded() + base.observations_expanded()):
+        assert sympy.simplify(a.subs(d, 0) - b) == 0

@@ -107,6 +107,15 @@ class ModelInfo(VariableNames):
     #: trim airspeed, gravity and sensor positions from the records and the aircraft's
     #: constants file (:func:`.flightconst.flight_conditions`); None when not looked up
     flight: Any = None
+    #: each definition with the definitions it uses substituted (sympy, real symbols)
+    definitions_expanded: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    #: the parameters each definition's own expression names (not through other definitions)
+    definition_parameters: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    #: the equations that use each definition, directly or through others
+    #: (``"drift:alpha"``, ``"observations:az"``)
+    definition_users: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+    #: declared unit of each parameter (None: none declared)
+    parameter_units: Mapping[str, str | None] = dataclasses.field(default_factory=dict)
 
     @property
     def names(self) -> frozenset[str]:
@@ -282,7 +291,37 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         drift=drift_txt, observations=obs_txt,
         drift_expanded={v.name: _realify(e) for v, e in zip(states, drift_exp)},
         observations_expanded={v.name: _realify(e) for v, e in zip(outputs, obs_exp)},
-        process_states=pstates, dt=dt)
+        process_states=pstates, dt=dt,
+        definitions_expanded={n: _realify(e) for n, e in _expanded_definitions(sym).items()},
+        definition_parameters={n: tuple(sorted(s.name for s in e.free_symbols
+                                               if s.name in {p.name for p in sym.parameters}))
+                               for n, e in sym.definitions},
+        definition_users=_definition_users(sym),
+        parameter_units={p.name: getattr(p, "unit", None) for p in sym.parameters})
+
+
+def _expanded_definitions(sym) -> dict[str, Any]:
+    return {sy.name: e for sy, e in sym.expansion().items()}
+
+
+def _definition_users(sym) -> dict[str, tuple[str, ...]]:
+    """{definition: equations using it} — ``"drift:<state>"`` and ``"observations:<output>"``,
+    through other definitions too (found by the symbols of the unexpanded equations and the
+    definitions' own dependencies, no expansion)."""
+    names = [n for n, _ in sym.definitions]
+    direct = {n: {s.name for s in e.free_symbols} & set(names) for n, e in sym.definitions}
+    reach: dict[str, set[str]] = {}
+    for n in names:                       # definitions are in dependency order
+        reach[n] = set(direct[n]).union(*(reach[d] for d in direct[n] if d in reach))
+    users: dict[str, list[str]] = {n: [] for n in names}
+    eqs = ([(f"drift:{v.name}", e) for v, e in zip(sym.states, sym.drift)]
+           + [(f"observations:{v.name}", e) for v, e in zip(sym.outputs, sym.observations)])
+    for where, e in eqs:
+        used = {s.name for s in e.free_symbols} & set(names)
+        used = used.union(*(reach[d] for d in used))
+        for d in sorted(used):
+            users[d].append(where)
+    return {n: tuple(u) for n, u in users.items()}
 
 
 def _realify(e):

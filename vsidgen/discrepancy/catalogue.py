@@ -98,6 +98,73 @@ class MissingDerivative(Effect):
 
 
 @register_effect
+class MissingCoefficientDerivative(Effect):
+    """A derivative missing from an aerodynamic coefficient (a definition), not from one equation.
+
+    Specs written with coefficient models (``CL: CL0 + CLV*V/V0 + CLAL*alpha``) use each
+    coefficient in several equations and outputs: lift enters the α equation and both
+    accelerometers. A lift-due-to-elevator derivative left out of ``CL`` changes all of them
+    together, so the physical candidate adds ``D_CL_de·de`` to the definition — every user
+    gets it through the model's own geometry (qbar, S/m, the axis projections) — where
+    ``missing_derivative`` adds a free term to one state equation only (which explains the α
+    equation's small share but not the accelerometer, whose residual is then named a sensor
+    effect). Proposed for every definition that names parameters of its own (a coefficient
+    model) and reaches a state equation, and every state and input it does not yet depend on.
+    """
+
+    id = "coefficient_derivative"
+    title = "missing derivative of an aerodynamic coefficient"
+    explanation = ("The coefficient {coef} lacks a linear dependence on {var}: every equation "
+                   "and output that uses {coef} ({users}) is off by the same term. Physically "
+                   "this is a stability or control derivative left out of the coefficient model "
+                   "({coef} += {param}·{var}).")
+    doc = "A linear term in a state or input absent from a coefficient definition (all its users)."
+
+    def applies_to(self, info):
+        out = []
+        for d, own in info.definition_parameters.items():
+            users = info.definition_users.get(d, ())
+            drift_users = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
+            if not own or not drift_users:
+                continue
+            e = info.definitions_expanded.get(d)
+            have = {x.name for x in e.free_symbols} if e is not None else set()
+            unit = _coefficient_unit(info, d)
+            for v in info.state_names + info.input_names:
+                if v in have:
+                    continue
+                p = info.fresh(f"D_{d}_{v}")
+                kind = "x" if v in info.state_names else "u"
+                out.append(Candidate(
+                    effect=self.id, key=f"{self.id}:{d}:{v}", target=f"definition:{d}",
+                    explanation=self.explain(coef=d, var=v, param=p,
+                                             users=", ".join(u.replace(":", " ") for u in users)),
+                    parameters=(NewParameter(p, _ratio(unit, info.unit(v)) if unit else None,
+                                             f"derivative of {d} with respect to {v}"),),
+                    add_terms={"definitions": {d: f"{p}*{v}"}},
+                    info={"regressor": f"{kind}:{v}", "definition": d, "var": v,
+                          "states": drift_users, "users": list(users)}))
+        return out
+
+    def score(self, c, ev):
+        return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
+
+
+def _coefficient_unit(info: ModelInfo, d: str) -> str | None:
+    """Unit of definition ``d`` from its constant term: a parameter of its own that appears as
+    a term by itself (``CL0`` in ``CL0 + CLAL*alpha``); None when there is none."""
+    e = info.definitions_expanded.get(d)
+    if e is None:
+        return None
+    import sympy
+
+    for term in sympy.Add.make_args(sympy.expand(e)):
+        if isinstance(term, sympy.Symbol) and term.name in info.definition_parameters.get(d, ()):
+            return info.parameter_units.get(term.name)
+    return None
+
+
+@register_effect
 class NonlinearAero(Effect):
     id = "nonlinear_aero"
     title = "nonlinear aerodynamic dependence"
@@ -820,7 +887,7 @@ class UnmodelledWind(Effect):
         return max((ev.colored_score(s) for s in c.info["states"]), default=0.0)
 
 
-BUILTIN_EFFECTS = ("missing_derivative", "nonlinear_aero", "unsteady_aero", "control_delay",
+BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "nonlinear_aero", "unsteady_aero", "control_delay",
                    "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
                    "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 

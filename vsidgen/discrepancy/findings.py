@@ -430,6 +430,16 @@ def _channels(finding, base) -> tuple[list[str], list[str]]:
                 e = sym.observations[i]
                 if getattr(e, "name", None) == name:
                     outs.append(o)
+    elif kind == "definition":
+        # a coefficient: every equation and output that uses it (ModelInfo.definition_users)
+        from .base import info_from_model
+
+        try:
+            users = info_from_model(base.model).definition_users.get(name, ())
+        except Exception:  # noqa: BLE001 - a plot is optional
+            users = ()
+        sts = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
+        outs = [u.split(":", 1)[1] for u in users if u.startswith("observations:")]
     else:
         sts = list(finding["added_terms"].get("drift", {}).keys())
     return outs, sts
