@@ -51,7 +51,10 @@ TRUE_LABELS = {
     ("hfb", "az_position"): {("sensor_position", "output:az"), ("sensor_position", "output:ax")},
     ("hfb", "q_bias"): {("sensor_bias", "output:q")},
     ("hfb", "alpha_scale"): {("sensor_scale", "output:alpha")},
-    ("hfb", "missing_CLde"): {("missing_derivative", "drift:alpha")},
+    # the lift coefficient's derivative (every user of CL: the alpha equation, ax, az), or a
+    # free term in the alpha equation alone
+    ("hfb", "missing_CLde"): {("coefficient_derivative", "definition:CL"),
+                              ("missing_derivative", "drift:alpha")},
     ("hfb", "lift_stall"): {("nonlinear_aero", "drift:alpha")},
     ("hfb", "gust"): {("unmodelled_wind", None)},
     ("sp", "phugoid"): {("speed_dynamics", None), ("missing_dynamics", None)},
@@ -62,7 +65,7 @@ TRUE_LABELS = {
 ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "alpha_vane": "sensor_position", "az_position": "sensor_position",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
-                 "missing_CLde": "missing_derivative", "lift_stall": "nonlinear_aero",
+                 "missing_CLde": "coefficient_derivative", "lift_stall": "nonlinear_aero",
                  "gust": "unmodelled_wind", "phugoid": "speed_dynamics",
                  "beta_vane": "sensor_position"}
 UNIT = {"de_delay": "s", "de_lag": "s", "alpha_vane": "m", "az_position": "m",
