@@ -628,3 +628,11 @@ def test_coefficient_derivative_reaches_every_user_of_the_coefficient(tmp_path):
     for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
                     base.drift_expanded() + base.observations_expanded()):
         assert sympy.simplify(a.subs(d, 0) - b) == 0
+
+
+def test_a_coefficient_finding_plots_every_user_of_the_coefficient():
+    from vsidgen.discrepancy.findings import _channels
+
+    finding = {"target": "definition:CL", "added_terms": {"definitions": {"CL": "D_CL_de*de"}},
+               "users": ["drift:alpha", "observations:ax", "observations:az"]}
+    assert _channels(finding, None) == (["ax", "az"], ["alpha"])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from test_estimator import lin_model, make_record
-from vsidgen.estimator import FitOptions, StopReason, fit
+from vsidgen.estimator import FitOptions, fit
 
 
 def _fit(parallel: bool, **kw):
@@ -90,9 +90,3 @@ def test_an_error_in_one_start_stops_all_of_them_and_is_raised():
             options=FitOptions(parallel_starts=True, progress=progress))
     assert not _start_threads()
 
-
-def test_single_start_and_warm_start_stay_serial():
-    res = fit(lin_model(), [make_record(300, seed=11)],
-              options=FitOptions(parallel_starts=True, noise_start="data"))
-    assert res.converged and res.stop_reason in (StopReason.NEWTON_DECREMENT, StopReason.GRADIENT)
-    assert "noise starts tried" not in res.status

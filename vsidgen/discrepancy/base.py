@@ -279,6 +279,7 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
     obs_txt = {}
     for i, (v, e) in enumerate(zip(outputs, sym.observations)):
         obs_txt[v.name] = spec_text(e) or spec_text(obs_exp[i])
+    pnames = {p.name for p in sym.parameters}
     pn = sym.process_noise
     pstates = tuple(pn.states) if pn is not None and pn.states else tuple(v.name for v in states)
     return ModelInfo(
@@ -293,8 +294,7 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         observations_expanded={v.name: _realify(e) for v, e in zip(outputs, obs_exp)},
         process_states=pstates, dt=dt,
         definitions_expanded={n: _realify(e) for n, e in _expanded_definitions(sym).items()},
-        definition_parameters={n: tuple(sorted(s.name for s in e.free_symbols
-                                               if s.name in {p.name for p in sym.parameters}))
+        definition_parameters={n: tuple(sorted(s.name for s in e.free_symbols if s.name in pnames))
                                for n, e in sym.definitions},
         definition_users=_definition_users(sym),
         parameter_units={p.name: getattr(p, "unit", None) for p in sym.parameters})

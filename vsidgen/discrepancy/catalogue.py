@@ -887,7 +887,7 @@ class UnmodelledWind(Effect):
         return max((ev.colored_score(s) for s in c.info["states"]), default=0.0)
 
 
-BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "nonlinear_aero", "unsteady_aero", "control_delay",
-                   "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
+BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "nonlinear_aero",
+                   "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
                    "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 

@@ -332,10 +332,12 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
             locate_part = ev.states[c.target_name].to_json()
         elif c.target_kind == "output" and c.target_name in ev.outputs:
             locate_part = ev.outputs[c.target_name].to_json()
+        users = list((c.info or {}).get("users", ())) if c.target_kind == "definition" else []
         findings.append({
             "rank": rank, "effect": c.effect, "title": _title(c.effect),
             "explanation": c.explanation, "target": c.target, "key": c.key,
             "added_terms": c.added_terms(), "parameters": params,
+            **({"users": users} if users else {}),
             "evidence": {
                 "test": "likelihood-ratio type: 2*(ELBO_after - ELBO_reference) vs chi2(dof), "
                         "Holm-corrected over the candidates of the round; ELBO_reference is "
@@ -431,13 +433,8 @@ def _channels(finding, base) -> tuple[list[str], list[str]]:
                 if getattr(e, "name", None) == name:
                     outs.append(o)
     elif kind == "definition":
-        # a coefficient: every equation and output that uses it (ModelInfo.definition_users)
-        from .base import info_from_model
-
-        try:
-            users = info_from_model(base.model).definition_users.get(name, ())
-        except Exception:  # noqa: BLE001 - a plot is optional
-            users = ()
+        # a coefficient: every equation and output that uses it (the finding's "users")
+        users = finding.get("users") or ()
         sts = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
         outs = [u.split(":", 1)[1] for u in users if u.startswith("observations:")]
     else:

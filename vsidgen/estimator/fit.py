@@ -920,7 +920,7 @@ class _LeadProgress:
         self.lock = threading.Lock()
         self.done: set[int] = set()
         self.phases: dict[int, FitPhase] = {}
-        self.first_it: dict[int, int] = {}
+        self.first_it: int | None = None    # start 0's first iteration
 
     def lead(self) -> int:
         return next((i for i in range(self.n) if i not in self.done), self.n)
@@ -940,9 +940,11 @@ class _LeadProgress:
 
         class _View:
             def __call__(self, it, elbo, grad, elapsed):
-                first = owner.first_it.setdefault(i, it)
-                if i == 0 and it > first:
-                    owner.gate.set()
+                if i == 0:
+                    if owner.first_it is None:
+                        owner.first_it = it
+                    elif it > owner.first_it:
+                        owner.gate.set()
                 if owner.progress is not None and owner.lead() == i:
                     owner.progress(it, elbo, grad, elapsed)
 
@@ -995,7 +997,7 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
     try:
         for i, st in enumerate(starts):
             futures[i] = ex.submit(task, i, st)
-        done, _ = cf.wait(futures, return_when=cf.FIRST_EXCEPTION)
+        cf.wait(futures, return_when=cf.FIRST_EXCEPTION)
         errors = [f.exception() for f in futures if f.done() and f.exception() is not None]
         if errors:
             raise next((e for e in errors if not isinstance(e, _Cancelled)), errors[0])
