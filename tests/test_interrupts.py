@@ -18,7 +18,11 @@ def test_jax_gc_callback_is_guarded():
 
 
 SCENARIO = """
-import gc, sys, time
+import gc, signal, sys, time
+# Python installs its KeyboardInterrupt handler only when SIGINT is not ignored at start;
+# a job started in the background by a non-interactive shell (`pytest ... &`) inherits
+# SIGINT ignored, and then no interrupt is ever raised: install the handler explicitly.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 from vsidgen import precision                      # imports jax, guards its callback
 from vsidgen.interrupts import guard_gc_callbacks
 
