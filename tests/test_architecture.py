@@ -50,7 +50,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
                                                              "discrepancy.noisemodel",
                                                              "discrepancy.delay")),
     ("diagnose: score test", ("discrepancy.score",)),
-    ("diagnose: gated round model", ("discrepancy.gated",)),
+    ("diagnose: gated round model, model families", ("discrepancy.gated", "discrepancy.family")),
     ("diagnose: search", ("discrepancy.search",)),
     ("diagnose: package", ("discrepancy",)),
     ("command line", ("cli",)),

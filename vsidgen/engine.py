@@ -122,7 +122,8 @@ def _timed(fn, args):
     return fn(*args), time.perf_counter() - t0
 
 
-def _one_line(err: BaseException) -> str:
+def error_line(err: BaseException) -> str:
+    """A task's exception as one line: its type and the first line of its message."""
     text = str(err).strip().splitlines()
     return f"{type(err).__name__}: {text[0] if text else ''}".rstrip(": ")
 
@@ -282,7 +283,7 @@ class Engine:
             try:
                 value = fn(*args)
             except Exception as err:  # noqa: BLE001 - a task's failure is its own outcome
-                oc = TaskOutcome(key, TaskStatus.FAILED, error=_one_line(err),
+                oc = TaskOutcome(key, TaskStatus.FAILED, error=error_line(err),
                                  wall_s=time.perf_counter() - t0)
             else:
                 oc = TaskOutcome(key, TaskStatus.DONE, value=value,
@@ -323,7 +324,7 @@ class Engine:
                 except FutureCancelledError:
                     oc = TaskOutcome(key, TaskStatus.CANCELLED, error="cancelled")
                 except Exception as err:  # noqa: BLE001 - the task's own exception
-                    oc = TaskOutcome(key, TaskStatus.FAILED, error=_one_line(err),
+                    oc = TaskOutcome(key, TaskStatus.FAILED, error=error_line(err),
                                      wall_s=time.perf_counter() - t0)
                 results[i] = self._emit(on_done, oc)
                 if stop_when is not None and stop_when(oc):

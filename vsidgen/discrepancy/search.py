@@ -67,6 +67,7 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_mod
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
+from .family import family_chunks, family_key
 from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2, refit_converged, refit_warm,
                        stage1_iterations)
 from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
@@ -200,14 +201,15 @@ def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
 
 
 def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib.Path,
-                 name: str, *, generated_dir, max_iter: int, progress=None):
+                 name: str, *, generated_dir, max_iter: int, progress=None, model=None):
     """Refit candidate ``c`` in stages (see :mod:`.refit`); returns a RefitOutcome.
 
     One spec (``path``, the new parameters at their nesting values, the current ones at their
     estimates) and one compiled problem serve every stage: stage 0 (added states only: the
     candidate at its nesting point, only the assumed density fitted), stage 1 (the current
     parameters held at their estimates, ``FitOptions.held_parameters``) and stage 2
-    (everything free, from stage 1's optimum).
+    (everything free, from stage 1's optimum). ``model``: the candidate's model, already
+    written to ``path`` and loaded (a member of a model family, :mod:`.family`).
     """
     from ..estimator import fit, smooth
     from ..model import load_model
@@ -218,8 +220,11 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     out = RefitOutcome()
     records = list(current.records)
     base_fit = current.fit
-    write_candidate(c, current, info, path, name)
-    m2 = load_model(path, generated_dir=generated_dir)
+    if model is None:
+        write_candidate(c, current, info, path, name)
+        m2 = load_model(path, generated_dir=generated_dir)
+    else:
+        m2 = model
     new_states = [n for n in m2.state_names if n not in current.model.state_names]
     z2, theta2 = parameter_start(m2)
     base_names = set(current.model.parameter_names)
@@ -630,18 +635,20 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
 # the job
 # ---------------------------------------------------------------------------
 
-def _refit_task(c, current, info, path, name, generated_dir, max_iter, group=None):
+def _refit_task(c, current, info, path, name, generated_dir, max_iter, group=None, *,
+                model=None):
     """One candidate's staged refit (runs on an engine worker); (RefitOutcome, messages).
 
     ``group`` (a :class:`.gated.GatedGroup`): refit it as a fit of the round's gated model
-    (compiled once per process and round) and write its own spec at ``path``."""
+    (compiled once per process and round) and write its own spec at ``path``. ``model``:
+    the candidate's model, already loaded from ``path`` (a family member)."""
     from .refit import compile_seconds
 
     msgs: list[str] = []
     c0 = compile_seconds()
     if group is None:
         ro = staged_refit(c, current, info, path, name, generated_dir=generated_dir,
-                          max_iter=max_iter, progress=msgs.append)
+                          max_iter=max_iter, progress=msgs.append, model=model)
     else:
         from .gated import candidate_spec, gated_refit
 
@@ -649,6 +656,55 @@ def _refit_task(c, current, info, path, name, generated_dir, max_iter, group=Non
                          max_iter=max_iter, progress=msgs.append)
         candidate_spec(c, ro.state, current, info, path, name)
     return dataclasses.replace(ro, compile_s=compile_seconds() - c0), msgs
+
+
+def _family_task(members, current, info, generated_dir, max_iter, stop_at=None):
+    """The staged refits of ``members`` [(candidate, spec path, model name)], candidates of
+    one shape that add states, as fits of one :class:`~vsidgen.estimator.ModelFamily` (one
+    compilation for all; :mod:`.family`). Runs on an engine worker; one
+    :class:`~vsidgen.engine.TaskOutcome` per member: DONE with ``_refit_task``'s value,
+    FAILED with the error of a refit that raised, CANCELLED for the members not started
+    when the wall-clock time ``stop_at`` (``time.time()``) had passed. Models that cannot
+    form a family are refitted with their own compilations."""
+    import contextlib
+
+    from ..engine import TaskOutcome, TaskStatus, error_line
+    from ..estimator import ModelFamily
+    from ..model import load_model
+
+    models = []
+    for c, path, name in members:
+        write_candidate(c, current, info, pathlib.Path(path), name)
+        models.append(load_model(path, generated_dir=generated_dir))
+    try:
+        family = ModelFamily(models)
+    except FitError:
+        family = None
+    out = []
+    with family.active() if family is not None else contextlib.nullcontext():
+        for (c, path, name), m in zip(members, models):
+            if stop_at is not None and time.time() >= stop_at:
+                out.append(TaskOutcome(c.key, TaskStatus.CANCELLED, error="time limit reached"))
+                continue
+            t0 = time.perf_counter()
+            try:
+                value = _refit_task(c, current, info, path, name, generated_dir, max_iter,
+                                    model=m)
+            except Exception as err:  # noqa: BLE001 - one member's failure is its own outcome
+                out.append(TaskOutcome(c.key, TaskStatus.FAILED, error=error_line(err),
+                                       wall_s=time.perf_counter() - t0))
+            else:
+                out.append(TaskOutcome(c.key, TaskStatus.DONE, value=value,
+                                       wall_s=time.perf_counter() - t0))
+    return out
+
+
+def _round_task(kind, *args):
+    """An engine task of a round's refits: ``"one"`` candidate (:func:`_refit_task`) or a
+    ``"family"`` of candidates that add states (:func:`_family_task`)."""
+    if kind == "family":
+        return _family_task(*args)
+    return _refit_task(*args)
 
 
 def _projected_task(t, current, path, name, generated_dir, max_iter, group=None):
@@ -1023,8 +1079,9 @@ class _RoundEnd(enum.Enum):
 class _RoundPlan:
     """The refits of one round: ``ranked`` as from :func:`select_candidates`, the spec path
     of each, the indices of the profiled delays, the gated model of each gated candidate's
-    key, the engine tasks of the other refits and ``by_key``: key → (index, locate score,
-    candidate, score result)."""
+    key, the engine tasks of the other refits (one candidate each, or a family of
+    candidates that add states: :mod:`.family`), ``by_key``: key → (index, locate score,
+    candidate, score result), and ``families``: family task key → its candidates' keys."""
 
     ranked: list
     paths: list[pathlib.Path]
@@ -1032,6 +1089,18 @@ class _RoundPlan:
     groups: dict
     tasks: list
     by_key: dict
+    families: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_refits(self) -> int:
+        """Number of candidates the engine tasks refit."""
+        return sum(len(self.families.get(k, (k,))) for k, _ in self.tasks)
+
+    def outcomes(self, oc) -> list:
+        """The per-candidate outcomes of a finished engine task (:func:`.family.member_outcomes`)."""
+        from .family import member_outcomes
+
+        return member_outcomes(oc, self.families.get(oc.key, ()))
 
 
 def _round_name(current: FitState, rnd: int, tag) -> str:
@@ -1170,13 +1239,34 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
         groups = _gated_round_models(run, current, info, rnd,
                                      [c for i, (_, _, c, _) in enumerate(ranked)
                                       if i not in profiled])
-    tasks = [(c.key, (c, current, info, paths[i], _round_name(current, rnd, i + 1), run.gen,
-                      run.max_iter, groups.get(c.key)))
-             for i, (_, _, c, _) in enumerate(ranked) if i not in profiled]
+    index = {c.key: i for i, (_, _, c, _) in enumerate(ranked)}
+    # candidates of one shape that add states: one family (one compilation) per chunk
+    chunks = [] if not run.gated else [
+        ch for ch in family_chunks([c for i, (_, _, c, _) in enumerate(ranked)
+                                    if i not in profiled], 1 if run.engine.serial else
+                                   run.engine.workers) if len(ch) > 1]
+    in_family = {c.key: ch for ch in chunks for c in ch}
+    stop_at = None if run.deadline is None else time.time() + (run.deadline - time.monotonic())
+    tasks, families = [], {}
+    for i, (_, _, c, _) in enumerate(ranked):
+        if i in profiled:
+            continue
+        ch = in_family.get(c.key)
+        if ch is None:
+            tasks.append((c.key, ("one", c, current, info, paths[i],
+                                  _round_name(current, rnd, i + 1), run.gen, run.max_iter,
+                                  groups.get(c.key))))
+        elif ch[0] is c:
+            members = [(m, paths[index[m.key]], _round_name(current, rnd, index[m.key] + 1))
+                       for m in ch]
+            key = family_key(ch)
+            families[key] = [m.key for m in ch]
+            tasks.append((key, ("family", members, current, info, run.gen, run.max_iter,
+                                stop_at)))
     # a trial carries the candidate's locate score (findings: locate_score) and its score
     # test (score_test); the priority that ranked it is in the round's screen
     by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
-    return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key)
+    return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key, families)
 
 
 def filter_start(c: Candidate, sr) -> Candidate:
@@ -1199,9 +1289,16 @@ def filter_start(c: Candidate, sr) -> Candidate:
 
 
 def _refit_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
-                current: FitState, oc) -> None:
-    """Engine callback of one finished refit task: progress lines and a checkpoint with
-    the refit moved from pending to refitted (a cancelled one stays pending)."""
+                current: FitState, task) -> None:
+    """Engine callback of one finished refit task: per candidate it refitted, progress
+    lines and a checkpoint with the refit moved from pending to refitted (a cancelled one
+    stays pending)."""
+    for oc in plan.outcomes(task):
+        _candidate_done(run, st, rnd, plan, current, oc)
+
+
+def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
+                    current: FitState, oc) -> None:
     from ..engine import TaskStatus
 
     i, score, c, sr = plan.by_key[oc.key]
@@ -1234,9 +1331,12 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
 
     status = getattr(run.progress, "refitting", None)  # live status line with time left
     if status is not None and plan.tasks:
-        run.say(status(rnd, 1, len(plan.tasks), plan.tasks[0][0]))
-    outcomes = run.engine.run(_refit_task, plan.tasks, deadline=run.deadline,
-                              on_done=functools.partial(_refit_done, run, st, rnd, plan, current))
+        run.say(status(rnd, 1, plan.n_refits, st.unfinished["pending"][0]))
+    done = run.engine.run(_round_task, plan.tasks, deadline=run.deadline,
+                          on_done=functools.partial(_refit_done, run, st, rnd, plan, current))
+    # per candidate, in the round's rank order (a family's members come back together)
+    outcomes = sorted((o for t in done for o in plan.outcomes(t)),
+                      key=lambda o: plan.by_key[o.key][0])
     if any(o.status is TaskStatus.CANCELLED for o in outcomes):
         return None
     trials = []
@@ -1367,8 +1467,11 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
                      "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
                      "screen": table}
     _checkpoint(run, st, StopReason.RUNNING, report=False)
-    run.say(f"round {rnd}: refitting {len(plan.tasks)} candidates "
-            f"({run.engine.describe()}): " + ", ".join(k for k, _ in plan.tasks))
+    fams = [f" ({' + '.join(ks)}: one compilation)" for ks in plan.families.values()]
+    run.say(f"round {rnd}: refitting {plan.n_refits} candidates "
+            f"({run.engine.describe()}): "
+            + ", ".join(c.key for i, (_, _, c, _) in enumerate(ranked)
+                        if i not in plan.profiled) + "".join(fams))
     trials = _refit_round(run, st, rnd, plan, current)
     if trials is None:
         return _RoundEnd.TIME_LIMIT

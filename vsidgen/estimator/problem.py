@@ -36,9 +36,11 @@ at (y − c)/k, other states 0.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
+import threading
 from collections.abc import Sequence
 
 import jax
@@ -49,10 +51,87 @@ from ..model.dynamics import input_hold as transition_input_hold
 from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
-from .core import NoiseMap, ThetaMap, bucket_length, get_objective, make_cfg, record_data
+from .core import NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective, make_cfg, record_data
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
+
+
+class ModelFamily:
+    """Models of one shape whose problems share compiled objectives, while the family is active.
+
+    ``models`` have the same numbers of states, inputs, outputs and parameters; they differ
+    in their drift and output functions (diagnose's candidates that add the same number of
+    states and parameters to one model). While :meth:`active` (a context manager; the
+    registration is process-wide, so threads started inside see it), every :class:`Problem`
+    of one of these models (matched by its drift and output functions) uses, instead of the
+    model's own compiled objective, the family's
+    :class:`~vsidgen.estimator.core.SwitchedObjective` for the problem's structure (the
+    static keys of its parameter and noise maps and its transition setting), built on first
+    use and kept by the family: the first fit of a member traces and compiles every member's
+    functions once (``jax.lax.switch`` over the members, the branch a run-time argument),
+    the fits of the other members reuse the compiled code. Values equal those of the
+    member's own objective up to rounding (a different compiled function).
+    """
+
+    def __init__(self, models):
+        self.models = tuple(models)
+        if not self.models or len({(m.nx, m.nu, m.ny, m.np) for m in self.models}) != 1:
+            raise FitError("a model family needs models with the same numbers of states, "
+                           "inputs, outputs and parameters")
+        self._objectives: dict = {}
+        self._lock = threading.Lock()
+
+    def branch_of(self, model) -> int | None:
+        """Index of ``model`` in the family (its drift and output functions), else None."""
+        for k, m in enumerate(self.models):
+            if m.drift is model.drift and m.output is model.output:
+                return k
+        return None
+
+    def objective(self, problem: "Problem") -> SwitchedObjective:
+        """The family's objective for ``problem``'s structure (built once per structure)."""
+        key = (problem.tm.static_key(), problem.nm.static_key(), getattr(problem.F, "key", None),
+               problem.integrator, problem.substeps, problem.input_hold)
+        with self._lock:
+            obj = self._objectives.get(key)
+            if obj is None:
+                Fs = [transition(m, integrator=problem.integrator, substeps=problem.substeps,
+                                 inputs=problem.input_hold) for m in self.models]
+                obj = SwitchedObjective(self.models, problem.tm, problem.nm, Fs)
+                self._objectives[key] = obj
+        return obj
+
+    @property
+    def n_compiled_structures(self) -> int:
+        """Number of problem structures compiled so far (one objective each)."""
+        return len(self._objectives)
+
+    @contextlib.contextmanager
+    def active(self):
+        """Problems of the family's models built inside this block share its compilation."""
+        with _FAMILY_LOCK:
+            _ACTIVE_FAMILIES.append(self)
+        try:
+            yield self
+        finally:
+            with _FAMILY_LOCK:
+                _ACTIVE_FAMILIES.remove(self)
+
+
+_ACTIVE_FAMILIES: list[ModelFamily] = []
+_FAMILY_LOCK = threading.Lock()
+
+
+def _active_family(model):
+    """(family, branch) of the innermost active family holding ``model``, else (None, None)."""
+    with _FAMILY_LOCK:
+        families = list(reversed(_ACTIVE_FAMILIES))
+    for fam in families:
+        k = fam.branch_of(model)
+        if k is not None:
+            return fam, k
+    return None, None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -335,16 +414,20 @@ class Problem:
     deterministic limit), ``hold`` (noisy states held deterministic).
 
     Compilation: ``objective`` (default None: this model's own, shared through
-    :func:`~vsidgen.estimator.core.get_objective`) a
-    :class:`~vsidgen.estimator.core.SwitchedObjective` of this problem's layout whose model
-    ``branch`` (its index there) is this problem's, so problems of several models share one
-    compilation (diagnose's score screen).
+    :func:`~vsidgen.estimator.core.get_objective`, or the active :class:`ModelFamily`'s
+    when the model is one of its members) a
+    :class:`~vsidgen.estimator.core.SwitchedObjective` of this problem's layout, or a
+    :class:`ModelFamily`, whose model ``branch`` (its index there) is this problem's, so
+    problems of several models share one compilation (diagnose's score screen and its
+    refits of candidates that add states).
     """
 
     def __init__(self, model, records, options: FitOptions = FitOptions(), *, theta_fixed=None, fixed_G=None,
                  fixed_R=None, relax: bool = False, hold=(), objective=None, branch: int | None = None):
         if (objective is None) != (branch is None):
             raise FitError("a shared objective needs the problem's branch, and a branch a shared objective")
+        if objective is None:
+            objective, branch = _active_family(model)     # ModelFamily.active()
         self.model = model
         self.relax = relax
         self._shared_obj = objective
@@ -391,6 +474,8 @@ class Problem:
         when the first use is inside a JAX trace (:meth:`flat_value` under ``jax.hessian``)."""
         if self._shared_obj is not None:
             obj = self._shared_obj
+            if isinstance(obj, ModelFamily):
+                obj = obj.objective(self)
             if (obj.tm.static_key(), obj.nm.static_key()) != (self.tm.static_key(), self.nm.static_key()):
                 raise FitError("the shared objective's parameter or noise structure differs from the problem's")
         else:
