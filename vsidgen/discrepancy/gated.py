@@ -31,8 +31,9 @@ time constant, a mode at zero gain) still changes the dimension of the assumed d
 adds the entropy of its own marginal, so a model with every candidate's states would not
 be the current model at the nesting point, and its extra states would cost every other
 candidate's refit (the factorisation is cubic in the state dimension). They keep their own
-spec and compilation (:func:`.search.staged_refit`). Candidates whose new names collide go
-to separate groups (one compilation each).
+spec (:func:`.search.staged_refit`); those of one shape share one compilation as a model
+family instead (:mod:`.family`). Candidates whose new names collide go to separate groups
+(one compilation each).
 
 The accepted candidate of a round becomes its own spec (:func:`adopt`): the gated fit
 configured for it is its fit (same likelihood, same free parameters), carried over without

@@ -947,9 +947,10 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
 
     ``gated`` (default): the candidates of a round that add no state are refitted as
     fits of one gated model (:mod:`.gated`; compiled once per round and process, the other
-    candidates' terms fixed at their nesting values); ``False`` compiles every candidate's
-    own model (the reference path). Both give the same findings up to the optimizer's
-    tolerance.
+    candidates' terms fixed at their nesting values), and those that add states of one
+    shape as one model family per worker (:mod:`.family`); ``False`` compiles every
+    candidate's own model (the reference path). Both give the same findings up to the
+    optimizer's tolerance.
 
     Raises:
         VsidgenError: bad spec, data, options or effect plugin.
@@ -1636,7 +1637,8 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--per-candidate-models", action="store_true",
                    help="compile every candidate's own model (the reference path; by default "
                         "the candidates that add no state are gated terms of one model per "
-                        "round, compiled once)")
+                        "round, compiled once, and those that add states of one shape share "
+                        "one compilation per worker)")
     p.add_argument("--screen", action=argparse.BooleanOptionalAction, default=True,
                    help="rank every candidate by the p-value of its score (Lagrange-multiplier) "
                         "statistic at the current fit before refitting (default; "
