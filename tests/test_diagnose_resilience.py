@@ -53,7 +53,8 @@ class _Refits:
         self.calls = []
         self.clock = clock
 
-    def __call__(self, c, current, info, path, name, *, generated_dir, max_iter, progress=None):
+    def __call__(self, c, current, info, path, name, *, generated_dir, max_iter, progress=None,
+                 model=None):
         n = len(self.calls)
         self.calls.append(c.key)
         act = self.actions[n] if n < len(self.actions) else "same"

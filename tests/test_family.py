@@ -9,6 +9,8 @@ statistics agree to the optimiser's tolerance, and the family's functions are tr
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -131,7 +133,7 @@ def test_a_family_refit_that_raises_is_that_candidates_failure(lin1, monkeypatch
     monkeypatch.setattr(search, "staged_refit", second_fails)
     out = search._family_task([(c, tmp / f"ff_{i}.yaml", f"t_ff_{i}")
                                for i, c in enumerate(members)], st, info, tmp / "gen", 200,
-                              stop_at=None)
+                              deadline=None)
     assert out[0].status is TaskStatus.DONE and out[0].value[0].notes == ["first"]
     assert (out[1].status, out[1].error) == (TaskStatus.FAILED, "ValueError: boom")
 
@@ -139,13 +141,21 @@ def test_a_family_refit_that_raises_is_that_candidates_failure(lin1, monkeypatch
 def test_a_family_refit_past_its_deadline_is_cancelled_per_candidate(lin1):
     import time
 
+    import dataclasses
+
+    from vsidgen.discrepancy.family import TaskDeadline
     from vsidgen.discrepancy.search import _family_task
     from vsidgen.engine import TaskStatus
 
     tmp, st, info, cands = lin1
     members = [c for c in cands if c.effect == "missing_dynamics"][:2]
+    past = TaskDeadline.of(time.monotonic() - 1.0)
+    assert past.passed() and not TaskDeadline.of(time.monotonic() + 60.0).passed()
+    # in another process the wall-clock time decides
+    assert dataclasses.replace(past, pid=-1, monotonic=math.inf).passed()
+    assert not dataclasses.replace(past, pid=-1, wall=time.time() + 60.0).passed()
     out = _family_task([(c, tmp / f"fc_{i}.yaml", f"t_fc_{i}") for i, c in enumerate(members)],
-                       st, info, tmp / "gen", 200, stop_at=time.time() - 1.0)
+                       st, info, tmp / "gen", 200, deadline=past)
     assert [o.status for o in out] == [TaskStatus.CANCELLED, TaskStatus.CANCELLED]
 
 

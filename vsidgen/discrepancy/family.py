@@ -22,11 +22,38 @@ candidate (the family task, ``search._family_task``, returns one outcome per mem
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import time
+
 from ..engine import TaskOutcome, TaskStatus
 from .base import Candidate
 
 #: prefix of the engine key of a family task (followed by its members' keys)
 FAMILY_KEY = "family:"
+
+
+@dataclasses.dataclass(frozen=True)
+class TaskDeadline:
+    """The engine's deadline (``time.monotonic()`` of the process that set it) carried into a
+    task: checked on the monotonic clock in that process (serial engine; tests may move that
+    clock) and as wall-clock time (``time.time()``) in any other process, e.g. a worker on
+    another machine."""
+
+    pid: int
+    monotonic: float
+    wall: float
+
+    @classmethod
+    def of(cls, deadline: float | None) -> "TaskDeadline | None":
+        if deadline is None:
+            return None
+        return cls(os.getpid(), float(deadline), time.time() + (deadline - time.monotonic()))
+
+    def passed(self) -> bool:
+        if os.getpid() == self.pid:
+            return time.monotonic() >= self.monotonic
+        return time.time() >= self.wall
 
 
 def family_shape(c: Candidate) -> tuple[int, int, int] | None:
@@ -68,4 +95,4 @@ def member_outcomes(oc: TaskOutcome, keys) -> list[TaskOutcome]:
     return [TaskOutcome(k, oc.status, error=oc.error, wall_s=oc.wall_s) for k in keys]
 
 
-__all__ = ["FAMILY_KEY", "family_chunks", "family_key", "family_shape", "member_outcomes"]
+__all__ = ["FAMILY_KEY", "TaskDeadline", "family_chunks", "family_key", "family_shape", "member_outcomes"]

@@ -67,7 +67,7 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_mod
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .refit import RefitVerdict, refit_verdict
-from .family import family_chunks, family_key
+from .family import TaskDeadline, family_chunks, family_key
 from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2, refit_converged, refit_warm,
                        stage1_iterations)
 from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
@@ -658,14 +658,14 @@ def _refit_task(c, current, info, path, name, generated_dir, max_iter, group=Non
     return dataclasses.replace(ro, compile_s=compile_seconds() - c0), msgs
 
 
-def _family_task(members, current, info, generated_dir, max_iter, stop_at=None):
+def _family_task(members, current, info, generated_dir, max_iter, deadline=None):
     """The staged refits of ``members`` [(candidate, spec path, model name)], candidates of
     one shape that add states, as fits of one :class:`~vsidgen.estimator.ModelFamily` (one
     compilation for all; :mod:`.family`). Runs on an engine worker; one
     :class:`~vsidgen.engine.TaskOutcome` per member: DONE with ``_refit_task``'s value,
     FAILED with the error of a refit that raised, CANCELLED for the members not started
-    when the wall-clock time ``stop_at`` (``time.time()``) had passed. Models that cannot
-    form a family are refitted with their own compilations."""
+    when ``deadline`` (a :class:`.family.TaskDeadline`) had passed. Models that cannot form
+    a family are refitted with their own compilations."""
     import contextlib
 
     from ..engine import TaskOutcome, TaskStatus, error_line
@@ -683,7 +683,7 @@ def _family_task(members, current, info, generated_dir, max_iter, stop_at=None):
     out = []
     with family.active() if family is not None else contextlib.nullcontext():
         for (c, path, name), m in zip(members, models):
-            if stop_at is not None and time.time() >= stop_at:
+            if deadline is not None and deadline.passed():
                 out.append(TaskOutcome(c.key, TaskStatus.CANCELLED, error="time limit reached"))
                 continue
             t0 = time.perf_counter()
@@ -1247,7 +1247,7 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
                                     if i not in profiled], 1 if run.engine.serial else
                                    run.engine.workers) if len(ch) > 1]
     in_family = {c.key: ch for ch in chunks for c in ch}
-    stop_at = None if run.deadline is None else time.time() + (run.deadline - time.monotonic())
+    deadline = TaskDeadline.of(run.deadline)
     tasks, families = [], {}
     for i, (_, _, c, _) in enumerate(ranked):
         if i in profiled:
@@ -1263,7 +1263,7 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
             key = family_key(ch)
             families[key] = [m.key for m in ch]
             tasks.append((key, ("family", members, current, info, run.gen, run.max_iter,
-                                stop_at)))
+                                deadline)))
     # a trial carries the candidate's locate score (findings: locate_score) and its score
     # test (score_test); the priority that ranked it is in the round's screen
     by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
