@@ -138,6 +138,28 @@ def test_a_family_refit_that_raises_is_that_candidates_failure(lin1, monkeypatch
     assert (out[1].status, out[1].error) == (TaskStatus.FAILED, "ValueError: boom")
 
 
+def test_a_member_whose_spec_cannot_be_built_fails_alone(lin1, monkeypatch):
+    from vsidgen.discrepancy import search
+    from vsidgen.discrepancy.refit import RefitOutcome
+    from vsidgen.engine import TaskStatus
+
+    tmp, st, info, cands = lin1
+    members = [c for c in cands if c.effect == "missing_dynamics"][:2]
+    real_write = search.write_candidate
+
+    def first_unwritable(c, *a, **k):
+        if c.key == members[0].key:
+            raise OSError("disk full")
+        return real_write(c, *a, **k)
+
+    monkeypatch.setattr(search, "write_candidate", first_unwritable)
+    monkeypatch.setattr(search, "staged_refit", lambda c, *a, **k: RefitOutcome(notes=[c.key]))
+    out = search._family_task([(c, tmp / f"fw_{i}.yaml", f"t_fw_{i}")
+                               for i, c in enumerate(members)], st, info, tmp / "gen", 200)
+    assert (out[0].status, out[0].error) == (TaskStatus.FAILED, "OSError: disk full")
+    assert out[1].status is TaskStatus.DONE and out[1].value[0].notes == [members[1].key]
+
+
 def test_a_family_refit_past_its_deadline_is_cancelled_per_candidate(lin1):
     import time
 

@@ -672,17 +672,26 @@ def _family_task(members, current, info, generated_dir, max_iter, deadline=None)
     from ..estimator import ModelFamily
     from ..model import load_model
 
-    models = []
+    models, broken = [], {}          # a member whose spec cannot be built fails alone
     for c, path, name in members:
-        write_candidate(c, current, info, pathlib.Path(path), name)
-        models.append(load_model(path, generated_dir=generated_dir))
+        t0 = time.perf_counter()
+        try:
+            write_candidate(c, current, info, pathlib.Path(path), name)
+            models.append(load_model(path, generated_dir=generated_dir))
+        except Exception as err:  # noqa: BLE001 - as the engine reports a failed task
+            models.append(None)
+            broken[c.key] = TaskOutcome(c.key, TaskStatus.FAILED, error=error_line(err),
+                                        wall_s=time.perf_counter() - t0)
     try:
-        family = ModelFamily(models)
+        family = ModelFamily([m for m in models if m is not None])
     except FitError:
         family = None
     out = []
     with family.active() if family is not None else contextlib.nullcontext():
         for (c, path, name), m in zip(members, models):
+            if m is None:
+                out.append(broken[c.key])
+                continue
             if deadline is not None and deadline.passed():
                 out.append(TaskOutcome(c.key, TaskStatus.CANCELLED, error="time limit reached"))
                 continue
