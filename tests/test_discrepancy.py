@@ -636,3 +636,45 @@ def test_a_coefficient_finding_plots_every_user_of_the_coefficient():
     finding = {"target": "definition:CL", "added_terms": {"definitions": {"CL": "D_CL_de*de"}},
                "users": ["drift:alpha", "observations:ax", "observations:az"]}
     assert _channels(finding, None) == (["ax", "az"], ["alpha"])
+
+
+def test_what_would_separate_two_explanations():
+    from vsidgen.discrepancy.findings import separating_experiment as sep
+
+    vane = sep("sensor_position", "output:alpha", "time_skew", "output:alpha")
+    assert "airspeed" in vane and vane == sep("time_skew", "output:alpha", "sensor_position",
+                                              "output:alpha")
+    assert "airspeed" not in sep("sensor_position", "output:az", "time_skew", "output:az")
+    lag = sep("actuator_lag", "input:de", "transport_delay", "input:de")
+    assert "faster de input" in lag and "delay" in lag
+    assert lag == sep("control_delay", "input:de", "actuator_lag", "input:de")
+    assert "trim" in sep("sensor_bias", "output:q", "sensor_scale", "output:q")
+    assert "airspeed channel" in sep("speed_dynamics", "drift:alpha", "missing_dynamics",
+                                     "drift:alpha")
+    assert "--validate" in sep("unmodelled_wind", "drift:alpha", "sensor_bias", "output:q")
+    assert "larger excursions" in sep("nonlinear_aero", "drift:q", "nonlinear_aero", "drift:q")
+    other = sep("time_skew", "output:q", "sensor_bias", "output:alpha")
+    assert "q and alpha" in other
+    # a vane and a skew of different channels are not the airspeed case
+    assert "airspeed" not in sep("sensor_position", "output:alpha", "time_skew", "output:q")
+
+
+def test_ambiguous_finding_says_what_would_separate_it_everywhere():
+    from vsidgen.discrepancy.findings import (conclusion_text, report_section,
+                                              separating_experiment, summary_lines)
+
+    text = separating_experiment("sensor_position", "output:alpha", "time_skew", "output:alpha")
+    f = {"rank": 1, "effect": "sensor_position", "target": "output:alpha",
+         "key": "sensor_position:alpha:q", "title": "Sensor position", "explanation": "vane",
+         "parameters": {}, "added_terms": {},
+         "evidence": {"statistic": 50.0, "threshold": 15.0, "elbo_before": 1.0,
+                      "elbo_after": 26.0, "dof": 1, "alpha": 0.01, "n_candidates": 10},
+         "ambiguous": True,
+         "alternatives": [{"key": "time_skew:alpha", "effect": "time_skew",
+                           "target": "output:alpha", "statistic": 49.0, "separated_by": text}]}
+    conclusion = conclusion_text([f], [], alpha=0.01, validated=False, final_spec="s.yaml")
+    assert "AMBIGUOUS" in conclusion and text in conclusion
+    doc = {"findings": [f], "conclusion": conclusion, "locate": {}}
+    assert any(text in ln for ln in summary_lines(doc, "f.json")[:-1])
+    import html as _html
+    assert _html.escape(text) in report_section(doc)

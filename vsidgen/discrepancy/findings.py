@@ -94,6 +94,66 @@ def _capital(text: str) -> str:
     return text[:1].upper() + text[1:]
 
 
+_FLOW_ANGLES = ("alpha", "beta")
+_INPUT_FILTERS = ("actuator_lag", "transport_delay", "control_delay")
+
+
+def _channel(target: str) -> str:
+    return target.split(":", 1)[-1]
+
+
+def separating_experiment(effect: str, target: str, other_effect: str, other_target: str) -> str:
+    """What data would separate two explanations of one mismatch (plain words, for a finding
+    whose alternative the data could not rule out).
+
+    The physics of the pair decides: a vane's error ``x·q/V`` changes with airspeed while a
+    time skew ``τ·ẏ`` does not; a first-order lag attenuates and its phase saturates at 90°
+    while a pure delay keeps the amplitude and its phase grows linearly with frequency; a
+    bias is constant while a scale error grows with the channel's value; a generic slow
+    mode and the speed (phugoid) dynamics differ in period, damping and the airspeed
+    channel; a gust state differs between records while a physical term repeats; two forms
+    of one effect differ away from the conditions of the record. Any other pair: a
+    manoeuvre that excites the two targets differently.
+    """
+    pair = {effect, other_effect}
+    ch, och = _channel(target), _channel(other_target)
+    same_channel = ch == och
+    if pair == {"sensor_position", "time_skew"} and same_channel:
+        if ch in _FLOW_ANGLES:
+            return (f"a record at another airspeed: a {ch} vane ahead of the centre of gravity "
+                    f"reads {ch} − x·(rate)/V, an error that shrinks as the airspeed grows, "
+                    f"while a time skew τ·d{ch}/dt does not depend on the airspeed")
+        return (f"a manoeuvre whose angular acceleration and {ch} rate differ in shape (a "
+                f"short sharp pulse next to a slow doublet): a sensor position error follows "
+                f"the angular rates and accelerations, a time skew follows d{ch}/dt")
+    if len(pair) == 2 and pair <= set(_INPUT_FILTERS) and same_channel:
+        return (f"a faster {ch} input (a sharp step or a doublet of shorter period): a "
+                f"first-order lag attenuates fast inputs and its phase saturates at 90°, a "
+                f"pure delay keeps the amplitude and its phase grows in proportion to the "
+                f"frequency")
+    if pair == {"sensor_bias", "sensor_scale"} and same_channel:
+        return (f"a record at another trim (another mean {ch}): a bias stays the same, a "
+                f"scale-factor error grows with the value of {ch}")
+    if "speed_dynamics" in pair and "missing_dynamics" in pair:
+        return ("a longer record that excites the speed (a thrust step, or an elevator pulse "
+                "followed by one or two phugoid periods hands-off) with the airspeed "
+                "recorded: a generic slow mode and the speed dynamics then differ in period, "
+                "damping and the airspeed channel")
+    if "unmodelled_wind" in pair:
+        return ("a second record of the same manoeuvre (another flight through other "
+                "turbulence): an unmodelled gust differs from record to record, a physical "
+                "term repeats — validate both on it (--validate)")
+    if effect == other_effect:
+        return (f"a record with larger excursions of the variables the two {effect} forms "
+                f"use (they agree near the conditions of this record and differ away from "
+                f"them)")
+    if same_channel:
+        return (f"a manoeuvre that excites {ch} with another input shape or with another "
+                f"control, so that the two explanations predict different responses")
+    return (f"a manoeuvre that excites {ch} and {och} differently (another input shape or "
+            f"another control), so that the two explanations predict different responses")
+
+
 def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
                     final_spec, base_converged: bool = True, base_status: str = "",
                     numerics_adopted: bool = False) -> str:
@@ -116,8 +176,10 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                "clearly better than " + ", ".join(
                                    f"{a['key']} ({a['statistic']:.4g})" for a in f["alternatives"])
                                + " — the data do not separate these explanations; an engineer "
-                                 "must judge the label (or a maneuver that separates them is "
-                                 "needed).")
+                                 "must judge the label. What would separate them: "
+                               + "; ".join(f"from {a['key']}, {a['separated_by']}"
+                                           for a in f["alternatives"] if a.get("separated_by"))
+                               + ".")
     else:
         what = "physical discrepancy" if numerics_adopted else "discrepancy"
         kept = ("The model's physics is kept as it is (with the numerics or noise-model "
@@ -246,7 +308,9 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         for a in f.get("alternatives") or []:
             word = "AMBIGUOUS" if f.get("ambiguous") else "form uncertain"
             lines.append(f"   {word}: {a['effect']} on {a['target']} explains it nearly as well "
-                         f"(2ΔELBO = {a['statistic']:.4g})")
+                         f"(2ΔELBO = {a['statistic']:.4g})"
+                         + (f"; to separate them: {a['separated_by']}"
+                            if a.get("separated_by") else ""))
     lines.append(f"{document['conclusion']} Findings in {findings_path}.")
     return lines
 
@@ -361,7 +425,10 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "locate": locate_part,
                 "delay_profile": (c.info or {}).get("profile_result")},
             "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
-            "alternatives": [a.alternative_json() for a in trial.alternatives],
+            "alternatives": [{**a.alternative_json(),
+                              "separated_by": separating_experiment(
+                                  c.effect, c.target, a.candidate.effect, a.candidate.target)}
+                             for a in trial.alternatives],
             "spec": str(trial.spec_path)})
     conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
                                  final_spec=final.spec_path,
@@ -558,6 +625,10 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                          + ":</b> nearly as good: " + e(", ".join(
                              f"{a['key']} (2ΔELBO = {a['statistic']:.4g})"
                              for a in f["alternatives"])) + "</p>")
+            seps = [a for a in f["alternatives"] if a.get("separated_by")]
+            if seps:
+                parts.append("<p><b>What would separate them:</b> " + e("; ".join(
+                    f"from {a['key']}, {a['separated_by']}" for a in seps)) + ".</p>")
         if base is not None and final is not None:
             img = plot_finding(f, base, final)
             if img:
