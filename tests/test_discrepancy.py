@@ -164,6 +164,7 @@ def test_every_effect_instantiates_a_compilable_spec(spec, tmp_path):
     if spec == ATTAS:     # every linear term is already in both attas_sp equations
         expected.discard("missing_derivative")
         expected.discard("coefficient_derivative")   # no coefficient definitions
+        expected.discard("coefficient_nonlinear")
     if spec == HFB:       # the speed candidate is for models without a speed state
         expected.discard("speed_dynamics")
     assert expected <= set(by_effect), expected - set(by_effect)
@@ -625,6 +626,52 @@ def test_coefficient_derivative_reaches_every_user_of_the_coefficient(tmp_path):
                if sympy.simplify(a - b) != 0}
     assert changed == {"ax", "az"}
     # at D_CL_de = 0 the augmented model is the base model
+    for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
+                    base.drift_expanded() + base.observations_expanded()):
+        assert sympy.simplify(a.subs(d, 0) - b) == 0
+
+
+def test_coefficient_nonlinearity_breaks_the_lift_curve_for_every_user(tmp_path):
+    """A stall break added to hfb320's lift coefficient: CL += D·max(α − b, 0) reaches the α
+    equation and both accelerometers through CL (nothing else), vanishes at D = 0, and has
+    CL's unit over α's; squares of the flow angle and of each input are proposed too."""
+    import dataclasses
+
+    import sympy
+    from vsidgen.discrepancy.base import get_effect
+    from vsidgen.spec import compile_spec
+
+    info = dataclasses.replace(model_info(HFB, dt=0.1), breaks={"alpha": (("hinge", 0.12),)})
+    cands = {c.key: c for c in get_effect("coefficient_nonlinear").applies_to(info)}
+    assert {"coefficient_nonlinear:CL:sq:alpha", "coefficient_nonlinear:CL:sq:de",
+            "coefficient_nonlinear:Cm:sq:alpha", "coefficient_nonlinear:CD:sq:alpha"} <= set(cands)
+    c = cands["coefficient_nonlinear:CL:hinge:alpha:0.12"]
+    assert c.target == "definition:CL" and c.parameters[0].unit == "1/(rad)"
+    assert c.info["users"] == ["drift:alpha", "observations:ax", "observations:az"]
+    assert cands["coefficient_nonlinear:CL:sq:alpha"].parameters[0].unit == "1/((rad)^2)"
+    sym = compile_spec(_write(c, HFB, tmp_path, info))
+    base = compile_spec(HFB)
+    d = sympy.Symbol(c.parameters[0].name, real=True)
+    al = sympy.Symbol("alpha", real=True)
+    names = [v.name for v in sym.states]
+    new_f = dict(zip(names, sym.drift_expanded()))
+    old_f = dict(zip(names, base.drift_expanded()))
+    consts = {sympy.Symbol(k.name, real=True): k.value for k in base.constants}
+    for s_ in names:
+        diff = sympy.simplify((new_f[s_] - old_f[s_]).subs(consts))
+        if s_ == "alpha":
+            # the lift increment enters exactly as CL does: d(alpha_dot)/dCL · D·max(α − b, 0)
+            dcl = sympy.diff(old_f["alpha"].subs(consts), sympy.Symbol("CLAL", real=True)) / al
+            want = sympy.simplify(dcl * d * sympy.Max(al - sympy.Float(0.12), 0))
+            probe = {al: 0.2, sympy.Symbol("V", real=True): 100.0, d: 1.0}
+            assert float(diff.subs(probe)) == pytest.approx(float(want.subs(probe)), rel=1e-12)
+            assert float(diff.subs({**probe, al: 0.1})) == 0.0      # below the break
+        else:
+            assert diff == 0, (s_, diff)
+    outs = [v.name for v in sym.outputs]
+    changed = {o for o, a, b in zip(outs, sym.observations_expanded(), base.observations_expanded())
+               if sympy.simplify(a - b) != 0}
+    assert changed == {"ax", "az"}
     for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
                     base.drift_expanded() + base.observations_expanded()):
         assert sympy.simplify(a.subs(d, 0) - b) == 0

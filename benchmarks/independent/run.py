@@ -55,7 +55,9 @@ TRUE_LABELS = {
     # free term in the alpha equation alone
     ("hfb", "missing_CLde"): {("coefficient_derivative", "definition:CL"),
                               ("missing_derivative", "drift:alpha")},
-    ("hfb", "lift_stall"): {("nonlinear_aero", "drift:alpha")},
+    # the lift coefficient's break or square (every user of CL), or a term of the α equation
+    ("hfb", "lift_stall"): {("coefficient_nonlinear", "definition:CL"),
+                            ("nonlinear_aero", "drift:alpha")},
     ("hfb", "gust"): {("unmodelled_wind", None)},
     ("sp", "phugoid"): {("speed_dynamics", None), ("missing_dynamics", None)},
     ("sp", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
@@ -65,7 +67,7 @@ TRUE_LABELS = {
 ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "alpha_vane": "sensor_position", "az_position": "sensor_position",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
-                 "missing_CLde": "coefficient_derivative", "lift_stall": "nonlinear_aero",
+                 "missing_CLde": "coefficient_derivative", "lift_stall": "coefficient_nonlinear",
                  "gust": "unmodelled_wind", "phugoid": "speed_dynamics",
                  "beta_vane": "sensor_position"}
 UNIT = {"de_delay": "s", "de_lag": "s", "alpha_vane": "m", "az_position": "m",

@@ -150,6 +150,70 @@ class MissingCoefficientDerivative(Effect):
         return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
 
 
+@register_effect
+class CoefficientNonlinearity(Effect):
+    """A nonlinearity missing from an aerodynamic coefficient (a definition): a square or a
+    change of slope (a break) in a flow angle or a control.
+
+    The coefficient-level counterpart of ``nonlinear_aero``, as ``coefficient_derivative`` is
+    of ``missing_derivative``: lift that loses slope above a stall break changes the α
+    equation and both accelerometers together through ``CL``, so the physical candidate adds
+    ``D·max(α − α_b, 0)`` (or ``D·α²``) to the definition and every user gets it through the
+    model's own geometry. Proposed for every definition that names parameters of its own and
+    reaches a state equation; the variables are the flow angles and the inputs, the break
+    points those located in the record (:func:`.locate.break_points`).
+    """
+
+    id = "coefficient_nonlinear"
+    title = "nonlinearity of an aerodynamic coefficient"
+    explanation = ("The coefficient {coef} depends nonlinearly on {var}: {what}. Every equation "
+                   "and output that uses {coef} ({users}) is off by the same term (typical of "
+                   "flow separation near stall, or of a control losing effectiveness).")
+    doc = "A square or a break in a flow angle or a control added to a coefficient definition (all its users)."
+
+    def applies_to(self, info):
+        out = []
+        flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
+        for d, own in info.definition_parameters.items():
+            users = info.definition_users.get(d, ())
+            drift_users = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
+            if not own or not drift_users:
+                continue
+            unit = _coefficient_unit(info, d)
+            user_text = ", ".join(u.replace(":", " ") for u in users)
+            for v in flow + list(info.input_names):
+                uv = info.unit(v)
+                p = info.fresh(f"D_{d}_{v}{v}")
+                out.append(self._cand(d, f"sq:{v}", p, f"{p}*{v}**2",
+                                      _ratio(unit, f"({uv})^2" if uv else None) if unit else None,
+                                      var=v, what=f"a quadratic term {p}·{v}²", users=users,
+                                      user_text=user_text, drift_users=drift_users))
+                for kind, b in info.breaks.get(v, ()):
+                    p = info.fresh(f"D_{d}_{v}_brk")
+                    term = (f"{p}*max({v} - ({b!r}), 0)" if kind == "hinge"
+                            else f"{p}*max(({b!r}) - {v}, 0)")
+                    side = "above" if kind == "hinge" else "below"
+                    cause = "a break, e.g. flow separation" if v in flow else "saturation"
+                    out.append(self._cand(d, f"{kind}:{v}:{b:.6g}", p, term,
+                                          _ratio(unit, uv) if unit else None, var=v,
+                                          what=f"a change of slope {side} {v} = {b:.4g} ({cause})",
+                                          users=users, user_text=user_text,
+                                          drift_users=drift_users))
+        return out
+
+    def _cand(self, d, reg, p, term, unit, *, var, what, users, user_text, drift_users):
+        return Candidate(
+            effect=self.id, key=f"{self.id}:{d}:{reg}", target=f"definition:{d}",
+            explanation=self.explain(coef=d, var=var, what=what, users=user_text),
+            parameters=(NewParameter(p, unit, f"nonlinear term {reg} of {d}"),),
+            add_terms={"definitions": {d: term}},
+            info={"regressor": reg, "definition": d, "var": var, "states": drift_users,
+                  "users": list(users)})
+
+    def score(self, c, ev):
+        return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
+
+
 def _coefficient_unit(info: ModelInfo, d: str) -> str | None:
     """Unit of definition ``d`` from its constant term: a parameter of its own that appears as
     a term by itself (``CL0`` in ``CL0 + CLAL*alpha``); None when there is none."""
@@ -888,6 +952,6 @@ class UnmodelledWind(Effect):
 
 
 BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "nonlinear_aero",
-                   "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
+                   "coefficient_nonlinear", "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
                    "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 
