@@ -647,6 +647,9 @@ def test_coefficient_nonlinearity_breaks_the_lift_curve_for_every_user(tmp_path)
             "coefficient_nonlinear:Cm:sq:alpha", "coefficient_nonlinear:CD:sq:alpha"} <= set(cands)
     c = cands["coefficient_nonlinear:CL:hinge:alpha:0.12"]
     assert c.target == "definition:CL" and c.parameters[0].unit == "1/(rad)"
+    # the break point is estimated, started at the located value, in the variable's unit
+    bp = c.parameters[1]
+    assert (bp.initial, bp.unit, bp.fixed) == (0.12, "rad", False) and c.n_free == 2
     assert c.info["users"] == ["drift:alpha", "observations:ax", "observations:az"]
     assert cands["coefficient_nonlinear:CL:sq:alpha"].parameters[0].unit == "1/((rad)^2)"
     sym = compile_spec(_write(c, HFB, tmp_path, info))
@@ -662,8 +665,9 @@ def test_coefficient_nonlinearity_breaks_the_lift_curve_for_every_user(tmp_path)
         if s_ == "alpha":
             # the lift increment enters exactly as CL does: d(alpha_dot)/dCL · D·max(α − b, 0)
             dcl = sympy.diff(old_f["alpha"].subs(consts), sympy.Symbol("CLAL", real=True)) / al
-            want = sympy.simplify(dcl * d * sympy.Max(al - sympy.Float(0.12), 0))
-            probe = {al: 0.2, sympy.Symbol("V", real=True): 100.0, d: 1.0}
+            b = sympy.Symbol(bp.name, real=True)
+            want = sympy.simplify(dcl * d * sympy.Max(al - b, 0))
+            probe = {al: 0.2, sympy.Symbol("V", real=True): 100.0, d: 1.0, b: 0.12}
             assert float(diff.subs(probe)) == pytest.approx(float(want.subs(probe)), rel=1e-12)
             assert float(diff.subs({**probe, al: 0.1})) == 0.0      # below the break
         else:

@@ -160,8 +160,12 @@ class CoefficientNonlinearity(Effect):
     equation and both accelerometers together through ``CL``, so the physical candidate adds
     ``D·max(α − α_b, 0)`` (or ``D·α²``) to the definition and every user gets it through the
     model's own geometry. Proposed for every definition that names parameters of its own and
-    reaches a state equation; the variables are the flow angles and the inputs, the break
-    points those located in the record (:func:`.locate.break_points`).
+    reaches a state equation; the variables are the flow angles and the inputs. A break
+    point is a parameter of its own (unit of the variable), started at a value located in the
+    record (:func:`.locate.break_points`) and estimated by the refit: at the nesting value of
+    the slope it does not enter the model (the score screen holds it), so the test of the
+    break is the slope's, and the refit's likelihood ratio counts both (two degrees of
+    freedom).
     """
 
     id = "coefficient_nonlinear"
@@ -190,22 +194,28 @@ class CoefficientNonlinearity(Effect):
                                       user_text=user_text, drift_users=drift_users))
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{d}_{v}_brk")
-                    term = (f"{p}*max({v} - ({b!r}), 0)" if kind == "hinge"
-                            else f"{p}*max(({b!r}) - {v}, 0)")
+                    bp = info.fresh(f"D_{d}_{v}_bp", taken=[p])
+                    term = (f"{p}*max({v} - {bp}, 0)" if kind == "hinge"
+                            else f"{p}*max({bp} - {v}, 0)")
                     side = "above" if kind == "hinge" else "below"
                     cause = "a break, e.g. flow separation" if v in flow else "saturation"
+                    # the break point is estimated from the located grid value b: at D = 0 it
+                    # does not enter (the score test holds it), the refit moves it
                     out.append(self._cand(d, f"{kind}:{v}:{b:.6g}", p, term,
                                           _ratio(unit, uv) if unit else None, var=v,
-                                          what=f"a change of slope {side} {v} = {b:.4g} ({cause})",
+                                          what=f"a change of slope {side} a break point {bp} "
+                                               f"of {v} (started at {b:.4g}; {cause})",
                                           users=users, user_text=user_text,
-                                          drift_users=drift_users))
+                                          drift_users=drift_users,
+                                          extra=(NewParameter(bp, uv, f"break point of {v} in {d}",
+                                                              initial=float(b)),)))
         return out
 
-    def _cand(self, d, reg, p, term, unit, *, var, what, users, user_text, drift_users):
+    def _cand(self, d, reg, p, term, unit, *, var, what, users, user_text, drift_users, extra=()):
         return Candidate(
             effect=self.id, key=f"{self.id}:{d}:{reg}", target=f"definition:{d}",
             explanation=self.explain(coef=d, var=var, what=what, users=user_text),
-            parameters=(NewParameter(p, unit, f"nonlinear term {reg} of {d}"),),
+            parameters=(NewParameter(p, unit, f"nonlinear term {reg} of {d}"),) + tuple(extra),
             add_terms={"definitions": {d: term}},
             info={"regressor": reg, "definition": d, "var": var, "states": drift_users,
                   "users": list(users)})
