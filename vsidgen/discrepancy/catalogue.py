@@ -260,13 +260,20 @@ class NonlinearAero(Effect):
                                       var=v, what=f"a quadratic term {p}·{v}²"))
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{s}_{v}_brk")
-                    term = (f"{p}*max({v} - ({b!r}), 0)" if kind == "hinge"
-                            else f"{p}*max(({b!r}) - {v}, 0)")
+                    bp = info.fresh(f"D_{s}_{v}_bp", taken=[p])
+                    term = (f"{p}*max({v} - {bp}, 0)" if kind == "hinge"
+                            else f"{p}*max({bp} - {v}, 0)")
                     side = "above" if kind == "hinge" else "below"
+                    # the break point is estimated from the located value b (see
+                    # CoefficientNonlinearity: held by the score test, moved by the refit)
                     out.append(self._cand(info, s, f"{kind}:{v}:{b:.6g}", p, term,
                                           _ratio(du, info.unit(v)), var=v,
-                                          what=f"a change of slope {side} {v} = {b:.4g} "
-                                               f"({'break, e.g. flow separation' if v in flow else 'saturation'})"))
+                                          what=f"a change of slope {side} a break point {bp} "
+                                               f"of {v} (started at {b:.4g}; "
+                                               f"{'a break, e.g. flow separation' if v in flow else 'saturation'})",
+                                          extra=(NewParameter(bp, info.unit(v),
+                                                              f"break point of {v} in d{s}/dt",
+                                                              initial=float(b)),)))
             for a in flow:
                 for o in info.state_names + info.input_names:
                     if o == a:
@@ -280,11 +287,11 @@ class NonlinearAero(Effect):
                                                f"(product term {p}·{a}·{o})"))
         return out
 
-    def _cand(self, info, s, reg, p, term, unit, *, var, what):
+    def _cand(self, info, s, reg, p, term, unit, *, var, what, extra=()):
         return Candidate(
             effect=self.id, key=f"{self.id}:{s}:{reg}", target=f"drift:{s}",
             explanation=self.explain(state=s, var=var, what=what),
-            parameters=(NewParameter(p, unit, f"nonlinear term {reg} in d{s}/dt"),),
+            parameters=(NewParameter(p, unit, f"nonlinear term {reg} in d{s}/dt"),) + tuple(extra),
             add_terms={"drift": {s: term}}, info={"regressor": reg, "state": s})
 
     def score(self, c, ev):
