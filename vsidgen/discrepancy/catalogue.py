@@ -97,6 +97,31 @@ class MissingDerivative(Effect):
         return ev.state_score(c.info["state"], c.info["regressor"])
 
 
+def _coefficient_definitions(info: ModelInfo):
+    """(definition, its users, the states whose equations use it, its unit) of every
+    definition with parameters of its own that reaches a state equation (a coefficient
+    model: ``coefficient_derivative``, ``coefficient_nonlinear``)."""
+    for d, own in info.definition_parameters.items():
+        users = info.definition_users.get(d, ())
+        drift_users = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
+        if own and drift_users:
+            yield d, users, drift_users, _coefficient_unit(info, d)
+
+
+def _users_score(c, ev) -> float:
+    """Locate score of a coefficient candidate: its regressor's best share over the state
+    equations that use the coefficient."""
+    return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
+
+
+def _break_term(kind: str, v: str, slope: str, bp: str) -> tuple[str, str]:
+    """(term, side) of a change of slope of ``v`` at the break point ``bp``: ``hinge`` above
+    it, ``hingelo`` below it."""
+    if kind == "hinge":
+        return f"{slope}*max({v} - {bp}, 0)", "above"
+    return f"{slope}*max({bp} - {v}, 0)", "below"
+
+
 @register_effect
 class MissingCoefficientDerivative(Effect):
     """A derivative missing from an aerodynamic coefficient (a definition), not from one equation.
@@ -122,14 +147,9 @@ class MissingCoefficientDerivative(Effect):
 
     def applies_to(self, info):
         out = []
-        for d, own in info.definition_parameters.items():
-            users = info.definition_users.get(d, ())
-            drift_users = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
-            if not own or not drift_users:
-                continue
+        for d, users, drift_users, unit in _coefficient_definitions(info):
             e = info.definitions_expanded.get(d)
             have = {x.name for x in e.free_symbols} if e is not None else set()
-            unit = _coefficient_unit(info, d)
             for v in info.state_names + info.input_names:
                 if v in have:
                     continue
@@ -147,7 +167,7 @@ class MissingCoefficientDerivative(Effect):
         return out
 
     def score(self, c, ev):
-        return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
+        return _users_score(c, ev)
 
 
 @register_effect
@@ -178,12 +198,7 @@ class CoefficientNonlinearity(Effect):
     def applies_to(self, info):
         out = []
         flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
-        for d, own in info.definition_parameters.items():
-            users = info.definition_users.get(d, ())
-            drift_users = [u.split(":", 1)[1] for u in users if u.startswith("drift:")]
-            if not own or not drift_users:
-                continue
-            unit = _coefficient_unit(info, d)
+        for d, users, drift_users, unit in _coefficient_definitions(info):
             user_text = ", ".join(u.replace(":", " ") for u in users)
             for v in flow + list(info.input_names):
                 uv = info.unit(v)
@@ -195,9 +210,7 @@ class CoefficientNonlinearity(Effect):
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{d}_{v}_brk")
                     bp = info.fresh(f"D_{d}_{v}_bp", taken=[p])
-                    term = (f"{p}*max({v} - {bp}, 0)" if kind == "hinge"
-                            else f"{p}*max({bp} - {v}, 0)")
-                    side = "above" if kind == "hinge" else "below"
+                    term, side = _break_term(kind, v, p, bp)
                     cause = "a break, e.g. flow separation" if v in flow else "saturation"
                     # the break point is estimated from the located grid value b: at D = 0 it
                     # does not enter (the score test holds it), the refit moves it
@@ -221,7 +234,7 @@ class CoefficientNonlinearity(Effect):
                   "users": list(users)})
 
     def score(self, c, ev):
-        return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
+        return _users_score(c, ev)
 
 
 def _coefficient_unit(info: ModelInfo, d: str) -> str | None:
@@ -261,9 +274,7 @@ class NonlinearAero(Effect):
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{s}_{v}_brk")
                     bp = info.fresh(f"D_{s}_{v}_bp", taken=[p])
-                    term = (f"{p}*max({v} - {bp}, 0)" if kind == "hinge"
-                            else f"{p}*max({bp} - {v}, 0)")
-                    side = "above" if kind == "hinge" else "below"
+                    term, side = _break_term(kind, v, p, bp)
                     # the break point is estimated from the located value b (see
                     # CoefficientNonlinearity: held by the score test, moved by the refit)
                     out.append(self._cand(info, s, f"{kind}:{v}:{b:.6g}", p, term,
