@@ -590,6 +590,20 @@ def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
         assert contradiction not in quiet_base
 
 
+def _assert_lift_users_changed_and_nested(sym, base, d):
+    """Of hfb320's outputs only the accelerometers (users of CL) change, and with the new
+    parameter ``d`` at 0 the augmented model is the base model."""
+    import sympy
+
+    outs = [v.name for v in sym.outputs]
+    changed = {o for o, a, b in zip(outs, sym.observations_expanded(), base.observations_expanded())
+               if sympy.simplify(a - b) != 0}
+    assert changed == {"ax", "az"}
+    for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
+                    base.drift_expanded() + base.observations_expanded()):
+        assert sympy.simplify(a.subs(d, 0) - b) == 0
+
+
 def test_coefficient_derivative_reaches_every_user_of_the_coefficient(tmp_path):
     """A derivative added to the lift coefficient of hfb320 changes the α equation and both
     accelerometers by exactly the geometry the spec gives CL (and nothing else), is zero at
@@ -621,14 +635,7 @@ def test_coefficient_derivative_reaches_every_user_of_the_coefficient(tmp_path):
             assert sympy.simplify(diff - want) == 0, diff
         else:
             assert diff == 0, (s_, diff)
-    outs = [v.name for v in sym.outputs]
-    changed = {o for o, a, b in zip(outs, sym.observations_expanded(), base.observations_expanded())
-               if sympy.simplify(a - b) != 0}
-    assert changed == {"ax", "az"}
-    # at D_CL_de = 0 the augmented model is the base model
-    for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
-                    base.drift_expanded() + base.observations_expanded()):
-        assert sympy.simplify(a.subs(d, 0) - b) == 0
+    _assert_lift_users_changed_and_nested(sym, base, d)
 
 
 def test_coefficient_nonlinearity_breaks_the_lift_curve_for_every_user(tmp_path):
@@ -672,13 +679,7 @@ def test_coefficient_nonlinearity_breaks_the_lift_curve_for_every_user(tmp_path)
             assert float(diff.subs({**probe, al: 0.1})) == 0.0      # below the break
         else:
             assert diff == 0, (s_, diff)
-    outs = [v.name for v in sym.outputs]
-    changed = {o for o, a, b in zip(outs, sym.observations_expanded(), base.observations_expanded())
-               if sympy.simplify(a - b) != 0}
-    assert changed == {"ax", "az"}
-    for a, b in zip(sym.drift_expanded() + sym.observations_expanded(),
-                    base.drift_expanded() + base.observations_expanded()):
-        assert sympy.simplify(a.subs(d, 0) - b) == 0
+    _assert_lift_users_changed_and_nested(sym, base, d)
 
 
 def test_a_coefficient_finding_plots_every_user_of_the_coefficient():
