@@ -41,7 +41,7 @@ def test_every_objective_jit_compiles_with_the_cpu_options(monkeypatch):
     monkeypatch.setattr(core, "CPU_COMPILER_OPTIONS", {"xla_no_such_option_for_vsidgen": True})
     # the curvature structure is read off the jaxpr: building the objective compiles nothing
     Problem(model, [rec], FitOptions(bucket=False)).obj
-    monkeypatch.setattr(core, "curvature_vars", lambda *a, **k: None)  # no structure: general path
+    monkeypatch.setattr(core, "curvature_pairs", lambda *a, **k: None)  # no structure: general path
     P = Problem(model, [rec], FitOptions(bucket=False))
     s, recs = _point(P)
     (m, r), = recs

@@ -516,6 +516,63 @@ def test_structural_curvature_equals_the_numerical_hessian():
                                       _numeric_curvature(tr, n + m.np, w))
 
 
+def _numeric_pairs(fn, na, nu, points=3):
+    """Entries of the Hessian of fn (summed over outputs) non-zero at random points."""
+    rng = np.random.default_rng(1)
+    hes = jax.jit(jax.hessian(fn))
+    S = np.zeros((na, na), bool)
+    for _ in range(points):
+        H = np.asarray(hes(jnp.asarray(rng.normal(size=na) * rng.uniform(0.3, 3.0)),
+                           jnp.asarray(rng.normal(size=nu))))
+        S |= np.any(H.reshape((-1, na, na)) != 0, axis=0)
+    return S
+
+
+def test_structural_hessian_pairs_and_cover():
+    """The structural Hessian pattern (nothing compiled) holds every non-zero second
+    derivative, and equals the numerical one for element-wise code and the transitions and
+    outputs of the HFB-320 spec (Euler); a vertex cover of it has, for a model linear in θ,
+    only state columns, and the curvature from the cover's columns equals jax.hessian."""
+    from vsidgen.estimator.core import Objective, curvature_pairs, hessian_cover
+    from vsidgen.model import load_model
+    from vsidgen.model.dynamics import transition
+
+    def fn(a, u):
+        return jnp.stack([a[0] * a[1] + jnp.sin(a[2]) * a[3], a[4] / a[5] + u[0] * a[6] ** 2,
+                          jnp.exp(a[7]) + a[8], jnp.dot(a[9:11], a[10:12])])
+
+    na, nu = 12, 1
+    S, num = curvature_pairs(fn, na, nu), _numeric_pairs(fn, na, nu)
+    assert np.array_equal(S, S.T) and not np.any(num & ~S)  # a superset
+    np.testing.assert_array_equal(S[:9, :9], num[:9, :9])   # exact without the matrix product
+    expected = {(0, 1), (2, 2), (2, 3), (4, 5), (5, 5), (6, 6), (7, 7)}
+    assert {(i, j) for i, j in zip(*np.nonzero(num[:9, :9])) if i <= j} == expected
+    cov = hessian_cover(S)
+    assert all(S[i, i] <= (i in cov) for i in range(na))
+    assert all(i in cov or j in cov for i, j in zip(*np.nonzero(S)))
+
+    m = load_model(pathlib.Path(__file__).resolve().parents[1] / "specs" / "hfb320.yaml")
+    n, na = m.nx, m.nx + m.np
+    F = transition(m, integrator="euler", substeps=1, inputs="zoh")
+    for f, w in ((lambda a, u: F(a[:n], u, a[n:], 0.05), m.nu), (lambda a, u: m.output(a[:n], u, a[n:]), m.nu)):
+        S = curvature_pairs(f, na, w)
+        np.testing.assert_array_equal(S, _numeric_pairs(f, na, w))
+        kv = np.nonzero(S.any(0))[0]
+        cov = kv[hessian_cover(S[np.ix_(kv, kv)])]
+        assert set(cov) <= set(range(n)) and len(cov) < len(kv)  # states only: linear in θ
+        rng = np.random.default_rng(2)
+        A = jnp.asarray(rng.normal(size=(3, 2, na)) * 0.3)
+        u = jnp.asarray(rng.normal(size=(3, w)) * 0.1)
+        nout = f(A[0, 0], u[0]).shape[0]
+        lam = jnp.asarray(rng.normal(size=(3, 2, nout)))
+        K = Objective._curvature(f, S, na)(A, lam, u)
+        ref = jax.vmap(jax.vmap(jax.hessian(lambda a, l, uk: jnp.dot(l, f(a, uk))), (0, 0, None)), (0, 0, 0))(A, lam, u)
+        np.testing.assert_allclose(K, ref, rtol=1e-12, atol=1e-12 * float(jnp.abs(ref).max()))
+        T = Objective._curvature_tensor(f, S, na)(A[:, 0], u)
+        np.testing.assert_allclose(T, jax.vmap(jax.hessian(f))(A[:, 0], u), rtol=1e-12,
+                                   atol=1e-12 * float(jnp.abs(ref).max()))
+
+
 def _branch_drift(x, u, p):
     # curvature in x only beyond a threshold no random point may reach: must keep the general path
     stall = jnp.where(x[0] > 0.3, 4.0 * (x[0] - 0.3) ** 2, 0.0)

@@ -466,10 +466,29 @@ def _or_all(a) -> int:
     return v
 
 
-def _jaxpr_curvature(jaxpr, ins):
-    """Dependence and curvature bit masks of the outputs of ``jaxpr`` (see :func:`curvature_vars`);
-    ``ins``: one (dep, curv) pair of object arrays per input variable. None when a primitive has
-    no rule."""
+def _bits(x: int):
+    """Indices of the set bits of ``x``."""
+    while x:
+        low = x & -x
+        yield low.bit_length() - 1
+        x ^= low
+
+
+def _outer(a: int, b: int, na: int) -> int:
+    """The symmetric pair mask {(i, j), (j, i): i ∈ a, j ∈ b}: bit i·na + j is pair (i, j)."""
+    m = 0
+    for i in _bits(a):
+        m |= b << (i * na)
+    for j in _bits(b):
+        m |= a << (j * na)
+    return m
+
+
+def _jaxpr_curvature(jaxpr, ins, na: int):
+    """Dependence and curvature masks of the outputs of ``jaxpr`` (see :func:`curvature_pairs`);
+    ``ins``: one (dep, curv) pair of object arrays per input variable: dep a bit mask of the
+    na variables, curv a mask of the pairs (bit i·na + j: ∂²/∂a_i∂a_j may be non-zero). None
+    when a primitive has no rule."""
     from jax.extend.core import Literal
 
     env = {}
@@ -483,6 +502,13 @@ def _jaxpr_curvature(jaxpr, ins):
             return z, z
         return env[v]
 
+    def vec(fn):
+        return np.vectorize(fn, otypes=[object])
+
+    square = vec(lambda a: _outer(a, a, na))
+    product = vec(lambda a, b: _outer(a, b, na) if (a and b) else 0)
+    quotient = vec(lambda a, b: (_outer(a, b, na) | _outer(b, b, na)) if b else 0)
+
     for v, dc in zip(jaxpr.invars, ins):
         env[v] = dc
     for eqn in jaxpr.eqns:
@@ -495,7 +521,7 @@ def _jaxpr_curvature(jaxpr, ins):
             if sub is None:
                 return None
             subj = getattr(sub, "jaxpr", sub)
-            res = _jaxpr_curvature(subj, ops[len(ops) - len(subj.invars):])
+            res = _jaxpr_curvature(subj, ops[len(ops) - len(subj.invars):], na)
             if res is None:
                 return None
             for v, dc in zip(eqn.outvars, res):
@@ -518,20 +544,18 @@ def _jaxpr_curvature(jaxpr, ins):
                 d = _obj(d | x)
             for x in bc:
                 c = _obj(c | x)
-            if name == "mul":
-                both = np.vectorize(lambda a, b: (a | b) if (a and b) else 0, otypes=[object])
-                c = _obj(c | both(bd[0], bd[1]))
-            elif name == "div":
-                den = np.vectorize(lambda a, b: (a | b) if b else 0, otypes=[object])
-                c = _obj(c | den(bd[0], bd[1]))
+            if name == "mul":       # (ab)'' = a''b + ab'' + a'b'ᵀ + b'a'ᵀ
+                c = _obj(c | product(bd[0], bd[1]))
+            elif name == "div":     # a/b adds a'b'ᵀ (both ways) and b'b'ᵀ
+                c = _obj(c | quotient(bd[0], bd[1]))
             elif name == "integer_pow":
                 y = int(eqn.params["y"])
                 if y == 0:
                     d = c = _zeros_bits(d.shape)
                 elif y != 1:
-                    c = _obj(c | d)
-            elif name in _NONLINEAR_PRIMS:
-                c = _obj(c | d)
+                    c = _obj(c | square(d))
+            elif name in _NONLINEAR_PRIMS:  # g(a)'' = g'' a'a'ᵀ + g' a''
+                c = _obj(c | square(d))
             d = np.broadcast_to(d, shape).copy()
             c = np.broadcast_to(c, shape).copy()
         elif name == "iota":
@@ -543,7 +567,7 @@ def _jaxpr_curvature(jaxpr, ins):
             d, c = _obj(d).reshape(shape), _obj(c).reshape(shape)
         elif name == "dot_general":
             da, db = _or_all(deps[0]), _or_all(deps[1])
-            cv = _or_all(curvs[0]) | _or_all(curvs[1]) | ((da | db) if (da and db) else 0)
+            cv = _or_all(curvs[0]) | _or_all(curvs[1]) | (_outer(da, db, na) if (da and db) else 0)
             d, c = _zeros_bits(shape), _zeros_bits(shape)
             d.fill(da | db)
             c.fill(cv)
@@ -553,19 +577,20 @@ def _jaxpr_curvature(jaxpr, ins):
     return [read(v) for v in jaxpr.outvars]
 
 
-def curvature_vars(fn, na: int, nu: int):
-    """Indices of the arguments a of ``fn(a, u)`` that enter its second derivatives (None: all).
+def curvature_pairs(fn, na: int, nu: int):
+    """Which second derivatives ∂²fn/∂a_i∂a_j of ``fn(a, u)`` may be non-zero: an (na, na)
+    boolean matrix, symmetric (None: unknown, treat all as non-zero).
 
-    Used to restrict the model curvature K = ∇²_a(λ·fn) to the variables that actually have
-    curvature (e.g. the state–parameter products of a model linear in the states). Found
-    structurally on the jaxpr of ``fn``, without compiling anything: every value carries the
-    set of variables it depends on (dep) and of those with curvature in it (curv); a linear
-    primitive unites them, ``a·b`` adds dep(a) ∪ dep(b) to curv when both depend on
-    variables, ``a/b`` when b does, an analytic non-linear primitive (exp, sin, integer
-    powers, ...) makes its whole dep curved, and element-moving primitives move the sets
-    like the elements. The result contains every variable with a non-zero second derivative
-    (a superset only where terms cancel exactly). A primitive without a rule (comparisons,
-    select, abs, custom rules, ...) keeps all variables.
+    Found structurally on the jaxpr of ``fn``, without compiling anything: every value
+    carries the set of variables it depends on (dep) and the set of variable pairs of its
+    Hessian that may be non-zero (curv). A linear primitive unites them; ``a·b`` adds
+    dep(a) × dep(b) (both orders) when both depend on variables, ``a/b`` that and
+    dep(b) × dep(b); an analytic non-linear primitive (exp, sin, integer powers, ...) adds
+    dep × dep; a matrix product adds the product of its operands' whole dep sets;
+    element-moving primitives move the sets like the elements. The result contains every
+    non-zero pair (a superset where terms cancel exactly or a matrix product mixes
+    elements). A primitive without a rule (comparisons, select, abs, custom rules, ...) gives
+    None.
     """
     try:
         jx = jax.make_jaxpr(fn)(jnp.zeros(na), jnp.zeros(nu))
@@ -577,13 +602,46 @@ def curvature_vars(fn, na: int, nu: int):
     for i in range(na):
         dep_a[i] = 1 << i
     res = _jaxpr_curvature(jx.jaxpr, [(dep_a, _zeros_bits(na)),
-                                      (_zeros_bits(nu), _zeros_bits(nu))])
+                                      (_zeros_bits(nu), _zeros_bits(nu))], na)
     if res is None:
         return None
     mask = 0
     for _, c in res:
         mask |= _or_all(c)
-    return np.array([i for i in range(na) if mask >> i & 1], int)
+    S = np.zeros((na, na), bool)
+    for b in _bits(mask):
+        S[b // na, b % na] = True
+    return S
+
+
+def curvature_vars(fn, na: int, nu: int):
+    """Indices of the arguments a of ``fn(a, u)`` that enter its second derivatives (None: all).
+
+    Used to restrict the model curvature K = ∇²_a(λ·fn) to the variables that actually have
+    curvature (e.g. the state–parameter products of a model linear in the states): the rows of
+    :func:`curvature_pairs` with a non-zero pair (structural, nothing compiled; a superset only
+    where terms cancel exactly).
+    """
+    S = curvature_pairs(fn, na, nu)
+    return None if S is None else np.nonzero(S.any(axis=0))[0]
+
+
+def hessian_cover(S) -> np.ndarray:
+    """Indices C of a vertex cover of the Hessian pattern S (every non-zero pair (i, j) has i or
+    j in C; every i with S[i, i] is in C): the Hessian is then exact from its columns C alone
+    (the other entries by symmetry or structurally zero). Greedy: the diagonal first, then
+    the variable covering most of the pairs left (the lowest index on ties)."""
+    S = np.array(S, bool)
+    S = S | S.T
+    cover = set(np.nonzero(np.diag(S))[0].tolist())
+    left = S.copy()
+    for i in cover:
+        left[i, :] = left[:, i] = False
+    while left.any():
+        i = int(np.argmax(left.sum(axis=0)))
+        cover.add(i)
+        left[i, :] = left[:, i] = False
+    return np.array(sorted(cover), int)
 
 
 # --------------------------------------------------------------------------- objective
@@ -629,7 +687,8 @@ class Objective:
         self.chunk = ASSEMBLY_CHUNK
         na = n + model.np
         nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
-        # variables of a = (x, θ) with model curvature (None: all; see curvature_vars)
+        # which second derivatives of F and h over a = (x, θ) may be non-zero (None: all;
+        # see curvature_pairs)
         self.kv_F, self.kv_h = self._curvature_structure(na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
         opts = compiler_options()
@@ -639,10 +698,10 @@ class Objective:
         self._back = jax.jit(self._back_impl, compiler_options=opts)
 
     def _curvature_structure(self, na: int, nu: int):
-        """(kv_F, kv_h): the variables of a = (x, θ) with curvature in F and h (:func:`curvature_vars`)."""
+        """(kv_F, kv_h): the Hessian patterns of F and h over a = (x, θ) (:func:`curvature_pairs`)."""
         n, F, h = self.n, self.F, self.model.output
-        return (curvature_vars(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu),
-                curvature_vars(lambda a, u: h(a[:n], u, a[n:]), na, nu))
+        return (curvature_pairs(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu),
+                curvature_pairs(lambda a, u: h(a[:n], u, a[n:]), na, nu))
 
     # -- the model functions (one model; :class:`SwitchedObjective` selects one of several by ``cfg``)
     def transition_of(self, cfg):
@@ -779,8 +838,10 @@ class Objective:
           S = c Σ_k,i e eᵀ, + ∇²_b (Σ_k,i ∇_z ψ · z_i(b)) (curvature of the lifting).
 
         Cost-saving structure (all exact): K_i is formed only over the variables with model
-        curvature (:func:`curvature_vars`, e.g. the θ–x products of a model linear in x;
-        skipped when there are none, as for linear outputs); ∂P/∂b and ∂σ/∂b are non-zero only
+        curvature (:func:`curvature_pairs`, e.g. the θ–x products of a model linear in x;
+        skipped when there are none, as for linear outputs), from the columns of a vertex
+        cover of its Hessian pattern (the states of a model linear in θ), the other entries
+        by symmetry; ∂P/∂b and ∂σ/∂b are non-zero only
         in the process / measurement noise columns of b, so the coupling terms are formed in
         those columns only; the θ rows of A_i are the same for all points, so the per-pair
         θ-coupling is summed over the points first and multiplied by ∂θ/∂b once per record.
@@ -867,43 +928,89 @@ class Objective:
             cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
     @staticmethod
-    def _restricted(kv, na):
-        """(kv, select, place) for second derivatives over the variables ``kv`` of a = (x, θ)
-        only, or None when ``kv`` is empty. ``select(fun)`` is ``g(av, a, …) = fun(a with its
-        kv entries replaced by av, …)`` (differentiate g in av); ``place(M)`` puts the
-        trailing (nv, nv) axes of M into a-space (zero outside kv; a gather)."""
-        kv = np.arange(na) if kv is None else np.asarray(kv, int)
+    def _restricted(S, na):
+        """(kv, select, place, columns) for second derivatives over the variables with
+        curvature only, or None when there are none. ``S``: the Hessian pattern over
+        a = (x, θ) (:func:`curvature_pairs`; None: all pairs). kv: the variables of a with a
+        non-zero pair; ``select(fun)`` is ``g(av, a, …) = fun(a with its kv entries replaced
+        by av, …)`` (differentiate g in av); ``columns``: the positions in kv of a vertex cover
+        of the pattern (:func:`hessian_cover`), None when it is all of kv; ``place(M)`` puts
+        the trailing axes of M into a-space (zero outside kv; one gather): M is (…, nv, nv) a
+        Hessian over kv, or with ``columns`` (…, nc, nv) its columns there — the other
+        entries are taken by symmetry or are structurally zero."""
+        S = np.ones((na, na), bool) if S is None else np.asarray(S, bool)
+        S = S | S.T
+        kv = np.nonzero(S.any(axis=0))[0]
         if len(kv) == 0:
             return None
+        nv = len(kv)
+        cols = hessian_cover(S[np.ix_(kv, kv)])
+        cols = None if len(cols) == nv else cols
         Esel = jnp.asarray(np.eye(na)[kv])  # (nv, na)
         keep = jnp.asarray(np.isin(np.arange(na), kv, invert=True).astype(float))
-        where = np.full(na, len(kv), int)  # a-index -> position in kv (len(kv): zero row)
-        where[kv] = np.arange(len(kv))
-        full = bool(np.array_equal(kv, np.arange(na)))
+        pos = np.full(na, -1, int)  # a-index -> position in kv
+        pos[kv] = np.arange(nv)
+        if cols is None:
+            full = bool(np.array_equal(kv, np.arange(na)))
+            zero, idx = nv * nv, None
+            if not full:
+                idx = np.full((na, na), zero, int)
+                idx[np.ix_(kv, kv)] = (np.arange(nv)[:, None] * nv + np.arange(nv)[None, :])
+        else:
+            cpos = np.full(nv, -1, int)  # kv position -> column number
+            cpos[cols] = np.arange(len(cols))
+            zero = len(cols) * nv
+            idx = np.full((na, na), zero, int)
+            for i in kv:
+                for j in kv:
+                    pi, pj = pos[i], pos[j]
+                    if cpos[pj] >= 0:
+                        idx[i, j] = cpos[pj] * nv + pi
+                    elif cpos[pi] >= 0:
+                        idx[i, j] = cpos[pi] * nv + pj
+                    elif S[i, j]:  # pragma: no cover - the cover guarantees it
+                        raise AssertionError("Hessian cover misses a pair")
 
         def select(fun):
             return lambda av, a, *rest: fun(a * keep + av @ Esel, *rest)
 
         def place(M):
-            if full:  # every variable, in order: already a-space
+            if idx is None:  # every variable, in order: already a-space
                 return M
-            pad = [(0, 0)] * (M.ndim - 2) + [(0, 1), (0, 1)]
-            return jnp.pad(M, pad)[..., where[:, None], where[None, :]]
-        return kv, select, place
+            flat = M.reshape(M.shape[:-2] + (-1,))
+            flat = jnp.concatenate([flat, jnp.zeros(flat.shape[:-1] + (1,), flat.dtype)], axis=-1)
+            return flat[..., idx]
+        return kv, select, place, cols
 
     @staticmethod
-    def _curvature(fun, kv, na):
-        """Per-point curvature K = ∇²_a(λ·fun) over a = (x, θ), zero outside the variables ``kv``.
+    def _columns(jac, cols, nv):
+        """Forward-over-reverse columns ``cols`` of the derivative of ``jac`` (a function of av
+        and further arguments, with outputs (…, nv)): (len(cols), …, nv); with cols None the
+        whole Jacobian in jax.hessian's layout (…, nv, nv)."""
+        if cols is None:
+            return jax.jacfwd(jac)
+        E = jnp.asarray(np.eye(nv)[cols])
+
+        def columns(av, *rest):
+            return jax.vmap(lambda v: jax.jvp(lambda x: jac(x, *rest), (av,), (v,))[1])(E)
+        return columns
+
+    @staticmethod
+    def _curvature(fun, S, na):
+        """Per-point curvature K = ∇²_a(λ·fun) over a = (x, θ), zero outside the variables with
+        curvature (Hessian pattern ``S``, :func:`curvature_pairs`).
 
         Returns ``K(A, lam, u)`` for a chunk: A (K, P, na) points, lam (K, P, nout) multipliers,
-        u (K, …) the items' inputs; result (K, P, na, na). The Hessian is formed only over the
-        ``kv`` variables (forward-over-reverse)."""
-        r = Objective._restricted(kv, na)
+        u (K, …) the items' inputs; result (K, P, na, na). Only the columns of a vertex cover
+        of the pattern are differentiated (forward-over-reverse), the rest placed by symmetry:
+        exact, with as many forward passes as the cover has variables (e.g. the states of a
+        model linear in its parameters, instead of states and parameters)."""
+        r = Objective._restricted(S, na)
         if r is None:
             return None
-        kv, select, place = r
+        kv, select, place, cols = r
         g = select(fun)
-        hes = jax.hessian(lambda av, a, lam, uk: jnp.dot(lam, g(av, a, uk)))
+        hes = Objective._columns(jax.grad(lambda av, a, lam, uk: jnp.dot(lam, g(av, a, uk))), cols, len(kv))
 
         def K(A, lam, u):
             per_item = jax.vmap(hes, (0, 0, 0, None))
@@ -911,19 +1018,21 @@ class Objective:
         return K
 
     @staticmethod
-    def _curvature_tensor(fun, kv, na):
-        """Second derivatives ∇²_a fun_j of every output j (zero outside ``kv``).
+    def _curvature_tensor(fun, S, na):
+        """Second derivatives ∇²_a fun_j of every output j (zero outside the variables with
+        curvature; only the columns of a cover differentiated, as in :meth:`_curvature`).
 
         Returns ``T(A, u)`` for a chunk: A (K, na) one point per item, u (K, …); result
         (K, nout, na, na). K(λ) of :meth:`_curvature` is Σ_j λ_j T_j at that point."""
-        r = Objective._restricted(kv, na)
+        r = Objective._restricted(S, na)
         if r is None:
             return None
-        kv, select, place = r
-        hes = jax.hessian(select(fun))
+        kv, select, place, cols = r
+        hes = Objective._columns(jax.jacrev(select(fun)), cols, len(kv))
 
         def T(A, u):
-            return place(jax.vmap(hes, (0, 0, 0))(A[..., kv], A, u))
+            H = jax.vmap(hes, (0, 0, 0))(A[..., kv], A, u)  # (K, nout, nv, nv) or (K, nc, nout, nv)
+            return place(H if cols is None else jnp.swapaxes(H, 1, 2))
         return T
 
     @staticmethod
@@ -1071,8 +1180,15 @@ class Objective:
             return val + lin - jax.lax.stop_gradient(lin)
 
         b = c["b"]
-        f, gsh = jax.value_and_grad(shared)(b)
-        Hsh = jax.hessian(shared)(b)
+
+        def grad_aux(bb):
+            g = jax.jacfwd(shared)(bb)
+            return g, g
+        # forward over forward: the shared function is a few small unrolled factorisations
+        # of n×n matrices; its second forward derivative is a smaller XLA graph than
+        # forward over reverse (jax.hessian), which halves its part of the compile time
+        Hsh, gsh = jax.jacfwd(grad_aux, has_aux=True)(b)
+        f = shared(b)
         Hbb = (Hsh + jnp.einsum("iwa,iwv,ivb->ab", Az, pa["sHz"], Az)
                + jnp.einsum("iwa,iwv,ivb->ab", An, na["sHz"], An))
         Cb = (jnp.einsum("iwa,iwc,cb->ab", Az, pa["sCz"], Ep)
@@ -1160,7 +1276,7 @@ class SwitchedObjective(Objective):
     models share one trace and one XLA compilation of each function. Every value equals
     the one of the model's own :class:`Objective` up to rounding (a different compiled
     function). The variables with model curvature are the union over the models
-    (:func:`curvature_vars`; the curvature of the others is exactly zero there).
+    (:func:`curvature_pairs`; the curvature of the others is exactly zero there).
     """
 
     def __init__(self, models, theta_map: ThetaMap, noise_map: NoiseMap, Fs):
@@ -1175,15 +1291,15 @@ class SwitchedObjective(Objective):
         self.point_jacobians = "autodiff"
 
     def _curvature_structure(self, na: int, nu: int):
-        """The union over the models of their variables with curvature (:func:`curvature_vars`,
-        structural: nothing is compiled); None (all variables) when one model has no structure."""
+        """The union over the models of their Hessian patterns (:func:`curvature_pairs`,
+        structural: nothing is compiled); None (all pairs) when one model has no structure."""
         n = self.n
 
         def union(fns):
-            sets = [curvature_vars(f, na, nu) for f in fns]
-            if any(v is None for v in sets):
+            pats = [curvature_pairs(f, na, nu) for f in fns]
+            if any(v is None for v in pats):
                 return None
-            return np.array(sorted(set().union(*(set(map(int, v)) for v in sets))), int)
+            return np.logical_or.reduce(pats)
 
         return (union([functools.partial(lambda a, u, F: F(a[:n], u, a[n:], 0.05), F=F)
                        for F in self.transitions]),
