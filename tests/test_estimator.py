@@ -565,11 +565,12 @@ def test_structural_hessian_pairs_and_cover():
         u = jnp.asarray(rng.normal(size=(3, w)) * 0.1)
         nout = f(A[0, 0], u[0]).shape[0]
         lam = jnp.asarray(rng.normal(size=(3, 2, nout)))
-        K = Objective._curvature(f, S, na)(A, lam, u)
-        ref = jax.vmap(jax.vmap(jax.hessian(lambda a, l, uk: jnp.dot(l, f(a, uk))), (0, 0, None)), (0, 0, 0))(A, lam, u)
+        K = jax.jit(Objective._curvature(f, S, na))(A, lam, u)
+        ref = jax.jit(jax.vmap(jax.vmap(jax.hessian(lambda a, l, uk: jnp.dot(l, f(a, uk))), (0, 0, None)),
+                               (0, 0, 0)))(A, lam, u)
         np.testing.assert_allclose(K, ref, rtol=1e-12, atol=1e-12 * float(jnp.abs(ref).max()))
-        T = Objective._curvature_tensor(f, S, na)(A[:, 0], u)
-        np.testing.assert_allclose(T, jax.vmap(jax.hessian(f))(A[:, 0], u), rtol=1e-12,
+        T = jax.jit(Objective._curvature_tensor(f, S, na))(A[:, 0], u)
+        np.testing.assert_allclose(T, jax.jit(jax.vmap(jax.hessian(f)))(A[:, 0], u), rtol=1e-12,
                                    atol=1e-12 * float(jnp.abs(ref).max()))
 
 
