@@ -436,7 +436,10 @@ def blocks_by_hvp(P, current, s, recs, *, det_std: float):
         g, h = jax.vmap(col)(E)
         return g[0], h
 
-    fn = jax.jit(hvps)
+    from ..estimator.core import compiler_options
+    # the objective's XLA options (elemental emitters on the CPU): the forward-over-reverse
+    # graph of a whole batch model is the screen's largest compilation
+    fn = jax.jit(hvps, compiler_options=compiler_options())
     kc = max(1, min(HVP_CHUNK, k, HVP_BUDGET // max(lay.size, 1)))
     cols, g = [], None
     for a in range(0, k, kc):
