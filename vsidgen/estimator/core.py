@@ -38,6 +38,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.linalg import block_diag
 
 from ..data import resolution
 from ..errors import FitError
@@ -1164,31 +1165,54 @@ class Objective:
         """Value, border gradient and H_bb (the shared functions of b plus the summed point pieces
         through ∂z/∂b), and the per-sample blocks D, B, W, g_μ from the pair and node pieces."""
         n, npar, nq, nb = c["n"], c["npar"], self.nq, self.nb
-        lift, Az, An, Jth, Ep, Es = c["lift"], c["Az"], c["An"], c["Jth"], c["Ep"], c["Es"]
+        Az, An, Jth, Ep, Es = c["Az"], c["An"], c["Jth"], c["Ep"], c["Es"]
 
-        # shared functions of the border: noise terms, lifting curvature, entropy
-        def shared(bb):
-            d0b, d1b, dnb, thb, sigb, Pb = lift(bb)
-            _, Gb, _ = self.unpack_s(bb[nq:], cfg)
-            logdetQ = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(jnp.sqrt(dt) * Gb))))
-            val = (0.5 * jnp.sum(Pb * pa["sS"]) + (n_true - 1) * 0.5 * (logdetQ + n * LOG2PI)
-                   + jnp.sum(0.5 * na["sSe"] / sigb ** 2 + na["sM"] * (jnp.log(sigb) + 0.5 * LOG2PI))
-                   + self.neg_entropy(bb[:nq], n_true))
-            zp = jnp.concatenate([d0b, d1b, jnp.broadcast_to(thb, (4 * n, npar))], axis=1)
-            zn = jnp.concatenate([dnb, jnp.broadcast_to(thb, (2 * n, npar))], axis=1)
-            lin = jnp.sum(jax.lax.stop_gradient(pa["sgz"]) * zp) + jnp.sum(jax.lax.stop_gradient(na["sgz"]) * zn)
-            return val + lin - jax.lax.stop_gradient(lin)
+        # shared functions of the border: noise terms, lifting curvature, entropy. They are a
+        # sum of three functions of disjoint parts of b = (r, z, w): the assumed density's
+        # (entropy, sigma-point offsets), θ's (θ(z) of the points' lifting) and the noise's
+        # (P = Q⁻¹ and σ), so their Hessian is block diagonal, each block its own derivative
+        nt = self.tm.n_free
+        sgp = jax.lax.stop_gradient(pa["sgz"])  # (4n, 2n + np): Σ_k ∇_z ψ per point
+        sgn = jax.lax.stop_gradient(na["sgz"])  # (2n, n + np)
+        sg_th = jnp.sum(sgp[:, 2 * n:], 0) + jnp.sum(sgn[:, n:], 0)  # (np,)
+
+        def lifted(lin):
+            return lin - jax.lax.stop_gradient(lin)  # value 0: only its derivatives count
+
+        def part_r(rb):
+            d0b, d1b = self.pair_offsets(rb)
+            dnb = self.node_offsets(rb)
+            lin = jnp.sum(sgp[:, :n] * d0b) + jnp.sum(sgp[:, n:2 * n] * d1b) + jnp.sum(sgn[:, :n] * dnb)
+            return self.neg_entropy(rb, n_true) + lifted(lin)
+
+        def part_z(zb):
+            return lifted(jnp.dot(sg_th, self.tm.theta(zb, cfg["theta"])))
+
+        def part_w(wb):
+            Gb, sigb = self.nm.G(wb, cfg["noise"]), self.nm.sigma(wb, cfg["noise"])
+            Lq = jnp.sqrt(dt) * Gb
+            Li = tri_solve_small(Lq, jnp.eye(n))
+            logdetQ = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diagonal(Lq))))
+            return (0.5 * jnp.sum((Li.T @ Li) * pa["sS"]) + (n_true - 1) * 0.5 * (logdetQ + n * LOG2PI)
+                    + jnp.sum(0.5 * na["sSe"] / sigb ** 2 + na["sM"] * (jnp.log(sigb) + 0.5 * LOG2PI)))
+
+        def fwd_fwd(fn, x):
+            """(f, ∇f, ∇²f) forward over forward (the gradient a by-product): a smaller XLA graph
+            than forward over reverse for these small functions of few variables."""
+            def grad_aux(xx):
+                g = jax.jacfwd(fn)(xx)
+                return g, g
+            H, g = jax.jacfwd(grad_aux, has_aux=True)(x)
+            return fn(x), g, H
 
         b = c["b"]
-
-        def grad_aux(bb):
-            g = jax.jacfwd(shared)(bb)
-            return g, g
-        # forward over forward: the shared function is a few small unrolled factorisations
-        # of n×n matrices; its second forward derivative is a smaller XLA graph than
-        # forward over reverse (jax.hessian), which halves its part of the compile time
-        Hsh, gsh = jax.jacfwd(grad_aux, has_aux=True)(b)
-        f = shared(b)
+        parts = [fwd_fwd(part_r, b[:nq]), fwd_fwd(part_w, b[nq + nt:])]
+        # θ(z) is element-wise: forward over reverse, linear in the number of parameters
+        fz, gz = jax.value_and_grad(part_z)(b[nq:nq + nt])
+        parts.insert(1, (fz, gz, jax.hessian(part_z)(b[nq:nq + nt])))
+        f = sum(p[0] for p in parts)
+        gsh = jnp.concatenate([p[1] for p in parts])
+        Hsh = block_diag(*[p[2] for p in parts])
         Hbb = (Hsh + jnp.einsum("iwa,iwv,ivb->ab", Az, pa["sHz"], Az)
                + jnp.einsum("iwa,iwv,ivb->ab", An, na["sHz"], An))
         Cb = (jnp.einsum("iwa,iwc,cb->ab", Az, pa["sCz"], Ep)
