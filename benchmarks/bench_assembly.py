@@ -8,6 +8,8 @@ the objective value, at the fit's start point. Prints one row per case.
 Usage::
 
     python benchmarks/bench_assembly.py [--repeats 9] [--cases hfb320 attas_sp ...]
+    python benchmarks/bench_assembly.py --integrator rk4 --hold foh   # the setting diagnose's
+                                                                      # numerics stage adopts
 
 To compare two versions, run it in a checkout of each (``git worktree add``) one after the
 other on an otherwise idle machine: the figures are per call, so they compare across
@@ -45,7 +47,8 @@ def _median_time(fn, repeats: int) -> float:
     return statistics.median(out)
 
 
-def run_case(name: str, repeats: int) -> dict:
+def run_case(name: str, repeats: int, integrator: str | None = None, hold: str | None = None,
+             substeps: int | None = None) -> dict:
     import jax
     import numpy as np
 
@@ -63,7 +66,8 @@ def run_case(name: str, repeats: int) -> dict:
     model = load_model(spec)
     sym = compile_spec(spec)
     recs = [load_record(sym, p) for p in paths]
-    opts = FitOptions(integrator=model.integrator, substeps=int(model.substeps))
+    opts = FitOptions(integrator=integrator or model.integrator,
+                      substeps=int(substeps or model.substeps), input_hold=hold)
     P = Problem(model, recs, opts)
     s, rr = P.initial(opts)
     t = time.perf_counter()
@@ -91,6 +95,11 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=9)
     ap.add_argument("--cases", nargs="+", default=["hfb320", "attas_sp", "attas_lat"],
                     choices=sorted(CASES))
+    ap.add_argument("--integrator", choices=("euler", "rk4"), default=None,
+                    help="integrator (default: each spec's own)")
+    ap.add_argument("--hold", choices=("zoh", "foh"), default=None,
+                    help="input hold between samples (default: each spec's own)")
+    ap.add_argument("--substeps", type=int, default=None, help="sub-steps (default: the spec's)")
     args = ap.parse_args(argv)
     os.environ["JAX_COMPILATION_CACHE_DIR"] = ""  # first call: trace + compile, uncached
     sys.path.insert(0, str(ROOT))
@@ -98,7 +107,7 @@ def main(argv=None) -> int:
     print(f"{'case':10s} {'N':>6s} {'n':>3s} {'np':>3s} {'1st blocks':>11s} {'blocks':>9s} "
           f"{'Newton step':>12s} {'value':>8s}")
     for name in args.cases:
-        r = run_case(name, args.repeats)
+        r = run_case(name, args.repeats, args.integrator, args.hold, args.substeps)
         if "skipped" in r:
             print(f"{name:10s} skipped: {r['skipped']}")
             continue
