@@ -690,7 +690,7 @@ class Objective:
         nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
         # which second derivatives of F and h over a = (x, θ) may be non-zero (None: all;
         # see curvature_pairs)
-        self.kv_F, self.kv_h = self._curvature_structure(na, nu)
+        self.curv_F, self.curv_h = self._curvature_structure(na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
         opts = compiler_options()
         self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
@@ -699,7 +699,7 @@ class Objective:
         self._back = jax.jit(self._back_impl, compiler_options=opts)
 
     def _curvature_structure(self, na: int, nu: int):
-        """(kv_F, kv_h): the Hessian patterns of F and h over a = (x, θ) (:func:`curvature_pairs`)."""
+        """(curv_F, curv_h): the Hessian patterns of F and h over a = (x, θ) (:func:`curvature_pairs`)."""
         n, F, h = self.n, self.F, self.model.output
         return (curvature_pairs(lambda a, u: F(a[:n], u, a[n:], 0.05), na, nu),
                 curvature_pairs(lambda a, u: h(a[:n], u, a[n:]), na, nu))
@@ -923,9 +923,9 @@ class Objective:
             Jsigc=Jsig[:, scols],  # (ny, nsc)
             Ar=jnp.concatenate([Jd0, Jd1], axis=1)[:, :, :nq],  # (4n, 2n, nq): ∂(x_k, x_k+1)/∂r
             Arn=Jdn[:, :, :nq],  # (2n, n, nq)
-            K_F=self._curvature(Fa, self.kv_F, nza),
-            T_F=self._curvature_tensor(Fa, self.kv_F, nza),
-            K_h=self._curvature(ha, self.kv_h, nza),
+            K_F=self._curvature(Fa, self.curv_F, nza),
+            T_F=self._curvature_tensor(Fa, self.curv_F, nza),
+            K_h=self._curvature(ha, self.curv_h, nza),
             cp=1.0 / (4 * n), cn=1.0 / (2 * n))
 
     @staticmethod
