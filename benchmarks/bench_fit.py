@@ -46,7 +46,7 @@ import sys
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-FLIGHT = ROOT.parent / "shared" / "data" / "flight"
+FLIGHT = pathlib.Path(os.environ.get("VSIDGEN_FLIGHT_DATA") or ROOT.parent / "shared" / "data" / "flight")
 REAL = {
     "hfb320": ("specs/hfb320.yaml", ["hfb320_1_10.csv"]),
     "attas_sp": ("specs/attas_sp.yaml", ["attas_elv1.csv"]),
@@ -135,8 +135,11 @@ def load_case(case: str):
         model = load_model(ROOT / spec)
         records = [load_record(model, FLIGHT / f) for f in files]
     else:
+        import jax
+
         model = load_model(ROOT / "specs/attas_sp.yaml")
-        records = [synthetic_record(model, int(float(case.removeprefix("syn"))))]
+        with jax.default_device(jax.devices("cpu")[0]):  # a sequential simulation: CPU, whatever the backend
+            records = [synthetic_record(model, int(float(case.removeprefix("syn"))))]
     return model, records
 
 
@@ -210,9 +213,22 @@ def main(argv=None):
                     help="wall budget of the reference per case in seconds (default 600; 0: none)")
     ap.add_argument("--max-iter", type=int, default=200)
     ap.add_argument("--json", help="also write the results to this file")
+    ap.add_argument("--no-reference", action="store_true", help="skip the trust-constr reference fits")
+    ap.add_argument("--time-limit", type=float, default=None,
+                    help="wall budget of each structured-newton fit in seconds (stops cleanly; default none)")
+    ap.add_argument("--solve", choices=("auto", "sequential", "parallel"), default="auto",
+                    help="how the state means are eliminated (vsidgen.estimator.linalg.PARALLEL_SOLVE; "
+                         "auto: cyclic reduction on an accelerator, the sequential recursion on the CPU)")
     a = ap.parse_args(argv)
 
     import jax
+
+    from vsidgen.estimator import core, linalg
+
+    linalg.PARALLEL_SOLVE = {"auto": None, "sequential": False, "parallel": True}[a.solve]
+    print(f"# backend {jax.default_backend()} ({jax.devices()[0].device_kind}); state means eliminated by "
+          f"{'cyclic reduction' if linalg.use_parallel_solve() else 'the sequential recursion'}; "
+          f"assembly chunk {core.assembly_chunk()}")
 
     jax.config.update("jax_enable_compilation_cache", False)  # no persistent cache: compile every time
     clock = _CompileClock()
@@ -234,10 +250,12 @@ def main(argv=None):
         model, records = load_case(case)
         res = {}
         for opt in OPTIMIZERS:
+            if opt == "trust-constr" and a.no_reference:
+                continue
             if opt == "trust-constr" and case.startswith("syn") and float(case[3:]) > a.reference_max_n:
                 print(f"{case:>10s} {'':>8s} {opt:>17s}  skipped: N > --reference-max-n {a.reference_max_n:g}")
                 continue
-            budget = a.reference_budget if (opt == "trust-constr" and a.reference_budget > 0) else None
+            budget = a.reference_budget if (opt == "trust-constr" and a.reference_budget > 0) else a.time_limit
             d = run_fit(model, records, opt, max_iter=a.max_iter, budget=budget, clock=clock)
             d["case"] = case
             res[opt] = d

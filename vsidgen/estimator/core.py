@@ -42,7 +42,7 @@ from jax.scipy.linalg import block_diag
 
 from ..data import resolution
 from ..errors import FitError
-from .linalg import btd_solve, chol_small, tri_solve_small
+from .linalg import btd_solve, btd_solve_parallel, chol_small, tri_solve_small, use_parallel_solve
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -659,9 +659,17 @@ POINT_JACOBIANS = "autodiff"
 #: relative (docs/performance.md, ``benchmarks/bench_compile.py --options``).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
-#: pairs / nodes per vmapped chunk of the Hessian assembly: memory is one chunk of
+#: pairs / nodes per vmapped chunk of the Hessian assembly on the CPU: memory is one chunk of
 #: per-point blocks, and a cache-sized chunk is faster than a large one (docs/performance.md)
 ASSEMBLY_CHUNK = 512
+#: the same on an accelerator, where each chunk is a sequence of kernel launches: few large
+#: chunks (docs/gpu.md)
+ASSEMBLY_CHUNK_ACCELERATOR = 16384
+
+
+def assembly_chunk() -> int:
+    """:data:`ASSEMBLY_CHUNK` on the CPU backend, :data:`ASSEMBLY_CHUNK_ACCELERATOR` elsewhere."""
+    return ASSEMBLY_CHUNK if jax.default_backend() == "cpu" else ASSEMBLY_CHUNK_ACCELERATOR
 
 
 def compiler_options() -> dict | None:
@@ -685,7 +693,8 @@ class Objective:
         self.ng = theta_map.n_free + noise_map.n
         self.nb = self.nq + self.ng
         self._tril = np.tril_indices(n, -1)
-        self.chunk = ASSEMBLY_CHUNK
+        self.chunk = assembly_chunk()
+        self.parallel_solve = use_parallel_solve()
         na = n + model.np
         nu = F.step_width(model.nu) if hasattr(F, "step_width") else model.nu
         # which second derivatives of F and h over a = (x, θ) may be non-zero (None: all;
@@ -1243,7 +1252,7 @@ class Objective:
         D = blk["D"] + lam * jax.vmap(jnp.diag)(dmu)
         N, n, _ = D.shape
         R = jnp.concatenate([blk["gmu"][:, :, None], blk["W"]], axis=2)
-        X, ok, _ = btd_solve(D, blk["B"], R)
+        X, ok, _ = (btd_solve_parallel if self.parallel_solve else btd_solve)(D, blk["B"], R)
         Xg, Y = X[:, :, 0], X[:, :, 1:]
         S = blk["Hbb"] - jnp.einsum("kia,kib->ab", blk["W"], Y)
         rhs = -blk["gb"] + jnp.einsum("kia,ki->a", blk["W"], Xg)
@@ -1272,7 +1281,7 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     dimensions, integrator, the static index structure of the maps and the compiler
     options.
     """
-    key = (model.drift, model.output, POINT_JACOBIANS,
+    key = (model.drift, model.output, POINT_JACOBIANS, use_parallel_solve(), assembly_chunk(),
            tuple(sorted((compiler_options() or {}).items())),
            model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
