@@ -360,13 +360,7 @@ def test_btd_solve_detects_indefinite(monkeypatch, small_block):
     monkeypatch.setattr(linalg, "SMALL_BLOCK", small_block)  # both block paths
     rng = np.random.default_rng(0)
     N, n = 7, 3
-    M = rng.normal(size=(N * n, N * n))
-    band = np.zeros_like(M)
-    for k in range(N):
-        for j in (k - 1, k, k + 1):
-            if 0 <= j < N:
-                band[k * n:(k + 1) * n, j * n:(j + 1) * n] = 1
-    A = (M @ M.T + N * n * np.eye(N * n)) * band
+    A = _random_btd(rng, N, n)
     D = np.stack([A[k * n:(k + 1) * n, k * n:(k + 1) * n] for k in range(N)])
     B = np.stack([A[k * n:(k + 1) * n, (k + 1) * n:(k + 2) * n] for k in range(N - 1)])
     R = rng.normal(size=(N, n, 2))
