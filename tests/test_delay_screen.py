@@ -243,3 +243,20 @@ def test_lag_screen_finds_the_time_constant_and_starts_the_refit_there(tmp_path)
     started = filter_start(cand, res)
     assert started.parameters[0].initial == pytest.approx(res.step["tau_s"])
     assert filter_start(cand, None) is cand
+    # the staged refit from there: stage 1 holds the time constant at the screen's value
+    # (the profile there), stage 2 frees it. The model holds its input over each sample
+    # (zero-order hold), which already delays this continuously moving input by half a
+    # sample, so the fitted lag is that much shorter than the physical one (like a
+    # transport delay's, delay.hold_lag)
+    from vsidgen.discrepancy.search import staged_refit
+
+    out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_lag",
+                       generated_dir=tmp_path / "gen", max_iter=200)
+    f, names = out.state.fit, list(out.state.model.parameter_names)
+    k = names.index(cand.parameters[0].name)
+    tau, se = float(f.theta[k]), float(f.std_errors[k])
+    lam = 2.0 * (out.state.elbo - out.elbo_ref)
+    print(f"lag refit: stage 1 {out.elbo_stage1:.3f}, final {out.state.elbo:.3f}, Λ {lam:.2f}, "
+          f"τ {tau:.4f} ± {se:.4f} s")
+    assert lam > stats.chi2.isf(1e-6, 1) and out.elbo_stage1 > out.elbo_ref
+    assert abs(tau + 0.5 * DT - TAU_LAG) < 3.0 * se, (tau, se)

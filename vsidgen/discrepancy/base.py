@@ -100,6 +100,9 @@ class ModelInfo(VariableNames):
     observations_expanded: Mapping[str, Any]
     process_states: tuple[str, ...]
     dt: float | None = None
+    #: the model's integrator method and sub-steps per sample (the spec's ``integrator``)
+    integrator: str = "euler"
+    substeps: int = 1
     #: break points of flow angles/inputs seen in the data: {name: (("hinge", b), ("hingelo", b))}
     breaks: Mapping[str, tuple[tuple[str, float], ...]] = dataclasses.field(default_factory=dict)
     #: the spec's constant values by name
@@ -293,6 +296,8 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         drift_expanded={v.name: _realify(e) for v, e in zip(states, drift_exp)},
         observations_expanded={v.name: _realify(e) for v, e in zip(outputs, obs_exp)},
         process_states=pstates, dt=dt,
+        integrator=str(getattr(sym, "integrator", "euler") or "euler"),
+        substeps=int(getattr(sym, "substeps", 1) or 1),
         definitions_expanded={n: _realify(e) for n, e in _expanded_definitions(sym).items()},
         definition_parameters={n: tuple(sorted(s.name for s in e.free_symbols if s.name in pnames))
                                for n, e in sym.definitions},
