@@ -167,6 +167,15 @@ class ModelInfo(VariableNames):
             return None
         return spec_text(d)
 
+    def output_gain_text(self, output: str, name: str) -> str | None:
+        """Spec text of ∂h_output/∂name (expanded), or None when it is zero."""
+        e = self.observations_expanded[output]
+        if name not in {s.name for s in e.free_symbols}:
+            return None
+        d = sympy.diff(e, self.symbol(name))
+        d = sympy.simplify(d) if d.count_ops() < 60 else d
+        return None if d == 0 else spec_text(d)
+
     def fresh(self, base: str, taken: Iterable[str] = ()) -> str:
         """A new identifier derived from ``base`` not used by the model (or ``taken``)."""
         base = re.sub(r"[^A-Za-z0-9_]", "_", base)

@@ -375,7 +375,9 @@ def _is_engine(u: str) -> bool:
 
 class _InputDynamics(Effect):
     """Shared form of the delay and lag effects: a new state ``z`` driven by input ``u`` that
-    replaces ``u`` in every state equation it enters (``f_s += ∂f_s/∂u · (coupling − u)``).
+    replaces ``u`` in every state equation and every output it enters
+    (``f_s += ∂f_s/∂u · (coupling − u)``, ``h_o += ∂h_o/∂u · (coupling − u)``: an output such
+    as a measured pitch acceleration sees the same filtered input as the dynamics).
     Subclasses give the names, the time-constant range and the state equation."""
 
     state_prefix = param_prefix = ""
@@ -396,13 +398,16 @@ class _InputDynamics(Effect):
             lo = _lag_bounds(info, self.min_steps)
             pc = self.pieces(info, u, z, tau)
             adds = {s: f"{_paren(g)}*({pc['coupling']} - {u})" for s, g in gains.items()}
+            out_gains = {o: info.output_gain_text(o, u) for o in info.output_names}
+            obs = {o: f"{_paren(g)}*({pc['coupling']} - {u})" for o, g in out_gains.items()
+                   if g is not None}
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{u}", target=f"input:{u}",
                 explanation=self.explain(input=u, param=tau, **pc["explain"]),
                 parameters=(NewParameter(tau, "s", pc["param_doc"], initial=lo,
                                          lower=lo, upper=self.upper),),
                 states=(NewState(z, pc["drift"], info.unit(u), pc["state_doc"]),),
-                add_terms={"drift": adds},
+                add_terms={"drift": adds, **({"observations": obs} if obs else {})},
                 info={"input": u, "states": tuple(gains), "filter": self.filter},
                 screenable=False))
         return out

@@ -230,7 +230,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     z2, theta2 = parameter_start(m2)
     base_names = set(current.model.parameter_names)
     held = tuple(p.name for p in m2.parameters if not p.fixed and p.name in base_names)
-    if (c.info or {}).get("start_from_screen_s") is not None:
+    profile = (c.info or {}).get("start_from_screen_s") is not None
+    if profile:
         # an input filter started at the screen's best time constant (filter_start): stage 1
         # is the profile at that time constant (it is held, everything else is free). Holding
         # the current parameters instead let the time constant run to what the unchanged
@@ -238,6 +239,9 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
         # cannot absorb), and stage 2 stopped in that local optimum: an HFB-320 elevator lag
         # of 0.15 s gained 86 nats where the model with the lagged input gains 787
         held = tuple(p.name for p in c.parameters)
+    # stage 1 only brings new parameters near their optimum; a profile point is a whole
+    # refit of the current parameters (and noise) and gets the full iteration budget
+    it1 = max_iter if profile else stage1_iterations(max_iter)
     proc_std, offd, meas_std = noise_stds(base_fit, current.model)
     decision0 = base_fit.decision
     warm = base_fit.decision is not None
@@ -272,13 +276,12 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     else:
         out.warm = "cold"
     try:
-        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter), **opts1))
+        res1 = fit(m2, records, options=diag_options(it1, **opts1))
     except FitError as err:
         if "warm_start" not in opts1:
             raise
         out.notes.append(f"warm start rejected ({str(err).splitlines()[0]}); cold start")
-        res1 = fit(m2, records, options=diag_options(stage1_iterations(max_iter),
-                                                     held_parameters=held))
+        res1 = fit(m2, records, options=diag_options(it1, held_parameters=held))
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     if not new_states and "warm_start" not in opts1:
         out.elbo_ref = current.elbo
