@@ -209,8 +209,9 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     candidate at its nesting point, only the assumed density fitted), stage 1 (the current
     parameters held at their estimates, ``FitOptions.held_parameters``; for an input filter
     started at its screen's time constant, :func:`filter_start`, that time constant held
-    instead: the profile there) and stage 2 (everything free, from stage 1's optimum). ``model``: the candidate's model, already
-    written to ``path`` and loaded (a member of a model family, :mod:`.family`).
+    instead: the profile there) and stage 2 (everything free, from stage 1's optimum).
+    ``model``: the candidate's model, already written to ``path`` and loaded (a member of a
+    model family, :mod:`.family`).
     """
     from ..estimator import fit, smooth
     from ..model import load_model

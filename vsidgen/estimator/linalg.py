@@ -41,7 +41,7 @@ def use_parallel_solve() -> bool:
 
     :data:`PARALLEL_SOLVE`, or when that is None: on an accelerator (JAX's default backend is
     not the CPU). There each of the sequential recursion's N dependent steps costs kernel
-    launches (~200 µs per sample measured on an H100, docs/gpu.md) whatever its arithmetic;
+    launches (17–24 µs per sample on an H100, docs/gpu.md) whatever its arithmetic;
     on the CPU the sequential recursion is as fast and compiles in a fraction of the time.
     """
     return jax.default_backend() != "cpu" if PARALLEL_SOLVE is None else bool(PARALLEL_SOLVE)
