@@ -61,6 +61,11 @@ def _input_dynamics_evidence(c, ev) -> float:
                 for s in c.info["states"]), default=0.0)
 
 
+#: the actuator lag's smallest time constant, in steps: an Euler model (exact
+#: discretisation, any τ > 0) and RK4 (stable for h/τ ≤ 2.785), :meth:`ActuatorLag.lower_bound`
+LAG_MIN_FRACTION, RK4_LAG_MIN_STEPS = 0.05, 0.4
+
+
 def _lag_bounds(info: ModelInfo, factor: float = 1.0) -> float:
     dt = info.dt or 0.01
     return factor * dt
@@ -390,12 +395,16 @@ class _InputDynamics(Effect):
         """``coupling`` (replaces u), ``drift`` of z, ``param_doc``, ``state_doc``, ``explain``."""
         raise NotImplementedError
 
+    def lower_bound(self, info) -> float:
+        """Smallest time constant (s) the model's transition realises: ``min_steps`` samples."""
+        return _lag_bounds(info, self.min_steps)
+
     def applies_to(self, info):
         out = []
         for u, gains in _driving_inputs(info):
             z = info.fresh(f"D_{u}_{self.state_prefix}")
             tau = info.fresh(f"D_{self.param_prefix}_{u}", taken=[z])
-            lo = _lag_bounds(info, self.min_steps)
+            lo = self.lower_bound(info)
             pc = self.pieces(info, u, z, tau)
             adds = {s: f"{_paren(g)}*({pc['coupling']} - {u})" for s, g in gains.items()}
             out_gains = {o: info.output_gain_text(o, u) for o in info.output_names}
@@ -490,6 +499,25 @@ class ActuatorLag(_InputDynamics):
         decay = f"(1 - exp(-{h}/{tau}))"
         return {"coupling": f"({u} + ({z} - {u})*{tau}/{h}*{decay})",
                 "drift": f"({u} - {z})*{decay}/{h}", **docs}
+
+    def lower_bound(self, info) -> float:
+        """Smallest time constant (s). The exact discretisation of an Euler model's lag is
+        stable for every τ > 0 and tends to the model without the lag as τ → 0 (the drift's
+        mean of the lag over the step becomes the input itself, ``τ/h·(1 − e^{−h/τ}) → 0``), so
+        the bound only keeps ``e^{−h/τ}`` representable: ``LAG_MIN_FRACTION`` of a step. A
+        lag integrated by RK4 (``(u − z)/τ`` at the stage times) is stable for
+        ``h/τ ≤ 2.785``: ``RK4_LAG_MIN_STEPS`` of a step ``h = dt/substeps``. The lag then
+        nests the current model (Euler) or comes within a fraction of a step of it (RK4),
+        where the old bound of one sample forced a one-sample lag on every refit (a 0.05 s
+        lag at 20 Hz ended on it)."""
+        dt = float(info.dt or 0.01)
+        h = dt / max(int(info.substeps or 1), 1)
+        method = (info.integrator or "euler")
+        if method == "euler":
+            return LAG_MIN_FRACTION * h
+        if method == "rk4":
+            return RK4_LAG_MIN_STEPS * h
+        return _lag_bounds(info, self.min_steps)
 
 
 @register_effect

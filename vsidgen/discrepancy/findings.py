@@ -37,9 +37,12 @@ import html
 import pathlib
 from collections.abc import Sequence
 
+import numpy as np
+
 from ..atomic import write_text_atomic
 from ..report import new_figure, png_data_uri
 from ..report import dumps, finite_or_none as _f
+from .delay import hold_lag
 
 
 def metrics_summary(st) -> dict:
@@ -72,13 +75,34 @@ def _params(c, st) -> dict:
         out[delay["name"]] = {"estimate": _f(delay["estimate"]), "std_error": _f(delay["std_error"]),
                               "unit": "s", "fixed": False,
                               "description": f"transport delay of {c.info['input']} (profiled)"}
-    for p in c.parameters:
+    from ..estimator.results import StdErrorIssue
+
+    near = {n for f in getattr(st.fit, "std_error_flags", ()) or ()
+            if f.issue is StdErrorIssue.AT_BOUND for n in f.parameters}
+    lag = (c.info or {}).get("filter") == "lag"
+    for k, p in enumerate(c.parameters):
         if p.name not in names:
             continue
         i = names.index(p.name)
         se = st.fit.std_errors[i] if not p.fixed else None
-        out[p.name] = {"estimate": _f(st.fit.theta[i]), "std_error": _f(se), "unit": p.unit,
-                       "fixed": bool(p.fixed), "description": p.description}
+        est = float(st.fit.theta[i])
+        ent = {"estimate": _f(est), "std_error": _f(se), "unit": p.unit,
+               "fixed": bool(p.fixed), "description": p.description}
+        if p.name in near:
+            # within 1.96 s.e. of a bound: the Gaussian interval is not valid there
+            gaps = [(abs(est - b), side, b) for side, b in (("lower", p.lower), ("upper", p.upper))
+                    if b is not None]
+            if gaps:
+                _, side, b = min(gaps)
+                ent["near_bound"] = {"side": side, "bound": _f(b)}
+        if lag and k == 0:
+            # a lag of an input the model holds over each sample acts on an input already
+            # delayed by the hold (half a sample, delay.hold_lag): to first order in s,
+            # e^{-sT/2}/(1 + sτ̂) = 1/(1 + s(τ̂ + T/2)), so the physical time constant is τ̂ + T/2
+            hl = hold_lag(st.model, float(np.median([r.dt for r in st.records])))
+            ent.update(estimate=_f(est + hl), spec_value=_f(est), hold_lag=_f(hl),
+                       input_hold=getattr(st.model, "input_hold", "zoh") or "zoh")
+        out[p.name] = ent
     return out
 
 
@@ -271,8 +295,16 @@ def _estimate_text(name: str, ent: dict) -> str:
     est, se, unit = ent.get("estimate"), ent.get("std_error"), ent.get("unit")
     if est is None:
         return f"{name} = n/a"
-    text = f"{name} = {est:.4g}" + (f" ± {se:.2g}" if se is not None else "")
-    return text + (f" {unit}" if unit and unit != "1" else "")
+    u = f" {unit}" if unit and unit != "1" else ""
+    text = f"{name} = {est:.4g}" + (f" ± {se:.2g}" if se is not None else "") + u
+    if ent.get("hold_lag"):
+        text += (f" (spec value {ent['spec_value']:.4g}{u} + the input hold's "
+                 f"{ent['hold_lag']:.4g}{u})")
+    nb = ent.get("near_bound")
+    if nb:
+        text += (f" [near its {nb['side']} bound {nb['bound']:.4g}{u}: the ± interval is "
+                 "not valid there]")
+    return text
 
 
 def summary_lines(document: dict, findings_path) -> list[str]:
@@ -610,10 +642,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
                           for sect, d in f["added_terms"].items() for k, v in d.items())
         parts.append(f"<p><b>Added:</b> <code>{e(terms)}</code></p>")
-        ptxt = ", ".join(f"{k} = {p['estimate']:.4g}" + (f" ± {p['std_error']:.2g}"
-                                                          if p.get('std_error') else "")
-                         + (f" {p['unit']}" if p.get("unit") else "")
-                         for k, p in f["parameters"].items() if p.get("estimate") is not None)
+        ptxt = ", ".join(_estimate_text(k, p) for k, p in f["parameters"].items()
+                         if p.get("estimate") is not None)
         parts.append(f"<p><b>Estimates:</b> {e(ptxt)}</p>")
         parts.append(f"<p><b>Evidence:</b> ELBO {ev['elbo_before']:.6g} → {ev['elbo_after']:.6g}; "
                      f"2ΔELBO = {ev['statistic']:.4g} &gt; χ²({e(str(ev['dof']))}) threshold "

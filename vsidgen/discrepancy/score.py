@@ -752,9 +752,13 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
 #: name prefixes of the gates and difference channels of :func:`gate_bank`
 GATE_PREFIX, DIFF_PREFIX = "__filter_gate_", "__filter_diff_"
 
-#: grid of a filter time constant: geometric, ratio √2, from the parameter's lower bound to
-#: its upper bound (at most ``MAX_FILTER_GRID`` values)
+#: grid of a filter time constant: geometric, ratio √2 (wider when needed to reach the upper
+#: bound), from the parameter's lower bound to its upper bound (at most ``MAX_FILTER_GRID``
+#: values)
 FILTER_GRID_RATIO, MAX_FILTER_GRID = math.sqrt(2.0), 16
+#: the grid starts no lower than half a sample (a lag's bound may be far below: a shorter
+#: time constant is indistinguishable from the input hold's own half sample)
+FILTER_GRID_MIN_SAMPLES = 0.5
 
 
 def filter_input(kind: str, u, t, tau: float, *, hold: str = "foh") -> np.ndarray:
@@ -798,11 +802,14 @@ def filter_grid(c, dt: float) -> tuple[str, list[float]]:
     if kind == "delay":
         return kind, delay_grid(dt)
     p = c.parameters[0]
-    lo = float(p.lower if p.lower is not None else dt)
+    lo = max(float(p.lower if p.lower is not None else dt), FILTER_GRID_MIN_SAMPLES * dt)
     hi = float(p.upper if p.upper is not None else 1.0)
-    n = min(MAX_FILTER_GRID, 1 + int(math.floor(math.log(hi / lo) / math.log(FILTER_GRID_RATIO)
-                                                 + 1e-9)))
-    return kind, [lo * FILTER_GRID_RATIO ** k for k in range(max(n, 2))]
+    if hi <= lo:
+        return kind, [lo, lo * FILTER_GRID_RATIO]
+    # ratio √2, or wider where 16 values at √2 would not reach the upper bound
+    ratio = max(FILTER_GRID_RATIO, (hi / lo) ** (1.0 / (MAX_FILTER_GRID - 1)))
+    n = min(MAX_FILTER_GRID, 1 + int(math.floor(math.log(hi / lo) / math.log(ratio) + 1e-9)))
+    return kind, [lo * ratio ** k for k in range(max(n, 2))]
 
 
 @dataclasses.dataclass(frozen=True)
