@@ -299,3 +299,58 @@ def test_lag_screen_finds_the_time_constant_and_starts_the_refit_there(tmp_path)
           f"τ {tau:.4f} ± {se:.4f} s")
     assert lam > stats.chi2.isf(1e-6, 1) and out.elbo_stage1 > out.elbo_ref
     assert abs(tau + 0.5 * DT - TAU_LAG) < 3.0 * se, (tau, se)
+
+
+def test_accepted_lag_is_refitted_under_the_other_input_hold(tmp_path):
+    """The numerics stage picks the input hold for the model without the lag; with the lag
+    accepted, :func:`lag_hold` compares the holds again. On an RK4 model (where the two holds
+    time the input differently) of the independent 0.12 s lag record, whose input moves
+    between samples, the first-order hold must win; it becomes the accepted state, its gain
+    is added to the statistic, and the reported time constant needs no hold correction (RK4
+    evaluates the interpolated input at its stage times) and lies within 3 s.e. of the truth."""
+    import types
+
+    from test_score_states import SPEC
+
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.findings import _estimate_text, _params
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
+    from vsidgen.discrepancy.score import screen
+    from vsidgen.discrepancy.search import (Trial, filter_start, fit_spec, lag_hold, lr_test,
+                                            model_info_of, staged_refit)
+    from vsidgen.engine import Engine
+
+    t, u, y = _simulate_lag(TAU_LAG, seed=4)
+    csv = tmp_path / "lin1.csv"
+    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    spec = tmp_path / "lin1_rk4.yaml"
+    spec.write_text(SPEC.replace("name: lin1", "name: lin1_rk4") + "integrator: {method: rk4}\n")
+    st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=200)
+    info = model_info_of(st)
+    assert st.fit.converged and st.model.input_hold == "zoh" and info.integrator == "rk4"
+    cand = next(c for c in propose(info) if c.effect == "actuator_lag")
+    assert cand.parameters[0].lower == pytest.approx(0.4 * DT)
+    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
+                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
+    out = staged_refit(filter_start(cand, res), st, info, tmp_path / "lag.yaml", "lin1_rk4_lag",
+                       generated_dir=tmp_path / "gen", max_iter=200)
+    lam, p = lr_test(out.elbo_ref, out.state.elbo, 1)
+    trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, p, refit=out,
+                  statistic_vs_base=2.0 * (out.state.elbo - st.elbo), converged=True)
+    lines = []
+    run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
+                                engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
+                                deadline=None)
+    got = lag_hold(run, trial, "lin1_rk4_lag_hold")
+    print("\n".join(lines))
+    hc = got.candidate.info["hold_comparison"]
+    assert hc["current_hold"] == "zoh" and hc["chosen"] == "foh", hc
+    assert got.state.model.input_hold == "foh" and got.spec_path.name == "lag_hold_foh.yaml"
+    d = hc["two_delta_elbo_other_minus_current"]
+    assert got.statistic == pytest.approx(lam + d)
+    assert "first-order hold" in got.candidate.explanation
+    ent = _params(got.candidate, got.state)[cand.parameters[0].name]
+    print("rk4 + foh lag:", _estimate_text(cand.parameters[0].name, ent), "zoh one:",
+          _estimate_text(cand.parameters[0].name, _params(cand, out.state)[cand.parameters[0].name]))
+    assert ent["hold_lag"] == 0.0 and ent["estimate"] == ent["spec_value"]
+    assert abs(ent["estimate"] - TAU_LAG) < 3.0 * ent["std_error"], ent

@@ -455,7 +455,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "metrics_before": _target_metrics(mb, c.target),
                 "metrics_after": _target_metrics(ma, c.target),
                 "locate": locate_part,
-                "delay_profile": (c.info or {}).get("profile_result")},
+                "delay_profile": (c.info or {}).get("profile_result"),
+                "hold_comparison": (c.info or {}).get("hold_comparison")},
             "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
             "alternatives": [{**a.alternative_json(),
                               "separated_by": separating_experiment(
