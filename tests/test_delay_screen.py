@@ -258,6 +258,35 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     assert ent["spec_value"] < DT                       # below the old one-sample bound
     assert "near_bound" not in ent
     assert abs(ent["estimate"] - tau_true) < 3.0 * ent["std_error"], ent
+    # accepted, the lag is refitted with RK4 and a first-order hold (its continuous form
+    # rewritten from the base spec), which no significantly better Euler fit overrules here:
+    # the time constant then needs no correction for the input's timing
+    import types
+
+    from vsidgen.discrepancy.search import Trial, lag_hold, lr_test
+    from vsidgen.engine import Engine
+
+    lam, pv = lr_test(out.elbo_ref, out.state.elbo, 1)
+    trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, pv, refit=out,
+                  statistic_vs_base=2.0 * (out.state.elbo - st.elbo), converged=True)
+    lines = []
+    run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
+                                engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
+                                deadline=None)
+    got = lag_hold(run, trial, st, "lin1_lag06_rk4")
+    print("\n".join(lines))
+    hc = got.candidate.info["hold_comparison"]
+    assert hc["current"]["method"] == "euler" and hc["chosen"] == {
+        "method": "rk4", "substeps": 1, "inputs": "foh",
+        "text": "integrator: {method: rk4, substeps: 1, inputs: foh}"}, hc
+    assert got.state.model.integrator == "rk4" and got.state.model.input_hold == "foh"
+    p_rk4 = got.candidate.parameters[0]
+    assert p_rk4.name == cand.parameters[0].name and p_rk4.lower == pytest.approx(0.4 * DT)
+    assert "exp(" not in str(got.candidate.added_terms())       # the continuous form
+    ent = _params(got.candidate, got.state)[p_rk4.name]
+    print("short lag, rk4 + foh:", _estimate_text(p_rk4.name, ent))
+    assert ent["hold_lag"] == 0.0 and "near_bound" not in ent
+    assert abs(ent["estimate"] - tau_true) < 3.0 * ent["std_error"], ent
 
 
 def test_lag_screen_finds_the_time_constant_and_starts_the_refit_there(tmp_path):
@@ -341,11 +370,11 @@ def test_accepted_lag_is_refitted_under_the_other_input_hold(tmp_path):
     run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
                                 engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
                                 deadline=None)
-    got = lag_hold(run, trial, "lin1_rk4_lag_hold")
+    got = lag_hold(run, trial, st, "lin1_rk4_lag_hold")
     print("\n".join(lines))
     hc = got.candidate.info["hold_comparison"]
-    assert hc["current_hold"] == "zoh" and hc["chosen"] == "foh", hc
-    assert got.state.model.input_hold == "foh" and got.spec_path.name == "lag_hold_foh.yaml"
+    assert hc["current_hold"] == "zoh" and hc["chosen"]["inputs"] == "foh", hc
+    assert got.state.model.input_hold == "foh" and got.spec_path.name == "lag_rk4x1_foh.yaml"
     d = hc["two_delta_elbo_other_minus_current"]
     assert got.statistic == pytest.approx(lam + d)
     assert "first-order hold" in got.candidate.explanation

@@ -221,16 +221,24 @@ def decide(trials, elbo_current: float, alpha: float, *,
     return out, next(t for t in out if t.verdict is NumericsVerdict.ADOPTED)
 
 
-def write_setting_spec(current, setting: NumericsSetting, path: pathlib.Path, name: str):
-    """Spec extending the current one with ``setting`` (current estimates as initial values)."""
-    from .specwrite import extends_text, warm_parameters, write_spec
+def write_setting_spec(current, setting: NumericsSetting, path: pathlib.Path, name: str, *,
+                       bounds: dict | None = None):
+    """Spec extending the current one with ``setting`` (current estimates as initial values;
+    ``bounds``: {parameter: [lower, upper]} replacing the current model's, initial values
+    clipped into them)."""
+    from .specwrite import clip_to_bounds, extends_text, warm_parameters, write_spec
 
+    params = warm_parameters(current.model, current.fit.theta)
+    for k, b in (bounds or {}).items():
+        if k in params:
+            params[k]["bounds"] = list(b)
+            params[k]["initial"] = clip_to_bounds(params[k]["initial"], list(b))
     return write_spec(path, f"vsidgen diagnose: modelling numerics {setting.text}",
                       {"name": name,
                        "description": f"the current model with {setting.text}",
                        "extends": extends_text(current.spec_path, path),
                        "integrator": setting.spec(),
-                       "parameters": warm_parameters(current.model, current.fit.theta)})
+                       "parameters": params})
 
 
 def refit_setting(setting, current, path, name, generated_dir, max_iter):
