@@ -96,10 +96,17 @@ def _record(path, stepped: bool, seed: int = 3, n: int = 440):
             w.writerow([f"{v:.10g}" for v in row])
 
 
-@pytest.mark.parametrize("stepped", [False, True], ids=["moving", "stepped"])
-def test_delay_and_hold_decided_together(tmp_path, stepped):
+@pytest.mark.parametrize("stepped, method", [(False, "rk4"), (True, "rk4"), (False, "euler")],
+                         ids=["moving", "stepped", "moving-euler"])
+def test_delay_and_hold_decided_together(tmp_path, stepped, method):
+    """``moving-euler``: the same spec stepping by Euler, whose one step per sample has a phase
+    error of the order of the hold's half sample: the delay is profiled again under RK4 with
+    a first-order hold, and that setting goes into the spec."""
     spec = tmp_path / "lin1.yaml"
-    spec.write_text(SPEC)
+    spec.write_text(SPEC if method == "rk4" else SPEC.replace(
+        "integrator: {method: rk4, substeps: 1, inputs: zoh}",
+        "integrator: {method: euler, substeps: 1, inputs: zoh}").replace("name: lin1_rk4",
+                                                                         "name: lin1_euler"))
     data = tmp_path / "rec.csv"
     _record(data, stepped)
     res = run_diagnose(spec, [data], out=tmp_path / "o", max_rounds=1,
@@ -115,8 +122,12 @@ def test_delay_and_hold_decided_together(tmp_path, stepped):
     if stepped:   # the zero-order hold is right and adds nothing
         assert "integrator" not in f["added_terms"]
         assert "move in steps at the samples" in f["explanation"]
-    else:         # the inputs move: a first-order hold, whose RK4 stages add no lag either
+    elif method == "rk4":   # the inputs move: a first-order hold, whose RK4 stages add no lag
         assert f["added_terms"]["integrator"] == {"inputs": "foh"}
         assert "first-order hold" in f["explanation"]
         assert "integrator: {inputs: foh}" in res.document["conclusion"]   # the CLI line too
+    else:
+        assert f["added_terms"]["integrator"] == {"method": "rk4", "inputs": "foh"}
+        assert p["hold_lag"] == 0.0 and p["estimate"] == p["spec_value"]
+        assert "integrator: {method: rk4, inputs: foh}" in res.document["conclusion"]
     assert trial["statistic"] > 0

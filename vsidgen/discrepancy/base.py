@@ -443,8 +443,12 @@ class Candidate:
                                                                      delay["estimate"])}}
             hc = delay.get("hold_comparison") or {}
             if hc and delay.get("input_hold") != hc.get("current_hold"):
-                # the delay profile chose the other input hold (search.delay_trial)
-                out["integrator"] = {"inputs": delay.get("input_hold")}
+                # the delay profile chose the other setting (search.delay_trial): the other
+                # input hold, and RK4 where the current model steps by Euler
+                method = delay.get("integrator_method")
+                out["integrator"] = ({"method": method} if method and method != (
+                    hc.get("current") or {}).get("method", method) else {})
+                out["integrator"]["inputs"] = delay.get("input_hold")
         return out
 
     def spec_dict(self, base_spec, *, name: str, candidate_path=None,

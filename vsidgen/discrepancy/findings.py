@@ -74,7 +74,10 @@ def _params(c, st) -> dict:
     if delay:  # a profiled transport delay: not a model parameter (the input is shifted)
         out[delay["name"]] = {"estimate": _f(delay["estimate"]), "std_error": _f(delay["std_error"]),
                               "unit": "s", "fixed": False,
-                              "description": f"transport delay of {c.info['input']} (profiled)"}
+                              "description": f"transport delay of {c.info['input']} (profiled)",
+                              "spec_value": _f(delay.get("spec_value", delay["estimate"])),
+                              "hold_lag": _f(delay.get("hold_lag", 0.0)),
+                              "input_hold": delay.get("input_hold")}
     from ..estimator.results import StdErrorIssue
 
     near = {n for f in getattr(st.fit, "std_error_flags", ()) or ()
@@ -191,9 +194,10 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
         for f in findings:
             hold = (f.get("added_terms") or {}).get("integrator")
             if hold:   # a delay profiled under both input holds changed the hold
+                text = ", ".join(f"{k}: {v}" for k, v in hold.items())
                 conclusion += (f" With {f['key']} modelled, the inputs are taken as "
-                               f"`integrator: {{inputs: {hold['inputs']}}}` (this replaces the "
-                               "hold of the numerics setting; the final spec carries it).")
+                               f"`integrator: {{{text}}}` (this replaces the "
+                               "setting of the numerics stage; the final spec carries it).")
             if f["alternatives"]:
                 conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
                                f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "

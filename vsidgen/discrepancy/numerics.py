@@ -98,6 +98,17 @@ class NumericsSetting:
         return {**self.spec(), "text": self.text}
 
 
+def accurate_alternative(current: NumericsSetting) -> NumericsSetting:
+    """The setting an input filter's timing (a transport delay, a lag) is compared with: RK4
+    with a first-order hold for an Euler model — one Euler step has a phase error of the order
+    of the hold's half sample, which depends on the model, so only an accurate integration
+    times the input reliably (a first-order hold with one Euler step would equal the
+    zero-order hold) — and the other input hold for any other integrator."""
+    if current.method == "euler":
+        return NumericsSetting("rk4", 1, "foh")
+    return dataclasses.replace(current, inputs="foh" if current.inputs == "zoh" else "zoh")
+
+
 def numerics_settings(current: NumericsSetting) -> list[NumericsSetting]:
     """Settings to test against ``current``: rk4 if euler, ``SUBSTEPS`` sub-steps if fewer,
     and the first-order hold with each integrator (a first-order hold with one Euler step
@@ -336,5 +347,5 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
     return NumericsResult(cur, current.elbo, tuple(trials), alpha, adopted)
 
 
-__all__ = ["NumericsResult", "NumericsSetting", "NumericsTrial", "NumericsVerdict", "decide",
-           "numerics_settings", "refit_setting", "run_numerics"]
+__all__ = ["NumericsResult", "NumericsSetting", "NumericsTrial", "NumericsVerdict",
+           "accurate_alternative", "decide", "numerics_settings", "refit_setting", "run_numerics"]

@@ -762,14 +762,14 @@ def _grid_size(c: Candidate) -> int:
 
 def hold_alternative(current, path: pathlib.Path, name: str, *, engine, generated_dir,
                      max_iter: int, deadline=None):
-    """``current`` refitted (warm, on the engine) with the other input hold — zero ↔ first
-    order, same integrator and sub-steps: a FitState, or None when the refit failed or the
-    time ran out."""
+    """``current`` refitted (warm, on the engine) with :func:`.numerics.accurate_alternative`
+    of its setting — the other input hold (zero ↔ first order) for RK4, RK4 with a first-order
+    hold for Euler: a FitState, or None when the refit failed or the time ran out."""
     from ..engine import TaskStatus
-    from .numerics import NumericsSetting, refit_setting
+    from .numerics import NumericsSetting, accurate_alternative, refit_setting
 
     cur = NumericsSetting.of(current.model)
-    other = dataclasses.replace(cur, inputs="foh" if cur.inputs == "zoh" else "zoh")
+    other = accurate_alternative(cur)
     oc = engine.run(refit_setting, [(f"hold:{other.inputs}", (other, current, path, name,
                                                                generated_dir, max_iter))],
                     deadline=deadline)[0]
@@ -797,6 +797,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
     spec (it carries the chosen ``integrator.inputs``) and the physical delay. The statistic
     stays the one against the current model (the hold change counted in the gain)."""
     from .delay import delay_p_value, hold_lag, profile_delay
+    from .numerics import NumericsSetting, accurate_alternative
     from .refit import RefitOutcome
 
     u = c.info["input"]
@@ -814,17 +815,15 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         if prof is None:
             return None
         hold_note = None
-        alt_hold = "foh" if (getattr(current.model, "input_hold", "zoh") or "zoh") == "zoh" \
-            else "zoh"
+        cur_set = NumericsSetting.of(current.model)
+        alt_set = accurate_alternative(cur_set)
+        alt_hold = alt_set.inputs
         alt = None
         if not prof.at_zero and prof.state is not None:
             lag0 = hold_lag(current.model, dt)
-            lag1 = hold_lag(type("M", (), {"input_hold": alt_hold,
-                                           "integrator": getattr(current.model, "integrator",
-                                                                 "euler"),
-                                           "substeps": getattr(current.model, "substeps", 1)}),
-                            dt)
-            if lag0 != lag1:
+            lag1 = hold_lag(type("M", (), {"input_hold": alt_hold, "integrator": alt_set.method,
+                                           "substeps": alt_set.substeps}), dt)
+            if lag0 != lag1 or alt_set.method != cur_set.method:
                 hpath = path.with_name(f"{path.stem}_hold_{alt_hold}.yaml")
                 alt = hold_alternative(current, hpath, f"{name}_h", engine=engine,
                                        generated_dir=generated_dir, max_iter=max_iter,
@@ -839,7 +838,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
                 return None
             if prof2.state is not None and not prof2.at_zero:
                 d = 2.0 * (prof2.state.elbo - prof.state.elbo)
-                hold_note = (alt_hold, d, prof.estimate, prof2.estimate)
+                hold_note = (alt_hold, d, prof.estimate, prof2.estimate, cur_set, alt_set)
                 # an input moves continuously (a control surface cannot step) unless the
                 # records say otherwise: the zero-order hold is kept only when it fits
                 # significantly better (chi2_1 at alpha; with the delay absorbing the hold's
@@ -873,10 +872,13 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
     ent = {"name": f"D_DELAY_{u}", "estimate": prof.estimate + lag,
            "std_error": prof.std_error if math.isfinite(prof.std_error) else None, "unit": "s",
            "spec_value": prof.estimate, "hold_lag": lag, "inputs_held": stepped,
-           "input_hold": hold}
+           "input_hold": hold,
+           "integrator_method": getattr(base.model, "integrator", "euler") or "euler"}
     if hold_note is not None:
-        ent["hold_comparison"] = {"current_hold": "foh" if hold_note[0] == "zoh" else "zoh",
+        ent["hold_comparison"] = {"current_hold": hold_note[4].inputs,
                                   "other_hold": hold_note[0],
+                                  "current": hold_note[4].to_json(),
+                                  "other": hold_note[5].to_json(),
                                   "two_delta_elbo_other_minus_current": hold_note[1],
                                   "spec_delay_current_hold": hold_note[2],
                                   "spec_delay_other_hold": hold_note[3]}
@@ -887,17 +889,22 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         other, d = hold_note[0], hold_note[1]
         zoh_gain = d if other == "zoh" else -d
         thr = float(stats.chi2.isf(alpha, 1))
+        both = ("both input holds" if hold_note[4].method == hold_note[5].method else
+                f"{hold_note[4].text} and {hold_note[5].text} (one Euler step per sample has "
+                "a phase error of the order of the hold's half sample)")
         if hold == "zoh":
-            text += (f" Profiled under both input holds, the zero-order hold (inputs held over "
+            text += (f" Profiled under {both}, the zero-order hold (inputs held over "
                      f"each sample) fits better than a first-order hold at its own best delay "
                      f"by 2ΔELBO = {zoh_gain:.4g} > {thr:.4g}.")
         else:
-            text += (f" Profiled under both input holds, a zero-order hold at its own best "
+            text += (f" Profiled under {both}, a zero-order hold at its own best "
                      f"delay fits {'better' if zoh_gain > 0 else 'worse'} by 2ΔELBO = "
                      f"{abs(zoh_gain):.4g}"
                      + (f", not significantly (≤ {thr:.4g})" if zoh_gain > 0 else "")
                      + ": the inputs are taken to move continuously between samples "
-                       "(first-order hold, `integrator: {inputs: foh}`"
+                       "(first-order hold, `integrator: {"
+                     + ("method: rk4, " if getattr(base.model, "integrator", "") == "rk4"
+                        and hold_note[4].method != "rk4" else "") + "inputs: foh}`"
                      + ("; the spec uses it)." if other == "foh" else ")."))
     if stepped:
         text += (" The records' inputs move in steps at the samples, so the model's hold adds "
