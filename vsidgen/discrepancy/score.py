@@ -102,6 +102,7 @@ from scipy import stats
 
 from ..estimator.problem import NEGATIVE_CURVATURE_TOL, SCORE_DAMPING
 from ..report import finite_or_none
+from .pvalues import chi2_logsf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +133,7 @@ class ScoreResult:
         """−log10 p (inf-safe, Bonferroni factor included), the screening priority."""
         if self.statistic is None or self.dof < 1:
             return math.nan
-        lp = float(stats.chi2.logsf(max(self.statistic, 0.0), self.dof))
+        lp = chi2_logsf(max(self.statistic, 0.0), self.dof)
         return max(-(lp + math.log(max(self.multiplicity, 1))) / math.log(10.0), 0.0)
 
     def to_json(self) -> dict:

@@ -66,6 +66,7 @@ from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_mod
                    load_effects_module, propose, registered_effects)
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
+from .pvalues import chi2_logsf
 from .refit import RefitVerdict, refit_verdict
 from .family import TaskDeadline, family_chunks, family_key
 from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2, refit_converged, refit_warm,
@@ -1734,9 +1735,11 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     record["reference_improved"] = better is not None
     if not good:
         return RoundDecision(record, None)
-    # most significant = smallest p (log scale: no underflow); fewer parameters win ties
-    best = min(good, key=lambda t: (float(stats.chi2.logsf(max(t.statistic, 0.0), max(t.dof, 1))),
-                                    t.dof))
+    # most significant = smallest p, in logs that do not underflow (scipy's chi2.logsf is −∞
+    # beyond Λ ≈ 1400, where every strong candidate would tie: .pvalues), a profiled delay's
+    # with the Bonferroni factor of its grid; fewer parameters win ties
+    best = min(good, key=lambda t: (chi2_logsf(max(t.statistic, 0.0), max(t.dof, 1))
+                                    + math.log(max(_grid_size(t.candidate), 1)), t.dof))
     return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives_of(best, good)))
 
 
