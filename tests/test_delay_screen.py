@@ -289,49 +289,13 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     assert abs(ent["estimate"] - tau_true) < 3.0 * ent["std_error"], ent
 
 
-def test_lag_screen_finds_the_time_constant_and_starts_the_refit_there(tmp_path):
-    """An actuator lag of 0.3 s (independent simulation: the state driven by the lagged
-    input, 20 sub-steps): the screen's best time constant is the grid value nearest 0.3 s,
-    significant, and the lag's refit starts there."""
-    from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
-    from vsidgen.discrepancy.score import filter_grid, screen
-    from vsidgen.discrepancy.search import filter_start
+def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_other_hold(
+        tmp_path):
+    """An actuator lag of 0.12 s (independent simulation: the state driven by the lagged
+    input, 20 sub-steps) fitted by an RK4 model with a zero-order hold: the screen's best time
+    constant is within one grid step of 0.12 s, significant, and the lag's refit starts there.
 
-    t, u, y = _simulate_lag(TAU_LAG, seed=4)
-    st, info = fit_lin1(tmp_path, t, u, y)
-    cand = next(c for c in propose(info) if c.effect == "actuator_lag")
-    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
-                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    _, grid = filter_grid(cand, DT)
-    print("lag screen:", res.profile)
-    assert res.multiplicity == len(grid) and res.p_value < 1e-6
-    # within one grid step of the true time constant
-    assert abs(math.log(res.step["tau_s"] / TAU_LAG)) <= math.log(grid[1] / grid[0]) + 1e-9
-    started = filter_start(cand, res)
-    assert started.parameters[0].initial == pytest.approx(res.step["tau_s"])
-    assert filter_start(cand, None) is cand
-    # the staged refit from there: stage 1 holds the time constant at the screen's value
-    # (the profile there), stage 2 frees it. The model holds its input over each sample
-    # (zero-order hold), which already delays this continuously moving input by half a
-    # sample, so the fitted lag is that much shorter than the physical one (like a
-    # transport delay's, delay.hold_lag)
-    from vsidgen.discrepancy.search import staged_refit
-
-    out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_lag",
-                       generated_dir=tmp_path / "gen", max_iter=200)
-    f, names = out.state.fit, list(out.state.model.parameter_names)
-    k = names.index(cand.parameters[0].name)
-    tau, se = float(f.theta[k]), float(f.std_errors[k])
-    lam = 2.0 * (out.state.elbo - out.elbo_ref)
-    print(f"lag refit: stage 1 {out.elbo_stage1:.3f}, final {out.state.elbo:.3f}, Λ {lam:.2f}, "
-          f"τ {tau:.4f} ± {se:.4f} s")
-    assert lam > stats.chi2.isf(1e-6, 1) and out.elbo_stage1 > out.elbo_ref
-    assert abs(tau + 0.5 * DT - TAU_LAG) < 3.0 * se, (tau, se)
-
-
-def test_accepted_lag_is_refitted_under_the_other_input_hold(tmp_path):
-    """The numerics stage picks the input hold for the model without the lag; with the lag
+    The numerics stage picks the input hold for the model without the lag; with the lag
     accepted, :func:`lag_hold` compares the holds again. On an RK4 model (where the two holds
     time the input differently) of the independent 0.12 s lag record, whose input moves
     between samples, the first-order hold must win; it becomes the accepted state, its gain
@@ -344,7 +308,7 @@ def test_accepted_lag_is_refitted_under_the_other_input_hold(tmp_path):
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.findings import _estimate_text, _params
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
-    from vsidgen.discrepancy.score import screen
+    from vsidgen.discrepancy.score import filter_grid, screen
     from vsidgen.discrepancy.search import (Trial, filter_start, fit_spec, lag_hold, lr_test,
                                             model_info_of, staged_refit)
     from vsidgen.engine import Engine
@@ -361,7 +325,15 @@ def test_accepted_lag_is_refitted_under_the_other_input_hold(tmp_path):
     assert cand.parameters[0].lower == pytest.approx(0.4 * DT)
     res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    out = staged_refit(filter_start(cand, res), st, info, tmp_path / "lag.yaml", "lin1_rk4_lag",
+    _, grid = filter_grid(cand, DT)
+    print("lag screen:", res.profile)
+    assert res.multiplicity == len(grid) and res.p_value < 1e-6
+    # within one grid step of the true time constant
+    assert abs(math.log(res.step["tau_s"] / TAU_LAG)) <= math.log(grid[1] / grid[0]) + 1e-9
+    started = filter_start(cand, res)
+    assert started.parameters[0].initial == pytest.approx(res.step["tau_s"])
+    assert filter_start(cand, None) is cand
+    out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_rk4_lag",
                        generated_dir=tmp_path / "gen", max_iter=200)
     lam, p = lr_test(out.elbo_ref, out.state.elbo, 1)
     trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, p, refit=out,
