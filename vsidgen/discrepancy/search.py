@@ -1511,10 +1511,10 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
       which depends on the model, so no correction of the held input's timing is right for
       all models (HFB-320's 0.05 s lag: 0.0445 s fitted, 0.0695 s with the half sample).
 
-    So the lag is refitted warm with the other hold (an RK4 model) or with RK4 and a
-    first-order hold (an Euler model; the lag rewritten in its continuous form,
-    ``τ ż = u − z``), and that setting is used unless the current one fits significantly
-    better (χ²₁ at the run's α: the inputs step at the samples, or the data prefer the
+    So the lag is refitted warm with a first-order hold (an RK4 model with a zero-order
+    hold) or with RK4 and a first-order hold (an Euler model; the lag rewritten in its
+    continuous form, ``τ ż = u − z``), and that setting is used unless the current one fits
+    significantly better (χ²₁ at the run's α: the inputs step at the samples, or the data prefer the
     current discretisation) — the rule of the transport delay (:func:`delay_trial`). When
     the alternative is used, its refit is the accepted state and its gain is added to the
     statistic (against the same reference). The comparison goes into the candidate's
@@ -1536,10 +1536,12 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
         c_alt = next((x for x in get_effect(c.effect).applies_to(info) if x.key == c.key), None)
         if c_alt is None:
             return best
-    elif now.method == "rk4":
-        alt = dataclasses.replace(now, inputs="foh" if now.inputs == "zoh" else "zoh")
+    elif now.method == "rk4" and now.inputs == "zoh":
+        alt = dataclasses.replace(now, inputs="foh")
         c_alt = None
     else:
+        # RK4 with a first-order hold already times a continuously moving input exactly
+        # (no refit: it would only test whether the inputs step at the samples)
         return best
     if run.past_deadline():
         return best
