@@ -40,7 +40,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("evaluation", ("evaluation.signals", "evaluation")),
     ("report", ("report.resultsdir", "report.html", "report")),
     ("fit job", ("fitjob.run", "fitjob.fleet", "fitjob")),
-    ("diagnose: leaves", ("discrepancy.base", "discrepancy.specwrite")),
+    ("diagnose: leaves", ("discrepancy.pvalues", "discrepancy.base", "discrepancy.specwrite")),
     ("diagnose: locate", ("discrepancy.locate",)),
     ("diagnose: catalogue", ("discrepancy.catalogue",)),
     ("diagnose: flight conditions", ("discrepancy.flightconst",)),

@@ -495,6 +495,23 @@ class Candidate:
                                      sort_keys=False, width=100)
 
 
+def hold_lag(model, dt: float) -> float:
+    """Delay (s) the model's own transition already applies to a continuously varying input.
+
+    A zero-order hold uses ``u_k`` over ``[t_k, t_k + T)``, i.e. ``u(t − (t − t_k))``: to
+    first order in T the input delayed by the mean ``T/2``. With a first-order hold Euler
+    sub-step j uses the input at its start, ``T/(2m)`` behind on average; RK4 evaluates
+    the interpolated input at its stage times (no lag). The physical transport delay is the
+    spec's delay plus this lag.
+    """
+    hold = getattr(model, "input_hold", "zoh") or "zoh"
+    if hold == "zoh":
+        return 0.5 * dt
+    if (getattr(model, "integrator", "euler") or "euler") == "rk4":
+        return 0.0
+    return 0.5 * dt / int(getattr(model, "substeps", 1) or 1)
+
+
 # ---------------------------------------------------------------------------
 # effects and registry
 # ---------------------------------------------------------------------------

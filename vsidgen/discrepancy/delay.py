@@ -51,6 +51,7 @@ import numpy as np
 from scipy import stats
 
 from ..data import delay_input
+from .base import hold_lag
 
 #: grid of delays in samples (refined around the best one); capped at ``MAX_DELAY_S``
 GRID_SAMPLES = (0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0)
@@ -224,23 +225,6 @@ def profile_delay(current, u: str, path: pathlib.Path, name: str, *, engine, gen
     se = 1.0 / math.sqrt(curv) if curv > 0 else math.nan
     return DelayProfile(u, tuple(grid), tuple(elbos), xs[i], est, se, state,
                         time.perf_counter() - t0)
-
-
-def hold_lag(model, dt: float) -> float:
-    """Delay (s) the model's own transition already applies to a continuously varying input.
-
-    A zero-order hold uses ``u_k`` over ``[t_k, t_k + T)``, i.e. ``u(t − (t − t_k))``: to
-    first order in T the input delayed by the mean ``T/2``. With a first-order hold Euler
-    sub-step j uses the input at its start, ``T/(2m)`` behind on average; RK4 evaluates
-    the interpolated input at its stage times (no lag). The physical transport delay is the
-    spec's delay plus this lag.
-    """
-    hold = getattr(model, "input_hold", "zoh") or "zoh"
-    if hold == "zoh":
-        return 0.5 * dt
-    if (getattr(model, "integrator", "euler") or "euler") == "rk4":
-        return 0.0
-    return 0.5 * dt / int(getattr(model, "substeps", 1) or 1)
 
 
 def delay_p_value(statistic: float, n_grid: int) -> float:

@@ -42,7 +42,7 @@ import numpy as np
 from ..atomic import write_text_atomic
 from ..report import new_figure, png_data_uri
 from ..report import dumps, finite_or_none as _f
-from .delay import hold_lag
+from .base import hold_lag
 
 
 def metrics_summary(st) -> dict:
