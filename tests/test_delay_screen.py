@@ -228,6 +228,26 @@ def _simulate_lag(tau, *, seed, n=800, sub=20):
     return t, _input(t), xs + 0.02 * rng.standard_normal(n)
 
 
+def _accept_lag(cand, out, st, tmp_path, name):
+    """(Trial after :func:`lag_hold`, its statistic before): the staged refit ``out`` of the
+    lag candidate ``cand`` against the current fit ``st``, accepted by a serial run."""
+    import types
+
+    from vsidgen.discrepancy.search import Trial, lag_hold, lr_test
+    from vsidgen.engine import Engine
+
+    lam, p = lr_test(out.elbo_ref, out.state.elbo, 1)
+    trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, p, refit=out,
+                  statistic_vs_base=2.0 * (out.state.elbo - st.elbo), converged=True)
+    lines = []
+    run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
+                                engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
+                                deadline=None)
+    got = lag_hold(run, trial, st, name)
+    print("\n".join(lines))
+    return got, lam
+
+
 def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_bound(tmp_path):
     """A 0.06 s lag at 20 Hz (1.2 samples). The model holds its input over each sample, which
     already delays this continuously moving input by half a sample, so the fitted time
@@ -261,20 +281,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     # accepted, the lag is refitted with RK4 and a first-order hold (its continuous form
     # rewritten from the base spec), which no significantly better Euler fit overrules here:
     # the time constant then needs no correction for the input's timing
-    import types
-
-    from vsidgen.discrepancy.search import Trial, lag_hold, lr_test
-    from vsidgen.engine import Engine
-
-    lam, pv = lr_test(out.elbo_ref, out.state.elbo, 1)
-    trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, pv, refit=out,
-                  statistic_vs_base=2.0 * (out.state.elbo - st.elbo), converged=True)
-    lines = []
-    run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
-                                engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
-                                deadline=None)
-    got = lag_hold(run, trial, st, "lin1_lag06_rk4")
-    print("\n".join(lines))
+    got, _ = _accept_lag(cand, out, st, tmp_path, "lin1_lag06_rk4")
     hc = got.candidate.info["hold_comparison"]
     assert hc["current"]["method"] == "euler" and hc["chosen"] == {
         "method": "rk4", "substeps": 1, "inputs": "foh",
@@ -301,17 +308,13 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     between samples, the first-order hold must win; it becomes the accepted state, its gain
     is added to the statistic, and the reported time constant needs no hold correction (RK4
     evaluates the interpolated input at its stage times) and lies within 3 s.e. of the truth."""
-    import types
-
     from test_score_states import SPEC
 
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.findings import _estimate_text, _params
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
     from vsidgen.discrepancy.score import filter_grid, screen
-    from vsidgen.discrepancy.search import (Trial, filter_start, fit_spec, lag_hold, lr_test,
-                                            model_info_of, staged_refit)
-    from vsidgen.engine import Engine
+    from vsidgen.discrepancy.search import filter_start, fit_spec, model_info_of, staged_refit
 
     t, u, y = _simulate_lag(TAU_LAG, seed=4)
     csv = tmp_path / "lin1.csv"
@@ -335,15 +338,7 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     assert filter_start(cand, None) is cand
     out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_rk4_lag",
                        generated_dir=tmp_path / "gen", max_iter=200)
-    lam, p = lr_test(out.elbo_ref, out.state.elbo, 1)
-    trial = Trial(cand, 1.0, tmp_path / "lag.yaml", out.state, lam, 1, p, refit=out,
-                  statistic_vs_base=2.0 * (out.state.elbo - st.elbo), converged=True)
-    lines = []
-    run = types.SimpleNamespace(say=lines.append, past_deadline=lambda: False, alpha=0.01,
-                                engine=Engine(workers=1), gen=tmp_path / "gen", max_iter=200,
-                                deadline=None)
-    got = lag_hold(run, trial, st, "lin1_rk4_lag_hold")
-    print("\n".join(lines))
+    got, lam = _accept_lag(cand, out, st, tmp_path, "lin1_rk4_lag_hold")
     hc = got.candidate.info["hold_comparison"]
     assert hc["current_hold"] == "zoh" and hc["chosen"]["inputs"] == "foh", hc
     assert got.state.model.input_hold == "foh" and got.spec_path.name == "lag_rk4x1_foh.yaml"

@@ -446,9 +446,9 @@ class Candidate:
                 # the delay profile chose the other setting (search.delay_trial): the other
                 # input hold, and RK4 where the current model steps by Euler
                 method = delay.get("integrator_method")
-                out["integrator"] = ({"method": method} if method and method != (
-                    hc.get("current") or {}).get("method", method) else {})
-                out["integrator"]["inputs"] = delay.get("input_hold")
+                before = (hc.get("current") or {}).get("method", method)
+                out["integrator"] = ({"method": method} if method != before else {}) | {
+                    "inputs": delay.get("input_hold")}
         return out
 
     def spec_dict(self, base_spec, *, name: str, candidate_path=None,

@@ -512,12 +512,8 @@ class ActuatorLag(_InputDynamics):
         lag at 20 Hz ended on it)."""
         dt = float(info.dt or 0.01)
         h = dt / max(int(info.substeps or 1), 1)
-        method = (info.integrator or "euler")
-        if method == "euler":
-            return LAG_MIN_FRACTION * h
-        if method == "rk4":
-            return RK4_LAG_MIN_STEPS * h
-        return _lag_bounds(info, self.min_steps)
+        return (LAG_MIN_FRACTION if (info.integrator or "euler") == "euler"
+                else RK4_LAG_MIN_STEPS) * h
 
 
 @register_effect

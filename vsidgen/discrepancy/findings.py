@@ -40,6 +40,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..atomic import write_text_atomic
+from ..estimator.results import StdErrorIssue
 from ..report import new_figure, png_data_uri
 from ..report import dumps, finite_or_none as _f
 from .base import hold_lag
@@ -78,8 +79,6 @@ def _params(c, st) -> dict:
                               "spec_value": _f(delay.get("spec_value", delay["estimate"])),
                               "hold_lag": _f(delay.get("hold_lag", 0.0)),
                               "input_hold": delay.get("input_hold")}
-    from ..estimator.results import StdErrorIssue
-
     near = {n for f in getattr(st.fit, "std_error_flags", ()) or ()
             if f.issue is StdErrorIssue.AT_BOUND for n in f.parameters}
     lag = (c.info or {}).get("filter") == "lag"

@@ -43,7 +43,7 @@ import numpy as np
 from scipy import stats
 
 from .base import FLOW_ANGLE_NAMES, RATE_NAMES
-from .pvalues import chi2_logsf
+from .pvalues import chi2_log10sf
 
 #: locate significance level (Bonferroni-corrected within a target) for "flagged"
 ALPHA_LOCATE = 1e-3
@@ -419,7 +419,7 @@ def ljung_box_log10p(e: np.ndarray, seg: Sequence[slice], nlags: int = 20) -> fl
     rho = _segments_acf(e, seg, nlags)
     k = np.arange(1, nlags + 1)
     q = n * (n + 2) * np.sum(rho[1:] ** 2 / (n - k))
-    return float(min(0.0, chi2_logsf(q, nlags) / _LN10))
+    return float(min(0.0, chi2_log10sf(q, nlags)))
 
 
 def lowfreq_ratio(e: np.ndarray, seg: Sequence[slice], frac: float = 0.1) -> float:

@@ -89,6 +89,15 @@ class NumericsSetting:
     def label(self) -> str:
         return f"{self.method}x{self.substeps}_{self.inputs}"
 
+    def hold_lag(self, dt: float) -> float:
+        """Delay (s) this setting's transition applies to a continuously moving input
+        (:func:`.base.hold_lag`)."""
+        from .base import hold_lag
+
+        return hold_lag(type("Setting", (), {"input_hold": self.inputs,
+                                             "integrator": self.method,
+                                             "substeps": self.substeps}), dt)
+
     @property
     def cost(self) -> int:
         """Drift evaluations per sample (tie-break: the cheaper setting)."""

@@ -821,9 +821,7 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
         alt_hold = alt_set.inputs
         alt = None
         if not prof.at_zero and prof.state is not None:
-            lag0 = hold_lag(current.model, dt)
-            lag1 = hold_lag(type("M", (), {"input_hold": alt_hold, "integrator": alt_set.method,
-                                           "substeps": alt_set.substeps}), dt)
+            lag0, lag1 = hold_lag(current.model, dt), alt_set.hold_lag(dt)
             if lag0 != lag1 or alt_set.method != cur_set.method:
                 hpath = path.with_name(f"{path.stem}_hold_{alt_hold}.yaml")
                 alt = hold_alternative(current, hpath, f"{name}_h", engine=engine,
