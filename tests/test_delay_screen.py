@@ -256,7 +256,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     τ > 0, so the bound is a twentieth of a step now; the reported time constant (findings)
     adds the hold's half sample back and must lie within 3 s.e. of the truth, off any bound."""
     from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.findings import _estimate_text, _params
+    from vsidgen.discrepancy.findings import estimate_text, _params
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
     from vsidgen.discrepancy.score import screen
     from vsidgen.discrepancy.search import filter_start, staged_refit
@@ -273,7 +273,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
                        generated_dir=tmp_path / "gen", max_iter=200)
     assert out.state.fit.converged
     ent = _params(cand, out.state)[cand.parameters[0].name]
-    print("short lag:", _estimate_text(cand.parameters[0].name, ent))
+    print("short lag:", estimate_text(cand.parameters[0].name, ent))
     assert ent["hold_lag"] == pytest.approx(0.5 * DT) and ent["input_hold"] == "zoh"
     assert ent["spec_value"] < DT                       # below the old one-sample bound
     assert "near_bound" not in ent
@@ -291,7 +291,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     assert p_rk4.name == cand.parameters[0].name and p_rk4.lower == pytest.approx(0.4 * DT)
     assert "exp(" not in str(got.candidate.added_terms())       # the continuous form
     ent = _params(got.candidate, got.state)[p_rk4.name]
-    print("short lag, rk4 + foh:", _estimate_text(p_rk4.name, ent))
+    print("short lag, rk4 + foh:", estimate_text(p_rk4.name, ent))
     assert ent["hold_lag"] == 0.0 and "near_bound" not in ent
     assert abs(ent["estimate"] - tau_true) < 3.0 * ent["std_error"], ent
 
@@ -311,7 +311,7 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     from test_score_states import SPEC
 
     from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.findings import _estimate_text, _params
+    from vsidgen.discrepancy.findings import estimate_text, _params
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
     from vsidgen.discrepancy.score import filter_grid, screen
     from vsidgen.discrepancy.search import filter_start, fit_spec, model_info_of, staged_refit
@@ -346,7 +346,7 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     assert got.statistic == pytest.approx(lam + d)
     assert "first-order hold" in got.candidate.explanation
     ent = _params(got.candidate, got.state)[cand.parameters[0].name]
-    print("rk4 + foh lag:", _estimate_text(cand.parameters[0].name, ent), "zoh one:",
-          _estimate_text(cand.parameters[0].name, _params(cand, out.state)[cand.parameters[0].name]))
+    print("rk4 + foh lag:", estimate_text(cand.parameters[0].name, ent), "zoh one:",
+          estimate_text(cand.parameters[0].name, _params(cand, out.state)[cand.parameters[0].name]))
     assert ent["hold_lag"] == 0.0 and ent["estimate"] == ent["spec_value"]
     assert abs(ent["estimate"] - TAU_LAG) < 3.0 * ent["std_error"], ent

@@ -294,7 +294,7 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int) -> st
             "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
 
 
-def _estimate_text(name: str, ent: dict) -> str:
+def estimate_text(name: str, ent: dict) -> str:
     est, se, unit = ent.get("estimate"), ent.get("std_error"), ent.get("unit")
     if est is None:
         return f"{name} = n/a"
@@ -335,7 +335,7 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         ev = f["evidence"]
         lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
                      f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
-        est = [_estimate_text(k, v) for k, v in (f.get("parameters") or {}).items()
+        est = [estimate_text(k, v) for k, v in (f.get("parameters") or {}).items()
                if not v.get("fixed")]
         if est:
             lines.append("   " + "; ".join(est))
@@ -646,7 +646,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
                           for sect, d in f["added_terms"].items() for k, v in d.items())
         parts.append(f"<p><b>Added:</b> <code>{e(terms)}</code></p>")
-        ptxt = ", ".join(_estimate_text(k, p) for k, p in f["parameters"].items()
+        ptxt = ", ".join(estimate_text(k, p) for k, p in f["parameters"].items()
                          if p.get("estimate") is not None)
         parts.append(f"<p><b>Estimates:</b> {e(ptxt)}</p>")
         parts.append(f"<p><b>Evidence:</b> ELBO {ev['elbo_before']:.6g} → {ev['elbo_after']:.6g}; "

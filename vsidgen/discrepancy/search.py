@@ -1383,10 +1383,10 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         st.unfinished["pending"].remove(c.key)
         st.unfinished["refitted"].append(t.to_json())
         if t.state is not None:
-            from .findings import _estimate_text
+            from .findings import estimate_text
 
             d = t.candidate.info["delay"]
-            run.say(f"round {rnd}: {c.key}: {_estimate_text(d['name'], d)}, "
+            run.say(f"round {rnd}: {c.key}: {estimate_text(d['name'], d)}, "
                     f"2ΔELBO {t.statistic:.4g}")
         elif t.refit is not None:
             run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
