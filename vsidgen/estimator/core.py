@@ -673,8 +673,31 @@ def assembly_chunk() -> int:
 
 
 def compiler_options() -> dict | None:
-    """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults)."""
-    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+    """:data:`CPU_COMPILER_OPTIONS` when JAX's default backend is the CPU, else None (XLA defaults).
+
+    Only the options this jaxlib's XLA knows are passed (:func:`supported_compiler_options`):
+    XLA drops and renames its debug options between releases (jaxlib 0.11.2 refuses
+    ``xla_cpu_use_fusion_emitters`` with "No such compile option"), and an unknown option
+    makes every compilation fail."""
+    if jax.default_backend() != "cpu" or not CPU_COMPILER_OPTIONS:
+        return None
+    return supported_compiler_options(tuple(sorted(CPU_COMPILER_OPTIONS.items()))) or None
+
+
+@functools.lru_cache(maxsize=None)
+def supported_compiler_options(items: tuple) -> dict:
+    """The options of ``items`` ((name, value) pairs) that XLA accepts on the default backend,
+    each tried on a one-operation function (compiled once per option and process)."""
+    out = {}
+    for name, value in items:
+        try:
+            jax.jit(lambda x: x + 1.0).lower(np.float64(0.0)).compile(compiler_options={name: value})
+        except Exception as e:  # XLA reports an unknown option as INVALID_ARGUMENT
+            if "compile option" not in str(e):
+                raise
+            continue
+        out[name] = value
+    return out
 
 
 class Objective:
