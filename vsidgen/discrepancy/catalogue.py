@@ -61,9 +61,10 @@ def _input_dynamics_evidence(c, ev) -> float:
                 for s in c.info["states"]), default=0.0)
 
 
-#: the actuator lag's smallest time constant, in steps: an Euler model (exact
-#: discretisation, any τ > 0) and RK4 (stable for h/τ ≤ 2.785), :meth:`ActuatorLag.lower_bound`
-LAG_MIN_FRACTION, RK4_LAG_MIN_STEPS = 0.05, 0.4
+#: the actuator lag's smallest time constant, in steps: its exact discretisation (any τ > 0,
+#: :meth:`ActuatorLag.lower_bound`) and its continuous form under RK4 (stable for h/τ ≤ 2.785,
+#: :meth:`ContinuousActuatorLag.lower_bound`)
+LAG_MIN_FRACTION, RK4_LAG_MIN_STEPS = 0.01, 0.4
 
 
 def _lag_bounds(info: ModelInfo, factor: float = 1.0) -> float:
@@ -483,37 +484,62 @@ class ActuatorLag(_InputDynamics):
     state_prefix, param_prefix, min_steps, upper = "act", "TAU", 1.0, 5.0
 
     def pieces(self, info, u, z, tau):
-        """``τ ż = u − z`` acting through ``z``; for a model integrated by Euler steps of
-        ``h = dt/substeps`` the lag's exact discretisation instead: over a step with the
-        input held, ``z_{k+1} = u + (z_k − u) e^{−h/τ}`` (drift ``(u − z)(1 − e^{−h/τ})/h``),
-        and the drift sees the lag's mean over the step, ``u + (z − u)(τ/h)(1 − e^{−h/τ})``.
-        The plain Euler step of ``τ ż = u − z`` acts through ``z_k``, a whole step behind its
-        own input: on test_delay_screen's independent 0.12 s lag at 20 Hz it fitted worse
-        (2ΔELBO 58.5 against 66.4)."""
+        """The lag's exact discretisation over a step ``h = dt/substeps`` with the input held,
+        ``z_{k+1} = u + (z_k − u) e^{−h/τ}`` (drift ``(u − z)(1 − e^{−h/τ})/h``), the model
+        seeing the lag's mean over the step, ``u + (z − u)(τ/h)(1 − e^{−h/τ})``. It is stable
+        for every τ > 0 under Euler and RK4 (the drift's rate is at most ``1/h``) and tends to
+        the model without the lag as τ → 0 (the mean becomes the input itself), so a refit
+        from the lower bound starts at the current model whatever the integrator. Under an
+        Euler step it is exact; under RK4 it is the lag to first order in frequency (the
+        continuous form, :class:`ContinuousActuatorLag`, is refitted after acceptance,
+        :func:`.search.lag_hold`). The plain Euler step of ``τ ż = u − z`` acts through
+        ``z_k``, a whole step behind its own input (on test_delay_screen's independent 0.12 s
+        lag at 20 Hz it fitted worse, 2ΔELBO 58.5 against 66.4); the continuous form under
+        RK4 is unstable below 0.36 of a step, so a refit from its bound started a
+        fraction of a sample away from the current model (a new user's roll model on ATTAS
+        ended 1453 nats (2Δ) below the current model)."""
         what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
         docs = {"param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
                 "explain": {"what": what}}
-        if (info.integrator or "euler") != "euler" or not info.dt:
+        if not info.dt:
             return {"coupling": z, "drift": f"({u} - {z})/{tau}", **docs}
-        h = f"{float(info.dt) / max(int(info.substeps or 1), 1):.12g}"
+        h = f"{_lag_step(info):.12g}"
         decay = f"(1 - exp(-{h}/{tau}))"
         return {"coupling": f"({u} + ({z} - {u})*{tau}/{h}*{decay})",
                 "drift": f"({u} - {z})*{decay}/{h}", **docs}
 
     def lower_bound(self, info) -> float:
-        """Smallest time constant (s). The exact discretisation of an Euler model's lag is
-        stable for every τ > 0 and tends to the model without the lag as τ → 0 (the drift's
-        mean of the lag over the step becomes the input itself, ``τ/h·(1 − e^{−h/τ}) → 0``), so
-        the bound only keeps ``e^{−h/τ}`` representable: ``LAG_MIN_FRACTION`` of a step. A
-        lag integrated by RK4 (``(u − z)/τ`` at the stage times) is stable for
-        ``h/τ ≤ 2.785``: ``RK4_LAG_MIN_STEPS`` of a step ``h = dt/substeps``. The lag then
-        nests the current model (Euler) or comes within a fraction of a step of it (RK4),
-        where the old bound of one sample forced a one-sample lag on every refit (a 0.05 s
-        lag at 20 Hz ended on it)."""
-        dt = float(info.dt or 0.01)
-        h = dt / max(int(info.substeps or 1), 1)
-        return (LAG_MIN_FRACTION if (info.integrator or "euler") == "euler"
-                else RK4_LAG_MIN_STEPS) * h
+        """Smallest time constant (s): ``LAG_MIN_FRACTION`` of a step ``h = dt/substeps``. The
+        exact discretisation is stable for every τ > 0, so the bound only keeps the lag's
+        distance from the current model small: at τ the model sees the input moved by about
+        τ/h of a step (``(τ/h)(1 − e^{−h/τ})`` of the previous step's value), whose cost in
+        ELBO grows with that shift squared."""
+        return LAG_MIN_FRACTION * _lag_step(info)
+
+
+def _lag_step(info) -> float:
+    """The integration step ``h = dt/substeps`` of the model described by ``info`` (s)."""
+    return float(info.dt or 0.01) / max(int(info.substeps or 1), 1)
+
+
+class ContinuousActuatorLag(ActuatorLag):
+    """The actuator lag in its continuous form ``τ ż = u − z``, acting through ``z``: exact
+    under an accurate integration (RK4 with a first-order hold, where the input moves between
+    samples as in flight). :func:`.search.lag_hold` refits an accepted lag in this form; it is
+    not in the catalogue (it does not nest the current model: RK4 integrates it stably only
+    down to ``RK4_LAG_MIN_STEPS`` of a step)."""
+
+    def pieces(self, info, u, z, tau):
+        what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
+        return {"coupling": z, "drift": f"({u} - {z})/{tau}",
+                "param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
+                "explain": {"what": what}}
+
+    def lower_bound(self, info) -> float:
+        """RK4 is stable for ``h/τ ≤ 2.785``: ``RK4_LAG_MIN_STEPS`` of a step; an Euler step
+        of this form is only stable down to half a step and a whole step behind its input:
+        one step."""
+        return (RK4_LAG_MIN_STEPS if (info.integrator or "euler") != "euler" else 1.0) * _lag_step(info)
 
 
 @register_effect

@@ -1481,8 +1481,9 @@ def _accept(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, info: Mo
 def _lag_setting_task(c, base, lagged, setting, path, name, generated_dir, max_iter):
     """Engine task of :func:`lag_hold`: the accepted lag ``lagged`` (a FitState) refitted
     warm with the integrator ``setting``. ``c``: the lag candidate written for that setting
-    (an Euler model's lag is its exact discretisation, which another integrator must not
-    integrate), extending ``base``'s spec; None: the lagged spec itself with ``setting``."""
+    (the continuous form: the accepted lag is the exact discretisation of a held step,
+    which a first-order hold must not integrate), extending ``base``'s spec; None: the
+    lagged spec itself with ``setting``."""
     from .numerics import write_setting_spec
     from .fitstate import refit_warm
 
@@ -1512,42 +1513,40 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
       which depends on the model, so no correction of the held input's timing is right for
       all models (HFB-320's 0.05 s lag: 0.0445 s fitted, 0.0695 s with the half sample).
 
-    So the lag is refitted warm with a first-order hold (an RK4 model with a zero-order
-    hold) or with RK4 and a first-order hold (an Euler model; the lag rewritten in its
-    continuous form, ``τ ż = u − z``), and that setting is used unless the current one fits
-    significantly better (χ²₁ at the run's α: the inputs step at the samples, or the data prefer the
-    current discretisation) — the rule of the transport delay (:func:`delay_trial`). When
-    the alternative is used, its refit is the accepted state and its gain is added to the
-    statistic (against the same reference). The comparison goes into the candidate's
-    ``info`` (findings.json → ``evidence.hold_comparison``) and its explanation; the
-    reported time constant adds the chosen setting's own input delay
-    (:func:`.delay.hold_lag`: none for RK4 with a first-order hold)."""
+    * the candidate is the lag's exact discretisation over a held step
+      (:class:`.catalogue.ActuatorLag`), which nests the current model under any integrator
+      but is exact only under Euler steps with held inputs.
+
+    So the lag is refitted warm in its continuous form (``τ ż = u − z``,
+    :class:`.catalogue.ContinuousActuatorLag`) under RK4 with a first-order hold (an RK4
+    model keeps its sub-steps), and that setting is used unless the current one fits
+    significantly better (χ²₁ at the run's α: the inputs step at the samples, or the data
+    prefer the current discretisation, e.g. a lag below RK4's bound of 0.4 steps) — the rule
+    of the transport delay (:func:`delay_trial`). When the alternative is used, its refit is
+    the accepted state and its gain is added to the statistic (against the same reference).
+    The comparison goes into the candidate's ``info`` (findings.json →
+    ``evidence.hold_comparison``) and its explanation; the reported time constant adds the
+    chosen setting's own input delay (:func:`.delay.hold_lag`: none for a first-order
+    hold)."""
     from ..engine import TaskStatus
-    from .base import get_effect
+    from .catalogue import ContinuousActuatorLag
     from .numerics import NumericsSetting
 
     cur = best.state
     now = NumericsSetting.of(cur.model)
     c = best.candidate
-    if now.method == "euler":
-        alt = NumericsSetting("rk4", 1, "foh")
-        info = dataclasses.replace(info_from_model(
-            base.model, dt=float(np.median([r.dt for r in base.records]))),
-            integrator="rk4", substeps=1)
-        c_alt = next((x for x in get_effect(c.effect).applies_to(info) if x.key == c.key), None)
-        if c_alt is None:
-            return best
-    elif now.method == "rk4" and now.inputs == "zoh":
-        alt = dataclasses.replace(now, inputs="foh")
-        c_alt = None
-    else:
-        # RK4 with a first-order hold already times a continuously moving input exactly
-        # (no refit: it would only test whether the inputs step at the samples)
+    alt = NumericsSetting("rk4", now.substeps if now.method == "rk4" else 1, "foh")
+    info = dataclasses.replace(info_from_model(
+        base.model, dt=float(np.median([r.dt for r in base.records]))),
+        integrator="rk4", substeps=alt.substeps)
+    c_alt = next((x for x in ContinuousActuatorLag().applies_to(info) if x.key == c.key), None)
+    if c_alt is None:
         return best
     if run.past_deadline():
         return best
     path = best.spec_path.with_name(f"{best.spec_path.stem}_{alt.label}.yaml")
-    run.say(f"    {c.key}: refitting with {alt.text} (the numerics were chosen without the lag)")
+    run.say(f"    {c.key}: refitting in its continuous form with {alt.text} (the lag's "
+            "discretisation and the numerics were chosen without it)")
     oc = run.engine.run(_lag_setting_task, [(f"lag:{alt.label}", (
         c_alt, base, cur, alt, path, name, run.gen, run.max_iter))], deadline=run.deadline)[0]
     got = oc.value if oc.status is TaskStatus.DONE else None
@@ -1559,19 +1558,17 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
     d = 2.0 * (got.elbo - cur.elbo)
     thr = float(stats.chi2.isf(run.alpha, 1))
     switch = -d <= thr
+    held = f"its exact discretisation over a held step with {now.text}"
     if switch:
-        note = (f" Refitted with the lag in place under {alt.text}"
-                + (" (a first-order hold: inputs moving between samples)"
-                   if alt.inputs == "foh" else " (a zero-order hold: inputs held over each "
-                   "sample)")
-                + f", which is used: {now.text} fits "
+        note = (f" Refitted in its continuous form (τ ż = u − z) under {alt.text} (a "
+                "first-order hold: inputs moving between samples), which is used: "
+                f"{held} fits "
                 + (f"better by 2ΔELBO = {-d:.4g}, not significantly (≤ {thr:.4g})." if d < 0
                    else f"worse by 2ΔELBO = {d:.4g}."))
     else:
-        note = (f" Refitted with the lag in place under {alt.text}, {now.text} fits "
-                f"significantly better (2ΔELBO = {-d:.4g} > {thr:.4g}), so it is kept"
-                + (" (the inputs step at the samples)." if now.inputs == "zoh"
-                   and alt.inputs == "foh" else "."))
+        note = (f" Refitted in its continuous form (τ ż = u − z) under {alt.text}; {held} "
+                f"fits significantly better (2ΔELBO = {-d:.4g} > {thr:.4g}), so it is kept"
+                + (" (the inputs step at the samples)." if now.inputs == "zoh" else "."))
     comparison = {"current": now.to_json(), "other": alt.to_json(),
                   "current_hold": now.inputs, "other_hold": alt.inputs,
                   "two_delta_elbo_other_minus_current": d,
@@ -1583,10 +1580,9 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
             f"= {d:+.4g})")
     if not switch:
         return dataclasses.replace(best, candidate=c)
-    if c_alt is not None:
-        # the accepted terms are now the continuous-form lag's (its bounds, its explanation)
-        c = dataclasses.replace(c_alt, explanation=c_alt.explanation + note,
-                                info={**(c_alt.info or {}), "hold_comparison": comparison})
+    # the accepted terms are now the continuous-form lag's (its bounds, its explanation)
+    c = dataclasses.replace(c_alt, explanation=c_alt.explanation + note,
+                            info={**(c_alt.info or {}), "hold_comparison": comparison})
     lam = best.statistic + d
     return dataclasses.replace(
         best, candidate=c, state=got, spec_path=path, statistic=lam,
