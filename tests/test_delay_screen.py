@@ -390,3 +390,35 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     assert out.state.fit.converged
     assert d > -0.1, d
     assert d < stats.chi2.isf(0.01, 1), d
+
+
+def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_path):
+    """A lag refit started at the screen's time constant (:func:`filter_start`) that ends below
+    the nested reference is done again from the nesting point and the better kept. On the
+    no-lag record of the test above, a screen start forged at 1 s (a lag of 20 samples,
+    which fits far worse) must not leave the refit below the current model."""
+    import types
+
+    from test_score_states import SPEC
+
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.search import filter_start, fit_spec, model_info_of, staged_refit
+
+    t, u, y = _simulate(tau=0.0, seed=5)
+    csv = tmp_path / "lin1.csv"
+    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
+    spec = tmp_path / "lin1_rk4_foh.yaml"
+    spec.write_text(SPEC.replace("name: lin1", "name: lin1_rk4_foh")
+                    + "integrator: {method: rk4, inputs: foh}\n")
+    st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=200)
+    info = model_info_of(st)
+    cand = next(c for c in propose(info) if c.effect == "actuator_lag")
+    forged = types.SimpleNamespace(step={"tau_s": 1.0}, statistic=30.0)
+    started = filter_start(cand, forged)
+    assert started.parameters[0].initial == pytest.approx(1.0)
+    out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_rk4_bad_start",
+                       generated_dir=tmp_path / "gen", max_iter=200)
+    d = 2.0 * (out.state.elbo - out.elbo_ref)
+    print("bad screen start:", d, out.notes)
+    assert any("refitted from the nesting point" in n for n in out.notes), out.notes
+    assert d > -0.1, (d, out.notes)
