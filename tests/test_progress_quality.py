@@ -88,3 +88,17 @@ def test_log_mode_names_the_phases_the_estimator_announces():
                      "deterministic limit, stage 2 of at most 12, std × 0.01: 1 iterations, ELBO 88, "
                      "|grad| 1e-05, 3.0 s"]
     assert "noise start 2" not in out.getvalue()
+
+
+def test_status_line_names_the_next_engine_refit_not_a_profiled_delay():
+    """A profiled transport delay runs after the round's engine refits: the "refitting …"
+    status line named it first (a new user's roll model: "refitting transport_delay:dr (1/2)"
+    while the lags were being refitted)."""
+    from vsidgen.discrepancy.search import _RoundPlan
+
+    keys = ["transport_delay:dr", "actuator_lag:dr", "actuator_lag:da"]
+    plan = _RoundPlan(ranked=[], paths=[], profiled=[0], groups={}, tasks=[],
+                      by_key={k: (i, 1.0, None, None) for i, k in enumerate(keys)})
+    assert plan.next_refitted(keys) == "actuator_lag:dr"
+    assert plan.next_refitted(keys[::2]) == "actuator_lag:da"
+    assert plan.next_refitted(keys[:1]) is None

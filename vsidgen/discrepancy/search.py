@@ -1166,6 +1166,11 @@ class _RoundPlan:
         """Number of candidates the engine tasks refit."""
         return sum(len(self.families.get(k, (k,))) for k, _ in self.tasks)
 
+    def next_refitted(self, pending) -> str | None:
+        """The first key of ``pending`` that an engine task refits (a profiled delay runs
+        after them)."""
+        return next((k for k in pending if self.by_key[k][0] not in self.profiled), None)
+
     def outcomes(self, oc) -> list:
         """The per-candidate outcomes of a finished engine task (:func:`.family.member_outcomes`)."""
         from .family import member_outcomes
@@ -1388,9 +1393,10 @@ def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         un["refitted"].append(t.to_json())
         _checkpoint(run, st, StopReason.RUNNING, report=False)
         status = getattr(run.progress, "refitting", None)
-        if status is not None and un["pending"]:
+        nxt = plan.next_refitted(un["pending"])
+        if status is not None and nxt is not None:
             n_done = len(un["refitted"])
-            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), un["pending"][0]))
+            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), nxt))
 
 
 def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
@@ -1400,8 +1406,9 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     from ..engine import TaskStatus
 
     status = getattr(run.progress, "refitting", None)  # live status line with time left
-    if status is not None and plan.tasks:
-        run.say(status(rnd, 1, plan.n_refits, st.unfinished["pending"][0]))
+    nxt = plan.next_refitted(st.unfinished["pending"])
+    if status is not None and plan.tasks and nxt is not None:
+        run.say(status(rnd, 1, plan.n_refits, nxt))
     done = run.engine.run(_round_task, plan.tasks, deadline=run.deadline,
                           on_done=functools.partial(_refit_done, run, st, rnd, plan, current))
     # per candidate, in the round's rank order (a family's members come back together)
