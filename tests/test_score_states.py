@@ -219,6 +219,26 @@ def test_choose_refits_covers_every_significant_effect_class_and_target_first():
     assert [r.candidate.key for r in got] == ["a1", "b1"]
 
 
+def test_choose_refits_adds_close_competitors_of_other_classes_past_the_limit():
+    """A class × target best whose score statistic is within 2·AMBIGUITY_NATS (6) of the
+    largest is refitted even past ``max_candidates``: lat_beta_vane_3_s0's screen, where the
+    true β-vane position was fourth (S 71.69 against 77.14) and three were refitted. A
+    second candidate of an already chosen class is not added, nor a class further away."""
+    s = {"ay:r": 77.14, "Y:r": 73.11, "skew:ay": 71.75, "beta:r": 71.69, "skew:beta": 66.71,
+         "ay:p": 35.0, "ay:r2": 76.0}
+    cls = {"ay:r": ("pos", "output:ay"), "ay:r2": ("pos", "output:ay"),
+           "Y:r": ("deriv", "def:Y"), "skew:ay": ("skew", "output:ay"),
+           "beta:r": ("pos", "output:beta"), "skew:beta": ("skew", "output:beta"),
+           "ay:p": ("pos2", "output:ay")}
+    rows = sorted((Ranked(_cand(k, *cls[k]), 0, _sr(v)) for k, v in s.items()),
+                  key=Ranked.sort_key)
+    got = choose_refits(rows, max_candidates=3, min_score=1.0, alpha=0.01, n_examined=140)
+    assert [r.candidate.key for r in got] == ["ay:r", "Y:r", "skew:ay", "beta:r"]
+    got = choose_refits(rows, max_candidates=8, min_score=1.0, alpha=0.01, n_examined=140)
+    assert [r.candidate.key for r in got] == ["ay:r", "ay:r2", "Y:r", "skew:ay", "beta:r",
+                                              "skew:beta", "ay:p"]
+
+
 def test_ascent_candidates_are_refitted_before_non_significant_score_tests():
     """A candidate whose profiled curvature is negative at the current optimum (a saddle of
     its ELBO: it certainly improves the fit) is refitted before one whose score test is not

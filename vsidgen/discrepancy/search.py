@@ -628,18 +628,34 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
     current optimum is a saddle of their ELBO: they certainly improve the fit, a
     non-significant score test says it will likely not); then the remaining rows in rank
     order with priority ≥ ``min_score``; at most ``max_candidates`` in all, in rank order.
+
+    Past ``max_candidates``: every other class × target best whose score statistic is
+    within ``2·AMBIGUITY_NATS`` of the largest one. The statistic approximates its refit's
+    Λ, and the round compares the refits' Λ with that margin (:func:`alternatives_of`), so
+    such a candidate may be the best explanation or the alternative that makes the finding
+    ambiguous; leaving it out lets the screening order decide. (lat_beta_vane_3_s0, a β
+    vane 3 m ahead of the CG: its position was the fourth class at S = 71.7 against 77.1,
+    not refitted with three candidates, and a side-force derivative was named.)
     """
     level = -math.log10(alpha / max(n_examined, 1))
     eligible = [r for r in rows if math.isfinite(r.priority) and r.priority >= min_score]
     chosen: list[Ranked] = []
+    bests: list[Ranked] = []
     classes: set = set()
     for r in eligible:
         cls = (r.candidate.effect, r.candidate.target)
         if r.tier is ScreenTier.SCORE_TEST and r.priority > level and cls not in classes:
             classes.add(cls)
-            chosen.append(r)
-    chosen += [r for r in eligible if r.tier is ScreenTier.ASCENT]
+            bests.append(r)
+    chosen = bests + [r for r in eligible if r.tier is ScreenTier.ASCENT]
     chosen = chosen[:max_candidates]
+    stat = {id(r): r.screen.statistic for r in bests
+            if r.screen is not None and r.screen.statistic is not None
+            and math.isfinite(r.screen.statistic)}
+    if stat:
+        top = max(stat.values())
+        chosen += [r for r in bests if r not in chosen and id(r) in stat
+                   and stat[id(r)] >= top - 2.0 * AMBIGUITY_NATS]
     taken = {id(r) for r in chosen}
     for r in eligible:
         if len(chosen) >= max_candidates:
