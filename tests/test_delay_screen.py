@@ -361,8 +361,7 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     input moving between samples, integrated with 20 sub-steps), the actuator-lag candidate's
     refit must not end below the current model: its lower bound is the current model up to a
     hundredth of a step. (The continuous form's RK4 bound of 0.4 steps forced a lag of 0.4
-    samples on every refit: a new user's roll model on ATTAS ended 1453 nats (2Δ) below its
-    nesting point.) And nothing is found: 2ΔELBO stays below χ²₁'s 1 % point."""
+    samples on every refit.) And nothing is found: 2ΔELBO stays below χ²₁'s 1 % point."""
     from test_score_states import SPEC
 
     from vsidgen.discrepancy import propose

@@ -495,9 +495,8 @@ class ActuatorLag(_InputDynamics):
         :func:`.search.lag_hold`). The plain Euler step of ``τ ż = u − z`` acts through
         ``z_k``, a whole step behind its own input (on test_delay_screen's independent 0.12 s
         lag at 20 Hz it fitted worse, 2ΔELBO 58.5 against 66.4); the continuous form under
-        RK4 is unstable below 0.36 of a step, so a refit from its bound started a
-        fraction of a sample away from the current model (a new user's roll model on ATTAS
-        ended 1453 nats (2Δ) below the current model)."""
+        RK4 is unstable below 0.36 of a step, so a refit from its bound started 0.4 of a
+        step away from the current model."""
         what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
         docs = {"param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
                 "explain": {"what": what}}
