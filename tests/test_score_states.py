@@ -259,6 +259,14 @@ def test_ascent_candidates_are_refitted_before_non_significant_score_tests():
     assert [r.candidate.key for r in got] == ["strong", "sad1", "sad2"]
     got = choose_refits(rows, max_candidates=2, min_score=1.0, alpha=0.01, n_examined=5)
     assert [r.candidate.key for r in got] == ["strong", "sad1"]
+    # an ascent candidate is refitted whatever its locate score (its priority): min_score
+    # gates priorities, not the tier (sp_phugoid_1_s1: speed dynamics, locate score 0.055)
+    rows2 = sorted(rows + [Ranked(_cand("sad0", "speed", "drift:alpha"), 0.055, up)],
+                   key=Ranked.sort_key)
+    got = choose_refits(rows2, max_candidates=3, min_score=1.0, alpha=0.01, n_examined=6)
+    assert [r.candidate.key for r in got] == ["strong", "sad1", "sad2"]
+    got = choose_refits(rows2, max_candidates=4, min_score=1.0, alpha=0.01, n_examined=6)
+    assert [r.candidate.key for r in got] == ["strong", "sad1", "sad2", "sad0"]
 
 
 def _kf_bias(p, u, y, b):

@@ -638,7 +638,11 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
     not refitted with three candidates, and a side-force derivative was named.)
     """
     level = -math.log10(alpha / max(n_examined, 1))
-    eligible = [r for r in rows if math.isfinite(r.priority) and r.priority >= min_score]
+    # ``min_score`` gates a priority, not the ascent tier: an ascent candidate's priority is
+    # its locate score, and sp_phugoid_1_s1's speed dynamics (a saddle: ascent, locate score
+    # 0.055) was never refitted while two non-significant score tests were
+    eligible = [r for r in rows if r.tier is ScreenTier.ASCENT
+                or (math.isfinite(r.priority) and r.priority >= min_score)]
     chosen: list[Ranked] = []
     bests: list[Ranked] = []
     classes: set = set()
