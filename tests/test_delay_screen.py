@@ -356,17 +356,12 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     assert abs(ent["estimate"] - TAU_LAG) < 3.0 * ent["std_error"], ent
 
 
-def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
-    """On an RK4 model with a first-order hold, of an independent record with no lag (the
-    input moving between samples, integrated with 20 sub-steps), the actuator-lag candidate's
-    refit must not end below the current model: its lower bound is the current model up to a
-    hundredth of a step. (The continuous form's RK4 bound of 0.4 steps forced a lag of 0.4
-    samples on every refit.) And nothing is found: 2ΔELBO stays below χ²₁'s 1 % point."""
+def _fit_rk4_foh_without_lag(tmp_path):
+    """(FitState, ModelInfo): the one-state model with RK4 and a first-order hold fitted to an
+    independent record whose input reaches the state without lag or delay."""
     from test_score_states import SPEC
 
-    from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.findings import _params
-    from vsidgen.discrepancy.search import fit_spec, model_info_of, staged_refit
+    from vsidgen.discrepancy.search import fit_spec, model_info_of
 
     t, u, y = _simulate(tau=0.0, seed=5)
     csv = tmp_path / "lin1.csv"
@@ -375,7 +370,20 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     spec.write_text(SPEC.replace("name: lin1", "name: lin1_rk4_foh")
                     + "integrator: {method: rk4, inputs: foh}\n")
     st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=200)
-    info = model_info_of(st)
+    return st, model_info_of(st)
+
+
+def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
+    """On an RK4 model with a first-order hold, of an independent record with no lag (the
+    input moving between samples, integrated with 20 sub-steps), the actuator-lag candidate's
+    refit must not end below the current model: its lower bound is the current model up to a
+    hundredth of a step. (The continuous form's RK4 bound of 0.4 steps forced a lag of 0.4
+    samples on every refit.) And nothing is found: 2ΔELBO stays below χ²₁'s 1 % point."""
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.findings import _params
+    from vsidgen.discrepancy.search import staged_refit
+
+    st, info = _fit_rk4_foh_without_lag(tmp_path)
     assert st.fit.converged and st.model.input_hold == "foh" and info.integrator == "rk4"
     cand = next(c for c in propose(info) if c.effect == "actuator_lag")
     assert cand.parameters[0].lower == pytest.approx(0.01 * DT)
@@ -398,19 +406,10 @@ def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_p
     which fits far worse) must not leave the refit below the current model."""
     import types
 
-    from test_score_states import SPEC
-
     from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.search import filter_start, fit_spec, model_info_of, staged_refit
+    from vsidgen.discrepancy.search import filter_start, staged_refit
 
-    t, u, y = _simulate(tau=0.0, seed=5)
-    csv = tmp_path / "lin1.csv"
-    np.savetxt(csv, np.column_stack([t, u, y]), delimiter=",", header="t,u,y", comments="")
-    spec = tmp_path / "lin1_rk4_foh.yaml"
-    spec.write_text(SPEC.replace("name: lin1", "name: lin1_rk4_foh")
-                    + "integrator: {method: rk4, inputs: foh}\n")
-    st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=200)
-    info = model_info_of(st)
+    st, info = _fit_rk4_foh_without_lag(tmp_path)
     cand = next(c for c in propose(info) if c.effect == "actuator_lag")
     forged = types.SimpleNamespace(step={"tau_s": 1.0}, statistic=30.0)
     started = filter_start(cand, forged)

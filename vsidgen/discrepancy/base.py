@@ -504,12 +504,19 @@ def hold_lag(model, dt: float) -> float:
     the interpolated input at its stage times (no lag). The physical transport delay is the
     spec's delay plus this lag.
     """
-    hold = getattr(model, "input_hold", "zoh") or "zoh"
-    if hold == "zoh":
+    return setting_hold_lag(getattr(model, "input_hold", "zoh") or "zoh",
+                            getattr(model, "integrator", "euler") or "euler",
+                            int(getattr(model, "substeps", 1) or 1), dt)
+
+
+def setting_hold_lag(inputs: str, method: str, substeps: int, dt: float) -> float:
+    """:func:`hold_lag` of an integrator setting: input hold ``inputs`` ("zoh"/"foh"),
+    ``method`` ("euler"/"rk4") with ``substeps`` per sample of ``dt`` s."""
+    if inputs == "zoh":
         return 0.5 * dt
-    if (getattr(model, "integrator", "euler") or "euler") == "rk4":
+    if method == "rk4":
         return 0.0
-    return 0.5 * dt / int(getattr(model, "substeps", 1) or 1)
+    return 0.5 * dt / int(substeps)
 
 
 # ---------------------------------------------------------------------------

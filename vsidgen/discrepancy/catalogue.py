@@ -497,9 +497,7 @@ class ActuatorLag(_InputDynamics):
         lag at 20 Hz it fitted worse, 2ΔELBO 58.5 against 66.4); the continuous form under
         RK4 is unstable below 0.36 of a step, so a refit from its bound started 0.4 of a
         step away from the current model."""
-        what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
-        docs = {"param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
-                "explain": {"what": what}}
+        docs = _lag_docs(u)
         if not info.dt:
             return {"coupling": z, "drift": f"({u} - {z})/{tau}", **docs}
         h = f"{_lag_step(info):.12g}"
@@ -516,6 +514,13 @@ class ActuatorLag(_InputDynamics):
         return LAG_MIN_FRACTION * _lag_step(info)
 
 
+def _lag_docs(u: str) -> dict:
+    """The lag parameter's and state's descriptions for input ``u``."""
+    what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
+    return {"param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
+            "explain": {"what": what}}
+
+
 def _lag_step(info) -> float:
     """The integration step ``h = dt/substeps`` of the model described by ``info`` (s)."""
     return float(info.dt or 0.01) / max(int(info.substeps or 1), 1)
@@ -529,10 +534,7 @@ class ContinuousActuatorLag(ActuatorLag):
     down to ``RK4_LAG_MIN_STEPS`` of a step)."""
 
     def pieces(self, info, u, z, tau):
-        what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
-        return {"coupling": z, "drift": f"({u} - {z})/{tau}",
-                "param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
-                "explain": {"what": what}}
+        return {"coupling": z, "drift": f"({u} - {z})/{tau}", **_lag_docs(u)}
 
     def lower_bound(self, info) -> float:
         """RK4 is stable for ``h/τ ≤ 2.785``: ``RK4_LAG_MIN_STEPS`` of a step; an Euler step

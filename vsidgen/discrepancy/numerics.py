@@ -91,12 +91,10 @@ class NumericsSetting:
 
     def hold_lag(self, dt: float) -> float:
         """Delay (s) this setting's transition applies to a continuously moving input
-        (:func:`.base.hold_lag`)."""
-        from .base import hold_lag
+        (:func:`.base.setting_hold_lag`)."""
+        from .base import setting_hold_lag
 
-        return hold_lag(type("Setting", (), {"input_hold": self.inputs,
-                                             "integrator": self.method,
-                                             "substeps": self.substeps}), dt)
+        return setting_hold_lag(self.inputs, self.method, self.substeps, dt)
 
     @property
     def cost(self) -> int:

@@ -269,6 +269,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             warm = False
     elif new_states:
         warm = False
+
     def stages(z_start, held, it1, decision0):
         """Stage 1 (``held`` at their start values, ``z_start``; assumed density warm from
         ``decision0``) and stage 2 (all free)."""
@@ -313,14 +314,14 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             if p.name in names and p.lower is not None:
                 theta_nest[names.index(p.name)] = float(p.lower)
         from ..estimator.core import ThetaMap
-        z_nest = ThetaMap(m2.parameters, values=theta_nest).z0
+        tm = ThetaMap(m2.parameters, values=theta_nest)
+        z_nest = tm.z0
         base_held = tuple(q.name for q in m2.parameters if not q.fixed and q.name in base_names)
         dec_nest = decision0
         if new_states and warm:
             try:   # the added states embedded along their nesting-point transition
                 dec_nest = stage0_start(m2, records, base_fit, current.model,
-                                        ThetaMap(m2.parameters, values=theta_nest).theta(z_nest),
-                                        DET)[0]
+                                        tm.theta(z_nest), DET)[0]
             except (FitError, ValueError, ArithmeticError, np.linalg.LinAlgError):
                 dec_nest = decision0
         res1b, res2b = stages(z_nest, base_held, stage1_iterations(max_iter), dec_nest)
@@ -658,7 +659,8 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
             and math.isfinite(r.screen.statistic)}
     if stat:
         top = max(stat.values())
-        chosen += [r for r in bests if r not in chosen and id(r) in stat
+        first = {id(r) for r in chosen}
+        chosen += [r for r in bests if id(r) not in first and id(r) in stat
                    and stat[id(r)] >= top - 2.0 * AMBIGUITY_NATS]
     taken = {id(r) for r in chosen}
     for r in eligible:

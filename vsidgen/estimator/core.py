@@ -681,7 +681,7 @@ def compiler_options() -> dict | None:
     makes every compilation fail."""
     if jax.default_backend() != "cpu" or not CPU_COMPILER_OPTIONS:
         return None
-    return supported_compiler_options(tuple(sorted(CPU_COMPILER_OPTIONS.items()))) or None
+    return dict(supported_compiler_options(tuple(sorted(CPU_COMPILER_OPTIONS.items())))) or None
 
 
 @functools.lru_cache(maxsize=None)
