@@ -1,5 +1,6 @@
 """CLI: build / check / show exit codes and output."""
 
+import argparse
 import pathlib
 import subprocess
 import sys
@@ -184,3 +185,18 @@ data:
                  "without process noise (fitted in the limit of vanishing noise): theta",
                  "alpha: fixed, std 0.002 [rad], floor auto", "q: estimated, no floor"):
         assert text in settings, (text, settings)
+
+
+def test_every_out_option_has_the_short_form_o():
+    """``-o`` is ``--out`` for every command that writes (users type it out of habit)."""
+    from vsidgen.cli import make_parser
+
+    p = make_parser()
+    sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+    with_out = 0
+    for name, sp in sub.choices.items():
+        opts = {s for a in sp._actions for s in a.option_strings}
+        if "--out" in opts:
+            with_out += 1
+            assert "-o" in opts, name
+    assert with_out >= 4

@@ -34,7 +34,7 @@ def _add_build(subparsers) -> None:
         description="Compile YAML model specs into readable JAX modules (one per spec). "
                     "A module whose embedded spec hash is unchanged is not rewritten.")
     p.add_argument("specs", nargs="+", metavar="SPEC", help="spec file(s) (YAML)")
-    p.add_argument("--out", default=None, metavar="DIR",
+    p.add_argument("-o", "--out", default=None, metavar="DIR",
                    help="output folder (default: the `generated/` folder beside a `specs/` "
                         "folder, else ./generated)")
     p.add_argument("--force", action="store_true", help="rewrite modules even when up to date")
@@ -254,7 +254,7 @@ def _add_simulate(sub):
                     "reads it back. Inputs come from maneuver generators (--input) or from a "
                     "CSV record (--inputs-from).")
     p.add_argument("spec", help="model spec (YAML)")
-    p.add_argument("--out", required=True, help="CSV file to write (atomically)")
+    p.add_argument("-o", "--out", required=True, help="CSV file to write (atomically)")
     p.add_argument("--param", action="append", metavar="NAME=VALUE",
                    help="parameter value (repeatable; others take their spec initial value)")
     p.add_argument("--params-from", metavar="RESULTS_JSON",
@@ -376,7 +376,7 @@ def _add_fit(sub):
     p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="validation record(s): θ fixed at the estimate, smoothing only")
-    p.add_argument("--out", required=True, help="results directory")
+    p.add_argument("-o", "--out", required=True, help="results directory")
     p.add_argument("--integrator", choices=("euler", "rk4"), default=None,
                    help="transition mean (default: the spec's; euler = the paper's Euler–Maruyama)")
     p.add_argument("--substeps", type=int, default=None, help="integration sub-steps per sample")
@@ -501,7 +501,7 @@ def _add_report(sub):
     p.add_argument("dir", help="results directory written by `vsidgen fit`")
     p.add_argument("--reference", metavar="JSON[:METHOD]", default=None,
                    help="reference estimates (e.g. ../shared/reference/hfb320_reference.json:fem)")
-    p.add_argument("--out", default=None, help="HTML file (default DIR/report.html)")
+    p.add_argument("-o", "--out", default=None, help="HTML file (default DIR/report.html)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing HTML file that vsidgen did not write")
     p.set_defaults(handler=_cmd_report)

@@ -1831,7 +1831,7 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="validation record(s): an accepted effect must raise their ELBO too")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("-o", "--out", required=True, help="output directory")
     p.add_argument("--max-rounds", type=int, default=3, help="maximum accepted effects (default 3)")
     p.add_argument("--max-candidates", type=int, default=8,
                    help="candidates refitted per round (default 8)")

@@ -184,7 +184,7 @@ def add_fleet_parser(subparsers):
                     "2 when a record had bad input (the others are still fitted).")
     p.add_argument("spec", help="model spec (YAML)")
     p.add_argument("data", nargs="+", help="records (CSV), one fit each")
-    p.add_argument("--out", required=True, help="output directory (one results folder per record)")
+    p.add_argument("-o", "--out", required=True, help="output directory (one results folder per record)")
     from ..engine import add_engine_arguments
 
     add_engine_arguments(p, what="record fits")
