@@ -267,6 +267,56 @@ def test_speed_candidate_needs_alpha_and_q_and_no_speed_state():
     assert SpeedDynamics().applies_to(hfb) == []
 
 
+MEASURED_SPEED_SPEC = textwrap.dedent("""
+    name: pitch_measured_speed
+    states:
+      alpha: {unit: rad}
+      q: {unit: rad/s}
+      theta: {unit: rad}
+    inputs:
+      de: {unit: rad}
+      V: {unit: m/s, description: measured true airspeed}
+    outputs:
+      alpha: {unit: rad}
+      q: {unit: rad/s}
+    constants:
+      rho: {value: 0.46, unit: kg/m^3}
+      g: {value: 9.81, unit: m/s^2}
+    parameters:
+      CLa: {unit: 1/rad}
+      Cma: {unit: 1/rad}
+      Cmq: {unit: 1/rad}
+      Cmde: {unit: 1/rad}
+    definitions:
+      qbar: 0.5*rho*V**2
+    drift:
+      alpha: q - qbar*0.004*CLa*alpha/V + g*cos(theta - alpha)/V
+      q: qbar*0.0008*(Cma*alpha + Cmq*q*10/V + Cmde*de)
+      theta: q
+    observations:
+      alpha: alpha
+      q: q
+    data:
+      time: t_s
+      inputs: {de: de_rad, V: v_mps}
+      outputs: {alpha: alpha_rad, q: q_radps}
+    """)
+
+
+def test_a_model_driven_by_the_measured_airspeed_has_its_speed_dynamics(tmp_path):
+    """A new user's pitch model that takes the measured airspeed as an input: the speed
+    variations are in the model already (no speed-dynamics candidate), and the vane position
+    uses that airspeed sample by sample (not the record's mean)."""
+    spec = tmp_path / "pitch.yaml"
+    spec.write_text(MEASURED_SPEED_SPEC)
+    info = model_info(spec, dt=0.04)
+    assert SpeedDynamics().applies_to(info) == []
+    vane = next(c for c in propose(info) if c.key == "sensor_position:alpha:q")
+    (term,) = vane.add_terms["observations"].values()
+    assert "/V" in term.replace(" ", "").replace("(V)", "V"), term
+    assert "the model's V" in vane.explanation
+
+
 # ---------------------------------------------------------------------------
 # real records (slow; the records are not in the repository)
 # ---------------------------------------------------------------------------

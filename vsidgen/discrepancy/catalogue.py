@@ -599,9 +599,10 @@ _SPEED_CONSTANTS = ("v0", "vt0", "vtas0", "vo", "u0", "vtrim", "v_0", "vref", "v
 
 
 def airspeed_name(info: ModelInfo) -> str | None:
-    """The model's own true airspeed: a state named like V/VT/TAS with a speed unit, else a
-    constant named like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
-    for v in info.states:
+    """The model's own true airspeed: a state named like V/VT/TAS with a speed unit, else an
+    input of that kind (a measured airspeed the model is driven with), else a constant named
+    like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
+    for v in info.states + info.inputs:
         if v.name.lower() in _SPEED_STATES and (v.unit or "").replace(" ", "") in (
                 "m/s", "ft/s", "kt", "km/h"):
             return v.name
@@ -953,8 +954,10 @@ class SpeedDynamics(Effect):
         if a is None or q is None:
             return []
         own = airspeed_name(info)
-        if own is not None and own in info.state_names:
-            return []        # the model has a speed state already
+        if own is not None and (own in info.state_names or own in info.input_names):
+            # the model has a speed state already, or is driven by the measured airspeed
+            # (its speed variations are in the model through that input)
+            return []
         if any(s.lower() in ("v", "u", "vt", "vtas", "tas") for s in info.state_names):
             return []
         dv = info.fresh("D_dV")
