@@ -593,6 +593,26 @@ def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
         assert contradiction not in quiet_base
 
 
+
+def test_conclusion_names_a_candidate_rejected_in_several_rounds_once():
+    """A candidate refitted in two rounds and rejected both times is listed once, with its
+    rounds (a new user's Tu-144 run listed "actuator_lag:de, control_delay:de, ...,
+    control_delay:de, actuator_lag:de")."""
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    def rej(key):
+        return {"key": key, "statistic": 300.0, "threshold": 15.6, "converged": True,
+                "significant": True, "validation_ok": False}
+
+    lag = {"key": "actuator_lag:V", "statistic": 2.0, "threshold": 15.6, "converged": False}
+    rounds = [{"round": 1, "trials": [rej("actuator_lag:de"), rej("control_delay:de")]},
+              {"round": 2, "trials": [rej("control_delay:de"), rej("actuator_lag:de"), lag]},
+              {"round": 3, "trials": [dict(lag)]}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=True, final_spec="x.yaml")
+    assert text.count("actuator_lag:de") == 1 and text.count("control_delay:de") == 1
+    assert "actuator_lag:de (rounds 1, 2)" in text and "control_delay:de (rounds 1, 2)" in text
+    assert text.count("actuator_lag:V") == 1 and "actuator_lag:V (rounds 2, 3)" in text
+
 def _assert_lift_users_changed_and_nested(sym, base, d):
     """Of hfb320's outputs only the accelerometers (users of CL) change, and with the new
     parameter ``d`` at 0 the augmented model is the base model."""

@@ -180,6 +180,19 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
             f"another control), so that the two explanations predict different responses")
 
 
+
+def _keys_by_round(trials) -> list[str]:
+    """Candidate keys of ``trials`` once each, in first-seen order, with the rounds they were
+    refitted in when there are several (``"actuator_lag:de (rounds 1, 2)"``)."""
+    rounds: dict = {}
+    for t in trials:
+        rs = rounds.setdefault(t["key"], [])
+        if t.get("round") is not None and t["round"] not in rs:
+            rs.append(t["round"])
+    return [k if len(rs) < 2 else f"{k} (rounds {', '.join(str(r) for r in rs)})"
+            for k, rs in rounds.items()]
+
+
 def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bool,
                     final_spec, base_converged: bool = True, base_status: str = "",
                     numerics_adopted: bool = False) -> str:
@@ -217,8 +230,9 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                       + (" and on the validation records" if validated else "")
                       + f". {kept}; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
-    tried = [t for r in rounds for t in r.get("trials", [])]
-    val_rej = [t["key"] for t in tried if t.get("significant") and t.get("validation_ok") is False]
+    tried = [dict(t, round=r.get("round")) for r in rounds for t in r.get("trials", [])]
+    val_rej = _keys_by_round([t for t in tried
+                              if t.get("significant") and t.get("validation_ok") is False])
     unconv = [t["key"] for t in tried if t.get("converged") is False]
     strong = [t for t in tried if t.get("converged") is False
               and isinstance(t.get("statistic"), (int, float))
@@ -259,6 +273,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
         conclusion += (" Significant on the estimation records but rejected because the validation "
                        "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
     if unconv:
+        unconv = _keys_by_round([t for t in tried if t["key"] in set(unconv)
+                                 and t.get("converged") is False])
         conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
                        "candidates): " + ", ".join(unconv) + ".")
     if not base_converged:
