@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import Gradient, Problem, initial_means
+from .problem import Gradient, Problem, initial_means, invert_outputs
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
                       StopReason, announce)
 
@@ -154,7 +154,7 @@ def _nonfinite_where(P: Problem, s, recs) -> str:
     vals = ", ".join(f"{n} = {float(v):.6g}" for n, v in zip(m.parameter_names, th))
     if parts:
         return (f": {parts[0]} is not finite (initial parameter values {vals[:300]}; the "
-                "states start at their direct measurements, else 0)\n  hint: check divisions, "
+                "states start at their direct measurements, else solved from the outputs, else 0)\n  hint: check divisions, "
                 "log, sqrt and exp in that equation at these values, and --fix/--init values")
     big = [f"{n} = {float(v):.3g}" for n, v in zip(m.parameter_names, th) if abs(v) > 1e10]
     return (": the drift and outputs are finite there, but their squared residuals overflow"
@@ -1293,7 +1293,7 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     """Data scale of the process-noise std of states ``idx``: √T · rms_k f_i(μ⁰_k, u_k, θ⁰).
 
     f is the drift at the initial state means μ⁰ (measured states from their outputs,
-    unmeasured ones 0), the inputs and the initial θ, over every sample of every record:
+    unmeasured ones solved from the outputs where these depend on them, :func:`.problem.invert_outputs`, else 0), the inputs and the initial θ, over every sample of every record:
     the rate at which the model, as given, moves the state along the data. A process noise
     whose increment over one sample (σ√T) equals that movement (f T) has σ = f √T, the same
     construction as a measured state's data start (spread of its sample differences / √T).
@@ -1306,7 +1306,8 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))
     sq, n = np.zeros(len(idx)), 0
     for rec in P.records:
-        mu0 = initial_means(P.model, rec, pairs, "measured")
+        mu0 = invert_outputs(P.model, rec, initial_means(P.model, rec, pairs, "measured"),
+                             list(pairs), p0)
         f = np.asarray(drift(jnp.asarray(mu0), jnp.asarray(np.asarray(rec.u, float)), p0), float)[:, idx]
         fin = np.all(np.isfinite(f), axis=1)
         sq += np.sum(f[fin] ** 2, axis=0)

@@ -31,7 +31,8 @@ decrement over all variables.
 
 Start (:meth:`Problem.initial`): θ at the spec's initial values, the noise at one of the noise
 starts, μ of a state measured directly by an output y = c + k·x (:func:`direct_measurements`)
-at (y − c)/k, other states 0.
+at (y − c)/k, the other states that the outputs depend on solved from them sample by sample
+(:func:`invert_outputs`: u, w of a body-axis model from V and α), the rest 0.
 """
 
 from __future__ import annotations
@@ -253,6 +254,92 @@ def initial_means(model, rec, pairs, how: str) -> np.ndarray:
         if fin.any():
             mu[:, i] = np.interp(k, k[fin], col[fin])
     return mu
+
+
+#: Levenberg–Marquardt iterations and start offset of :func:`invert_outputs`
+INVERT_ITERATIONS, INVERT_START = 40, 1e-6
+
+
+def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
+    """State means ``mu`` (N, nx) with the states that no output measures directly but that
+    the outputs depend on (at the initial parameters ``theta``) solved from the record's
+    outputs, sample by sample: ``min_x Σ_j ((y_kj − h_j(x, u_k; θ))/s_j)²`` over those
+    states, the directly measured ones (``measured``: state indices) held at ``mu``, ``s_j``
+    the channel's standard deviation. Damped Gauss–Newton (Levenberg–Marquardt, one damping
+    per sample), started a hair off zero (``INVERT_START``: the derivative of √(u² + w²) or
+    atan2(w, u) does not exist at the origin).
+
+    A body-axis model (states u, w; outputs V = √(u² + w²), α = atan2(w, u)) then starts at
+    u = V cos α, w = V sin α instead of u = w = 0, where its airspeed vanishes. States the
+    outputs do not depend on at the start stay at 0; a sample whose fit is not finite or not
+    better than the start keeps the start.
+    """
+    free = [i for i in range(model.nx) if i not in set(measured)]
+    y = np.asarray(rec.y, float)
+    if not free or y.shape[0] == 0:
+        return mu
+    u = jnp.asarray(np.asarray(rec.u, float))
+    th = jnp.asarray(np.asarray(theta, float))
+    fi = np.asarray(free)
+
+    def out(xf, x, uk):
+        return model.output(x.at[fi].set(xf), uk, th)
+
+    hj = jax.jit(jax.vmap(lambda xf, x, uk: (out(xf, x, uk), jax.jacfwd(out)(xf, x, uk))))
+    x0 = np.array(mu, float)
+    x0[:, fi] = INVERT_START
+    with np.errstate(all="ignore"):
+        h, J = (np.asarray(a, float) for a in hj(jnp.asarray(x0[:, fi]), jnp.asarray(x0), u))
+    finite = np.isfinite(h).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
+    dep = np.any(np.abs(np.where(finite[:, None, None], J, 0.0)) > 0, axis=(0, 1))
+    if not dep.any():
+        return mu
+    obs = np.isfinite(y)
+    sd = np.array([np.std(y[obs[:, j], j]) if obs[:, j].sum() > 1 else 1.0
+                   for j in range(y.shape[1])])
+    w = np.where(obs, 1.0 / np.where(sd > 0, sd, 1.0) ** 2, 0.0)
+    y0 = np.where(obs, y, 0.0)
+
+    def cost(h):
+        return np.sum(w * (y0 - h) ** 2, axis=1)
+
+    xf = x0[:, fi].copy()
+    xf[:, ~dep] = 0.0
+    c = np.where(finite, cost(np.where(np.isfinite(h), h, 0.0)), np.inf)
+    c_start = c.copy()
+    lam = np.full(y.shape[0], 1e-3)
+    nf = len(fi)
+    for _ in range(INVERT_ITERATIONS):
+        x_full = x0.copy()
+        x_full[:, fi] = xf
+        with np.errstate(all="ignore"):
+            h, J = (np.asarray(a, float) for a in hj(jnp.asarray(xf), jnp.asarray(x_full), u))
+        ok = np.isfinite(h).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
+        J = np.where(ok[:, None, None], J, 0.0)[:, :, dep]
+        r = np.where(ok[:, None], y0 - h, 0.0)
+        A = np.einsum("kja,kj,kjb->kab", J, w, J)
+        g = np.einsum("kja,kj,kj->ka", J, w, r)
+        D = np.einsum("kaa->ka", A) + 1e-12
+        step = np.linalg.solve(A + (lam[:, None] * D)[:, :, None] * np.eye(int(dep.sum())),
+                               g[:, :, None])[:, :, 0]
+        trial = xf.copy()
+        trial[:, dep] = xf[:, dep] + step
+        x_full[:, fi] = trial
+        with np.errstate(all="ignore"):
+            ht = np.asarray(jax.vmap(out)(jnp.asarray(trial), jnp.asarray(x_full), u), float)
+            ct = np.where(np.isfinite(ht).all(axis=1), cost(np.where(np.isfinite(ht), ht, 0.0)),
+                          np.inf)
+        better = np.isfinite(ct) & (ct < c) & np.isfinite(trial).all(axis=1)
+        xf = np.where(better[:, None], trial, xf)
+        c = np.where(better, ct, c)
+        lam = np.where(better, np.maximum(lam / 10.0, 1e-12), np.minimum(lam * 10.0, 1e12))
+    use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1)
+    if not use.any():
+        return mu
+    out_mu = np.array(mu, float)
+    cols = fi[dep]
+    out_mu[np.ix_(use, cols)] = xf[use][:, dep]
+    return out_mu
 
 
 def _check_records(model, records):
@@ -564,6 +651,10 @@ class Problem:
                            else self.nm.G(jnp.asarray(self.nm.inits[start])), float)
             r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
         recs = [(initial_means(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
+        if options.init_states == "measured":
+            theta = self.theta(s)
+            recs = [(invert_outputs(self.model, r, mu, list(pairs), theta), rr)
+                    for r, (mu, rr) in zip(self.records, recs)]
         return s, recs
 
     def floor_active(self, s, gs):

@@ -1,0 +1,100 @@
+"""Starting state means of states no output measures directly (:func:`invert_outputs`).
+
+A new user's body-axis model (states u, w, q, θ; outputs V = √(u² + w²), α = atan2(w, u))
+started at u = w = 0, where its airspeed vanishes and the pitching moment's q·c/(2V) is not
+finite: the fit stopped before its first iteration. The reference here is the kinematic
+inversion written out by hand (u = V cos α, w = V sin α), on a record made with numpy.
+"""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+
+from vsidgen.data import load_record
+from vsidgen.estimator import FitOptions, Problem
+from vsidgen.model import load_model
+
+BODY_AXES = textwrap.dedent("""
+    name: body_axes
+    states:
+      u: {unit: m/s}
+      w: {unit: m/s}
+      q: {unit: rad/s}
+      theta: {unit: rad}
+      lag: {unit: rad, description: a state no output sees}
+    inputs:
+      de: {unit: rad}
+    outputs:
+      V: {unit: m/s}
+      alpha: {unit: rad}
+      q: {unit: rad/s}
+      theta: {unit: rad}
+    constants:
+      c: {value: 2.0, unit: m}
+    parameters:
+      Za: {unit: 1/s}
+      Ma: {unit: 1/s^2}
+      Mq: {unit: 1/rad}
+      Mde: {unit: 1/s^2}
+    definitions:
+      Vt: sqrt(u**2 + w**2)
+      a: atan2(w, u)
+    drift:
+      u: -q*w - 9.81*sin(theta)
+      w: q*u + 9.81*cos(theta) + Za*a*Vt
+      q: Ma*a + Mq*q*c/(2*Vt) + Mde*lag
+      theta: q
+      lag: 10*(de - lag)
+    observations:
+      V: Vt
+      alpha: a
+      q: q
+      theta: theta
+    noise:
+      process: {states: [u, w, q, theta]}
+    data:
+      time: t_s
+      inputs: {de: de_rad}
+      outputs: {V: v_mps, alpha: alpha_rad, q: q_radps, theta: theta_rad}
+    """)
+
+
+def _record(tmp_path, n=120):
+    rng = np.random.default_rng(3)
+    t = np.arange(n) * 0.02
+    V = 70.0 + 0.5 * np.sin(0.7 * t) + 0.01 * rng.normal(size=n)
+    alpha = 0.05 + 0.02 * np.sin(2.1 * t) + 1e-4 * rng.normal(size=n)
+    alpha[17] = np.nan                       # a missing sample keeps its start
+    cols = {"t_s": t, "de_rad": 0.01 * np.sign(np.sin(t)), "v_mps": V, "alpha_rad": alpha,
+            "q_radps": 0.04 * np.cos(2.1 * t), "theta_rad": 0.05 + 0.01 * np.sin(t)}
+    path = tmp_path / "rec.csv"
+    np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",",
+               header=",".join(cols), comments="", fmt="%.15g")
+    return path, V, alpha
+
+
+def test_body_axis_velocities_start_at_the_kinematic_inversion(tmp_path):
+    spec = tmp_path / "body.yaml"
+    spec.write_text(BODY_AXES)
+    model = load_model(spec, generated_dir=tmp_path / "gen")
+    path, V, alpha = _record(tmp_path)
+    rec = load_record(model, path)
+    P = Problem(model, [rec], FitOptions(bucket=False))
+    s, [(mu, _)] = P.initial(FitOptions())
+    names = list(model.state_names)
+    ok = np.isfinite(alpha)
+    np.testing.assert_allclose(mu[ok, names.index("u")], (V * np.cos(alpha))[ok], rtol=1e-9)
+    np.testing.assert_allclose(mu[ok, names.index("w")], (V * np.sin(alpha))[ok], rtol=1e-7,
+                               atol=1e-9)
+    # α missing at sample 17: u, w stay where V alone puts them (on the V circle)
+    assert abs(np.hypot(mu[17, names.index("u")], mu[17, names.index("w")]) - V[17]) < 1e-6
+    # measured states at their measurements, the state no output sees at 0
+    np.testing.assert_allclose(mu[:, names.index("q")], np.asarray(rec.y)[:, 2])
+    assert np.all(mu[:, names.index("lag")] == 0.0)
+    # the objective is finite at the start (it was not: V = 0 in q·c/(2V))
+    assert np.isfinite(P.value(s, [(mu, _)]))
+    # the zero start is still there on request
+    _, [(mu0, _)] = P.initial(FitOptions(init_states="zero"))
+    assert np.all(mu0 == 0.0)
