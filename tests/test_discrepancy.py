@@ -753,3 +753,27 @@ def test_ambiguous_finding_says_what_would_separate_it_everywhere():
     assert any(text in ln for ln in summary_lines(doc, "f.json")[:-1])
     import html as _html
     assert _html.escape(text) in report_section(doc)
+
+
+def test_a_refit_stopped_at_a_kink_within_hundredths_of_a_nat_counts_as_converged():
+    """A stall-break refit (hinge with its break point estimated) stopped with "no further
+    progress possible" at λ²/2 = 0.0165 nats and 2ΔELBO 480.5; it was not accepted, and a
+    square term (349.0) was named instead. No progress with a positive-definite Hessian and
+    λ²/2 ≤ NEAR_OPTIMUM_NATS is an optimum for the decision; an iteration limit, an
+    indefinite Hessian or a larger decrement is not."""
+    from types import SimpleNamespace
+
+    from vsidgen.discrepancy.fitstate import NEAR_OPTIMUM_NATS, conv_label, refit_converged
+    from vsidgen.estimator import StopReason
+
+    def res(reason, dec):
+        return SimpleNamespace(stop_reason=reason, newton_decrement=dec, converged=reason.converged)
+
+    kink = res(StopReason.NO_PROGRESS, 0.0165)
+    assert refit_converged(kink) and "0.0165" in conv_label(kink)
+    assert refit_converged(res(StopReason.DAMPING_OVERFLOW, NEAR_OPTIMUM_NATS))
+    assert conv_label(res(StopReason.NEWTON_DECREMENT, 1e-4)) == "converged"
+    for r in (res(StopReason.NO_PROGRESS, 0.5), res(StopReason.NO_PROGRESS, float("nan")),
+              res(StopReason.ITERATION_LIMIT, 0.001), res(StopReason.INDEFINITE_HESSIAN, 0.01),
+              res(StopReason.STALLED, 0.001)):
+        assert not refit_converged(r) and conv_label(r) == "NOT converged", r
