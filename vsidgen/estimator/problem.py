@@ -260,6 +260,20 @@ def initial_means(model, rec, pairs, how: str) -> np.ndarray:
 INVERT_ITERATIONS, INVERT_START = 40, 1e-6
 
 
+@functools.lru_cache(maxsize=32)
+def _inversion_functions(output, free: tuple):
+    """Jitted (h, (h, ∂h/∂x_free)) over samples for :func:`invert_outputs`, one compilation per
+    model output function and set of free states."""
+    fi = np.asarray(free)
+
+    def out(xf, x, uk, th):
+        return output(x.at[fi].set(xf), uk, th)
+
+    both = jax.vmap(lambda xf, x, uk, th: (out(xf, x, uk, th), jax.jacfwd(out)(xf, x, uk, th)),
+                    in_axes=(0, 0, 0, None))
+    return jax.jit(jax.vmap(out, in_axes=(0, 0, 0, None))), jax.jit(both)
+
+
 def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     """State means ``mu`` (N, nx) with the states that no output measures directly but that
     the outputs depend on (at the initial parameters ``theta``) solved from the record's
@@ -271,8 +285,10 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
 
     A body-axis model (states u, w; outputs V = √(u² + w²), α = atan2(w, u)) then starts at
     u = V cos α, w = V sin α instead of u = w = 0, where its airspeed vanishes. States the
-    outputs do not depend on at the start stay at 0; a sample whose fit is not finite or not
-    better than the start keeps the start.
+    outputs do not depend on at the start stay at 0. A sample whose fit is not finite, not
+    better than the start, or does not determine those states (the weighted Jacobian there
+    is rank deficient: V without α) is interpolated between the samples that do; with none,
+    the start is kept.
     """
     free = [i for i in range(model.nx) if i not in set(measured)]
     y = np.asarray(rec.y, float)
@@ -281,11 +297,10 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     u = jnp.asarray(np.asarray(rec.u, float))
     th = jnp.asarray(np.asarray(theta, float))
     fi = np.asarray(free)
+    out_v, hj_t = _inversion_functions(model.output, tuple(free))
 
-    def out(xf, x, uk):
-        return model.output(x.at[fi].set(xf), uk, th)
-
-    hj = jax.jit(jax.vmap(lambda xf, x, uk: (out(xf, x, uk), jax.jacfwd(out)(xf, x, uk))))
+    def hj(xf, x, uk):
+        return hj_t(xf, x, uk, th)
     x0 = np.array(mu, float)
     x0[:, fi] = INVERT_START
     with np.errstate(all="ignore"):
@@ -326,19 +341,33 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
         trial[:, dep] = xf[:, dep] + step
         x_full[:, fi] = trial
         with np.errstate(all="ignore"):
-            ht = np.asarray(jax.vmap(out)(jnp.asarray(trial), jnp.asarray(x_full), u), float)
+            ht = np.asarray(out_v(jnp.asarray(trial), jnp.asarray(x_full), u, th), float)
             ct = np.where(np.isfinite(ht).all(axis=1), cost(np.where(np.isfinite(ht), ht, 0.0)),
                           np.inf)
         better = np.isfinite(ct) & (ct < c) & np.isfinite(trial).all(axis=1)
         xf = np.where(better[:, None], trial, xf)
         c = np.where(better, ct, c)
         lam = np.where(better, np.maximum(lam / 10.0, 1e-12), np.minimum(lam * 10.0, 1e12))
-    use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1)
+    # only where the outputs determine those states (full column rank of the weighted
+    # Jacobian at the solution): V alone does not fix u and w, and the damped steps from a
+    # symmetric start would put them at 45°
+    x_full = x0.copy()
+    x_full[:, fi] = xf
+    with np.errstate(all="ignore"):
+        _, J = (np.asarray(a, float) for a in hj(jnp.asarray(xf), jnp.asarray(x_full), u))
+    J = np.where(np.isfinite(J), J, 0.0)[:, :, dep] * np.sqrt(w)[:, :, None]
+    sv = np.linalg.svd(J, compute_uv=False)
+    determined = sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300) if sv.shape[1] == int(dep.sum()) \
+        else np.zeros(y.shape[0], bool)
+    use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1) & determined
     if not use.any():
         return mu
     out_mu = np.array(mu, float)
-    cols = fi[dep]
-    out_mu[np.ix_(use, cols)] = xf[use][:, dep]
+    k = np.arange(y.shape[0])
+    for a, col in zip(np.nonzero(dep)[0], fi[dep]):
+        # samples the outputs do not determine (a missing α): interpolated between the
+        # determined ones, as a measured state's missing samples (:func:`initial_means`)
+        out_mu[:, col] = np.interp(k, k[use], xf[use, a])
     return out_mu
 
 
