@@ -159,3 +159,38 @@ def test_plain_batch_blocks_by_hessian_vector_products_equal_the_assembly(lin1):
         for n in a.step:
             assert b.step[n] == pytest.approx(a.step[n], rel=1e-6, abs=1e-10)
     assert tested >= 2, (tested, got)
+
+
+def test_the_plain_batch_split_over_workers_gives_the_same_statistics(lin1, monkeypatch):
+    """With several workers the batch without added states is screened in parts
+    (:func:`~vsidgen.discrepancy.score.split_plain`); every new parameter is held in the null,
+    so each candidate's statistic is the same in a part as in the whole batch."""
+    from vsidgen.discrepancy import propose, score
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
+
+    tmp, st, info, _ = lin1
+    plain = [c for c in propose(info) if c.screenable and not c.states]
+    (g,) = score.batches(plain)
+    assert len(g) >= 4
+    assert score.split_plain([g], 1) == [g]
+    if len(g) < 2 * score.PLAIN_MIN_PART:         # too small to split at the default size
+        assert score.split_plain([g], 8) == [g]
+    monkeypatch.setattr(score, "PLAIN_MIN_PART", 2)
+    parts = score.split_plain([g], 2)
+    assert len(parts) == 2 and [c for p in parts for c in p] == g
+    whole = score.screen_group(g, st, info, tmp / "whole", "w", "t_whole", generated_dir=tmp / "gen",
+                               det_std=DET)
+    split = {}
+    for i, p in enumerate(parts):
+        split.update(score.screen_group(p, st, info, tmp / "split", f"p{i}", "t_split",
+                                        generated_dir=tmp / "gen", det_std=DET))
+    tested = 0
+    for c in g:
+        a, b = whole[c.key], split[c.key]
+        assert (a.tested, a.held, a.dof) == (b.tested, b.held, b.dof), (a, b)
+        if a.statistic is None:
+            assert b.statistic is None
+            continue
+        tested += 1
+        assert b.statistic == pytest.approx(a.statistic, rel=1e-7, abs=1e-9), (c.key, a, b)
+    assert tested >= 2
