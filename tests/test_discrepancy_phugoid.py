@@ -359,3 +359,76 @@ def test_attas_alpha_vane_on_the_noseboom(flight_data_dir, tmp_path):
     assert x["unit"] == "m" and 9.0 < x["estimate"] < 15.0 and x["std_error"] < 1.0
     assert "13.08" in f["explanation"]
     assert f["evidence"]["validation_elbo_after"] > f["evidence"]["validation_elbo_before"]
+
+
+def test_an_output_modelling_a_force_gets_its_missing_derivatives(tmp_path):
+    """An output equation with parameters of its own (a new user's a_y = V(Y_β β + Y_δr δr))
+    gets a derivative candidate for every state and input it lacks; an output built on a
+    coefficient definition shared with the drift, or a direct measurement, does not."""
+    from vsidgen.discrepancy.catalogue import OutputDerivative
+    from vsidgen.spec import compile_spec
+
+    spec = tmp_path / "lat4.yaml"
+    spec.write_text(textwrap.dedent("""
+        name: lat4_user
+        states:
+          beta: {unit: rad}
+          p: {unit: rad/s}
+          r: {unit: rad/s}
+          phi: {unit: rad}
+        inputs:
+          da: {unit: rad}
+          dr: {unit: rad}
+        outputs:
+          beta: {unit: rad}
+          p: {unit: rad/s}
+          r: {unit: rad/s}
+          ay: {unit: m/s^2}
+        constants:
+          V: {value: 100.0, unit: m/s}
+        parameters:
+          Yb: {unit: 1/s}
+          Ydr: {unit: 1/s}
+          Lp: {unit: 1/s}
+          Nr: {unit: 1/s}
+          Lda: {unit: 1/s^2}
+          Ndr: {unit: 1/s^2}
+        drift:
+          beta: Yb*beta - r + Ydr*dr + 9.81/V*phi
+          p: Lp*p + Lda*da
+          r: Nr*r + Ndr*dr
+          phi: p
+        observations:
+          beta: beta
+          p: p
+          r: r
+          ay: V*(Yb*beta + Ydr*dr)
+        data:
+          time: t_s
+          inputs: {da: da_rad, dr: dr_rad}
+          outputs: {beta: beta_rad, p: p_radps, r: r_radps, ay: ay_mps2}
+        """))
+    info = model_info(spec, dt=0.04)
+    cands = {c.key: c for c in OutputDerivative().applies_to(info)}
+    assert set(cands) == {f"output_derivative:ay:{v}" for v in ("p", "r", "phi", "da")}
+    c = cands["output_derivative:ay:r"]
+    (p,) = c.parameters
+    assert p.unit == "m/s^2/(rad/s)" and p.initial == 0.0 and c.target == "output:ay"
+    assert c.info["regressor"] == "rate:r" and "not a sensor effect" in c.explanation
+    # the candidate's spec: a_y gains D·r, nothing else changes; at D = 0 it is the model
+    path = tmp_path / "cand.yaml"
+    path.write_text(c.spec_yaml(spec, name="cand", candidate_path=path, info=info))
+    sym, base = compile_spec(path), compile_spec(spec)
+    obs = dict(zip([v.name for v in sym.outputs], sym.observations_expanded()))
+    obs0 = dict(zip([v.name for v in base.outputs], base.observations_expanded()))
+    d, r = sympy.Symbol(p.name, real=True), sympy.Symbol("r", real=True)
+    diff = sympy.simplify(obs["ay"].subs({s: sympy.Symbol(s.name, real=True)
+                                           for s in obs["ay"].free_symbols})
+                          - obs0["ay"].subs({s: sympy.Symbol(s.name, real=True)
+                                             for s in obs0["ay"].free_symbols}))
+    assert sympy.simplify(diff - d * r) == 0
+    assert [str(e) for e in sym.drift_expanded()] == [str(e) for e in base.drift_expanded()]
+    # a shared coefficient definition (lat_beta: a_y = V0·Yside) or no output force: none
+    lat = model_info(ROOT / "benchmarks" / "independent" / "specs" / "lat_beta.yaml", dt=0.04)
+    assert OutputDerivative().applies_to(lat) == []
+    assert OutputDerivative().applies_to(model_info(ROOT / "specs" / "hfb320.yaml", dt=0.1)) == []

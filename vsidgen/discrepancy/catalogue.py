@@ -176,6 +176,67 @@ class MissingCoefficientDerivative(Effect):
         return _users_score(c, ev)
 
 
+def _own_parameters(info: ModelInfo, output: str) -> set[str]:
+    """Parameters an output equation names itself, not through a definition it uses."""
+    e = info.observations_expanded.get(output)
+    if e is None:
+        return set()
+    have = {x.name for x in e.free_symbols} & set(info.parameters)
+    via = set()
+    for d, users in info.definition_users.items():
+        if f"observations:{output}" in users:
+            via |= set(info.definition_parameters.get(d, ()))
+    return have - via
+
+
+@register_effect
+class OutputDerivative(Effect):
+    """A derivative missing from an output that models a force or moment itself.
+
+    A new user often writes the lateral accelerometer as its own equation, ``a_y = V·(Y_β β +
+    Y_δr δr)``, with parameters of its own and not through a coefficient definition the state
+    equations share; a side-force derivative left out there (``Y_r r``) has no candidate in
+    ``missing_derivative`` (state equations) or ``coefficient_derivative`` (definitions), and
+    an accelerometer-arm candidate took it (an ATTAS lateral model: arm −8.4 m for an
+    accelerometer 1.01 m behind the CG). Proposed for every output equation that names a
+    parameter of its own and is not a direct measurement of a state, and every state and
+    input it does not yet depend on.
+    """
+
+    id = "output_derivative"
+    title = "missing derivative of a modelled output"
+    explanation = ("The modelled output {output} lacks a linear dependence on {var}: its "
+                   "residual follows {var}. The output equation models a force or moment with "
+                   "parameters of its own; physically this is a derivative left out of that "
+                   "force model ({output} += {param}·{var}), not a sensor effect.")
+    doc = ("A linear term in a state or input absent from an output equation that has "
+           "parameters of its own (a force or moment modelled in the output).")
+
+    def applies_to(self, info):
+        out = []
+        for o in info.output_names:
+            if info.measured_state(o) is not None or not _own_parameters(info, o):
+                continue
+            have = {x.name for x in info.observations_expanded[o].free_symbols}
+            for v in info.state_names + info.input_names:
+                if v in have:
+                    continue
+                p = info.fresh(f"D_{o}_{v}")
+                out.append(Candidate(
+                    effect=self.id, key=f"{self.id}:{o}:{v}", target=f"output:{o}",
+                    explanation=self.explain(output=o, var=v, param=p),
+                    parameters=(NewParameter(p, _ratio(info.unit(o) or "1", info.unit(v)),
+                                             f"derivative of output {o} with respect to {v}"),),
+                    add_terms={"observations": {o: f"{p}*{v}"}},
+                    info={"output": o, "var": v,
+                          "regressor": f"rate:{v}" if v in info.rate_states() else ""}))
+        return out
+
+    def score(self, c, ev):
+        reg = c.info.get("regressor")
+        return ev.output_score(c.info["output"], reg) if reg else 0.0
+
+
 @register_effect
 class CoefficientNonlinearity(Effect):
     """A nonlinearity missing from an aerodynamic coefficient (a definition): a square or a
@@ -1050,7 +1111,8 @@ class UnmodelledWind(Effect):
         return max((ev.colored_score(s) for s in c.info["states"]), default=0.0)
 
 
-BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "nonlinear_aero",
+BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "output_derivative",
+                   "nonlinear_aero",
                    "coefficient_nonlinear", "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
                    "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 
