@@ -180,7 +180,6 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
             f"another control), so that the two explanations predict different responses")
 
 
-
 def _keys_by_round(trials) -> list[str]:
     """Candidate keys of ``trials`` once each, in first-seen order, with the rounds they were
     refitted in when there are several (``"actuator_lag:de (rounds 1, 2)"``)."""

@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import Gradient, Problem, initial_means, invert_outputs
+from .problem import Gradient, Problem
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
                       StopReason, announce)
 
@@ -1293,21 +1293,20 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     """Data scale of the process-noise std of states ``idx``: √T · rms_k f_i(μ⁰_k, u_k, θ⁰).
 
     f is the drift at the initial state means μ⁰ (measured states from their outputs,
-    unmeasured ones solved from the outputs where these depend on them, :func:`.problem.invert_outputs`, else 0), the inputs and the initial θ, over every sample of every record:
+    unmeasured ones solved from the outputs where these depend on them, else 0:
+    :attr:`.problem.Problem.measured_start`), the inputs and the initial θ, over every sample
+    of every record:
     the rate at which the model, as given, moves the state along the data. A process noise
     whose increment over one sample (σ√T) equals that movement (f T) has σ = f √T, the same
     construction as a measured state's data start (spread of its sample differences / √T).
     It is in the state's own units (deg/√s for a state in degrees), so a start built on it
     does not depend on them. 0 where the drift of the state vanishes at the start.
     """
-    pairs = P.direct
     T = float(np.mean([float(r.dt) for r in P.records]))
     p0 = jnp.asarray(P.tm.theta(jnp.asarray(P.tm.z0)))
     drift = jax.vmap(P.model.drift, in_axes=(0, 0, None))
     sq, n = np.zeros(len(idx)), 0
-    for rec in P.records:
-        mu0 = invert_outputs(P.model, rec, initial_means(P.model, rec, pairs, "measured"),
-                             list(pairs), p0)
+    for rec, mu0 in zip(P.records, P.measured_start):
         f = np.asarray(drift(jnp.asarray(mu0), jnp.asarray(np.asarray(rec.u, float)), p0), float)[:, idx]
         fin = np.all(np.isfinite(f), axis=1)
         sq += np.sum(f[fin] ** 2, axis=0)

@@ -297,18 +297,24 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     u = jnp.asarray(np.asarray(rec.u, float))
     th = jnp.asarray(np.asarray(theta, float))
     fi = np.asarray(free)
-    out_v, hj_t = _inversion_functions(model.output, tuple(free))
-
-    def hj(xf, x, uk):
-        return hj_t(xf, x, uk, th)
+    out_v, both = _inversion_functions(model.output, tuple(free))
     x0 = np.array(mu, float)
     x0[:, fi] = INVERT_START
-    with np.errstate(all="ignore"):
-        h, J = (np.asarray(a, float) for a in hj(jnp.asarray(x0[:, fi]), jnp.asarray(x0), u))
+
+    def full(xf):                      # the free states' values inserted into the start
+        x = x0.copy()
+        x[:, fi] = xf
+        return jnp.asarray(x)
+
+    def h_and_jacobian(xf):
+        return (np.asarray(a, float) for a in both(jnp.asarray(xf), full(xf), u, th))
+
+    h, J = h_and_jacobian(x0[:, fi])
     finite = np.isfinite(h).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
     dep = np.any(np.abs(np.where(finite[:, None, None], J, 0.0)) > 0, axis=(0, 1))
     if not dep.any():
         return mu
+    nd = int(dep.sum())
     obs = np.isfinite(y)
     sd = np.array([np.std(y[obs[:, j], j]) if obs[:, j].sum() > 1 else 1.0
                    for j in range(y.shape[1])])
@@ -316,49 +322,39 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     y0 = np.where(obs, y, 0.0)
 
     def cost(h):
-        return np.sum(w * (y0 - h) ** 2, axis=1)
+        fin = np.isfinite(h).all(axis=1)
+        return np.where(fin, np.sum(w * (y0 - np.where(np.isfinite(h), h, 0.0)) ** 2, axis=1),
+                        np.inf)
 
     xf = x0[:, fi].copy()
     xf[:, ~dep] = 0.0
-    c = np.where(finite, cost(np.where(np.isfinite(h), h, 0.0)), np.inf)
+    c = np.where(finite, cost(h), np.inf)
     c_start = c.copy()
     lam = np.full(y.shape[0], 1e-3)
-    nf = len(fi)
     for _ in range(INVERT_ITERATIONS):
-        x_full = x0.copy()
-        x_full[:, fi] = xf
-        with np.errstate(all="ignore"):
-            h, J = (np.asarray(a, float) for a in hj(jnp.asarray(xf), jnp.asarray(x_full), u))
+        h, J = h_and_jacobian(xf)
         ok = np.isfinite(h).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
         J = np.where(ok[:, None, None], J, 0.0)[:, :, dep]
         r = np.where(ok[:, None], y0 - h, 0.0)
         A = np.einsum("kja,kj,kjb->kab", J, w, J)
         g = np.einsum("kja,kj,kj->ka", J, w, r)
         D = np.einsum("kaa->ka", A) + 1e-12
-        step = np.linalg.solve(A + (lam[:, None] * D)[:, :, None] * np.eye(int(dep.sum())),
+        step = np.linalg.solve(A + (lam[:, None] * D)[:, :, None] * np.eye(nd),
                                g[:, :, None])[:, :, 0]
         trial = xf.copy()
-        trial[:, dep] = xf[:, dep] + step
-        x_full[:, fi] = trial
-        with np.errstate(all="ignore"):
-            ht = np.asarray(out_v(jnp.asarray(trial), jnp.asarray(x_full), u, th), float)
-            ct = np.where(np.isfinite(ht).all(axis=1), cost(np.where(np.isfinite(ht), ht, 0.0)),
-                          np.inf)
-        better = np.isfinite(ct) & (ct < c) & np.isfinite(trial).all(axis=1)
+        trial[:, dep] += step
+        ct = cost(np.asarray(out_v(jnp.asarray(trial), full(trial), u, th), float))
+        better = (ct < c) & np.isfinite(trial).all(axis=1)
         xf = np.where(better[:, None], trial, xf)
         c = np.where(better, ct, c)
         lam = np.where(better, np.maximum(lam / 10.0, 1e-12), np.minimum(lam * 10.0, 1e12))
     # only where the outputs determine those states (full column rank of the weighted
     # Jacobian at the solution): V alone does not fix u and w, and the damped steps from a
     # symmetric start would put them at 45°
-    x_full = x0.copy()
-    x_full[:, fi] = xf
-    with np.errstate(all="ignore"):
-        _, J = (np.asarray(a, float) for a in hj(jnp.asarray(xf), jnp.asarray(x_full), u))
+    _, J = h_and_jacobian(xf)
     J = np.where(np.isfinite(J), J, 0.0)[:, :, dep] * np.sqrt(w)[:, :, None]
-    sv = np.linalg.svd(J, compute_uv=False)
-    determined = sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300) if sv.shape[1] == int(dep.sum()) \
-        else np.zeros(y.shape[0], bool)
+    sv = np.linalg.svd(J, compute_uv=False)          # (N, min(ny, nd)), descending
+    determined = (sv.shape[1] == nd) & (sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300))
     use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1) & determined
     if not use.any():
         return mu
@@ -679,12 +675,22 @@ class Problem:
             G = np.asarray(self.nm.fixed_G if self.nm.fixed_G is not None
                            else self.nm.G(jnp.asarray(self.nm.inits[start])), float)
             r0[:self.model.nx] = np.log(np.maximum(T * np.diag(G @ G.T), 1e-300))
-        recs = [(initial_means(self.model, r, pairs, options.init_states), r0.copy()) for r in self.records]
         if options.init_states == "measured":
-            theta = self.theta(s)
-            recs = [(invert_outputs(self.model, r, mu, list(pairs), theta), rr)
-                    for r, (mu, rr) in zip(self.records, recs)]
+            recs = [(mu.copy(), r0.copy()) for mu in self.measured_start]
+        else:
+            recs = [(initial_means(self.model, r, pairs, options.init_states), r0.copy())
+                    for r in self.records]
         return s, recs
+
+    @functools.cached_property
+    def measured_start(self) -> list[np.ndarray]:
+        """Per record, the state means of the "measured" start at the initial parameters:
+        :func:`initial_means`, then :func:`invert_outputs` (computed once: every noise start
+        and the release start's drift scale use it)."""
+        theta = self.theta(self.tm.z0)
+        pairs = list(self.direct)
+        return [invert_outputs(self.model, r, initial_means(self.model, r, self.direct, "measured"),
+                               pairs, theta) for r in self.records]
 
     def floor_active(self, s, gs):
         """Mask over s of noise parameters whose lower bound (floor) is active, and of the held
