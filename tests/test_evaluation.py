@@ -149,8 +149,10 @@ def _signals_with(y, **predicted):
 
     metrics = {k: {"y": fit_metrics(y, v)} for k, v in predicted.items()}
     n = len(y)
-    return Signals(record="r1", t=np.arange(n) * 0.1, y_meas=y[:, None], y_smooth=y[:, None],
-                   y_sim=y[:, None], y_pred=y[:, None], x_smooth=np.zeros((n, 1)),
+    arr = {k: np.asarray(predicted.get(k, y), float)[:, None]
+           for k in ("smoother", "simulation", "prediction")}
+    return Signals(record="r1", t=np.arange(n) * 0.1, y_meas=y[:, None], y_smooth=arr["smoother"],
+                   y_sim=arr["simulation"], y_pred=arr["prediction"], x_smooth=np.zeros((n, 1)),
                    xdot_fd=np.zeros((n - 1, 1)), f_smooth=np.zeros((n - 1, 1)), metrics=metrics,
                    output_names=("y",), state_names=("x",))
 
@@ -171,6 +173,26 @@ def test_an_output_the_model_does_not_explain_is_named_with_its_r2():
     assert w["code"] == "output_not_explained" and w["output"] == "y" and w["record"] == "r1"
     assert w["r2"] == {"simulation": r2} and r2 < 0
     assert "validation record 'r1', output 'y'" in w["message"] and f"{r2:.3g}" in w["message"]
+    # a flat signal explains nothing even without its offset: no bias hint
+    assert abs(w["r2_without_offset"]["simulation"]) < 1e-12 and "lack a constant" not in w["message"]
+
+
+def test_an_output_missing_only_a_constant_is_named_with_its_offset():
+    """A signal that follows the channel's variations but sits 2 standard deviations off has
+    R² <= 0; removing its mean residual (exactly: Σe² = N ē² + Σ(e − ē)²) leaves R² > 0, and the
+    warning names the offset and the missing constant."""
+    from vsidgen.evaluation import unexplained_outputs
+
+    rng = np.random.default_rng(3)
+    y = np.sin(np.linspace(0, 20, 400)) + 0.1 * rng.normal(size=400)
+    off = y - 1.5 + 0.05 * rng.normal(size=400)     # a missing bias of -1.5
+    (w,) = unexplained_outputs(_signals_with(y, smoother=off, simulation=off, prediction=off))
+    e = y - off
+    want = 1 - np.sum((e - e.mean()) ** 2) / np.sum((y - y.mean()) ** 2)
+    assert set(w["r2"]) == {"smoother", "simulation", "prediction"}
+    assert w["offset"]["smoother"] == pytest.approx(e.mean()) and e.mean() == pytest.approx(1.5, abs=0.02)
+    assert w["r2_without_offset"]["simulation"] == pytest.approx(want) and want > 0.9
+    assert "lack a constant" in w["message"] and f"{e.mean():.4g}" in w["message"]
 
 
 def test_validation_elbo_per_sample_below_a_model_without_dynamics_is_flagged():

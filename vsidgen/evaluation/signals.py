@@ -358,11 +358,22 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
     rates of flight records it beats good models on slowly varying channels — ATTAS lateral,
     textbook model, simulation R² 0.97, prediction of ay 2.1× the persistence RMS.)
 
+    Each such signal's squared error splits exactly into its mean and the rest,
+    ``Σe² = N ē² + Σ(e − ē)²``: ``r2_without_offset`` is the R² the signal would have with its
+    mean residual ē removed, ``1 − Σ(e − ē)²/Σ(y − ȳ)²``. When it is above 0 for every named
+    signal, the model does explain the channel's variations and what it misses is a constant:
+    the message names the offset (ē of the first named signal) and suggests the missing bias
+    or trim term (Twin Otter lateral record f1_017, a user's ``ay = Y_β β + Y_δr δr`` without a
+    bias: R² −1.9, ē −1.15 m/s², R² 0.85 without it).
+
     One warning per record and output: ``{"code": "output_not_explained", "reliable": True,
-    "record", "output", "kind" (estimation|validation), "r2": {signal: R²}, "message"}``.
+    "record", "output", "kind" (estimation|validation), "r2": {signal: R²}, "offset": {signal:
+    ē}, "r2_without_offset": {signal: R²}, "message"}``.
     """
+    arrays = {"smoother": signals.y_smooth, "simulation": signals.y_sim,
+              "prediction": signals.y_pred}
     out = []
-    for o in signals.output_names:
+    for j, o in enumerate(signals.output_names):
         bad = {}
         for sig in OUTPUT_SIGNALS:
             r2 = (signals.metrics.get(sig) or {}).get(o, {}).get("r2", math.nan)
@@ -370,14 +381,31 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
                 bad[sig] = float(r2)
         if not bad:
             continue
+        offset, r2_off = {}, {}
+        for sig in bad:
+            y = np.asarray(signals.y_meas, float)[:, j]
+            e = y - np.asarray(arrays[sig], float)[:, j]
+            ok = np.isfinite(e)
+            sst = float(np.sum((y[ok] - y[ok].mean()) ** 2)) if ok.any() else 0.0
+            if sst > 0:
+                offset[sig] = float(e[ok].mean())
+                r2_off[sig] = 1.0 - float(np.sum((e[ok] - e[ok].mean()) ** 2)) / sst
         what = "; ".join(f"{_SIGNAL_WORDS[k]} R² = {v:.3g}" for k, v in bad.items())
         where = f"{'validation ' if kind == 'validation' else ''}record '{signals.record}'"
+        hint = (f"check the equation of '{o}', its data column and its measurement-noise "
+                f"settings")
+        # above 0 beyond rounding (a constant signal has exactly 0 without its offset)
+        if r2_off and len(r2_off) == len(bad) and all(v > 1e-9 for v in r2_off.values()):
+            first = next(iter(r2_off))
+            hint = (f"without its mean residual, {offset[first]:.4g}, the "
+                    f"{_SIGNAL_WORDS[first]} would have R² = {r2_off[first]:.3g}: the equation "
+                    f"of '{o}' may lack a constant (a sensor bias or trim term, a parameter "
+                    f"added to it), or its data column is offset")
         out.append({"code": "output_not_explained", "reliable": True, "record": signals.record,
-                    "output": o, "kind": kind, "r2": bad,
+                    "output": o, "kind": kind, "r2": bad, "offset": offset,
+                    "r2_without_offset": r2_off,
                     "message": f"{where}, output '{o}': the model explains none of its variance "
-                               f"({what}; R² ≤ 0: no better than the channel's mean); check the "
-                               f"equation of '{o}', its data column and its measurement-noise "
-                               f"settings"})
+                               f"({what}; R² ≤ 0: no better than the channel's mean); {hint}"})
     return out
 
 
