@@ -287,6 +287,13 @@ def test_nan_in_output_is_missing(tmp_path):
     r = load_record(_m(), _write(tmp_path / "r.csv", HEADER, rows))
     assert np.isnan(r.y[4, 0]) and np.isnan(r.y[9, 1])
     assert np.isnan(r.y).sum() == 2
+    # each output with gaps is named with its column, count and samples (not an error)
+    miss = [w for w in r.warnings if w.code.value == "missing_samples"]
+    assert sorted(w.channel for w in miss) == sorted(r.output_names[:2])
+    w0 = next(w for w in miss if w.channel == r.output_names[0])
+    assert f"1 of {r.n} samples missing (sample 4)" in w0.message and HEADER[2] in w0.message
+    full = load_record(_m(), _write(tmp_path / "ok.csv", HEADER, _good_rows()))
+    assert not [w for w in full.warnings if w.code.value == "missing_samples"]
 
 
 @pytest.mark.parametrize("col", [1, 2, 0])

@@ -38,7 +38,8 @@ the column and/or the sample = 0-based data row, with a hint):
   column is in seconds, anything outside is a unit mistake);
 * inputs cannot be missing: NaN (an empty cell or ``nan``) in an input is an
   error naming the column and sample; outputs may have NaN (= missing
-  sample, excluded from the likelihood) but not in every sample.
+  sample, excluded from the likelihood) but not in every sample; each output
+  with gaps gets a warning naming its column, count and first samples.
 
 Reading is fast: the header is read with :mod:`csv`, the numeric block of the
 used columns with :func:`numpy.loadtxt` (about 1 s per million rows); if
@@ -561,10 +562,39 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
     t = t_raw - t_raw[0]
     for a in (t, u, y, t_raw):
         a.setflags(write=False)
-    found = plausibility_warnings(model, u, y, path=path)
+    found = plausibility_warnings(model, u, y, path=path) + missing_output_warnings(
+        out_names, out_maps, y, path=path)
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
                   u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw,
                   warnings=found)
+
+
+def missing_output_warnings(names, maps, y, *, path=None) -> tuple:
+    """One :class:`DataWarning` per output with missing samples (NaN: an empty cell or a
+    missing-value marker), naming the column, the count and the first samples (0-based data
+    rows, as in data errors). They are not an error: a missing output sample is unobserved and
+    the fit uses the others; the warning says so, so that a column that is mostly empty (a
+    wrong column, a sensor that dropped out) is not taken for a fitted channel."""
+    from ..spec.dataunits import DataWarning, DataWarningCode
+
+    out = []
+    n = y.shape[0]
+    for j, nm in enumerate(names):
+        miss = np.nonzero(np.isnan(y[:, j]))[0]
+        if not len(miss):
+            continue
+        srcs = maps[nm].source_columns()
+        col = srcs[0] if len(srcs) == 1 else None
+        first = ", ".join(str(int(k)) for k in miss[:5]) + (", …" if len(miss) > 5 else "")
+        plural = "s" if len(miss) > 1 else ""
+        what = f"output '{nm}'" + (f" (column '{col}')" if col and col != nm else "")
+        out.append(DataWarning(
+            DataWarningCode.MISSING_SAMPLES,
+            f"{what}: {len(miss)} of {n} samples missing (sample{plural} {first}), treated as "
+            f"unobserved", path=path, channel=nm,
+            hint="the fit uses the other samples; fill or check the column if the gaps are "
+                 "not real sensor drop-outs"))
+    return tuple(out)
 
 
 def delay_input(values, t, delay: float) -> np.ndarray:

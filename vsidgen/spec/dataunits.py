@@ -41,6 +41,7 @@ class DataWarningCode(enum.Enum):
     """Kinds of data warnings."""
 
     IMPLAUSIBLE_RANGE = "implausible_range"
+    MISSING_SAMPLES = "missing_samples"
 
 
 @dataclasses.dataclass(frozen=True)
