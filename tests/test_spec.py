@@ -371,3 +371,29 @@ def test_a_constant_that_makes_an_equation_infinite_is_refused_at_the_equation(t
     text = replace("  alpha: MDE*de\n", "  alpha: MDE*de + 1/(K + 0*alpha)\n", text)
     err = error(tmp_path, text)
     assert "drift equation of `alpha`" in str(err) and "K = 0" in str(err) and err.line == 19
+
+
+def test_roots_of_squared_dimensions_simplify(tmp_path):
+    """√(u² + w²) of two speeds is a speed (dimensions are positive: (length²/time²)^½ =
+    length/time); k times a cube root of a speed, length^(1/3)/time^(4/3), is still warned."""
+    p = tmp_path / "b.yaml"
+    p.write_text(textwrap.dedent("""\
+        name: b
+        states: {u: {unit: m/s}, w: {unit: m/s}}
+        outputs: {V: {unit: m/s}, R: {unit: m/s}}
+        parameters: {k: {unit: 1/s}}
+        definitions:
+          Vt: sqrt(u**2 + w**2)
+        drift:
+          u: -k*u*Vt/Vt
+          w: -k*w + k*(u**2 + w**2)**0.5
+        observations:
+          V: Vt
+          R: (u**3)**(1/3) + Vt*(u/w)**(1/3) + k*u**(1/3)
+        data:
+          time: t
+          outputs: {V: V, R: R}
+        """))
+    m = compile_spec(p)
+    units = [w.message for w in m.warnings if w.code == "units"]
+    assert len(units) == 1 and "observation of `R`" in units[0] and "length**(1/3)/time**(4/3)" in units[0], units

@@ -176,7 +176,13 @@ def dimension_of(expr: sympy.Expr, dims: Mapping[sympy.Symbol, Dimension | None]
         base, exp = expr.args
         db = dimension_of(base, dims, report)
         if exp.is_Number:
-            return None if db is None else Dimension(db.name ** exp)
+            # dimensions are positive symbols: (length²/time²)^(1/2) is length/time (sympy
+            # keeps sqrt(length**2/time**2) unless forced, and then √(u² + w²) in m/s
+            # 'differs' from a speed)
+            if exp.is_Float:        # x**0.5 as x**(1/2): length**1.0 is not length to sympy
+                exp = sympy.nsimplify(exp, rational=True)
+            return None if db is None else Dimension(sympy.powdenest(
+                sympy.expand_power_base(db.name ** exp, force=True), force=True))
         de = dimension_of(exp, dims, report)
         if de is not None and not same(de, ONE):
             report(DimensionIssue(exp, de, ONE, None, "an exponent must be dimensionless"))
