@@ -200,3 +200,46 @@ def test_every_out_option_has_the_short_form_o():
             with_out += 1
             assert "-o" in opts, name
     assert with_out >= 4
+
+
+BODY_AXIS = """\
+name: body
+states: {u: {unit: m/s}, w: {unit: m/s}}
+inputs: {de: {unit: rad}}
+outputs: {V: {unit: m/s}, alpha: {unit: rad}}
+parameters: {Xu: {unit: 1/s}, Zw: {unit: 1/s}, Zde: {unit: m/s^2/rad}}
+definitions:
+  Vt: sqrt(u**2 + w**2)
+drift:
+  u: Xu*u*u/Vt
+  w: Zw*w + Zde*de + LOGTERM
+observations:
+  V: Vt
+  alpha: atan2(w, u)
+data:
+  time: t_s
+  inputs: {de: de_rad}
+  outputs: {V: v_mps, alpha: alpha_rad}
+"""
+
+
+def test_check_with_data_evaluates_at_the_fits_start(tmp_path, capsys):
+    """States no output measures directly (body-axis u, w under V, α) start where the fit
+    starts them, solved from the outputs: u = w = 0 would make u²/√(u² + w²) 0/0, but
+    `check --data` now agrees with the fit and passes; an equation that is not finite there
+    either is still an error naming it, the sample and the start."""
+    import math
+
+    rows = [f"{0.05 * k:.2f},{0.01 * math.sin(k / 5):.5f},{60 + 0.1 * k:.2f},"
+            f"{0.05 + 0.001 * k:.4f}" for k in range(40)]
+    csv = tmp_path / "rec.csv"
+    csv.write_text("t_s,de_rad,v_mps,alpha_rad\n" + "\n".join(rows) + "\n")
+    spec = tmp_path / "body.yaml"
+    spec.write_text(BODY_AXIS.replace(" + LOGTERM", ""))
+    assert main(["check", str(spec), "--data", str(csv)]) == 0, capsys.readouterr().err
+    assert "0 warnings" in capsys.readouterr().out
+    spec.write_text(BODY_AXIS.replace("LOGTERM", "Zw*w*log(u/Vt - 2)"))
+    assert main(["check", str(spec), "--data", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert "non-finite value at sample 0" in err and "drift of `w`" in err
+    assert "the fit's start" in err

@@ -82,13 +82,38 @@ def _cmd_check(args) -> int:
     _print_warnings(symbolic.warnings)
     data_warnings = []
     if args.data is not None:
-        data_warnings = check_record(symbolic, args.data)
+        data_warnings = check_record(symbolic, args.data, start=_fit_start(args.spec, symbolic))
         _print_warnings(data_warnings)
     n = len(symbolic.warnings) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
           f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
           f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")
     return 0
+
+
+def _fit_start(spec, symbolic):
+    """``start(path)`` for :func:`vsidgen.data.check.check_record`: the state means a fit of
+    ``spec`` starts from on that record (:attr:`vsidgen.estimator.Problem.measured_start`:
+    directly measured states from their outputs, the others the outputs depend on solved
+    from them). None when every state is an output as it stands (the check's own start is
+    then the fit's): the model is only built when the start needs it."""
+    states = {s.symbol for s in symbolic.states}
+    if states <= set(symbolic.observations):
+        return None
+
+    def start(path):
+        import tempfile
+
+        from .data import load_record
+        from .estimator import FitOptions, Problem
+        from .model import load_model
+
+        with tempfile.TemporaryDirectory() as td:
+            model = load_model(spec, generated_dir=td)
+        rec = load_record(model, path)
+        return Problem(model, [rec], FitOptions()).measured_start[0]
+
+    return start
 
 
 # ---- show --------------------------------------------------------------------

@@ -94,13 +94,14 @@ def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns,
     return float(ch.apply(base))
 
 
-def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
+def check_first_sample(symbolic: SymbolicModel, csv_path, *, evaluate: bool = True) -> list[SpecWarning]:
     """Evaluate drift and outputs at the first sample of ``csv_path``.
 
     Inputs come from the data mapping, x0 from the outputs whose observation
     is exactly a state (zeros otherwise), parameters at their initial values.
     Non-finite inputs are returned as warnings; a non-finite drift or output
-    raises SpecError naming the equation(s).
+    raises SpecError naming the equation(s). ``evaluate=False``: the columns and
+    inputs only (the caller evaluates the equations at other states).
     """
     row = read_first_row(csv_path)
     columns = list(row)
@@ -125,6 +126,8 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
                             path=csv_path, column=ch.columns[0] if ch.columns else None,
                             sample=0, hint="every sample needs a value for each input")
         values[v.symbol] = val
+    if not evaluate:
+        return warnings
     x0 = {s.symbol: 0.0 for s in symbolic.states}
     for o, ch, h in zip(symbolic.outputs, symbolic.data.outputs, symbolic.observations):
         if h in x0:
@@ -149,8 +152,14 @@ def check_first_sample(symbolic: SymbolicModel, csv_path) -> list[SpecWarning]:
     return warnings
 
 
-def check_record(symbolic: SymbolicModel, path) -> list:
+def check_record(symbolic: SymbolicModel, path, *, start=None) -> list:
     """Check a whole record against the spec (``vsidgen check --data``).
+
+    ``start`` (optional): a callable ``start(path) -> (N, nx)`` giving the state means the fit
+    starts from (the CLI passes the estimator's measured start, which also solves the states
+    no output measures directly from the outputs, e.g. body-axis u, w from V and α); the
+    equations are then evaluated there, so that the check and the fit agree on where a model
+    is finite. Without it, x as in step 3 below.
 
     1. CSV files: the first sample as :func:`check_first_sample` (column names,
        a non-finite first drift).
@@ -168,7 +177,7 @@ def check_record(symbolic: SymbolicModel, path) -> list:
     path = check_input_file(path, what="data file")
     warnings: list = []
     if detect_format(path) is DataFormat.CSV:
-        warnings += check_first_sample(symbolic, path)
+        warnings += check_first_sample(symbolic, path, evaluate=start is None)
     rec = load_record(symbolic, path)
     warnings += list(rec.warnings)
     n = rec.n
@@ -180,11 +189,17 @@ def check_record(symbolic: SymbolicModel, path) -> list:
     usable = np.ones(n, bool)
     for s in symbolic.states:
         values[s.symbol] = np.zeros(n)
-    for j, h in enumerate(symbolic.observations):
-        if h in values and h in {s.symbol for s in symbolic.states}:
-            col = rec.y[:, j]
-            usable &= np.isfinite(col)
-            values[h] = np.where(np.isfinite(col), col, 0.0)
+    x_start = None if start is None else np.asarray(start(path), float)
+    if x_start is not None:
+        usable &= np.isfinite(x_start).all(axis=1)
+        for i, s in enumerate(symbolic.states):
+            values[s.symbol] = np.where(usable, x_start[:, i], 0.0)
+    else:
+        for j, h in enumerate(symbolic.observations):
+            if h in values and h in {s.symbol for s in symbolic.states}:
+                col = rec.y[:, j]
+                usable &= np.isfinite(col)
+                values[h] = np.where(np.isfinite(col), col, 0.0)
     syms = list(values)
     bad: list[tuple[int, str]] = []
     for kind, names, exprs in (("drift", symbolic.states, symbolic.drift_expanded()),
@@ -206,6 +221,8 @@ def check_record(symbolic: SymbolicModel, path) -> list:
                           + b.split(":", 1)[1] + "`" for kk, b in sorted(bad) if kk == k)
         raise SpecError(f"non-finite value at sample {k} (t = {rec.t_raw[k]:g} s) of "
                         f"{path.name}: {named}", path=loc.path, line=loc.line, column=loc.column,
-                        hint="x comes from outputs that are a state (else 0), parameters at "
-                             "their initial values: check divisions, log and sqrt")
+                        hint=("x is the fit's start (outputs that are a state; the others "
+                              "solved from the outputs), " if x_start is not None else
+                              "x comes from outputs that are a state (else 0), ")
+                        + "parameters at their initial values: check divisions, log and sqrt")
     return warnings
