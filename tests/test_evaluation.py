@@ -193,6 +193,10 @@ def test_an_output_missing_only_a_constant_is_named_with_its_offset():
     assert w["offset"]["smoother"] == pytest.approx(e.mean()) and e.mean() == pytest.approx(1.5, abs=0.02)
     assert w["r2_without_offset"]["simulation"] == pytest.approx(want) and want > 0.9
     assert "lack a constant" in w["message"] and f"{e.mean():.4g}" in w["message"]
+    assert "another trim" not in w["message"]
+    (v,) = unexplained_outputs(_signals_with(y, smoother=off, simulation=off, prediction=off),
+                               kind="validation")
+    assert "another trim than the estimation records" in v["message"]
 
 
 def test_validation_elbo_per_sample_below_a_model_without_dynamics_is_flagged():

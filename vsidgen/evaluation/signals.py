@@ -400,7 +400,10 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
             hint = (f"without its mean residual, {offset[first]:.4g}, the "
                     f"{_SIGNAL_WORDS[first]} would have R² = {r2_off[first]:.3g}: the equation "
                     f"of '{o}' may lack a constant (a sensor bias or trim term, a parameter "
-                    f"added to it), or its data column is offset")
+                    f"added to it), or its data column is offset"
+                    + (", or this record was flown at another trim than the estimation "
+                       "records (a constant that differs between records)"
+                       if kind == "validation" else ""))
         out.append({"code": "output_not_explained", "reliable": True, "record": signals.record,
                     "output": o, "kind": kind, "r2": bad, "offset": offset,
                     "r2_without_offset": r2_off,
