@@ -124,10 +124,15 @@ def test_a_shape_without_shared_objective_is_screened_batch_by_batch(lin1, monke
     assert not any(r.note.startswith("failed") for r in out.values()), out
 
 
-def test_plain_batch_blocks_by_hessian_vector_products_equal_the_assembly(lin1):
+@pytest.mark.parametrize("chunk", [16, 2])
+def test_plain_batch_blocks_by_hessian_vector_products_equal_the_assembly(lin1, chunk, monkeypatch):
     """The plain batch's blocks from the current model's blocks and Hessian-vector products of
     the batch (:func:`~vsidgen.discrepancy.score.blocks_by_hvp`, no block assembly of the batch
-    model) give the statistics of the batch's own assembled blocks."""
+    model) give the statistics of the batch's own assembled blocks, in one vmapped call or in
+    chunks of 2 directions (memory-bounded chunks, :func:`~vsidgen.discrepancy.score.hvp_chunk`)."""
+    from vsidgen.discrepancy import score
+
+    monkeypatch.setattr(score, "HVP_CHUNK", chunk)
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD as DET
     from vsidgen.discrepancy.score import _batch_model, batch_statistics, batches
@@ -194,3 +199,24 @@ def test_the_plain_batch_split_over_workers_gives_the_same_statistics(lin1, monk
         tested += 1
         assert b.statistic == pytest.approx(a.statistic, rel=1e-7, abs=1e-9), (c.key, a, b)
     assert tested >= 2
+
+
+def test_hvp_chunk_keeps_the_vmapped_residuals_within_a_share_of_memory():
+    """Directions per vmapped Hessian–vector-product call: never above HVP_CHUNK, k or the
+    decision-vector budget, at least 1, and chunk × size × k × bytes-per-unit within the memory
+    share (a new user's lateral model with 260 gated terms on 6,000 variables was killed at
+    24 GB with 16 directions)."""
+    from vsidgen.discrepancy.score import (HVP_BYTES_PER_UNIT, HVP_CHUNK, HVP_MEMORY_SHARE,
+                                           hvp_chunk)
+
+    gib = 2 ** 30
+    assert hvp_chunk(3, 500, memory=64 * gib) == 3
+    assert hvp_chunk(170, 500, memory=64 * gib) == HVP_CHUNK
+    for k, size, mem in [(260, 6100, 24 * gib), (260, 6100, 16 * gib), (170, 4100, 24 * gib),
+                         (500, 20000, 8 * gib)]:
+        kc = hvp_chunk(k, size, memory=mem)
+        assert 1 <= kc <= HVP_CHUNK
+        assert kc == 1 or kc * size * k * HVP_BYTES_PER_UNIT <= HVP_MEMORY_SHARE * mem
+        assert kc < HVP_CHUNK        # these batches no longer take 16 directions at once
+    assert hvp_chunk(260, 6100, memory=16 * gib) <= hvp_chunk(260, 6100, memory=24 * gib)
+    assert hvp_chunk(10 ** 4, 10 ** 6, memory=gib) == 1

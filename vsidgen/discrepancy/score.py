@@ -388,6 +388,35 @@ def _rao_system(S, rhs, lay, gpos):
 #: most; fewer on long records: the chunk's reverse-mode residuals grow with chunk × size of
 #: the decision vector, kept below ``HVP_BUDGET`` (16 directions up to 40,000 variables)
 HVP_CHUNK, HVP_BUDGET = 16, 16 * 40_000
+#: bytes per (direction × decision variable × gated term) of a vmapped chunk, at least: the
+#: chunk's reverse-mode residuals grow with all three (a new user's ATTAS lateral model, 2
+#: records × 751 samples, 260 gated terms, 16 directions: killed by the OOM killer at 24 GB RSS,
+#: ≥ 945 bytes per unit)
+HVP_BYTES_PER_UNIT = 1000
+#: share of the machine's physical memory a chunk may take (:func:`hvp_chunk`)
+HVP_MEMORY_SHARE = 1 / 3
+
+
+def physical_memory() -> int | None:
+    """The machine's physical memory in bytes (None where the OS does not say)."""
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def hvp_chunk(k: int, size: int, *, memory: int | None = None) -> int:
+    """Directions per vmapped call of :func:`blocks_by_hvp` for ``k`` new parameters (gated
+    terms) on a decision vector of ``size``: at most ``HVP_CHUNK`` and ``HVP_BUDGET / size``,
+    and small enough that ``chunk × size × k × HVP_BYTES_PER_UNIT`` stays within
+    ``HVP_MEMORY_SHARE`` of ``memory`` (default: the machine's physical memory); at least 1."""
+    memory = physical_memory() if memory is None else memory
+    kc = min(HVP_CHUNK, k, HVP_BUDGET // max(size, 1))
+    if memory:
+        kc = min(kc, int(HVP_MEMORY_SHARE * memory) // (HVP_BYTES_PER_UNIT * max(size, 1) * max(k, 1)))
+    return max(1, kc)
 
 
 def blocks_by_hvp(P, current, s, recs, *, det_std: float):
@@ -441,7 +470,7 @@ def blocks_by_hvp(P, current, s, recs, *, det_std: float):
     # the objective's XLA options (elemental emitters on the CPU): the forward-over-reverse
     # graph of a whole batch model is the screen's largest compilation
     fn = jax.jit(hvps, compiler_options=compiler_options())
-    kc = max(1, min(HVP_CHUNK, k, HVP_BUDGET // max(lay.size, 1)))
+    kc = hvp_chunk(k, lay.size)
     cols, g = [], None
     for a in range(0, k, kc):
         E = np.zeros((kc, lay.size))
