@@ -243,3 +243,13 @@ def test_check_with_data_evaluates_at_the_fits_start(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "non-finite value at sample 0" in err and "drift of `w`" in err
     assert "the fit's start" in err
+
+
+def test_python_m_vsidgen_is_the_command_line():
+    """`python -m vsidgen` runs the same command line as the `vsidgen` script (exit codes too)."""
+    ok = subprocess.run([sys.executable, "-m", "vsidgen", "check", str(SPECS / "child.yaml")],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0 and "ok (child: 3 states" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "vsidgen", "check", str(SPECS / "missing.yaml")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr

@@ -71,7 +71,7 @@ def flight_data_dir() -> pathlib.Path:
 
 def fit_command(name: str, data: pathlib.Path, out: pathlib.Path) -> list[str]:
     est, val, _ = MODELS[name]
-    cmd = [sys.executable, "-m", "vsidgen.cli", "fit", str(HERE / f"{name}.yaml"),
+    cmd = [sys.executable, "-m", "vsidgen", "fit", str(HERE / f"{name}.yaml"),
            *(str(data / f"{r}.csv") for r in est), "--out", str(out)]
     if val:
         cmd += ["--validate", *(str(data / f"{r}.csv") for r in val)]
