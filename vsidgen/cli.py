@@ -92,8 +92,8 @@ def _cmd_check(args) -> int:
 
 
 def _fit_start(spec, symbolic):
-    """``start(path)`` for :func:`vsidgen.data.check.check_record`: the state means a fit of
-    ``spec`` starts from on that record (:attr:`vsidgen.estimator.Problem.measured_start`:
+    """``start(record)`` for :func:`vsidgen.data.check.check_record`: the state means a fit of
+    ``spec`` starts from on that (already loaded) record (:attr:`vsidgen.estimator.Problem.measured_start`:
     directly measured states from their outputs, the others the outputs depend on solved
     from them). None when every state is an output as it stands (the check's own start is
     then the fit's): the model is only built when the start needs it."""
@@ -101,16 +101,14 @@ def _fit_start(spec, symbolic):
     if states <= set(symbolic.observations):
         return None
 
-    def start(path):
+    def start(rec):
         import tempfile
 
-        from .data import load_record
         from .estimator import FitOptions, Problem
         from .model import load_model
 
         with tempfile.TemporaryDirectory() as td:
             model = load_model(spec, generated_dir=td)
-        rec = load_record(model, path)
         return Problem(model, [rec], FitOptions()).measured_start[0]
 
     return start

@@ -155,7 +155,7 @@ def check_first_sample(symbolic: SymbolicModel, csv_path, *, evaluate: bool = Tr
 def check_record(symbolic: SymbolicModel, path, *, start=None) -> list:
     """Check a whole record against the spec (``vsidgen check --data``).
 
-    ``start`` (optional): a callable ``start(path) -> (N, nx)`` giving the state means the fit
+    ``start`` (optional): a callable ``start(record) -> (N, nx)`` giving the state means the fit
     starts from (the CLI passes the estimator's measured start, which also solves the states
     no output measures directly from the outputs, e.g. body-axis u, w from V and α); the
     equations are then evaluated there, so that the check and the fit agree on where a model
@@ -189,7 +189,7 @@ def check_record(symbolic: SymbolicModel, path, *, start=None) -> list:
     usable = np.ones(n, bool)
     for s in symbolic.states:
         values[s.symbol] = np.zeros(n)
-    x_start = None if start is None else np.asarray(start(path), float)
+    x_start = None if start is None else np.asarray(start(rec), float)
     if x_start is not None:
         usable &= np.isfinite(x_start).all(axis=1)
         for i, s in enumerate(symbolic.states):

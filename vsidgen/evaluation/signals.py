@@ -382,8 +382,8 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
         if not bad:
             continue
         offset, r2_off = {}, {}
+        y = np.asarray(signals.y_meas, float)[:, j]
         for sig in bad:
-            y = np.asarray(signals.y_meas, float)[:, j]
             e = y - np.asarray(arrays[sig], float)[:, j]
             ok = np.isfinite(e)
             sst = float(np.sum((y[ok] - y[ok].mean()) ** 2)) if ok.any() else 0.0
