@@ -45,7 +45,8 @@ class _Refits:
 
     "same": the current model's own fit (Λ = 0); "gain": the same fit with the ELBO raised
     by 50 nats (Λ = 100, significant); "interrupt": KeyboardInterrupt; "sigterm": SIGTERM to
-    this process; ("slow", s): advance the simulated clock by s seconds, then "same".
+    this process; ("slow", s[, action]): advance the simulated clock by s seconds, then do
+    ``action`` ("same" when not given).
     """
 
     def __init__(self, actions, clock=None):
@@ -66,7 +67,7 @@ class _Refits:
             raise AssertionError("SIGTERM did not interrupt")
         if isinstance(act, tuple) and act[0] == "slow":
             self.clock.offset += act[1]
-            act = "same"
+            act = act[2] if len(act) > 2 else "same"
         st = current
         if act == "gain":
             st = dataclasses.replace(current, fit=dataclasses.replace(current.fit,
@@ -130,6 +131,43 @@ def test_time_limit_stops_between_refits_and_keeps_the_accepted_effect(patched, 
     assert doc["conclusion"].startswith("STOPPED at the time limit")
     assert "1 effect accepted" in doc["conclusion"]
     assert (tmp_path / "o" / "diagnose.html").read_text().count("STOPPED") >= 1
+
+
+def test_an_unfinished_round_names_its_leading_refit_without_accepting_it(patched, monkeypatch,
+                                                                          tmp_path):
+    clock = _Clock(time.monotonic)
+    monkeypatch.setattr(time, "monotonic", clock)
+    # round 1: nothing significant; round 2 does not exist (max_rounds 1): the first refit
+    # gains 50 nats and uses up the time limit, so the second one does not start
+    refits = patched([("slow", 1000.0, "gain")], clock)
+    res = search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=1, max_candidates=2,
+                              screen=False, effects=EFFECTS, time_limit=600.0, workers=1)
+    assert res.stop is search.StopReason.TIME_LIMIT and len(refits.calls) == 1
+    doc = _doc(tmp_path / "o")
+    assert doc["findings"] == []                          # an unfinished round accepts nothing
+    lead = findings.leading_refit(doc["unfinished_round"], 0.05)
+    assert lead["key"] == refits.calls[0] and lead["statistic"] == pytest.approx(100.0)
+    assert f"Leading so far, not decided: {refits.calls[0]} (2ΔELBO 100" in doc["conclusion"]
+
+
+def test_leading_refit_text_checks_validation_and_skips_what_cannot_be_used():
+    def trial(key, stat, p, *, conv=True, verdict="ordinary", val=None, h0=0.0):
+        return {"key": key, "statistic": stat, "p_value": p, "converged": conv,
+                "verdict": verdict, "val_elbo": val, "refit": {"val_x0_entropy": h0}}
+    un = {"round": 1, "pending": ["c"], "base_val_elbo": 100.0,
+          "refitted": [trial("a", 500.0, 1e-100, conv=False),              # unconverged
+                       trial("b", 400.0, 1e-80, verdict="non_causal"),     # non-causal
+                       trial("d", 3.0, 0.08),                               # not significant
+                       trial("e", 40.0, 1e-9, val=120.0, h0=30.0)]}        # 90 < 100 corrected
+    assert findings.leading_refit(un, 0.05)["key"] == "e"
+    text = findings.stop_text({"reason": "time_limit", "time_limit_s": 60}, un, 0)
+    assert "Leading so far, not decided: e (2ΔELBO 40" in text
+    assert "validation ELBO 90 against the current model's 100 (not higher" in text
+    un["refitted"][-1]["val_elbo"] = 140.0
+    assert "110 against the current model's 100 (higher)" in findings.stop_text(
+        {"reason": "time_limit"}, un, 0)
+    un["refitted"] = un["refitted"][:3]
+    assert "Leading" not in findings.stop_text({"reason": "time_limit"}, un, 0)
 
 
 def test_interrupt_writes_the_accepted_effect_and_the_unfinished_round(patched, tmp_path):

@@ -23,7 +23,7 @@ findings.json (keys in this order)::
          "spec": "DIR/candidates/r1_...yaml"}],
      "final_spec": "path", "base": {"elbo", "metrics"}, "final": {"elbo", "metrics"},
      "locate": {evidence of the base fit}, "rounds": [...],
-     "unfinished_round": null | {"round", "base_spec", "base_elbo", "n_candidates",
+     "unfinished_round": null | {"round", "base_spec", "base_elbo", "base_val_elbo", "n_candidates",
                                  "refitted": [trial...], "pending": [key...],
                                  "screen": [the round's ranking, as rounds[].screen]},
      "stop": {"reason": "completed" | "time_limit" | "interrupted" | "running",
@@ -291,8 +291,30 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     return conclusion
 
 
-def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int) -> str:
-    """Sentence put before the conclusion when the run did not complete (else "")."""
+def leading_refit(unfinished: dict | None, alpha: float) -> dict | None:
+    """The unfinished round's refitted candidate with the largest statistic among those that
+    converged to an ordinary verdict and are nominally significant (unadjusted p < ``alpha``;
+    the round's Holm correction needs every candidate), or None. Not a finding: a pending
+    candidate may explain the mismatch better, and validation decides only at the round's end.
+    """
+    best = None
+    for t in (unfinished or {}).get("refitted", ()):
+        stat, p = t.get("statistic"), t.get("p_value")
+        if (not t.get("converged") or t.get("verdict") not in (None, "ordinary")
+                or stat is None or p is None or not p < alpha):
+            continue
+        if best is None or stat > best["statistic"]:
+            best = t
+    return best
+
+
+def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
+              alpha: float = 0.05) -> str:
+    """Sentence put before the conclusion when the run did not complete (else "").
+
+    With an unfinished round, it names the round's leading refit so far
+    (:func:`leading_refit`), its validation ELBO against the current model's, and what
+    would finish the round."""
     reason = (stop or {}).get("reason", "completed")
     if reason == "completed":
         return ""
@@ -305,6 +327,18 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int) -> st
         what += (f" during round {unfinished['round']} ({done} of {done + len(pend)} candidates "
                  "refitted" + (f"; pending: {', '.join(pend)}" if pend else "")
                  + "; an unfinished round accepts nothing)")
+        lead = leading_refit(unfinished, alpha)
+        if lead is not None:
+            val = ""
+            v, v0 = lead.get("val_elbo"), unfinished.get("base_val_elbo")
+            if v is not None and v0 is not None:
+                v -= float((lead.get("refit") or {}).get("val_x0_entropy") or 0.0)
+                val = (f", validation ELBO {v:.6g} against the current model's {v0:.6g}"
+                       + (" (higher)" if v > v0 else " (not higher: it would be rejected)"))
+            what += (f". Leading so far, not decided: {lead['key']} (2ΔELBO {lead['statistic']:.4g}"
+                     f", unadjusted p {lead['p_value']:.2g}{val}); to decide the round, run "
+                     "again with a longer --time-limit, or fewer candidates (--max-candidates, "
+                     "--effects)")
     return (what + f". {n_findings} effect{'s' if n_findings != 1 else ''} accepted in the "
             "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
 
@@ -487,7 +521,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  base_status=base.fit.status,
                                  numerics_adopted=bool((numerics or {}).get("adopted"))
                                  or bool((noise_model or {}).get("adopted")))
-    stopped = stop_text(stop, unfinished_round, len(findings))
+    stopped = stop_text(stop, unfinished_round, len(findings), alpha=alpha)
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
