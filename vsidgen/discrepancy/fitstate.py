@@ -157,7 +157,9 @@ def release_alternative(model, records, base_model, res, *, max_iter: int):
     """The better of ``res`` (a warm-started refit of ``model``) and a fit of ``model`` from
     the estimator's "release" noise start, when the candidate makes a state that
     ``base_model`` measures directly an indirectly measured one (a vane at a lever arm, a
-    time skew of the channel of a state); else ``res`` itself.
+    time skew of the channel of a state: with the new parameters at their estimates in
+    ``res``, the channel is no longer an affine function of that state alone); else ``res``
+    itself.
 
     A warm start carries the current model's noise: the process noise of a directly
     measured state is as large as the channel asks (its smoother follows the measurement).
@@ -173,8 +175,17 @@ def release_alternative(model, records, base_model, res, *, max_iter: int):
 
     opts = diag_options(max_iter, noise_start="release")
     base_direct = {base_model.state_names[i] for i in measured_states(base_model)}
+    # the candidate's channel with its new parameters at their estimates: a bias (y = x + b)
+    # or a scale factor (y = (1 + k) x) still measures the state directly, a vane
+    # (β − x r/V) or a time skew (x − τ ẋ) does not
+    est = dict(zip(res.parameter_names, map(float, res.theta)))
+    at_est = dataclasses.replace(model, parameters=tuple(
+        dataclasses.replace(p, fixed=True, initial=est.get(p.name, p.initial))
+        if p.name not in base_model.parameter_names else p for p in model.parameters))
+    still = {model.state_names[i] for i in measured_states(at_est)}
     try:
-        newly = [n for n in release_states(model, records, options=opts) if n in base_direct]
+        newly = [n for n in release_states(model, records, options=opts)
+                 if n in base_direct and n not in still]
     except FitError:
         return res, None
     if not newly:
