@@ -616,6 +616,31 @@ def test_conclusion_names_a_candidate_rejected_in_several_rounds_once():
     assert "actuator_lag:de (rounds 1, 2)" in text and "control_delay:de (rounds 1, 2)" in text
     assert text.count("actuator_lag:V") == 1 and "actuator_lag:V (rounds 2, 3)" in text
 
+def test_conclusion_reports_a_better_optimum_of_the_current_model():
+    """When a round's projected refits find a better optimum of the current model (a new
+    user's ATTAS lateral fit stopped 323 nats below one), the conclusion says so with its
+    numbers, instead of "kept as it is"."""
+    from vsidgen.discrepancy.findings import conclusion_text
+    from vsidgen.discrepancy.search import better_reference
+
+    class _St:
+        def __init__(self, elbo, val, spec):
+            self.elbo, self.val_elbo, self.spec_path = elbo, val, spec
+    projected = [{"key": "sensor_position:beta:r", "elbo": 33336.85, "converged": True},
+                 {"key": "time_skew:beta", "elbo": 33336.86, "converged": True},
+                 {"key": "coefficient_derivative:CY:r", "error": "failed: x"}]
+    ref = better_reference(_St(33013.64, 16007.7, "a.yaml"), _St(33336.87, 16400.1, "b.yaml"),
+                           projected)
+    assert ref["found_from"] == "time_skew:beta" and ref["spec"] == "b.yaml"
+    assert better_reference(_St(1.0, None, "a"), None, projected) is None
+    rounds = [{"round": 1, "trials": [], "reference": ref}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=True, final_spec="b.yaml")
+    assert "kept as it is" not in text
+    assert ("In round 1, the current model itself reached a better optimum: ELBO 33013.6 → "
+            "33336.9 (+323.2 nats; validation ELBO 16007.7 → 16400.1), found from the optimum "
+            "of time_skew:beta") in text
+
+
 def _assert_lift_users_changed_and_nested(sym, base, d):
     """Of hfb320's outputs only the accelerometers (users of CL) change, and with the new
     parameter ``d`` at 0 the augmented model is the base model."""

@@ -224,11 +224,28 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
         kept = ("The model's physics is kept as it is (with the numerics or noise-model "
                 "setting above)"
                 if numerics_adopted else "The model is kept as it is")
+        if any(r.get("reference") for r in rounds):
+            kept = ("The model's equations are kept as they are, re-estimated at the better "
+                    f"optimum described next (final spec: {final_spec})")
         conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                       f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
                       + (" and on the validation records" if validated else "")
                       + f". {kept}; the residual mismatch is consistent with "
                         "the estimated turbulence (process noise) and sensor noise.")
+    for r in rounds:
+        ref = r.get("reference")
+        if ref:
+            val = ""
+            if ref.get("val_elbo") is not None and ref.get("val_elbo_before") is not None:
+                val = (f"; validation ELBO {ref['val_elbo_before']:.6g} → {ref['val_elbo']:.6g}")
+            conclusion += (f" In round {r.get('round')}, the current model itself reached a better "
+                           f"optimum: ELBO {ref['elbo_before']:.6g} → {ref['elbo']:.6g}"
+                           f" (+{ref['elbo'] - ref['elbo_before']:.4g} nats{val})"
+                           + (f", found from the optimum of {ref['found_from']} with its new "
+                              "terms removed" if ref.get("found_from") else "")
+                           + "; the earlier fit had stopped in a local optimum, and every "
+                             "statistic of that round is taken against the better one "
+                             f"({ref['spec']}).")
     tried = [dict(t, round=r.get("round")) for r in rounds for t in r.get("trials", [])]
     val_rej = _keys_by_round([t for t in tried
                               if t.get("significant") and t.get("validation_ok") is False])

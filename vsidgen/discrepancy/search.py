@@ -1696,13 +1696,14 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
     trials = _refit_round(run, st, rnd, plan, current)
     if trials is None:
         return _RoundEnd.TIME_LIMIT
+    before = st.current
     checked = _projected_round(run, st, rnd, plan, trials)
     if checked is None:
         return _RoundEnd.TIME_LIMIT
     trials, projected, better = checked
     st.unfinished = None
     finished = _decide_round(rnd, trials, st.current, n_examined, run.alpha, table,
-                             projected, better)
+                             projected, better_reference(before, better, projected))
     st.rounds.append(finished.record)
     if finished.base_unconverged or finished.best is None:
         return _RoundEnd.DONE
@@ -1775,9 +1776,25 @@ class RoundDecision:
     base_unconverged: bool = False
 
 
+def better_reference(before: FitState, better: FitState | None,
+                     projected: Sequence[dict]) -> dict | None:
+    """The round record's account of a better optimum of the current model (None when the
+    projected refits found none): ELBO and validation ELBO before and after, the spec at the
+    better optimum, and the candidate whose optimum, its new terms removed, led there."""
+    if better is None:
+        return None
+    found = [p for p in projected if p.get("converged") and p.get("elbo") is not None]
+    return {"elbo_before": _f(before.elbo), "elbo": _f(better.elbo),
+            "val_elbo_before": _f(before.val_elbo), "val_elbo": _f(better.val_elbo),
+            "spec": str(better.spec_path),
+            "found_from": max(found, key=lambda p: p["elbo"])["key"] if found else None}
+
+
 def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
-                  better) -> RoundDecision:
-    """Holm over the round's family, validation check, best and its alternatives."""
+                  reference: dict | None) -> RoundDecision:
+    """Holm over the round's family, validation check, best and its alternatives.
+    ``reference``: :func:`better_reference` (the current model re-estimated at a better
+    optimum, which ``current`` then is) or None."""
     # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
     # the candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
@@ -1806,7 +1823,9 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         # refit merely finishing the base fit (a false positive), so nothing is accepted
         record["note"] = f"not accepted: the base fit did not converge ({current.fit.status})"
         return RoundDecision(record, None, base_unconverged=True)
-    record["reference_improved"] = better is not None
+    record["reference_improved"] = reference is not None
+    if reference is not None:
+        record["reference"] = reference
     if not good:
         return RoundDecision(record, None)
     # most significant = smallest p, in logs that do not underflow (scipy's chi2.logsf is −∞
