@@ -617,9 +617,9 @@ def test_conclusion_names_a_candidate_rejected_in_several_rounds_once():
     assert text.count("actuator_lag:V") == 1 and "actuator_lag:V (rounds 2, 3)" in text
 
 def test_conclusion_reports_a_better_optimum_of_the_current_model():
-    """When a round's projected refits find a better optimum of the current model (a new
-    user's ATTAS lateral fit stopped 323 nats below one), the conclusion says so with its
-    numbers, instead of "kept as it is"."""
+    """When a round's projected refits find a better optimum of the current model, the
+    conclusion says so with its numbers, instead of "kept as it is" (numbers of a run on a
+    new user's ATTAS lateral model, whose vane refit had opened another noise basin)."""
     from vsidgen.discrepancy.findings import conclusion_text
     from vsidgen.discrepancy.search import better_reference
 

@@ -153,55 +153,6 @@ def warm_start_from(m, records, source: FitState) -> WarmStart:
     return WarmStart.from_decision({"s": s0, "records": source.fit.decision["records"]})
 
 
-def release_alternative(model, records, base_model, res, *, max_iter: int):
-    """The better of ``res`` (a warm-started refit of ``model``) and a fit of ``model`` from
-    the estimator's "release" noise start, when the candidate makes a state that
-    ``base_model`` measures directly an indirectly measured one (a vane at a lever arm, a
-    time skew of the channel of a state: with the new parameters at their estimates in
-    ``res``, the channel is no longer an affine function of that state alone); else ``res``
-    itself.
-
-    A warm start carries the current model's noise: the process noise of a directly
-    measured state is as large as the channel asks (its smoother follows the measurement).
-    Once the channel reads ``β − x r/V``, that noise can absorb the new term, and the
-    warm-started refit stays in the basin where it does: on a new user's ATTAS lateral
-    model the β vane's refit ended 262 nats below the optimum a fit of the candidate's own
-    spec reaches from its release start (β held deterministic first), and was rejected by
-    validation where that optimum is accepted. Any ELBO is a lower bound of the candidate's
-    maximum, so the better converged one is kept (:func:`refit_converged`; higher ELBO
-    first). Returns (the fit kept, a note saying what was done, or None when nothing was)."""
-    from ..errors import FitError
-    from ..estimator import fit, measured_states, release_states
-
-    opts = diag_options(max_iter, noise_start="release")
-    base_direct = {base_model.state_names[i] for i in measured_states(base_model)}
-    # the candidate's channel with its new parameters at their estimates: a bias (y = x + b)
-    # or a scale factor (y = (1 + k) x) still measures the state directly, a vane
-    # (β − x r/V) or a time skew (x − τ ẋ) does not
-    est = dict(zip(res.parameter_names, map(float, res.theta)))
-    at_est = dataclasses.replace(model, parameters=tuple(
-        dataclasses.replace(p, fixed=True, initial=est.get(p.name, p.initial))
-        if p.name not in base_model.parameter_names else p for p in model.parameters))
-    still = {model.state_names[i] for i in measured_states(at_est)}
-    try:
-        newly = [n for n in release_states(model, records, options=opts)
-                 if n in base_direct and n not in still]
-    except FitError:
-        return res, None
-    if not newly:
-        return res, None
-    try:
-        alt = fit(model, list(records), options=opts)
-    except FitError as err:
-        return res, f"the release-start refit failed ({str(err).splitlines()[0]})"
-    use = ((refit_converged(alt), float(alt.elbo)) > (refit_converged(res), float(res.elbo)))
-    note = (f"{', '.join(newly)} no longer measured directly: also refitted from the "
-            f"release start ({', '.join(newly)} held deterministic first): ELBO "
-            f"{alt.elbo:.8g} ({conv_label(alt)}) against the warm start's {res.elbo:.8g}"
-            + (", used" if use else ", not used"))
-    return (alt if use else res), note
-
-
 def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,
                iterations: int, max_iter: int) -> FitState:
     """Fit the spec at ``path`` on the current records, warm-started from ``source``'s noise
@@ -216,5 +167,5 @@ def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, gener
     return evaluated(path, m, records, res, current.vrecords, max_iter=max_iter)
 
 
-__all__ = ["FitState", "NEAR_OPTIMUM_NATS", "conv_label", "diag_options", "evaluated", "near_optimum", "refit_converged", "refit_warm", "release_alternative",
+__all__ = ["FitState", "NEAR_OPTIMUM_NATS", "conv_label", "diag_options", "evaluated", "near_optimum", "refit_converged", "refit_warm",
            "stage1_iterations", "warm_start_from"]

@@ -53,8 +53,7 @@ import numpy as np
 from ..errors import FitError
 from ..estimator import WarmStart
 from .base import Candidate, ModelInfo
-from .fitstate import (FitState, diag_options, evaluated, fit_stage2, refit_warm, release_alternative,
-                       stage1_iterations)
+from .fitstate import FitState, diag_options, evaluated, fit_stage2, refit_warm, stage1_iterations
 from .refit import (REFIT_DETERMINISTIC_STD as DET, RefitOutcome, noise_parameters, noise_stds,
                     parameter_start)
 from .specwrite import clip_to_bounds, warm_parameters, write_spec
@@ -202,11 +201,6 @@ def gated_refit(c: Candidate, current: FitState, group: GatedGroup, path: pathli
     # ---- stage 2: everything of c free from stage 1's optimum
     ws2 = None if res1.decision is None else WarmStart.from_decision(res1.decision)
     res2 = fit_stage2(m2, records, res1, max_iter=max_iter, notes=out.notes, warm_start=ws2)
-    res2, note = release_alternative(m2, records, current.model, res2, max_iter=max_iter)
-    if note is not None:
-        out.notes.append(note)
-        if progress is not None:
-            progress(f"    {note}")
     out.state = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     out.wall_s = time.perf_counter() - t0
     return out

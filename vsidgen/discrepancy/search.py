@@ -70,7 +70,7 @@ from .pvalues import chi2_logsf
 from .refit import RefitVerdict, refit_verdict
 from .family import TaskDeadline, family_chunks, family_key
 from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2, refit_converged, refit_warm,
-                       release_alternative, stage1_iterations)
+                       stage1_iterations)
 from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
 
 
@@ -333,10 +333,6 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
         _say(progress, f"    {out.notes[-1]}")
         if res2b.elbo > res2.elbo:
             res1, res2 = res1b, res2b
-    res2, note = release_alternative(m2, records, current.model, res2, max_iter=max_iter)
-    if note is not None:
-        out.notes.append(note)
-        _say(progress, f"    {note}")
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:

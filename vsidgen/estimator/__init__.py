@@ -8,10 +8,9 @@ Public API::
     Problem(model, records, options)    # decision-vector layout, objective, reduced Newton system
     ModelFamily(models).active()        # problems of these models share one compilation
     Layout, ReducedSystem, Gradient, parameter_start, split_density, join_density
-    release_states(model, records, options=...)  # states the release start holds first
 """
 
-from .fit import fit, release_states, smooth
+from .fit import fit, smooth
 from .problem import (DirectMeasurement, Gradient, Layout, ModelFamily, Problem, ReducedSystem, direct_measurements, join_density,
                       measured_states, parameter_start, split_density)
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
@@ -19,4 +18,4 @@ from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, 
 
 __all__ = ["DirectMeasurement", "FitOptions", "FitPhase", "FitResult", "Gradient", "Layout", "ModelFamily", "PhaseKind", "Problem",
            "ReducedSystem", "SmootherPath", "StdErrorFlag", "StdErrorIssue", "StopReason", "WarmStart", "direct_measurements", "fit",
-           "join_density", "measured_states", "parameter_start", "release_states", "smooth", "split_density"]
+           "join_density", "measured_states", "parameter_start", "smooth", "split_density"]

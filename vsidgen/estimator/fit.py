@@ -1314,23 +1314,6 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
     return np.sqrt(sq / max(n, 1)) * math.sqrt(T)
 
 
-def _release_held(P: Problem) -> list[int]:
-    """Indices of the states the release start holds deterministic first (empty: it does not
-    apply): states with estimated process noise that no output measures directly, in a
-    problem without fixed process noise, deterministic states or without free parameters."""
-    if P.nm.fixed_G is not None or P.nm.deterministic.any() or P.tm.n_free == 0:
-        return []
-    return [int(i) for i in P.nm.proc_est_idx if int(i) not in P.direct]
-
-
-def release_states(model, records, *, options: FitOptions = FitOptions()) -> tuple[str, ...]:
-    """Names of the states that the "release" noise start (:func:`_release_start`) of a fit
-    of ``model`` on ``records`` with ``options`` holds deterministic first; empty when that
-    start does not apply (it is then the "data" start)."""
-    P = Problem(model, list(records), options)
-    return tuple(model.state_names[i] for i in _release_held(P))
-
-
 def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     """The "release" noise start: unmeasured states with process noise, first held deterministic.
 
@@ -1360,7 +1343,10 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     Returns the release leg's output (with every leg's iterations and history counted),
     or None when there is no such state or its drift vanishes at the start.
     """
-    held = _release_held(P)
+    if P.nm.fixed_G is not None or P.nm.deterministic.any() or P.tm.n_free == 0:
+        return None
+    pairs = P.direct
+    held = [int(i) for i in P.nm.proc_est_idx if int(i) not in pairs]
     if not held:
         return None
     eps0 = _drift_scale(P, held)
