@@ -326,7 +326,7 @@ def leading_refit(unfinished: dict | None, alpha: float) -> dict | None:
 
 
 def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
-              alpha: float = 0.05) -> str:
+              alpha: float = 0.01) -> str:
     """Sentence put before the conclusion when the run did not complete (else "").
 
     With an unfinished round, it names the round's leading refit so far
