@@ -805,3 +805,39 @@ def test_a_refit_stopped_at_a_kink_within_hundredths_of_a_nat_counts_as_converge
               res(StopReason.ITERATION_LIMIT, 0.001), res(StopReason.INDEFINITE_HESSIAN, 0.01),
               res(StopReason.STALLED, 0.001)):
         assert not refit_converged(r) and conv_label(r) == "NOT converged", r
+
+
+def test_a_flow_angle_time_skew_is_also_read_as_a_vane_position(tmp_path):
+    """A late α channel, τ, is to first order a vane x = τ·V̄ ahead of the CG; the finding
+    says so with the airspeed it used and the constants file's noseboom. Numbers of a new
+    user's ATTAS longitudinal diagnose (τ = 0.1005 ± 0.0011 s); V̄ here is the mean of a
+    hand-made record's v_mps column, the noseboom that of a constants file beside it."""
+    import types
+
+    from vsidgen.discrepancy.base import Candidate, NewParameter
+    from vsidgen.discrepancy.findings import equivalent_vane, equivalent_vane_text
+    from vsidgen.model import load_model
+
+    rec = tmp_path / "rec.csv"
+    rec.write_text("t_s,v_mps\n0,120\n0.04,130\n0.08,140\n")
+    (tmp_path / "x.constants.yaml").write_text(
+        "aircraft: X\ndata_files: [rec.csv]\nnoseboom_wrt_cg_m: {x: 13.08, y: -0.01, z: -0.027}\n")
+    model = load_model(ROOT / "specs" / "attas_sp.yaml", generated_dir=tmp_path / "gen")
+    st = types.SimpleNamespace(model=model, signals=(), records=(
+        types.SimpleNamespace(path=rec, u=np.zeros((3, 1))),))
+    skew = Candidate("time_skew", "time_skew:alpha", "output:alpha", "late",
+                     parameters=(NewParameter("D_SKEW_alpha", unit="s"),))
+    params = {"D_SKEW_alpha": {"estimate": 0.1005, "std_error": 0.0011, "unit": "s",
+                               "fixed": False}}
+    ev = equivalent_vane(skew, st, params)
+    assert ev["x_m"] == pytest.approx(13.065) and ev["std_error_m"] == pytest.approx(0.143)
+    assert ev["airspeed_mps"] == pytest.approx(130.0) and "v_mps" in ev["airspeed_source"]
+    assert ev["constants_noseboom_x_m"] == pytest.approx(13.08)
+    text = equivalent_vane_text("alpha", ev)
+    assert "alpha − x·q/V" in text and "x = τ·V̄ = 13.1 ± 0.14 m" in text and "13.08 m" in text
+    # other findings get nothing: a skew of q, a vane position itself
+    q_skew = Candidate("time_skew", "time_skew:q", "output:q", "late",
+                       parameters=(NewParameter("D_SKEW_q", unit="s"),))
+    assert equivalent_vane(q_skew, st, {"D_SKEW_q": params["D_SKEW_alpha"]}) is None
+    vane = Candidate("sensor_position", "sensor_position:alpha:q", "output:alpha", "vane")
+    assert equivalent_vane(vane, st, {"D_POS": dict(params["D_SKEW_alpha"], unit="m")}) is None

@@ -128,6 +128,72 @@ def _channel(target: str) -> str:
     return target.split(":", 1)[-1]
 
 
+#: metres per second of a speed unit (the units an airspeed state or input may declare)
+_SPEED_UNITS = {"m/s": 1.0, "ft/s": 0.3048, "kt": 1852.0 / 3600.0, "km/h": 1.0 / 3.6}
+
+
+def equivalent_vane(c, st, params: dict) -> dict | None:
+    """A time skew τ of a flow angle read as a vane position: ``x = τ·V̄`` metres ahead of the
+    centre of gravity, or None for any other finding.
+
+    A vane x ahead of the CG reads ``α − x·q/V`` (``β + x·r/V``); a channel late by τ reads
+    ``α − τ·α̇``. Where ``α̇ ≈ q`` (a short-period record flown near one airspeed) the two
+    are the same to first order with ``x = τ·V``, so the late channel can be a vane on a
+    nose boom (the ATTAS α channel: τ = 0.1005 ± 0.0011 s at 128.5 m/s, x = 12.9 m, against
+    the noseboom's 13.08 m). V̄ is the mean of the model's own airspeed (a state's smoothed
+    mean, or an input) in m/s, else the records' airspeed column; the aircraft constants'
+    noseboom position is given beside it when the constants file has one.
+    """
+    from .base import info_from_model
+    from .catalogue import airspeed_name
+    from .flightconst import flight_conditions, record_airspeed
+
+    if c.effect != "time_skew" or c.target_kind != "output" or c.target_name not in _FLOW_ANGLES:
+        return None
+    tau = next((v for v in params.values() if v.get("unit") == "s" and not v.get("fixed")), None)
+    if tau is None or tau.get("estimate") is None:
+        return None
+    info = info_from_model(st.model)
+    name = airspeed_name(info)
+    v_bar, source = None, None
+    unit = (info.unit(name) or "").replace(" ", "") if name else ""
+    if name in st.model.state_names and unit in _SPEED_UNITS:
+        j = st.model.state_names.index(name)
+        x = np.concatenate([np.asarray(sig.x_smooth, float)[:, j] for sig in st.signals])
+        v_bar, source = float(np.mean(x)) * _SPEED_UNITS[unit], f"mean of the model's {name}"
+    elif name in st.model.input_names and unit in _SPEED_UNITS:
+        j = st.model.input_names.index(name)
+        u = np.concatenate([np.asarray(r.u, float)[:, j] for r in st.records])
+        v_bar, source = float(np.nanmean(u)) * _SPEED_UNITS[unit], f"mean of the input {name}"
+    else:
+        rec = record_airspeed(st.records)
+        if rec is not None:
+            v_bar, source = rec.value, rec.source
+    if v_bar is None or not np.isfinite(v_bar) or v_bar <= 0:
+        return None
+    se = tau.get("std_error")
+    out = {"x_m": _f(tau["estimate"] * v_bar),
+           "std_error_m": None if se is None else _f(se * v_bar),
+           "airspeed_mps": _f(v_bar), "airspeed_source": source}
+    nose = flight_conditions(st.records).sensors.get("noseboom")
+    if nose is not None:
+        out["constants_noseboom_x_m"] = _f(nose[0])
+    return out
+
+
+def equivalent_vane_text(channel: str, ev: dict) -> str:
+    """The sentence of :func:`equivalent_vane` for a finding's explanation."""
+    se = f" ± {ev['std_error_m']:.2g}" if ev.get("std_error_m") is not None else ""
+    reads = f"{channel} − x·q/V" if channel == "alpha" else f"{channel} + x·r/V"
+    text = (f" Read as a vane instead: a vane x ahead of the centre of gravity reads "
+            f"{reads}, the same to first order as this skew with x = τ·V̄ = "
+            f"{ev['x_m']:.3g}{se} m (V̄ = {ev['airspeed_mps']:.4g} m/s, {ev['airspeed_source']})")
+    if ev.get("constants_noseboom_x_m") is not None:
+        text += (f"; the aircraft constants put the noseboom at x = "
+                 f"{ev['constants_noseboom_x_m']:.4g} m")
+    return text + ". A record at another airspeed separates the two."
+
+
 def separating_experiment(effect: str, target: str, other_effect: str, other_target: str) -> str:
     """What data would separate two explanations of one mismatch (plain words, for a finding
     whose alternative the data could not rule out).
@@ -498,11 +564,15 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
         elif c.target_kind == "output" and c.target_name in ev.outputs:
             locate_part = ev.outputs[c.target_name].to_json()
         users = list((c.info or {}).get("users", ())) if c.target_kind == "definition" else []
+        vane = equivalent_vane(c, final, params)
         findings.append({
             "rank": rank, "effect": c.effect, "title": _title(c.effect),
-            "explanation": c.explanation, "target": c.target, "key": c.key,
+            "explanation": c.explanation + (equivalent_vane_text(c.target_name, vane)
+                                            if vane else ""),
+            "target": c.target, "key": c.key,
             "added_terms": c.added_terms(), "parameters": params,
             **({"users": users} if users else {}),
+            **({"equivalent_vane": vane} if vane else {}),
             "evidence": {
                 "test": "likelihood-ratio type: 2*(ELBO_after - ELBO_reference) vs chi2(dof), "
                         "Holm-corrected over the candidates of the round; ELBO_reference is "
