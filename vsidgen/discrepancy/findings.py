@@ -128,8 +128,17 @@ def _channel(target: str) -> str:
     return target.split(":", 1)[-1]
 
 
-#: metres per second of a speed unit (the units an airspeed state or input may declare)
-_SPEED_UNITS = {"m/s": 1.0, "ft/s": 0.3048, "kt": 1852.0 / 3600.0, "km/h": 1.0 / 3.6}
+def _mps(unit: str | None) -> float | None:
+    """Metres per second of one ``unit`` of a speed (``spec.units.coherent``), or None when
+    the unit is not a speed the unit parser knows."""
+    from ..errors import SpecError
+    from ..spec.units import coherent
+
+    try:
+        factor, shown = coherent(unit or "")
+    except (SpecError, ValueError):
+        return None
+    return factor if shown.replace(" ", "") == "m/s" else None
 
 
 def equivalent_vane(c, st, params: dict) -> dict | None:
@@ -156,15 +165,15 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     info = info_from_model(st.model)
     name = airspeed_name(info)
     v_bar, source = None, None
-    unit = (info.unit(name) or "").replace(" ", "") if name else ""
-    if name in st.model.state_names and unit in _SPEED_UNITS:
+    scale = _mps(info.unit(name)) if name else None
+    if name in st.model.state_names and scale is not None:
         j = st.model.state_names.index(name)
         x = np.concatenate([np.asarray(sig.x_smooth, float)[:, j] for sig in st.signals])
-        v_bar, source = float(np.mean(x)) * _SPEED_UNITS[unit], f"mean of the model's {name}"
-    elif name in st.model.input_names and unit in _SPEED_UNITS:
+        v_bar, source = float(np.mean(x)) * scale, f"mean of the model's {name}"
+    elif name in st.model.input_names and scale is not None:
         j = st.model.input_names.index(name)
         u = np.concatenate([np.asarray(r.u, float)[:, j] for r in st.records])
-        v_bar, source = float(np.nanmean(u)) * _SPEED_UNITS[unit], f"mean of the input {name}"
+        v_bar, source = float(np.nanmean(u)) * scale, f"mean of the input {name}"
     else:
         rec = record_airspeed(st.records)
         if rec is not None:
