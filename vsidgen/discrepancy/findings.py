@@ -150,12 +150,14 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     are the same to first order with ``x = τ·V``, so the late channel can be a vane on a
     nose boom (the ATTAS α channel: τ = 0.1005 ± 0.0011 s at 128.5 m/s, x = 12.9 m, against
     the noseboom's 13.08 m). V̄ is the mean of the model's own airspeed (a state's smoothed
-    mean, or an input) in m/s, else the records' airspeed column; the aircraft constants'
-    noseboom position is given beside it when the constants file has one.
+    mean, or an input) in m/s, else the records' airspeed column or the constants file's trim
+    speed (:func:`.flightconst.flight_conditions_of`); the aircraft constants' noseboom
+    position is given beside it when the constants file has one. An airspeed the model holds
+    as a constant has no declared unit here, so it is not used.
     """
     from .base import info_from_model
     from .catalogue import airspeed_name
-    from .flightconst import flight_conditions, record_airspeed
+    from .flightconst import flight_conditions_of
 
     if c.effect != "time_skew" or c.target_kind != "output" or c.target_name not in _FLOW_ANGLES:
         return None
@@ -164,6 +166,9 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
         return None
     info = info_from_model(st.model)
     name = airspeed_name(info)
+    # the records' airspeed column or the constants file's trim speed (when the model has no
+    # airspeed of its own), and the sensor positions of the constants file
+    fc = flight_conditions_of(info, st.records)
     v_bar, source = None, None
     scale = _mps(info.unit(name)) if name else None
     if name in st.model.state_names and scale is not None:
@@ -174,17 +179,15 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
         j = st.model.input_names.index(name)
         u = np.concatenate([np.asarray(r.u, float)[:, j] for r in st.records])
         v_bar, source = float(np.nanmean(u)) * scale, f"mean of the input {name}"
-    else:
-        rec = record_airspeed(st.records)
-        if rec is not None:
-            v_bar, source = rec.value, rec.source
+    elif fc.airspeed is not None:
+        v_bar, source = fc.airspeed.value, fc.airspeed.source
     if v_bar is None or not np.isfinite(v_bar) or v_bar <= 0:
         return None
     se = tau.get("std_error")
     out = {"x_m": _f(tau["estimate"] * v_bar),
            "std_error_m": None if se is None else _f(se * v_bar),
            "airspeed_mps": _f(v_bar), "airspeed_source": source}
-    nose = flight_conditions(st.records).sensors.get("noseboom")
+    nose = fc.sensors.get("noseboom")
     if nose is not None:
         out["constants_noseboom_x_m"] = _f(nose[0])
     return out
