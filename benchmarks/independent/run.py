@@ -62,6 +62,10 @@ TRUE_LABELS = {
     ("sp", "phugoid"): {("speed_dynamics", None), ("missing_dynamics", None)},
     ("sp", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
     ("lat", "beta_vane"): {("sensor_position", "output:beta")},
+    ("lat", "ay_position"): {("sensor_position", "output:ay")},
+    ("lat", "da_delay"): {("transport_delay", "input:da"), ("control_delay", "input:da")},
+    ("lat", "dr_lag"): {("actuator_lag", "input:dr")},
+    ("lat", "p_bias"): {("sensor_bias", "output:p")},
 }
 #: catalogue effect class of each true effect (for --oracle)
 ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
@@ -69,10 +73,12 @@ ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
                  "missing_CLde": "coefficient_derivative", "lift_stall": "coefficient_nonlinear",
                  "gust": "unmodelled_wind", "phugoid": "speed_dynamics",
-                 "beta_vane": "sensor_position"}
+                 "beta_vane": "sensor_position", "ay_position": "sensor_position",
+                 "da_delay": "transport_delay", "dr_lag": "actuator_lag", "p_bias": "sensor_bias"}
 UNIT = {"de_delay": "s", "de_lag": "s", "alpha_vane": "m", "az_position": "m",
         "q_bias": "rad/s", "alpha_scale": "1", "missing_CLde": "1/rad", "lift_stall": "1/rad",
-        "gust": "m/s", "phugoid": "× physical", "beta_vane": "m", "none": ""}
+        "gust": "m/s", "phugoid": "× physical", "beta_vane": "m", "ay_position": "m",
+        "da_delay": "s", "dr_lag": "s", "p_bias": "rad/s", "none": ""}
 
 MAGNITUDES = {
     "hfb": {"none": [0.0], "de_delay": [0.05, 0.15, 0.3], "de_lag": [0.05, 0.15],
@@ -80,7 +86,8 @@ MAGNITUDES = {
             "alpha_scale": [0.03, 0.1], "missing_CLde": [0.15, 0.5], "lift_stall": [1.0, 4.0],
             "gust": [0.5, 2.0]},
     "sp": {"none": [0.0], "phugoid": [0.4, 1.0, 5.0], "de_delay": [0.04, 0.12]},
-    "lat": {"none": [0.0], "beta_vane": [3.0, 8.0]},
+    "lat": {"none": [0.0], "beta_vane": [3.0, 8.0], "ay_position": [1.0, 4.0],
+            "da_delay": [0.04, 0.12], "dr_lag": [0.05, 0.15], "p_bias": [0.0005, 0.002]},
 }
 
 

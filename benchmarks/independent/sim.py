@@ -425,6 +425,10 @@ LAT = dict(V0=100.0, YB=-0.15, YP=0.0, YR=0.0, YDR=0.03, LB=-4.5, LP=-1.6, LR=0.
 LAT_EFFECTS = {
     "none": "no concealed effect",
     "beta_vane": "β vane on a nose boom x m ahead of the CG (atan2(v + r x, u))",
+    "ay_position": "lateral accelerometer x m ahead of the CG (a_y + x (ṙ + p q), q = 0 here)",
+    "da_delay": "aileron transport delay (s): the surface moves as the recorded command τ s earlier",
+    "dr_lag": "rudder actuator first-order lag (time constant, s)",
+    "p_bias": "roll-rate gyro bias (rad/s)",
 }
 
 
@@ -439,21 +443,35 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
     ``a_y = V0 (Y_β β_a + Y_p p + Y_r r + Y_δr δr)``, ``β_a = β − v_g/V0`` (lateral gust).
     The β vane ``x`` m ahead of the CG sees the air-relative ``v − v_g + r x``:
     ``β_vane = atan2(V0 sin β − v_g + r x, V0 cos β)`` ≈ ``β_a + x r/V0``.
+
+    Other concealed effects (:data:`LAT_EFFECTS`): an accelerometer ``x`` m ahead of the CG
+    measures the specific force of its own point, ``a_P = a_CG + ω̇ × r + ω × (ω × r)`` with
+    ``r = (x, 0, 0)``: ``a_y,P = a_y + x (ṙ + p q)`` (q = 0 in this model), ṙ the exact
+    right-hand side; an aileron transport delay moves the surface as ``δa(t − τ)``; a rudder
+    actuator lag ``τ δ̇r = δr_cmd − δr`` is a fifth state (the record holds the command); a
+    roll-rate gyro bias adds a constant to the recorded p.
     """
     rng = np.random.default_rng(seed)
     c = LAT
     V0 = c["V0"]
+    if effect not in LAT_EFFECTS:
+        raise ValueError(f"unknown lateral effect {effect!r}")
+    delay = magnitude if effect == "da_delay" else 0.0
+    lag = magnitude if effect == "dr_lag" else 0.0
     da = doublet(2.0, 1.0, da_amp) + m3211(16.0, 0.6, -0.7 * da_amp)
     dr = m3211(7.0, 0.8, dr_amp) + doublet(23.0, 1.0, -dr_amp)
     n_half = int(round(duration / h)) * 2 + 1
     vg = dryden_series(rng, n_half, h / 2, gust_sigma_bg, gust_length_bg, V0)
 
     t_half = np.arange(n_half) * (h / 2)
-    ex = np.column_stack([vg, da(t_half), dr(t_half)])
+    # exogenous: gust, aileron surface (the command delayed by τ), rudder command
+    ex = np.column_stack([vg, da(t_half - delay), dr(t_half)])
 
     def forces(x, e):
         vgust, a, d = e
-        b, p_, r, ph = x
+        b, p_, r, ph = x[:4]
+        if lag > 0:
+            d = x[4]                      # the rudder surface lags its command
         ba = b - vgust / V0
         Y = c["YB"] * ba + c["YP"] * p_ + c["YR"] * r + c["YDR"] * d
         L = c["LB"] * ba + c["LP"] * p_ + c["LR"] * r + c["LDA"] * a + c["LDR"] * d
@@ -462,22 +480,34 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
 
     def f(t, x, e):
         Y, L, N = forces(x, e)
-        return np.array([Y - x[2] + G0 / V0 * x[3], L, N, x[1]])
+        dx = [Y - x[2] + G0 / V0 * x[3], L, N, x[1]]
+        if lag > 0:
+            dx.append((e[2] - x[4]) / lag)
+        return np.array(dx)
 
-    xs = rk4(f, [0.0, 0.0, 0.0, 0.0], duration, h, ex)
+    x0 = [0.0, 0.0, 0.0, 0.0] + ([0.0] if lag > 0 else [])
+    xs = rk4(f, x0, duration, h, ex)
     n_rec = int(round(duration / dt)) + 1
     stride = int(round(dt / h))
     t = np.arange(n_rec) * dt
-    ay = np.array([V0 * forces(xs[k * stride], ex[2 * k * stride])[0]
-                   for k in range(n_rec)])
+    ay = np.empty(n_rec)
+    rdot = np.empty(n_rec)
+    for k in range(n_rec):
+        x, e = xs[k * stride], ex[2 * k * stride]
+        Y, _, N = forces(x, e)
+        ay[k] = V0 * Y
+        rdot[k] = N
     b, p_, r, ph = (xs[::stride][:n_rec, j] for j in range(4))
+    if effect == "ay_position":
+        ay = ay + magnitude * rdot         # + x p q: q = 0 in this lateral model
     x_vane = magnitude if effect == "beta_vane" else 0.0
     v_gust = vg[2 * stride * np.arange(n_rec)]
     # the vane sees the air-relative velocity: v − v_g + r x
     beta_m = np.arctan2(V0 * np.sin(b) - v_gust + r * x_vane, V0 * np.cos(b))
+    p_m = p_ + (magnitude if effect == "p_bias" else 0.0)
     res = 0.0 if clean else 1e-4
     cols = {"t_s": t, "da_rad": quantise(da(t), res), "dr_rad": quantise(dr(t), res)}
-    for name, y, s in (("beta_rad", beta_m, 0.001), ("p_radps", p_, 0.001),
+    for name, y, s in (("beta_rad", beta_m, 0.001), ("p_radps", p_m, 0.001),
                        ("r_radps", r, 0.0005), ("phi_rad", ph, 0.001), ("ay_mps2", ay, 0.03)):
         cols[name] = quantise(y + (0.0 if clean else s) * rng.standard_normal(n_rec), res)
     truth = dict(model="lat", effect=effect, magnitude=magnitude, seed=seed)
