@@ -760,6 +760,13 @@ def test_what_would_separate_two_explanations():
     assert "q and alpha" in other
     # a vane and a skew of different channels are not the airspeed case
     assert "airspeed" not in sep("sensor_position", "output:alpha", "time_skew", "output:q")
+    # a β vane against a lateral accelerometer arm (lat_ay_position_1_s0): the airspeed
+    # separates them, and one effect on two channels is not "two forms of one effect"
+    arm = sep("sensor_position", "output:ay", "sensor_position", "output:beta")
+    assert "airspeed" in arm and "beta vane" in arm and "ay sensor" in arm
+    assert arm == sep("sensor_position", "output:beta", "sensor_position", "output:ay")
+    two = sep("sensor_position", "output:ax", "sensor_position", "output:az")
+    assert "larger excursions" not in two and "ax and az" in two
 
 
 def test_ambiguous_finding_says_what_would_separate_it_everywhere():

@@ -216,8 +216,10 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
     bias is constant while a scale error grows with the channel's value; a generic slow
     mode and the speed (phugoid) dynamics differ in period, damping and the airspeed
     channel; a gust state differs between records while a physical term repeats; two forms
-    of one effect differ away from the conditions of the record. Any other pair: a
-    manoeuvre that excites the two targets differently.
+    of one effect on one target differ away from the conditions of the record; a vane's
+    position error scales with 1/V while an accelerometer's lever-arm term does not. Any
+    other pair (one effect on two channels included): a manoeuvre that excites the two
+    targets differently.
     """
     pair = {effect, other_effect}
     ch, och = _channel(target), _channel(other_target)
@@ -247,7 +249,13 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
         return ("a second record of the same manoeuvre (another flight through other "
                 "turbulence): an unmodelled gust differs from record to record, a physical "
                 "term repeats — validate both on it (--validate)")
-    if effect == other_effect:
+    if pair == {"sensor_position"} and not same_channel and (ch in _FLOW_ANGLES) != (
+            och in _FLOW_ANGLES):
+        vane, acc = (ch, och) if ch in _FLOW_ANGLES else (och, ch)
+        return (f"a record at another airspeed: a {vane} vane's position error x·(rate)/V "
+                f"shrinks as the airspeed grows, while the {acc} sensor's lever-arm term "
+                f"x·(angular acceleration) does not depend on the airspeed")
+    if effect == other_effect and same_channel:
         return (f"a record with larger excursions of the variables the two {effect} forms "
                 f"use (they agree near the conditions of this record and differ away from "
                 f"them)")
