@@ -1048,7 +1048,14 @@ def screen(candidates, current, info, workdir: pathlib.Path, name: str, *, gener
     without one they run here, one after another. A batch that fails (:func:`screen_group`)
     or is not run leaves its candidates without a statistic (a note says why): they are
     ranked after the tested ones.
+
+    The candidates are batched in the order of their keys, not of their ranking: a batch's
+    model (its parameter order, its generated code) then depends only on the current model
+    and the candidate set, not on the record's locate scores, so diagnose runs of one spec on
+    other records of the same length reuse the persistent compilation cache's programs of
+    the screen (the statistics do not depend on the order, :func:`batch_statistics`).
     """
+    candidates = sorted(candidates, key=lambda c: c.key)
     modes = [c for c in candidates if c.screenable and include_states and is_mode_candidate(c)]
     todo = [c for c in candidates if c.screenable and (include_states or not c.states)
             and not is_mode_candidate(c)]
