@@ -484,7 +484,8 @@ def test_ambiguity_alternatives_and_benchmark_outcome():
     from vsidgen.discrepancy.search import AMBIGUITY_NATS, alternatives_of
 
     def trial(key, stat):
-        return types.SimpleNamespace(candidate=types.SimpleNamespace(key=key), statistic=stat)
+        return types.SimpleNamespace(candidate=types.SimpleNamespace(key=key), statistic=stat,
+                                     comparison=stat)
 
     best = trial("time_skew:alpha", 507.0)
     near = trial("sensor_position:alpha:q", 507.0 - 2 * AMBIGUITY_NATS + 0.5)
@@ -848,3 +849,46 @@ def test_a_flow_angle_time_skew_is_also_read_as_a_vane_position(tmp_path):
     assert equivalent_vane(q_skew, st, {"D_SKEW_q": params["D_SKEW_alpha"]}) is None
     vane = Candidate("sensor_position", "sensor_position:alpha:q", "output:alpha", "vane")
     assert equivalent_vane(vane, st, {"D_POS": dict(params["D_SKEW_alpha"], unit="m")}) is None
+
+
+def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_points():
+    """Numbers of lat_dr_lag_0.15_s0 (a rudder lag of 0.15 s, independent simulator): the lag's
+    own nesting point (its smallest time constant, a held-step discretisation under a
+    first-order hold) is already 109 nats above the current model, so its test statistic (415)
+    ranked it below a Padé delay's (427) although its refit is 110 nats higher. Ranked over
+    the current model (the common reference, the added state's initial-value entropy removed)
+    the lag is named, without the Padé delay as an alternative; each test keeps its own
+    reference."""
+    import types
+
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from scipy import stats
+
+    from vsidgen.discrepancy.search import Trial, _decide_round, comparison_statistic
+
+    current = types.SimpleNamespace(elbo=17003.44, val_elbo=None, spec_path="c.yaml",
+                                    fit=types.SimpleNamespace(converged=True))
+
+    def trial(key, filt, elbo, ref, x0, states=True):
+        cand = types.SimpleNamespace(key=key, effect=key.split(":")[0], target="input:dr",
+                                     states=("z",) if states else (), info={"filter": filt},
+                                     parameters=())
+        lam = 2.0 * (elbo - ref)
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None,
+                                   fit=types.SimpleNamespace(converged=True, status="converged"))
+        return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
+                     float(stats.chi2.sf(lam, 1)),
+                     refit=types.SimpleNamespace(x0_entropy=x0, val_x0_entropy=0.0,
+                                                 to_json=dict),
+                     converged=True, verdict=RefitVerdict.ORDINARY)
+
+    pade = trial("control_delay:dr", "pade", 17210.386, 16996.807, -6.632)
+    lag = trial("actuator_lag:dr", "lag", 17320.223, 17112.539, -6.664)
+    assert pade.statistic > lag.statistic
+    assert comparison_statistic(lag, current.elbo) == pytest.approx(646.9, abs=0.1)
+    assert comparison_statistic(pade, current.elbo) == pytest.approx(pade.statistic, abs=0.01)
+    dec = _decide_round(1, [pade, lag], current, 10, 0.01, [], [], None)
+    assert dec.best.candidate.key == "actuator_lag:dr" and dec.best.alternatives == ()
+    assert dec.best.statistic == pytest.approx(415.37, abs=0.01)   # its test is unchanged
+    rec = {t["key"]: t for t in dec.record["trials"]}
+    assert rec["actuator_lag:dr"]["statistic_vs_current"] == pytest.approx(646.9, abs=0.1)

@@ -34,6 +34,7 @@ findings.json (keys in this order)::
 from __future__ import annotations
 
 import html
+import math
 import pathlib
 from collections.abc import Sequence
 
@@ -206,6 +207,19 @@ def equivalent_vane_text(channel: str, ev: dict) -> str:
     return text + ". A record at another airspeed separates the two."
 
 
+def statistic_text(d: dict) -> str:
+    """A finding's or an alternative's 2ΔELBO for text: the test statistic (against the
+    candidate's own nesting point) and, where it differs, the gain over the current model by
+    which the round ranks alternatives (``statistic_vs_current``, search.comparison_statistic)."""
+    own = d.get("statistic")
+    cmp_ = d.get("statistic_vs_current")
+    if own is None:
+        return "—"
+    if cmp_ is None or abs(cmp_ - own) < 0.05:
+        return f"{own:.4g}"
+    return f"{own:.4g}; {cmp_:.4g} over the current model"
+
+
 def separating_experiment(effect: str, target: str, other_effect: str, other_target: str) -> str:
     """What data would separate two explanations of one mismatch (plain words, for a finding
     whose alternative the data could not rule out).
@@ -297,9 +311,9 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                "setting of the numerics stage; the final spec carries it).")
             if f["alternatives"]:
                 conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
-                               f"{f['key']} (2ΔELBO = {f['evidence']['statistic']:.4g}) is not "
+                               f"{f['key']} (2ΔELBO = {statistic_text(f['evidence'])}) is not "
                                "clearly better than " + ", ".join(
-                                   f"{a['key']} ({a['statistic']:.4g})" for a in f["alternatives"])
+                                   f"{a['key']} ({statistic_text(a)})" for a in f["alternatives"])
                                + " — the data do not separate these explanations; an engineer "
                                  "must judge the label. What would separate them: "
                                + "; ".join(f"from {a['key']}, {a['separated_by']}"
@@ -495,7 +509,7 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         for a in f.get("alternatives") or []:
             word = "AMBIGUOUS" if f.get("ambiguous") else "form uncertain"
             lines.append(f"   {word}: {a['effect']} on {a['target']} explains it nearly as well "
-                         f"(2ΔELBO = {a['statistic']:.4g})"
+                         f"(2ΔELBO = {statistic_text(a)})"
                          + (f"; to separate them: {a['separated_by']}"
                             if a.get("separated_by") else ""))
     lines.append(f"{document['conclusion']} Findings in {findings_path}.")
@@ -600,6 +614,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                         "added; see refit)",
                 "elbo_reference": _f(trial.refit.elbo_ref) if trial.refit is not None else None,
                 "statistic_vs_before": _f(trial.statistic_vs_base),
+                "statistic_vs_current": _f(getattr(trial, "comparison", math.nan)),
                 "converged": bool(trial.converged),
                 "refit": trial.refit.to_json() if trial.refit is not None else None,
                 "elbo_before": _f(before.elbo), "elbo_after": _f(after.elbo),
@@ -813,7 +828,7 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
         if f.get("alternatives"):
             parts.append("<p><b>" + ("Ambiguous" if f.get("ambiguous") else "Form uncertain")
                          + ":</b> nearly as good: " + e(", ".join(
-                             f"{a['key']} (2ΔELBO = {a['statistic']:.4g})"
+                             f"{a['key']} (2ΔELBO = {statistic_text(a)})"
                              for a in f["alternatives"])) + "</p>")
             seps = [a for a in f["alternatives"] if a.get("separated_by")]
             if seps:

@@ -101,6 +101,7 @@ class Trial:
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
     verdict: Any = None              # refit.RefitVerdict (None: no refit)
+    comparison: float = math.nan     # 2ΔELBO over the current model (comparison_statistic)
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -115,6 +116,7 @@ class Trial:
                 "convergence": None if self.state is None else conv_label(self.state.fit),
                 "status": None if self.state is None else self.state.fit.status,
                 "statistic_vs_base": _f(self.statistic_vs_base),
+                "statistic_vs_current": _f(self.comparison),
                 "score_test": None if self.screen is None else self.screen.to_json(),
                 "refit": None if self.refit is None else self.refit.to_json()}
 
@@ -131,6 +133,7 @@ class Trial:
                                       "unit": p.unit}
         return {"key": self.candidate.key, "effect": self.candidate.effect,
                 "target": self.candidate.target, "statistic": _f(self.statistic),
+                "statistic_vs_current": _f(self.comparison),
                 "dof": self.dof, "p_value": _f(self.p_value), "threshold": _f(self.threshold),
                 "elbo": None if self.state is None else _f(self.state.elbo),
                 "parameters": params, "spec": str(self.spec_path)}
@@ -549,15 +552,34 @@ def trial_verdict(c: Candidate, st: FitState, statistic: float):
     return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
 
 
+def comparison_statistic(t: Trial, current_elbo: float) -> float:
+    """``2(ELBO_t − H₀ − ELBO_current)``: the trial's refit against the current model, the
+    common reference of a round's alternatives (``H₀`` the entropy of the initial values of the
+    states the candidate adds, which its ELBO carries and the current model's does not; NaN
+    without a refit).
+
+    The test statistic (:attr:`Trial.statistic`) is taken against the candidate's own nesting
+    point, which is the current model for most candidates but not for all: an actuator lag
+    nests at its smallest time constant, and its discretisation over a held step there is not
+    the current model under a first-order hold (``lat_dr_lag_0.15_s0``: the nesting point
+    already 109 nats above the current model, so the lag's statistic, 415, ranked it below a
+    Padé delay's 427 although its refit was 110 nats higher). Non-nested alternatives are
+    therefore ranked by this statistic; the test of each keeps its own reference."""
+    if t.state is None:
+        return math.nan
+    h0 = t.refit.x0_entropy if (t.refit is not None and t.candidate.states) else 0.0
+    return 2.0 * (t.state.elbo - h0 - current_elbo)
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round whose
-    statistic is within ``2·nats`` of the best one's: explanations the data do not separate
-    from it. Candidates of one round each extend the current model by different terms, so
-    none nests another; their ELBOs are compared through their statistics (each against its
-    own nested reference)."""
+    comparison statistic (:func:`comparison_statistic`, set on each trial) is within
+    ``2·nats`` of the best one's: explanations the data do not separate from it. Candidates
+    of one round each extend the current model by different terms, so none nests another;
+    their ELBOs are compared over the current model."""
     return tuple(sorted((t for t in good if t is not best
-                         and t.statistic >= best.statistic - 2.0 * nats),
-                        key=lambda t: -t.statistic))
+                         and t.comparison >= best.comparison - 2.0 * nats),
+                        key=lambda t: -t.comparison))
 
 
 class ScreenTier(enum.Enum):
@@ -1806,7 +1828,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
             corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
             vok = bool(t.state.val_elbo - corr > current.val_elbo)
         final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
-                                                validation_ok=vok))
+                                                validation_ok=vok,
+                                                comparison=comparison_statistic(t, current.elbo)))
     good = [t for t in final_trials if t.significant and t.validation_ok is not False
             and t.state is not None]
     record = {"round": rnd, "base_spec": str(current.spec_path),
@@ -1824,10 +1847,11 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         record["reference"] = reference
     if not good:
         return RoundDecision(record, None)
-    # most significant = smallest p, in logs that do not underflow (scipy's chi2.logsf is −∞
-    # beyond Λ ≈ 1400, where every strong candidate would tie: .pvalues), a profiled delay's
-    # with the Bonferroni factor of its grid; fewer parameters win ties
-    best = min(good, key=lambda t: (chi2_logsf(max(t.statistic, 0.0), max(t.dof, 1))
+    # most significant = smallest p of the gain over the current model (the alternatives'
+    # common reference, comparison_statistic), in logs that do not underflow (scipy's
+    # chi2.logsf is −∞ beyond Λ ≈ 1400, where every strong candidate would tie: .pvalues), a
+    # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
+    best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
                                     + math.log(max(_grid_size(t.candidate), 1)), t.dof))
     return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives_of(best, good)))
 
