@@ -892,3 +892,43 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
     assert dec.best.statistic == pytest.approx(415.37, abs=0.01)   # its test is unchanged
     rec = {t["key"]: t for t in dec.record["trials"]}
     assert rec["actuator_lag:dr"]["statistic_vs_current"] == pytest.approx(646.9, abs=0.1)
+
+
+def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(monkeypatch):
+    """hfb_de_lag_0.05_s1: the numerics stage kept the zero-order hold (its half sample stood in
+    for part of the hidden lag), the transport delay was profiled under both holds and named.
+    A lag outranked by a delay of the same input is refitted under the accurate input
+    discretisation before the round decides; a lag that leads, or whose rival filters another
+    input, is not (its refit at acceptance stays as it was)."""
+    import types
+
+    from vsidgen.discrepancy import search
+
+    current = types.SimpleNamespace(elbo=18524.15, model=types.SimpleNamespace(name="hfb320"))
+
+    def trial(key, filt, u, elbo, x0=0.0):
+        cand = types.SimpleNamespace(key=key, states=("z",) if x0 else (),
+                                     info={"filter": filt, "input": u})
+        return search.Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"),
+                            types.SimpleNamespace(elbo=elbo), 2 * (elbo - current.elbo), 1,
+                            1e-9, refit=types.SimpleNamespace(x0_entropy=x0), converged=True)
+
+    called = []
+
+    def fake_hold(run, t, cur, name):
+        called.append(t.candidate.key)
+        return dataclasses.replace(t, statistic=t.statistic + 500.0)
+
+    monkeypatch.setattr(search, "lag_hold", fake_hold)
+    run = types.SimpleNamespace(past_deadline=lambda: False)
+    lag = trial("actuator_lag:de", "lag", "de", 19049.83, x0=-6.9)
+    delay = trial("transport_delay:de", "delay", "de", 19211.02)
+    out = search._lags_with_their_hold(run, [lag, delay], current, 1)
+    assert called == ["actuator_lag:de"] and out[0].statistic == lag.statistic + 500.0
+    assert out[1] is delay
+    called.clear()
+    other = trial("transport_delay:thrust", "delay", "thrust", 19211.02)
+    assert search._lags_with_their_hold(run, [lag, other], current, 1) == [lag, other]
+    leading = trial("actuator_lag:de", "lag", "de", 19400.0, x0=-6.9)
+    assert search._lags_with_their_hold(run, [leading, delay], current, 1) == [leading, delay]
+    assert called == []

@@ -1562,7 +1562,8 @@ def _accept(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, info: Mo
         run.say(f"    {best.candidate.key} as its own spec: ELBO "
                 f"{own.elbo:.6g} (gated fit {best.state.elbo:.6g})")
         best = dataclasses.replace(best, state=own)
-    if (best.candidate.info or {}).get("filter") == "lag" and best.state is not None:
+    if ((best.candidate.info or {}).get("filter") == "lag" and best.state is not None
+            and "hold_comparison" not in (best.candidate.info or {})):
         best = lag_hold(run, best, st.current, f"{_round_name(st.current, rnd, 0)}_hold")
     st.accepted.append((best, st.current, st.evidence))
     st.current = best.state
@@ -1682,6 +1683,35 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
         statistic_vs_base=best.statistic_vs_base + d, converged=True)
 
 
+def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: FitState,
+                          rnd: int) -> list[Trial]:
+    """The round's actuator lags refitted under an accurate input discretisation
+    (:func:`lag_hold`) *before* the round decides, where a transport or Padé delay of the same
+    input has the larger gain over the current model.
+
+    A transport delay is profiled under both input holds (:func:`delay_trial`) and a lag got
+    that choice only once accepted. When a lag is what the records hide, the numerics stage
+    may keep the zero-order hold because the hold's half sample stands in for part of the
+    missing lag; the delay then competes with the first-order hold and the lag without it
+    (hfb_de_lag_0.05_s1, an elevator lag of 0.05 s: the first-order hold was worth 2ΔELBO
+    464.5 to the delay, which was named, 0.0385 s). Both now decide with the same choice of
+    discretisation; a lag that already wins keeps its acceptance-time refit (:func:`_accept`)."""
+    out = list(trials)
+    for i, t in enumerate(trials):
+        info = t.candidate.info or {}
+        if (info.get("filter") != "lag" or t.state is None or not t.converged
+                or not t.statistic > 0 or "hold_comparison" in info):
+            continue
+        mine = comparison_statistic(t, current.elbo)
+        rival = any(r is not t and r.state is not None and r.converged
+                    and (r.candidate.info or {}).get("filter") in ("delay", "pade")
+                    and (r.candidate.info or {}).get("input") == info.get("input")
+                    and comparison_statistic(r, current.elbo) > mine for r in trials)
+        if rival and not run.past_deadline():
+            out[i] = lag_hold(run, t, current, f"{_round_name(current, rnd, 0)}_hold{i + 1}")
+    return out
+
+
 def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
     """One round: screen and select → refits → projected refits → decide → accept."""
     current = st.current
@@ -1719,6 +1749,7 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
     if checked is None:
         return _RoundEnd.TIME_LIMIT
     trials, projected, better = checked
+    trials = _lags_with_their_hold(run, trials, st.current, rnd)
     st.unfinished = None
     finished = _decide_round(rnd, trials, st.current, n_examined, run.alpha, table,
                              projected, better_reference(before, better, projected))
