@@ -932,3 +932,46 @@ def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(
     leading = trial("actuator_lag:de", "lag", "de", 19400.0, x0=-6.9)
     assert search._lags_with_their_hold(run, [leading, delay], current, 1) == [leading, delay]
     assert called == []
+
+
+def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_decided():
+    """lat_p_bias_0.0005_s0: the roll-gyro bias's refit stopped at its iteration limit with a
+    positive-definite Hessian, λ²/2 = 0.199 nats left, 2ΔELBO 45.2 against a threshold of
+    15.8 — a lower bound of the converged statistic, so the effect is significant and is
+    accepted, its explanation saying how far its estimates may be from the optimum. Without a
+    λ²/2 (indefinite Hessian) it stays undecided."""
+    import types
+
+    from scipy import stats
+
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.base import Candidate
+    from vsidgen.discrepancy.search import Trial, _decide_round, stopped_short
+    from vsidgen.estimator import StopReason
+
+    current = types.SimpleNamespace(elbo=17318.863, val_elbo=None, spec_path="c.yaml",
+                                    fit=types.SimpleNamespace(converged=True))
+
+    def trial(key, elbo, dec, reason=StopReason.ITERATION_LIMIT, converged=False):
+        cand = Candidate(effect=key.split(":")[0], key=key, target="output:p",
+                         explanation="A bias.")
+        fit = types.SimpleNamespace(converged=converged, stop_reason=reason, status="stopped",
+                                    newton_decrement=dec)
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, fit=fit)
+        lam = 2.0 * (elbo - current.elbo)
+        return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
+                     float(stats.chi2.sf(lam, 1)), refit=types.SimpleNamespace(
+                         x0_entropy=0.0, val_x0_entropy=0.0, to_json=dict),
+                     converged=converged, verdict=RefitVerdict.ORDINARY)
+
+    bias = trial("sensor_bias:p", 17341.440, 0.199)
+    assert stopped_short(bias) == pytest.approx(0.199)
+    dec = _decide_round(1, [bias], current, 150, 0.01, [], [], None)
+    assert dec.best is not None and dec.best.candidate.key == "sensor_bias:p"
+    assert "lower bound" in dec.best.candidate.explanation
+    assert dec.best.candidate.info["stopped_short_nats"] == pytest.approx(0.199)
+    saddle = trial("sensor_bias:p", 17341.440, float("nan"))
+    assert stopped_short(saddle) is None
+    assert _decide_round(1, [saddle], current, 150, 0.01, [], [], None).best is None
+    stalled = trial("sensor_bias:p", 17341.440, 0.199, reason=StopReason.STALLED)
+    assert _decide_round(1, [stalled], current, 150, 0.01, [], [], None).best is None

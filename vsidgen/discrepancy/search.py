@@ -571,6 +571,31 @@ def comparison_statistic(t: Trial, current_elbo: float) -> float:
     return 2.0 * (t.state.elbo - h0 - current_elbo)
 
 
+def stopped_short(t: Trial) -> float | None:
+    """λ²/2 (nats) still predicted by a refit that stopped at its iteration or time limit with a
+    positive-definite Hessian, else None.
+
+    Such a refit can still be *significant*: its ELBO is a lower bound of the candidate's
+    maximum (the optimiser only ascends from the nesting point), so its 2ΔELBO is a lower bound
+    of the converged statistic and its p-value an upper bound — a Holm decision on it is
+    conservative. What it cannot give is an estimate at the optimum: that is ``λ²/2`` away, i.e.
+    within about ``√(2·λ²/2)`` standard errors (the quadratic model's step in the metric of the
+    Hessian), and the finding says so. (lat_p_bias_0.0005_s0: the roll-gyro bias's refit
+    crawled for 400 iterations along the noise model's funnel, λ²/2 = 0.199 nats left, at
+    2ΔELBO 45.2 against a threshold of 15.8, and the run ended INCONCLUSIVE.) With an
+    indefinite Hessian (no λ²/2) the refit stays undecided."""
+    from ..estimator import StopReason
+
+    if t.state is None or t.converged:
+        return None
+    res = t.state.fit
+    dec = float(getattr(res, "newton_decrement", math.nan))
+    if (getattr(res, "stop_reason", None) in (StopReason.ITERATION_LIMIT, StopReason.TIME_LIMIT)
+            and math.isfinite(dec) and dec >= 0.0):
+        return dec
+    return None
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round whose
     comparison statistic (:func:`comparison_statistic`, set on each trial) is within
@@ -1844,10 +1869,12 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     """Holm over the round's family, validation check, best and its alternatives.
     ``reference``: :func:`better_reference` (the current model re-estimated at a better
     optimum, which ``current`` then is) or None."""
-    # an unconverged refit is never accepted: it enters the Holm family with p = 1; so do
-    # the candidates examined (screened) but not refitted
+    # an unconverged refit enters the Holm family with p = 1 — unless it stopped at its limit
+    # with a positive-definite Hessian (stopped_short): its Λ is then a lower bound and its p
+    # an upper bound; so do the candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if t.converged and t.verdict is RefitVerdict.ORDINARY
+    decisions = holm([t.p_value if (t.converged or stopped_short(t) is not None)
+                      and t.verdict is RefitVerdict.ORDINARY
                       else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
@@ -1884,6 +1911,20 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
     best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
                                     + math.log(max(_grid_size(t.candidate), 1)), t.dof))
+    short = stopped_short(best)
+    if short is not None:
+        from ..estimator import StopReason
+
+        c = best.candidate
+        limit = "time" if best.state.fit.stop_reason is StopReason.TIME_LIMIT else "iteration"
+        note = (f" Its refit stopped at its {limit}"
+                f" limit before converging (positive-definite Hessian, λ²/2 = {short:.3g} nats "
+                "predicted left): its 2ΔELBO is a lower bound of the converged one, so the effect "
+                f"is significant, and its estimates are within about {math.sqrt(2 * short):.2g} "
+                "standard errors of the optimum (rerun with a larger --max-iter to converge).")
+        best = dataclasses.replace(best, candidate=dataclasses.replace(
+            c, explanation=c.explanation + note,
+            info={**(c.info or {}), "stopped_short_nats": short}))
     return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives_of(best, good)))
 
 
