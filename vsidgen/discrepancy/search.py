@@ -1346,11 +1346,14 @@ def _gated_round_models(run: _RunConfig, current: FitState, info: ModelInfo, rnd
                         cands: Sequence[Candidate]) -> dict:
     """Key → gated model (:mod:`.gated`) of the gateable ``cands``, each group's module
     built once before the refits; a group whose model cannot be built is left out (its
-    candidates compile their own models)."""
+    candidates compile their own models). The candidates are grouped in the order of their
+    keys, so that one set of candidates gives one model whatever the record's ranking (the
+    persistent compilation cache then serves it again, as for the screen's batches)."""
     from .gated import gateable, gated_groups, gated_model, write_gated_spec
 
     groups = {}
-    for g, grp in enumerate(gated_groups([c for c in cands if gateable(c)])):
+    for g, grp in enumerate(gated_groups(sorted((c for c in cands if gateable(c)),
+                                                key=lambda c: c.key))):
         try:
             gg = write_gated_spec(grp, current, info,
                                   run.out / "candidates" / f"r{rnd}_gated_{g + 1}.yaml",
