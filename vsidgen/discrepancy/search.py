@@ -1708,7 +1708,8 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
     return dataclasses.replace(
         best, candidate=c, state=got, spec_path=path, statistic=lam,
         p_value=float(stats.chi2.sf(max(lam, 0.0), max(best.dof, 1))) if lam > 0 else 1.0,
-        statistic_vs_base=best.statistic_vs_base + d, converged=True)
+        statistic_vs_base=best.statistic_vs_base + d, comparison=best.comparison + d,
+        converged=True)
 
 
 def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: FitState,
