@@ -67,7 +67,7 @@ def test_member_outcomes_of_a_failed_family_task_are_per_candidate():
 def test_a_family_refit_equals_each_candidates_own_refit(lin1, monkeypatch):
     from vsidgen.discrepancy.search import _family_task, _refit_task
     from vsidgen.engine import TaskStatus
-    from vsidgen.estimator import core, problem
+    from vsidgen.estimator import StopReason, core, problem
 
     tmp, st, info, cands = lin1
     modes = [c for c in cands if c.effect == "missing_dynamics"]
@@ -107,13 +107,27 @@ def test_a_family_refit_equals_each_candidates_own_refit(lin1, monkeypatch):
         # that of the common optimum (the rounding of the two compiled functions differs, so
         # the iterations may stop one step apart)
         fa, fr = ro_f.state.fit, ro_r.state.fit
-        assert fa.converged and fr.converged
-        assert ro_f.state.elbo == pytest.approx(ro_r.state.elbo, abs=4e-3), c.key
+        # a refit may also stop at its iteration limit crawling along a flat valley (the
+        # mode's time constant; seen for the own refit of missing_dynamics:x:x on one
+        # machine, λ²/2 = 0.0098 nats left after 400 iterations, while the family's converged):
+        # it is then λ²/2 from the optimum by the quadratic model, and the tolerances grow by
+        # that distance (ELBO) and by √(2·λ²/2) standard errors (θ)
+        left = []
+        for f in (fa, fr):
+            if f.converged:
+                left.append(1e-3)
+            else:
+                assert f.stop_reason is StopReason.ITERATION_LIMIT, (c.key, f.status)
+                assert np.isfinite(f.newton_decrement) and f.newton_decrement < 0.05, f.status
+                left.append(float(f.newton_decrement))
+        assert fa.converged or fr.converged, c.key
+        assert ro_f.state.elbo == pytest.approx(ro_r.state.elbo, abs=2e-3 + sum(left)), c.key
         assert fa.parameter_names == fr.parameter_names
         # a point whose Newton decrement is λ²/2 < 1e-3 lies within √(2·1e-3) ≈ 0.045
         # standard errors of the optimum (in the Hessian's metric): two such points within 0.09
         se = np.where(np.isfinite(fr.std_errors), fr.std_errors, np.inf)
-        assert np.all(np.abs(fa.theta - fr.theta) <= 0.09 * se + 1e-9), (c.key, fa.theta, fr.theta, se)
+        reach = sum(np.sqrt(2 * x) for x in left)
+        assert np.all(np.abs(fa.theta - fr.theta) <= reach * se + 1e-9), (c.key, fa.theta, fr.theta, se)
 
 
 def test_a_family_refit_that_raises_is_that_candidates_failure(lin1, monkeypatch):
