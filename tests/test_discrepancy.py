@@ -970,6 +970,14 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
     assert dec.best is not None and dec.best.candidate.key == "sensor_bias:p"
     assert "lower bound" in dec.best.candidate.explanation
     assert dec.best.candidate.info["stopped_short_nats"] == pytest.approx(0.199)
+    assert dec.best.alternatives == ()          # not its own alternative
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    finding = {"rank": 1, "key": "sensor_bias:p", "effect": "sensor_bias", "target": "output:p",
+               "alternatives": [], "evidence": {"statistic": 45.15}}
+    text = conclusion_text([finding], [dec.record], alpha=0.01, validated=False,
+                           final_spec="f.yaml")
+    assert "sensor_bias on output:p" in text and "did not converge" not in text
     saddle = trial("sensor_bias:p", 17341.440, float("nan"))
     assert stopped_short(saddle) is None
     assert _decide_round(1, [saddle], current, 150, 0.01, [], [], None).best is None

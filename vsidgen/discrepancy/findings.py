@@ -349,6 +349,10 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     tried = [dict(t, round=r.get("round")) for r in rounds for t in r.get("trials", [])]
     val_rej = _keys_by_round([t for t in tried
                               if t.get("significant") and t.get("validation_ok") is False])
+    # a refit named although it stopped short of convergence (search.stopped_short: its Λ a
+    # lower bound) is a finding, not an unconverged rejection
+    named = {(f.get("rank"), f["key"]) for f in findings}
+    tried = [t for t in tried if (t.get("round"), t["key"]) not in named]
     unconv = [t["key"] for t in tried if t.get("converged") is False]
     strong = [t for t in tried if t.get("converged") is False
               and isinstance(t.get("statistic"), (int, float))

@@ -1915,6 +1915,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
     best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
                                     + math.log(max(_grid_size(t.candidate), 1)), t.dof))
+    alternatives = alternatives_of(best, good)
     short = stopped_short(best)
     if short is not None:
         from ..estimator import StopReason
@@ -1929,7 +1930,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         best = dataclasses.replace(best, candidate=dataclasses.replace(
             c, explanation=c.explanation + note,
             info={**(c.info or {}), "stopped_short_nats": short}))
-    return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives_of(best, good)))
+    return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives))
 
 
 # ---------------------------------------------------------------------------
