@@ -864,7 +864,7 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
     from vsidgen.discrepancy.refit import RefitVerdict
     from scipy import stats
 
-    from vsidgen.discrepancy.search import Trial, _decide_round, comparison_statistic
+    from vsidgen.discrepancy.search import Trial, _decide_round
 
     current = types.SimpleNamespace(elbo=17003.44, val_elbo=None, spec_path="c.yaml",
                                     fit=types.SimpleNamespace(converged=True))
@@ -880,13 +880,14 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
                      float(stats.chi2.sf(lam, 1)),
                      refit=types.SimpleNamespace(x0_entropy=x0, val_x0_entropy=0.0,
                                                  to_json=dict),
+                     statistic_vs_base=2.0 * (elbo - current.elbo),
                      converged=True, verdict=RefitVerdict.ORDINARY)
 
     pade = trial("control_delay:dr", "pade", 17210.386, 16996.807, -6.632)
     lag = trial("actuator_lag:dr", "lag", 17320.223, 17112.539, -6.664)
     assert pade.statistic > lag.statistic
-    assert comparison_statistic(lag, current.elbo) == pytest.approx(646.9, abs=0.1)
-    assert comparison_statistic(pade, current.elbo) == pytest.approx(pade.statistic, abs=0.01)
+    assert lag.comparison == pytest.approx(646.9, abs=0.1)
+    assert pade.comparison == pytest.approx(pade.statistic, abs=0.01)
     dec = _decide_round(1, [pade, lag], current, 10, 0.01, [], [], None)
     assert dec.best.candidate.key == "actuator_lag:dr" and dec.best.alternatives == ()
     assert dec.best.statistic == pytest.approx(415.37, abs=0.01)   # its test is unchanged
@@ -911,7 +912,8 @@ def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(
                                      info={"filter": filt, "input": u})
         return search.Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"),
                             types.SimpleNamespace(elbo=elbo), 2 * (elbo - current.elbo), 1,
-                            1e-9, refit=types.SimpleNamespace(x0_entropy=x0), converged=True)
+                            1e-9, refit=types.SimpleNamespace(x0_entropy=x0), converged=True,
+                            statistic_vs_base=2 * (elbo - current.elbo))
 
     called = []
 
@@ -962,7 +964,7 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
         return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)), refit=types.SimpleNamespace(
                          x0_entropy=0.0, val_x0_entropy=0.0, to_json=dict),
-                     converged=converged, verdict=RefitVerdict.ORDINARY)
+                     statistic_vs_base=lam, converged=converged, verdict=RefitVerdict.ORDINARY)
 
     bias = trial("sensor_bias:p", 17341.440, 0.199)
     assert stopped_short(bias) == pytest.approx(0.199)

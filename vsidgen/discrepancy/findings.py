@@ -34,7 +34,6 @@ findings.json (keys in this order)::
 from __future__ import annotations
 
 import html
-import math
 import pathlib
 from collections.abc import Sequence
 
@@ -210,7 +209,7 @@ def equivalent_vane_text(channel: str, ev: dict) -> str:
 def statistic_text(d: dict) -> str:
     """A finding's or an alternative's 2ΔELBO for text: the test statistic (against the
     candidate's own nesting point) and, where it differs, the gain over the current model by
-    which the round ranks alternatives (``statistic_vs_current``, search.comparison_statistic)."""
+    which the round ranks alternatives (``statistic_vs_current``, search.Trial.comparison)."""
     own = d.get("statistic")
     cmp_ = d.get("statistic_vs_current")
     if own is None:
@@ -618,7 +617,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                         "added; see refit)",
                 "elbo_reference": _f(trial.refit.elbo_ref) if trial.refit is not None else None,
                 "statistic_vs_before": _f(trial.statistic_vs_base),
-                "statistic_vs_current": _f(getattr(trial, "comparison", math.nan)),
+                "statistic_vs_current": _f(trial.comparison),
                 "converged": bool(trial.converged),
                 "refit": trial.refit.to_json() if trial.refit is not None else None,
                 "elbo_before": _f(before.elbo), "elbo_after": _f(after.elbo),

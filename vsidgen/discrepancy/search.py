@@ -101,7 +101,26 @@ class Trial:
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
     verdict: Any = None              # refit.RefitVerdict (None: no refit)
-    comparison: float = math.nan     # 2ΔELBO over the current model (comparison_statistic)
+
+    @property
+    def comparison(self) -> float:
+        """``2(ELBO − H₀ − ELBO_current)``: the refit against the current model, the common
+        reference of a round's alternatives (``statistic_vs_base`` without ``H₀``, the entropy
+        of the initial values of the states the candidate adds, which its ELBO carries and the
+        current model's does not; NaN without a refit).
+
+        The test statistic (:attr:`statistic`) is taken against the candidate's own nesting
+        point, which is the current model for most candidates but not for all: an actuator lag
+        nests at its smallest time constant, and its discretisation over a held step there is
+        not the current model under a first-order hold (``lat_dr_lag_0.15_s0``: the nesting
+        point already 109 nats above the current model, so the lag's statistic, 415, ranked it
+        below a Padé delay's 427 although its refit was 110 nats higher). Non-nested
+        alternatives are therefore ranked by this statistic; the test of each keeps its own
+        reference."""
+        if self.state is None:
+            return math.nan
+        h0 = self.refit.x0_entropy if (self.refit is not None and self.candidate.states) else 0.0
+        return self.statistic_vs_base - 2.0 * h0
 
     def to_json(self) -> dict:
         return {"key": self.candidate.key, "effect": self.candidate.effect,
@@ -552,25 +571,6 @@ def trial_verdict(c: Candidate, st: FitState, statistic: float):
     return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
 
 
-def comparison_statistic(t: Trial, current_elbo: float) -> float:
-    """``2(ELBO_t − H₀ − ELBO_current)``: the trial's refit against the current model, the
-    common reference of a round's alternatives (``H₀`` the entropy of the initial values of the
-    states the candidate adds, which its ELBO carries and the current model's does not; NaN
-    without a refit).
-
-    The test statistic (:attr:`Trial.statistic`) is taken against the candidate's own nesting
-    point, which is the current model for most candidates but not for all: an actuator lag
-    nests at its smallest time constant, and its discretisation over a held step there is not
-    the current model under a first-order hold (``lat_dr_lag_0.15_s0``: the nesting point
-    already 109 nats above the current model, so the lag's statistic, 415, ranked it below a
-    Padé delay's 427 although its refit was 110 nats higher). Non-nested alternatives are
-    therefore ranked by this statistic; the test of each keeps its own reference."""
-    if t.state is None:
-        return math.nan
-    h0 = t.refit.x0_entropy if (t.refit is not None and t.candidate.states) else 0.0
-    return 2.0 * (t.state.elbo - h0 - current_elbo)
-
-
 def stopped_short(t: Trial) -> float | None:
     """λ²/2 (nats) still predicted by a refit that stopped at its iteration or time limit with a
     positive-definite Hessian, else None.
@@ -598,7 +598,7 @@ def stopped_short(t: Trial) -> float | None:
 
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round whose
-    comparison statistic (:func:`comparison_statistic`, set on each trial) is within
+    comparison statistic (:attr:`Trial.comparison`) is within
     ``2·nats`` of the best one's: explanations the data do not separate from it. Candidates
     of one round each extend the current model by different terms, so none nests another;
     their ELBOs are compared over the current model."""
@@ -1708,8 +1708,7 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
     return dataclasses.replace(
         best, candidate=c, state=got, spec_path=path, statistic=lam,
         p_value=float(stats.chi2.sf(max(lam, 0.0), max(best.dof, 1))) if lam > 0 else 1.0,
-        statistic_vs_base=best.statistic_vs_base + d, comparison=best.comparison + d,
-        converged=True)
+        statistic_vs_base=best.statistic_vs_base + d, converged=True)
 
 
 def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: FitState,
@@ -1731,11 +1730,10 @@ def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: Fit
         if (info.get("filter") != "lag" or t.state is None or not t.converged
                 or not t.statistic > 0 or "hold_comparison" in info):
             continue
-        mine = comparison_statistic(t, current.elbo)
         rival = any(r is not t and r.state is not None and r.converged
                     and (r.candidate.info or {}).get("filter") in ("delay", "pade")
                     and (r.candidate.info or {}).get("input") == info.get("input")
-                    and comparison_statistic(r, current.elbo) > mine for r in trials)
+                    and r.comparison > t.comparison for r in trials)
         if rival and not run.past_deadline():
             out[i] = lag_hold(run, t, current, f"{_round_name(current, rnd, 0)}_hold{i + 1}")
     return out
@@ -1890,8 +1888,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
             corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
             vok = bool(t.state.val_elbo - corr > current.val_elbo)
         final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
-                                                validation_ok=vok,
-                                                comparison=comparison_statistic(t, current.elbo)))
+                                                validation_ok=vok))
     good = [t for t in final_trials if t.significant and t.validation_ok is not False
             and t.state is not None]
     record = {"round": rnd, "base_spec": str(current.spec_path),
@@ -1910,7 +1907,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     if not good:
         return RoundDecision(record, None)
     # most significant = smallest p of the gain over the current model (the alternatives'
-    # common reference, comparison_statistic), in logs that do not underflow (scipy's
+    # common reference, Trial.comparison), in logs that do not underflow (scipy's
     # chi2.logsf is −∞ beyond Λ ≈ 1400, where every strong candidate would tie: .pvalues), a
     # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
     best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
