@@ -75,6 +75,12 @@ def test_check_with_data(tmp_path, capsys):
     assert "too few samples" in capsys.readouterr().err
     csv.write_text(_record())
     assert main(["check", str(SPECS / "base.yaml"), "--data", str(csv)]) == 0
+    # the record positionally, as `fit` takes it; not both ways at once
+    csv.write_text(CSV)
+    assert main(["check", str(SPECS / "base.yaml"), str(csv)]) == 2
+    assert "too few samples" in capsys.readouterr().err
+    assert main(["check", str(SPECS / "base.yaml"), str(csv), "--data", str(csv)]) == 2
+    assert "not allowed with argument" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("edit, message", [

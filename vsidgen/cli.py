@@ -69,8 +69,11 @@ def _add_check(subparsers) -> None:
                     "units, drift and outputs finite at every sample. "
                     "Exit status 0 if valid, 2 otherwise.")
     p.add_argument("spec", metavar="SPEC", help="spec file (YAML)")
-    p.add_argument("--data", metavar="DATA", default=None,
-                   help="a flight record (CSV or .mat) to check against the spec")
+    # the record positionally too, as `vsidgen fit SPEC DATA` takes it (a new user's first try)
+    rec = p.add_mutually_exclusive_group()
+    rec.add_argument("record", metavar="DATA", nargs="?", default=None,
+                     help="a flight record (CSV or .mat) to check against the spec")
+    rec.add_argument("--data", metavar="DATA", default=None, help="the same, as an option")
     p.set_defaults(handler=_cmd_check)
 
 
@@ -81,8 +84,9 @@ def _cmd_check(args) -> int:
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
     data_warnings = []
-    if args.data is not None:
-        data_warnings = check_record(symbolic, args.data, start=_fit_start(args.spec, symbolic))
+    data = args.data if args.data is not None else args.record
+    if data is not None:
+        data_warnings = check_record(symbolic, data, start=_fit_start(args.spec, symbolic))
         _print_warnings(data_warnings)
     n = len(symbolic.warnings) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
