@@ -90,3 +90,32 @@ def test_an_error_in_one_start_stops_all_of_them_and_is_raised():
             options=FitOptions(parallel_starts=True, progress=progress))
     assert not _start_threads()
 
+
+
+def _out(elbo: float, reason):
+    from vsidgen.estimator.results import StopReason
+    r = getattr(StopReason, reason)
+    return {"converged": r.converged, "reason": r, "blks": [{"f": -elbo}]}
+
+
+def test_the_highest_unconverged_start_above_every_optimum_is_continued():
+    """After every start has run: a start that stopped without an optimum (iteration limit or
+    stalled) above every converged start is continued (a converged start below it is not the
+    best optimum); below them, or when nothing converged and no start stalled, nothing is."""
+    from vsidgen.estimator.fit import _start_to_continue
+
+    def pick(*outs):
+        return _start_to_continue([(f"s{i}", o) for i, o in enumerate(outs)])
+
+    lim, conv, st = "ITERATION_LIMIT", "NEWTON_DECREMENT", "STALLED"
+    # a new user's Twin Otter model: 8052 (limit), 4255 (converged), 8976 (limit)
+    assert pick(_out(8052, lim), _out(4255, conv), _out(8976, lim)) == 2
+    # HFB-320: the stalled starts are below the converged one
+    assert pick(_out(14890.8, st), _out(14890.8, st), _out(14964.7, conv)) is None
+    # Twin Otter short period: the unconverged start is below the converged one
+    assert pick(_out(15190.8, lim), _out(15691.9, conv), _out(15600, conv)) is None
+    # nothing converged: the best stalled start (it has iterations left), as before
+    assert pick(_out(10, st), _out(30, lim), _out(20, st)) == 2
+    assert pick(_out(10, lim), _out(30, lim)) is None
+    # a stop without progress is not continued
+    assert pick(_out(100, "NO_PROGRESS"), _out(50, conv)) is None

@@ -59,3 +59,15 @@ def test_user_model_with_per_sample_mass_fits(flight_data_dir, tmp_path):
 @pytest.mark.parametrize("name", sorted(users.MODELS))
 def test_user_model_fits(name, flight_data_dir, tmp_path):
     _fit_ok(name, flight_data_dir, tmp_path)
+
+
+def test_nonlinear_user_model_is_fitted_at_its_highest_start(flight_data_dir, tmp_path):
+    """A new user's nonlinear Twin Otter model (V, α, q, θ; coefficients; 50 s): two noise
+    starts stop at their iteration limit far above the one start that converges (ELBO 8976 and
+    8052 against 4255). Reporting that lower optimum as the fit left the airspeed unexplained
+    (free-simulation R² of V −29.5); the highest start, continued, converges where the model
+    simulates the airspeed (R² 0.988)."""
+    _fit_ok("otter_lon_nl", flight_data_dir, tmp_path)
+    res = json.loads((tmp_path / "otter_lon_nl" / "fit" / "results.json").read_text())
+    sim = res["metrics"]["estimation"]["totter_lon_020213f1_018"]["simulation"]
+    assert sim["V"]["r2"] > 0.9 and sim["alpha"]["r2"] > 0.9, sim
