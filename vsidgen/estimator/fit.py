@@ -890,25 +890,16 @@ def _start_to_continue(tried) -> int | None:
     """Which noise start of a multi-start to continue after every start has run, or None.
 
     The highest start that stopped without an optimum (stalled, or at its iteration limit)
-    when its ELBO is above every converged start's: the ELBO is maximised, so a point above a
-    converged local optimum shows that optimum is not the best one reachable; keeping that
-    optimum would report a lower fit as converged. (A new user's nonlinear Twin Otter model:
-    two starts at their 200-iteration limit with ELBO 8051.9 and 8976.4, the one converged start at
-    4255.2; continued, the highest converges to 10519.2.) When nothing converged, the highest
-    stalled start is continued (a stalled start has iterations left; one at its limit does not
-    need to be preferred: it is continued only when it is the highest)."""
+    when its ELBO is above every converged start's (any ELBO when none converged): the ELBO
+    is maximised, so a point above a converged local optimum shows that optimum is not the
+    best one reachable, and keeping it would report a lower fit as converged. (A new user's
+    nonlinear Twin Otter model: two starts at their 200-iteration limit with ELBO 8051.9 and
+    8976.4, the one converged start at 4255.2; continued, the highest converges to 11492.8.)"""
     best_conv = max((-_negelbo(o) for _, o in tried if o["converged"]), default=-math.inf)
     open_ = [k for k, (_, o) in enumerate(tried)
              if o["reason"] in (StopReason.STALLED, StopReason.ITERATION_LIMIT)
              and -_negelbo(o) > best_conv]
-    if not open_:
-        return None
-    k = min(open_, key=lambda k: _negelbo(tried[k][1]))
-    if math.isfinite(best_conv) or tried[k][1]["reason"] is StopReason.STALLED:
-        return k
-    # none converged: as before, the best stalled start (with its remaining iterations)
-    stalled = [j for j in open_ if tried[j][1]["reason"] is StopReason.STALLED]
-    return min(stalled, key=lambda j: _negelbo(tried[j][1])) if stalled else None
+    return min(open_, key=lambda k: _negelbo(tried[k][1])) if open_ else None
 
 
 def _run_start(P: Problem, options: FitOptions, start: str, t0, *, stall, cancel=None) -> dict:

@@ -237,10 +237,11 @@ class FitOptions:
             docs/estimator.md; the "data" start where there is no such state) or "auto"
             (default: try every one of them, "release" first where it applies, then the
             others in the order above; the converged start with the highest ELBO is
-            returned, else the highest ELBO of all; a start that stopped without an
-            optimum (iteration limit, stalled) above every converged start is continued
-            for another ``max_iter`` iterations first, and returned, as not converged, if
-            it still ends above them; ``iterations`` and ``history`` count all starts). A converged start is a local optimum, not necessarily the best:
+            returned, else the highest ELBO of all; the highest start that stopped
+            without an optimum (iteration limit, stalled) above every converged start, or
+            when none converged, is continued for another ``max_iter`` iterations first,
+            and returned, as not converged, if it still ends above them; ``iterations``
+            and ``history`` count all starts). A converged start is a local optimum, not necessarily the best:
             on HFB-320 the "data" and "data-meas" starts converge at ELBO 14890.77, 73.9
             nats below the "unit" start's optimum. The likelihood surfaces of real records have local optima in which
             one channel's measurement std collapses onto its floor; different noise
@@ -253,8 +254,8 @@ class FitOptions:
             start is about to converge). A start creeping along a collapsed-noise valley (a
             measurement std shrinking towards a floor it would need hundreds of iterations
             to reach, with the state glued to the measurement) gains nothing per iteration
-            while its gradient stays large. If no start converges, the stalled start with
-            the highest ELBO is continued with its remaining iterations.
+            while its gradient stays large (it may still be continued after the others:
+            see ``noise_start``).
             ``stall_window=0`` disables the test.
         parallel_starts: run the noise starts of ``"auto"`` concurrently, one thread each
             (they share the problem's compiled functions; XLA runs them in parallel while
