@@ -985,3 +985,36 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
     assert _decide_round(1, [saddle], current, 150, 0.01, [], [], None).best is None
     stalled = trial("sensor_bias:p", 17341.440, 0.199, reason=StopReason.STALLED)
     assert _decide_round(1, [stalled], current, 150, 0.01, [], [], None).best is None
+
+
+def test_aerodynamic_candidates_use_aerodynamic_variables_only():
+    """Coefficient derivatives and nonlinearities, and the nonlinear terms of state equations,
+    are proposed in the air-relative motion and the controls only: not in an attitude (a
+    state whose equation names no parameter, θ̇ = q) and not in a measured density, dynamic
+    pressure, mass or inertia (a new user's Twin Otter model with measured density and two
+    thrust inputs had C_L derivatives in θ and ρ). Thrust stays (a propeller's slipstream),
+    and so do rates, airspeed and controls; a missing derivative of an equation (a gravity
+    term left out) still may name the attitude."""
+    from vsidgen.discrepancy.base import get_effect
+    from vsidgen.discrepancy.catalogue import aero_variable, kinematic_state
+
+    users = ROOT / "benchmarks" / "users"
+    info = model_info(users / "otter_lon_nl.yaml", dt=0.02)
+    assert kinematic_state(info, "theta") and not kinematic_state(info, "alpha")
+    assert [v for v in info.state_names + info.input_names if not aero_variable(info, v)] \
+        == ["theta", "rho"]
+    keys = set()
+    for eff in ("coefficient_derivative", "coefficient_nonlinear", "nonlinear_aero"):
+        keys |= {c.key for c in get_effect(eff).applies_to(
+            dataclasses.replace(info, breaks={"rho": (("hinge", 1.0),)}))}
+    assert not [k for k in keys if "theta" in k.split(":", 2)[2] or "rho" in k], \
+        sorted(k for k in keys if "theta" in k or "rho" in k)
+    assert not [k for k in keys if k.startswith("nonlinear_aero:theta:")]
+    assert {"coefficient_derivative:CL:q", "coefficient_derivative:CL:T1",
+            "coefficient_derivative:CL:V", "coefficient_nonlinear:CL:sq:alpha",
+            "coefficient_nonlinear:Cm:sq:de", "nonlinear_aero:q:sq:alpha"} <= keys
+    md = {c.key for c in get_effect("missing_derivative").applies_to(info)}
+    assert "missing_derivative:q:theta" in md
+    # a mass, inertia and dynamic pressure measured per sample are not coefficient variables
+    info = model_info(users / "otter_sp_mass.yaml", dt=0.01)
+    assert {v for v in info.input_names if not aero_variable(info, v)} == {"qbar", "m", "Iyy"}

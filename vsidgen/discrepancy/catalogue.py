@@ -38,6 +38,41 @@ from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, registe
 from .locate import SPEED_REGRESSOR
 
 
+def kinematic_state(info: ModelInfo, state: str) -> bool:
+    """A state whose equation names no parameter (``θ̇ = q``, ``φ̇ = p + …``, a position):
+    kinematics, not aerodynamics — its rate is fixed by other states, and no aerodynamic
+    force or moment depends on it (attitude enters the dynamics through gravity only)."""
+    e = info.drift_expanded.get(state)
+    if e is None:
+        return False
+    return not ({s.name for s in e.free_symbols} & set(info.parameters))
+
+
+def aero_variable(info: ModelInfo, v: str) -> bool:
+    """Whether an aerodynamic coefficient (or an aerodynamic term of a state equation) can
+    depend on ``v``: the air-relative motion and the controls — flow angles, control
+    deflections, Mach and other dimensionless inputs, angular rates, airspeed, and forces
+    (thrust: a propeller's slipstream over the wing and tail). Not an attitude or position
+    state (:func:`kinematic_state`), and not a measured quantity of another dimension —
+    density, dynamic pressure, mass, inertia, altitude, temperature — which scale forces
+    through the model's own equations but are not variables of a coefficient (a new user's
+    Twin Otter model with measured density and two thrust inputs got `C_L` derivatives in θ
+    and ρ, squares and breaks in ρ and nonlinear terms in θ̇ = q: 30 of its 159 candidates
+    before break points). A variable without a declared or parsable unit is kept."""
+    if v in info.state_names and kinematic_state(info, v):
+        return False
+    unit = info.unit(v)
+    if not unit:
+        return True
+    from ..spec.units import ONE, parse_unit, same
+    try:
+        dim = parse_unit(unit)
+        aero = [ONE] + [parse_unit(u) for u in ("1/s", "m/s", "N")]
+    except Exception:  # noqa: BLE001 - an unparsable unit: keep the variable
+        return True
+    return any(same(dim, d) for d in aero)
+
+
 def _drift_unit(info: ModelInfo, state: str) -> str:
     u = info.unit(state)
     return f"({u})/s" if u and u != "1" else "1/s"
@@ -157,7 +192,7 @@ class MissingCoefficientDerivative(Effect):
             e = info.definitions_expanded.get(d)
             have = {x.name for x in e.free_symbols} if e is not None else set()
             for v in info.state_names + info.input_names:
-                if v in have:
+                if v in have or not aero_variable(info, v):
                     continue
                 p = info.fresh(f"D_{d}_{v}")
                 kind = "x" if v in info.state_names else "u"
@@ -267,7 +302,7 @@ class CoefficientNonlinearity(Effect):
         flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
         for d, users, drift_users, unit in _coefficient_definitions(info):
             user_text = ", ".join(u.replace(":", " ") for u in users)
-            for v in flow + list(info.input_names):
+            for v in flow + [u for u in info.input_names if aero_variable(info, u)]:
                 uv = info.unit(v)
                 p = info.fresh(f"D_{d}_{v}{v}")
                 out.append(self._cand(d, f"sq:{v}", p, f"{p}*{v}**2",
@@ -330,8 +365,10 @@ class NonlinearAero(Effect):
     def applies_to(self, info):
         out = []
         flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
-        nonlin = flow + list(info.input_names)
+        nonlin = flow + [u for u in info.input_names if aero_variable(info, u)]
         for s in info.state_names:
+            if kinematic_state(info, s):    # no aerodynamics in θ̇ = q
+                continue
             du = _drift_unit(info, s)
             for v in nonlin:
                 p = info.fresh(f"D_{s}_{v}{v}")
@@ -354,7 +391,7 @@ class NonlinearAero(Effect):
                                                               initial=float(b)),)))
             for a in flow:
                 for o in info.state_names + info.input_names:
-                    if o == a:
+                    if o == a or not aero_variable(info, o):
                         continue
                     p = info.fresh(f"D_{s}_{a}{o}")
                     out.append(self._cand(info, s, f"prod:{a}*{o}", p, f"{p}*{a}*{o}",
