@@ -1019,6 +1019,8 @@ def test_aerodynamic_candidates_use_aerodynamic_variables_only():
     assert not [k for k in keys if "theta" in k.split(":", 2)[2] or "rho" in k], \
         sorted(k for k in keys if "theta" in k or "rho" in k)
     assert not [k for k in keys if k.startswith("nonlinear_aero:theta:")]
+    ua = {c.key for c in get_effect("unsteady_aero").applies_to(info)}
+    assert "unsteady_aero:q:alpha" in ua and "unsteady_aero:theta:alpha" not in ua
     assert {"coefficient_derivative:CL:q", "coefficient_derivative:CL:T1",
             "coefficient_derivative:CL:V", "coefficient_nonlinear:CL:sq:alpha",
             "coefficient_nonlinear:Cm:sq:de", "nonlinear_aero:q:sq:alpha"} <= keys

@@ -433,7 +433,7 @@ class UnsteadyAero(Effect):
             tau = downwash_tau(info.dt)
             lag = info.fresh(f"D_{a}_lag")
             for s in info.state_names:
-                if s == a:
+                if s == a or kinematic_state(info, s):   # no downwash in θ̇ = q
                     continue
                 p = info.fresh(f"D_{s}_{a}dot", taken=[lag])
                 tp = info.fresh(f"D_TAU_{a}_lag", taken=[lag, p])
