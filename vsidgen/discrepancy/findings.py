@@ -87,8 +87,6 @@ def _params(c, st) -> dict:
             continue
         i = names.index(p.name)
         se = st.fit.std_errors[i] if not p.fixed else None
-        if (c.info or {}).get("stopped_indefinite"):
-            se = None   # the last iterate of a refit at an indefinite Hessian: no s.e. there
         est = float(st.fit.theta[i])
         ent = {"estimate": _f(est), "std_error": _f(se), "unit": p.unit,
                "fixed": bool(p.fixed), "description": p.description}

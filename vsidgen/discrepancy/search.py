@@ -583,8 +583,7 @@ def stopped_short(t: Trial) -> float | None:
     Hessian), and the finding says so. (lat_p_bias_0.0005_s0: the roll-gyro bias's refit
     crawled for 400 iterations along the noise model's funnel, λ²/2 = 0.199 nats left, at
     2ΔELBO 45.2 against a threshold of 15.8, and the run ended INCONCLUSIVE.) With an
-    indefinite Hessian (no λ²/2) the refit is decided too (:func:`stopped_at_limit`), without
-    that bound."""
+    indefinite Hessian (no λ²/2) the refit stays undecided."""
     from ..estimator import StopReason
 
     if t.state is None or t.converged:
@@ -595,26 +594,6 @@ def stopped_short(t: Trial) -> float | None:
             and math.isfinite(dec) and dec >= 0.0):
         return dec
     return None
-
-
-def stopped_at_limit(t: Trial) -> bool:
-    """A refit stopped by its iteration or time limit before converging, whatever its
-    Hessian there. Its 2ΔELBO is a lower bound of the converged statistic all the same: the
-    optimizer accepts ascent steps only, from the nesting point, so the iterate's ELBO is
-    below the candidate's maximum (with a positive-definite Hessian :func:`stopped_short`
-    also bounds how far its estimates are). Such a refit enters the Holm family with that
-    conservative statistic; a gain that the current model reaches by itself from the
-    iterate is taken out by its projected refit (:func:`_projected_round`). (lat_p_bias_0.002_s1:
-    the roll-gyro bias's refit crawled along the correlated noise model's valley for 400
-    iterations, indefinite Hessian, 2ΔELBO 96.7 against a threshold of 15.7 — the score test
-    had 78.9 and a one-step estimate of 0.00194 rad/s for a true 0.002 — and the run ended
-    INCONCLUSIVE.)"""
-    from ..estimator import StopReason
-
-    if t.state is None or t.converged:
-        return False
-    return getattr(t.state.fit, "stop_reason", None) in (StopReason.ITERATION_LIMIT,
-                                                          StopReason.TIME_LIMIT)
 
 
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
@@ -1549,7 +1528,7 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     ptasks = []
     for i, t in enumerate(trials):
         if (t.state is None or t.candidate.states or not t.candidate.screenable
-                or not (t.converged or stopped_at_limit(t)) or not (t.p_value < run.alpha)):
+                or not t.converged or not (t.p_value < run.alpha)):
             continue
         ppath = (run.out / "candidates"
                  / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
@@ -1562,7 +1541,7 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     if any(o.status is TaskStatus.CANCELLED for o in pouts):
         return None
     projected = []
-    better = bound = None
+    better = None
     for (key, (_, _, ppath, *_)), o in zip(ptasks, pouts):
         if o.status is not TaskStatus.DONE:
             projected.append({"key": key, "error": f"{o.status.value}: {o.error}"})
@@ -1574,12 +1553,6 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         if ok and ps.elbo > current.elbo + PROJECTED_TOL and (
                 better is None or ps.elbo > better.elbo):
             better = ps
-        if not ok and ps.elbo > current.elbo + PROJECTED_TOL and (
-                bound is None or ps.elbo > bound.elbo):
-            # the current model climbs from a stopped refit's iterate too, without reaching
-            # an optimum: not a new current fit, but a point of the current model the
-            # round's statistics must be measured against (conservative)
-            bound = ps
     if better is not None:
         run.say(f"    the current model has a better optimum (ELBO "
                 f"{current.elbo:.6g} -> {better.elbo:.6g}, reached from a "
@@ -1596,11 +1569,6 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                     "projected spec is kept)")
         trials = _against_better_reference(trials, better)
         st.current = better
-    if bound is not None and (better is None or bound.elbo > better.elbo):
-        run.say(f"    the current model climbs to ELBO {bound.elbo:.6g} (not converged) from a "
-                "stopped refit's iterate with its new terms removed: every statistic of the "
-                "round is taken against that")
-        trials = _against_better_reference(trials, bound)
     return trials, projected, better
 
 
@@ -1903,11 +1871,11 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     """Holm over the round's family, validation check, best and its alternatives.
     ``reference``: :func:`better_reference` (the current model re-estimated at a better
     optimum, which ``current`` then is) or None."""
-    # an unconverged refit enters the Holm family with p = 1 — unless it stopped at its
-    # iteration or time limit (stopped_at_limit): its Λ is then a lower bound and its p an
-    # upper bound; so do the candidates examined (screened) but not refitted
+    # an unconverged refit enters the Holm family with p = 1 — unless it stopped at its limit
+    # with a positive-definite Hessian (stopped_short): its Λ is then a lower bound and its p
+    # an upper bound; so do the candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if (t.converged or stopped_at_limit(t))
+    decisions = holm([t.p_value if (t.converged or stopped_short(t) is not None)
                       and t.verdict is RefitVerdict.ORDINARY
                       else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
@@ -1959,19 +1927,6 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         best = dataclasses.replace(best, candidate=dataclasses.replace(
             c, explanation=c.explanation + note,
             info={**(c.info or {}), "stopped_short_nats": short}))
-    elif stopped_at_limit(best):
-        from ..estimator import StopReason
-
-        c = best.candidate
-        limit = "time" if best.state.fit.stop_reason is StopReason.TIME_LIMIT else "iteration"
-        note = (f" Its refit stopped at its {limit} limit before converging, at a point where "
-                "the Hessian is not positive definite: its 2ΔELBO is a lower bound of the "
-                "converged one, so the effect is significant, but its estimates are those of "
-                "the last iterate, with no bound on their distance to the optimum and no "
-                "standard errors (rerun with a larger --max-iter to converge).")
-        best = dataclasses.replace(best, candidate=dataclasses.replace(
-            c, explanation=c.explanation + note,
-            info={**(c.info or {}), "stopped_indefinite": True}))
     return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives))
 
 
