@@ -166,8 +166,11 @@ def test_leading_refit_text_checks_validation_and_skips_what_cannot_be_used():
     un["refitted"][-1]["val_elbo"] = 140.0
     assert "110 against the current model's 100 (higher)" in findings.stop_text(
         {"reason": "time_limit"}, un, 0)
+    # the unconverged refit above the lead is named beside it, not as the lead
+    assert "refitted without converging above it: a (2ΔELBO 500 when it stopped" in text
     un["refitted"] = un["refitted"][:3]
-    assert "Leading" not in findings.stop_text({"reason": "time_limit"}, un, 0)
+    text = findings.stop_text({"reason": "time_limit"}, un, 0)
+    assert "Leading" not in text and "refitted without converging: a (2ΔELBO 500" in text
 
 
 def test_interrupt_writes_the_accepted_effect_and_the_unfinished_round(patched, tmp_path):

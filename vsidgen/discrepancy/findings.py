@@ -459,6 +459,22 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
                      f", unadjusted p {lead['p_value']:.2g}{val}); to decide the round, run "
                      "again with a longer --time-limit, or fewer candidates (--max-candidates, "
                      "--effects)")
+        # refits that stopped before converging above the lead (or above the level when there
+        # is none): their 2ΔELBO is the ELBO they had reached, not an optimum's, but the user
+        # should not read the lead as the strongest evidence of the round (lat_p_bias_0.002_s1:
+        # a roll-gyro bias at 2ΔELBO 175, unconverged, behind a "leading" wind at 11.6)
+        floor = lead["statistic"] if lead is not None else None
+        above = [r for r in unfinished.get("refitted", ())
+                 if not r.get("converged") and r.get("verdict") in (None, "ordinary")
+                 and isinstance(r.get("statistic"), (int, float))
+                 and isinstance(r.get("p_value"), (int, float))
+                 and (r["statistic"] > floor if floor is not None else r["p_value"] < alpha)]
+        if above:
+            what += ("; refitted without converging" + (" above it" if lead is not None else "")
+                     + ": " + ", ".join(f"{r['key']} (2ΔELBO {r['statistic']:.4g} when it "
+                                        "stopped; rerun with a larger --max-iter, restricted "
+                                        "to it with --effects)"
+                                        for r in sorted(above, key=lambda r: -r["statistic"])))
     return (what + f". {n_findings} effect{'s' if n_findings != 1 else ''} accepted in the "
             "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
 
