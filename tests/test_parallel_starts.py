@@ -114,7 +114,7 @@ def test_the_highest_unconverged_start_above_every_optimum_is_continued():
     # HFB-320: the stalled starts are below the converged one
     assert pick(_out(14890.8, st), _out(14890.8, st), _out(14964.7, conv)) is None
     # Twin Otter short period: the unconverged start is below the converged one
-    assert pick(_out(15190.8, lim), _out(15691.9, conv), _out(15600, conv)) is None
+    assert pick(_out(15190.8, lim), _out(15691.9, conv)) is None
     # nothing converged: the highest start, stalled or at its limit
     assert pick(_out(10, st), _out(30, lim), _out(20, st)) == 1
     assert pick(_out(10, lim), _out(30, lim)) == 1

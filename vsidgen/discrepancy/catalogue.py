@@ -33,6 +33,8 @@ unmodelled_wind        a Gauss–Markov gust angle :math:`\\dot w = -w/τ_w + σ
 
 from __future__ import annotations
 
+import functools
+
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
                    spec_text)
 from .locate import SPEED_REGRESSOR
@@ -64,13 +66,21 @@ def aero_variable(info: ModelInfo, v: str) -> bool:
     unit = info.unit(v)
     if not unit:
         return True
-    from ..spec.units import ONE, parse_unit, same
+    from ..errors import SpecError
+    from ..spec.units import parse_unit, same
     try:
         dim = parse_unit(unit)
-        aero = [ONE] + [parse_unit(u) for u in ("1/s", "m/s", "N")]
-    except Exception:  # noqa: BLE001 - an unparsable unit: keep the variable
+    except SpecError:   # an unparsable unit: keep the variable
         return True
-    return any(same(dim, d) for d in aero)
+    return any(same(dim, d) for d in _aero_dimensions())
+
+
+@functools.lru_cache(maxsize=1)
+def _aero_dimensions() -> tuple:
+    """Dimensions of :func:`aero_variable`: dimensionless (angles, Mach, throttle), 1/s
+    (rates), m/s (airspeed), N (thrust)."""
+    from ..spec.units import ONE, parse_unit
+    return (ONE,) + tuple(parse_unit(u) for u in ("1/s", "m/s", "N"))
 
 
 def _drift_unit(info: ModelInfo, state: str) -> str:

@@ -867,14 +867,10 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
                 else dataclasses.replace(options, max_iter=o["iterations"] + options.max_iter))
         tried[k] = (start, _optimize(P, opts, start, t0=t0, resume=o,
                                      phase=FitPhase(PhaseKind.NOISE_START, start=start, continued=True)))
-    converged = [o for _, o in tried if o["converged"]]
-    highest = min((o for _, o in tried), key=_negelbo)
-    if converged and -_negelbo(min(converged, key=_negelbo)) >= -_negelbo(highest):
-        out = min(converged, key=_negelbo)
-    else:
-        # nothing converged, or a point above every converged optimum (continued, still not
-        # converged): that point, reported as not converged, not a lower optimum as the fit
-        out = highest
+    # the highest ELBO, converged or not (a converged start wins a tie): a point above every
+    # converged optimum (continued, still not converged) is reported as not converged rather
+    # than a lower optimum as the fit
+    out = min((o for _, o in tried), key=lambda o: (_negelbo(o), not o["converged"]))
     label = {StopReason.STALLED: "stalled"}
     out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
     if len(tried) > 1:
