@@ -768,6 +768,14 @@ def test_what_would_separate_two_explanations():
     assert arm == sep("sensor_position", "output:beta", "sensor_position", "output:ay")
     two = sep("sensor_position", "output:ax", "sensor_position", "output:az")
     assert "larger excursions" not in two and "ax and az" in two
+    # a β vane against a side-force rate derivative (lat_beta_vane_8_s2: Y_r 343.1, the vane
+    # 340.3): one re-parameterisation at every airspeed, so the airspeed is not the answer
+    yr = sep("coefficient_derivative", "definition:Yside", "sensor_position", "output:beta")
+    assert "angular acceleration" in yr and "airspeed:" not in yr and "beta reference" in yr
+    assert yr == sep("sensor_position", "output:beta", "coefficient_derivative",
+                     "definition:Yside")
+    assert "angular acceleration" not in sep("coefficient_derivative", "definition:CL",
+                                             "sensor_position", "output:az")
 
 
 def test_ambiguous_finding_says_what_would_separate_it_everywhere():

@@ -122,6 +122,7 @@ def _capital(text: str) -> str:
 
 _FLOW_ANGLES = ("alpha", "beta")
 _INPUT_FILTERS = ("actuator_lag", "transport_delay", "control_delay")
+_DERIVATIVES = {"coefficient_derivative", "output_derivative", "missing_derivative"}
 
 
 def _channel(target: str) -> str:
@@ -230,7 +231,12 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
     mode and the speed (phugoid) dynamics differ in period, damping and the airspeed
     channel; a gust state differs between records while a physical term repeats; two forms
     of one effect on one target differ away from the conditions of the record; a vane's
-    position error scales with 1/V while an accelerometer's lever-arm term does not. Any
+    position error scales with 1/V while an accelerometer's lever-arm term does not; a flow-angle
+    vane's position and a rate derivative of a force coefficient are, in a linear model, one
+    re-parameterisation at every airspeed (the vane term ``x·r/V`` read as the state moves a
+    ``Y_β x/V`` rate term into ``Y`` and ``L_β x/V``, ``N_β x/V`` into the moment equations'
+    rate derivatives) except for ``x·ṙ/V`` in the flow angle's equation: only large angular
+    accelerations or an independent flow-angle reference separate them. Any
     other pair (one effect on two channels included): a manoeuvre that excites the two
     targets differently.
     """
@@ -268,6 +274,18 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
         return (f"a record at another airspeed: a {vane} vane's position error x·(rate)/V "
                 f"shrinks as the airspeed grows, while the {acc} sensor's lever-arm term "
                 f"x·(angular acceleration) does not depend on the airspeed")
+    if "sensor_position" in pair and pair & _DERIVATIVES:
+        pos_ch = ch if effect == "sensor_position" else och
+        if pos_ch in _FLOW_ANGLES:
+            coef = och if effect == "sensor_position" else ch
+            return (f"a manoeuvre with large angular accelerations (short, sharp pulses of the "
+                    f"control that drives the rate), or a {pos_ch} reference independent of the "
+                    f"vane (inertial velocities with a wind estimate, a second vane at another "
+                    f"position, the boom length measured on the ground): in a linear model a "
+                    f"{pos_ch} vane's error x·(rate)/V is the same as a rate derivative of "
+                    f"{coef} with the moment equations' rate derivatives shifted, at every "
+                    f"airspeed; only the vane's x·(angular acceleration)/V in d{pos_ch}/dt tells "
+                    f"them apart")
     if effect == other_effect and same_channel:
         return (f"a record with larger excursions of the variables the two {effect} forms "
                 f"use (they agree near the conditions of this record and differ away from "
