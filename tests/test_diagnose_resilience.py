@@ -44,7 +44,8 @@ class _Refits:
     """Stand-in for ``staged_refit``: the n-th call (0-based) does ``actions[n]``.
 
     "same": the current model's own fit (Λ = 0); "gain": the same fit with the ELBO raised
-    by 50 nats (Λ = 100, significant); "interrupt": KeyboardInterrupt; "sigterm": SIGTERM to
+    by 50 nats (Λ = 100, significant); "short": that gain stopped at the iteration limit with
+    an indefinite Hessian (undecidable as it is); "interrupt": KeyboardInterrupt; "sigterm": SIGTERM to
     this process; ("slow", s[, action]): advance the simulated clock by s seconds, then do
     ``action`` ("same" when not given).
     """
@@ -72,6 +73,12 @@ class _Refits:
         if act == "gain":
             st = dataclasses.replace(current, fit=dataclasses.replace(current.fit,
                                                                        elbo=current.elbo + 50.0))
+        if act == "short":     # 50 nats up, stopped at its iteration limit, Hessian indefinite
+            from vsidgen.estimator import StopReason
+
+            st = dataclasses.replace(current, fit=dataclasses.replace(
+                current.fit, elbo=current.elbo + 50.0, converged=False,
+                stop_reason=StopReason.ITERATION_LIMIT, newton_decrement=float("nan")))
         return RefitOutcome(state=st, elbo_ref=current.elbo, warm="stand-in")
 
 
@@ -315,3 +322,34 @@ def test_an_unreachable_cluster_is_refused_before_the_base_fit(monkeypatch, tmp_
     err = capsys.readouterr().err
     assert "cannot start or reach the dask cluster (tcp://127.0.0.1:1)" in err
     assert "Traceback" not in err
+
+
+def test_the_unconverged_lead_refit_is_continued_and_decides_the_round(patched, monkeypatch,
+                                                                       tmp_path):
+    # lat_p_bias_0.002_s1/_s2: the right refit led its round at its iteration limit with an
+    # indefinite Hessian and the run said INCONCLUSIVE; continued, it converges and is accepted
+    continued = []
+
+    def finish(t, current, *, iterations, max_iter, time_limit=None):
+        continued.append((t.candidate.key, iterations))
+        return dataclasses.replace(current, fit=dataclasses.replace(
+            current.fit, elbo=current.elbo + 60.0))
+
+    monkeypatch.setattr(search, "continue_refit", finish)
+    refits = patched(["short", "same"])
+    search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=1, max_candidates=2,
+                        screen=False, effects=EFFECTS, workers=1, max_iter=50)
+    assert continued == [(refits.calls[0], search.CONTINUE_FACTOR * 50)]
+    doc = _doc(tmp_path / "o")
+    assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
+    ev = doc["findings"][0]["evidence"]
+    assert ev["statistic"] == pytest.approx(120.0) and ev["converged"] is True
+    assert any("continued for up to 200 more iterations" in n for n in ev["refit"]["notes"])
+
+    # without the continuation the same round cannot decide
+    monkeypatch.setattr(search, "lead_to_continue", lambda *a, **k: None)
+    patched(["short", "same"])
+    search.run_diagnose(SPEC, [DATA], out=tmp_path / "o2", max_rounds=1, max_candidates=2,
+                        screen=False, effects=EFFECTS, workers=1, max_iter=50)
+    doc2 = _doc(tmp_path / "o2")
+    assert doc2["findings"] == [] and "INCONCLUSIVE" in doc2["conclusion"]
