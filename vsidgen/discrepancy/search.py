@@ -25,7 +25,9 @@ One round:
    same round) is reported as an alternative explanation: the finding is then
    marked ambiguous. The ELBO is a lower bound of
    the log-likelihood; both fits maximise it over the same assumed-density family,
-   so Λ is an approximation of the likelihood ratio, not an exact one;
+   so Λ is an approximation of the likelihood ratio, not an exact one. Before the
+   decision, the refit that leads the round without an optimum is continued
+   (:func:`lead_to_continue`);
 4. when validation records are given the accepted candidate must also raise the
    validation ELBO (θ and noise fixed, smoothing only) — otherwise it is rejected
    as over-fitting;
