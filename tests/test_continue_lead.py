@@ -56,7 +56,7 @@ def test_continue_refit_finishes_a_refit_stopped_at_its_limit(tmp_path):
                      refit=RefitOutcome(state=st, elbo_ref=ref),
                      statistic_vs_base=2.0 * (st.elbo - ref), converged=False,
                      verdict=RefitVerdict.ORDINARY)
-    st2 = search.continue_refit(t, st, iterations=300, max_iter=200)
+    st2 = search.continue_refit(t, iterations=300, max_iter=200)
     assert st2.fit.converged and st2.elbo > st.elbo
     ct = search.continued_trial(t, st2, st, 300)
     assert ct.converged and ct.statistic == pytest.approx(2.0 * (st2.elbo - ref))

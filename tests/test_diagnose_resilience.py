@@ -326,14 +326,18 @@ def test_an_unreachable_cluster_is_refused_before_the_base_fit(monkeypatch, tmp_
 
 def test_the_unconverged_lead_refit_is_continued_and_decides_the_round(patched, monkeypatch,
                                                                        tmp_path):
+    from vsidgen.estimator import StopReason
+
     # lat_p_bias_0.002_s1/_s2: the right refit led its round at its iteration limit with an
     # indefinite Hessian and the run said INCONCLUSIVE; continued, it converges and is accepted
     continued = []
 
-    def finish(t, current, *, iterations, max_iter, time_limit=None):
+    def finish(t, *, iterations, max_iter, time_limit=None):
         continued.append((t.candidate.key, iterations))
-        return dataclasses.replace(current, fit=dataclasses.replace(
-            current.fit, elbo=current.elbo + 60.0))
+        st = t.state                   # the "short" stand-in: the current fit, 50 nats up
+        return dataclasses.replace(st, fit=dataclasses.replace(
+            st.fit, elbo=st.fit.elbo + 10.0, converged=True,
+            stop_reason=StopReason.NEWTON_DECREMENT, newton_decrement=1e-4))
 
     monkeypatch.setattr(search, "continue_refit", finish)
     refits = patched(["short", "same"])

@@ -211,13 +211,18 @@ def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
     return evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
 
 
-def polish(st: FitState, *, max_iter: int, progress=None) -> FitState:
-    """Continue an unconverged fit from where it stopped (2 × max_iter iterations)."""
+def polish(st: FitState, *, max_iter: int, progress=None, iterations: int | None = None,
+           time_limit: float | None = None) -> FitState:
+    """Continue an unconverged fit from where it stopped (``iterations``, default 2 ×
+    max_iter; the same model and problem, warm-started from its iterate); ``st`` itself
+    when that fails or ends lower."""
     from ..estimator import fit
 
-    _say(progress, f"base fit not converged ({st.fit.status}); continuing it")
+    _say(progress, f"fit not converged ({st.fit.status}); continuing it")
     try:
-        res = fit(st.model, list(st.records), options=diag_options(2 * max_iter, warm_start=st.fit))
+        res = fit(st.model, list(st.records), options=diag_options(
+            2 * max_iter if iterations is None else iterations, warm_start=st.fit,
+            time_limit=time_limit))
     except FitError:
         return st
     if res.elbo < st.elbo:
@@ -637,25 +642,17 @@ def lead_to_continue(trials: Sequence[Trial], *, alpha: float, n_examined: int) 
     return lead
 
 
-def continue_refit(t: Trial, current: FitState, *, iterations: int, max_iter: int,
+def continue_refit(t: Trial, *, iterations: int, max_iter: int,
                    time_limit: float | None = None) -> FitState:
-    """``t``'s refit continued from where it stopped: the same model and problem (a gated
-    model keeps its configuration), warm-started from its iterate, ``iterations`` more."""
-    from ..estimator import fit
-
-    st = t.state
-    records = list(current.records)
-    res = fit(st.model, records, options=diag_options(iterations, warm_start=st.fit,
-                                                      time_limit=time_limit))
-    if res.elbo < st.fit.elbo:
-        return st
-    return evaluated(st.spec_path, st.model, records, res, current.vrecords, max_iter=max_iter)
+    """``t``'s refit continued from where it stopped (:func:`polish`: the same model and
+    problem — a gated model keeps its configuration —, warm-started from its iterate,
+    ``iterations`` more)."""
+    return polish(t.state, max_iter=max_iter, iterations=iterations, time_limit=time_limit)
 
 
-def _continue_task(t, current, iterations, max_iter, time_limit):
+def _continue_task(t, iterations, max_iter, time_limit):
     """:func:`continue_refit` on an engine worker; a FitState."""
-    return continue_refit(t, current, iterations=iterations, max_iter=max_iter,
-                          time_limit=time_limit)
+    return continue_refit(t, iterations=iterations, max_iter=max_iter, time_limit=time_limit)
 
 
 def continued_trial(t: Trial, st: FitState, current: FitState, iterations: int) -> Trial:
@@ -1609,8 +1606,7 @@ def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitS
     run.say(f"round {rnd}: continuing {t.candidate.key} (2ΔELBO ≥ {t.statistic:.4g}, "
             f"{conv_label(t.state.fit)}: {t.state.fit.stop_reason.value}) for up to {n} more "
             "iterations: it leads the round without an optimum")
-    (o,) = run.engine.run(_continue_task, [(t.candidate.key, (t, current, n, run.max_iter,
-                                                              left))],
+    (o,) = run.engine.run(_continue_task, [(t.candidate.key, (t, n, run.max_iter, left))],
                           deadline=run.deadline)
     if o.status is not TaskStatus.DONE:
         run.say(f"    continuation {o.status.value}: {o.error}")
