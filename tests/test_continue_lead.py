@@ -1,5 +1,5 @@
 """The round's unconverged lead refit is continued before the round is decided
-(``search.lead_to_continue``, ``search.continue_refit``)."""
+(``search.lead_to_continue``, ``search.polish``, ``search.continued_trial``)."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def test_which_refit_is_continued(trials, expected):
     assert search.lead_to_continue(ts, alpha=0.01, n_examined=100) == expected
 
 
-def test_continue_refit_finishes_a_refit_stopped_at_its_limit(tmp_path):
+def test_polish_finishes_a_refit_stopped_at_its_limit(tmp_path):
     spec, data = ROOT / "specs" / "attas_sp.yaml", ROOT / "data" / "attas_sp_synthetic.csv"
     st = search.fit_spec(spec, [data], generated_dir=tmp_path / "gen", max_iter=4)
     assert not st.fit.converged and st.fit.stop_reason is StopReason.ITERATION_LIMIT
@@ -56,7 +56,7 @@ def test_continue_refit_finishes_a_refit_stopped_at_its_limit(tmp_path):
                      refit=RefitOutcome(state=st, elbo_ref=ref),
                      statistic_vs_base=2.0 * (st.elbo - ref), converged=False,
                      verdict=RefitVerdict.ORDINARY)
-    st2 = search.continue_refit(t, iterations=300, max_iter=200)
+    st2 = search.polish(st, iterations=300, max_iter=200)
     assert st2.fit.converged and st2.elbo > st.elbo
     ct = search.continued_trial(t, st2, st, 300)
     assert ct.converged and ct.statistic == pytest.approx(2.0 * (st2.elbo - ref))

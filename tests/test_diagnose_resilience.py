@@ -325,25 +325,24 @@ def test_an_unreachable_cluster_is_refused_before_the_base_fit(monkeypatch, tmp_
 
 
 def test_the_unconverged_lead_refit_is_continued_and_decides_the_round(patched, monkeypatch,
-                                                                       tmp_path):
+                                                                       tmp_path, base_state):
     from vsidgen.estimator import StopReason
 
     # lat_p_bias_0.002_s1/_s2: the right refit led its round at its iteration limit with an
     # indefinite Hessian and the run said INCONCLUSIVE; continued, it converges and is accepted
     continued = []
 
-    def finish(t, *, iterations, max_iter, time_limit=None):
-        continued.append((t.candidate.key, iterations))
-        st = t.state                   # the "short" stand-in: the current fit, 50 nats up
+    def finish(st, iterations, max_iter, time_limit):
+        continued.append((st.elbo, iterations))   # the "short" stand-in: 50 nats up
         return dataclasses.replace(st, fit=dataclasses.replace(
             st.fit, elbo=st.fit.elbo + 10.0, converged=True,
             stop_reason=StopReason.NEWTON_DECREMENT, newton_decrement=1e-4))
 
-    monkeypatch.setattr(search, "continue_refit", finish)
+    monkeypatch.setattr(search, "_continue_task", finish)
     refits = patched(["short", "same"])
     search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=1, max_candidates=2,
                         screen=False, effects=EFFECTS, workers=1, max_iter=50)
-    assert continued == [(refits.calls[0], search.CONTINUE_FACTOR * 50)]
+    assert continued == [(pytest.approx(base_state.elbo + 50.0), search.CONTINUE_FACTOR * 50)]
     doc = _doc(tmp_path / "o")
     assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
     ev = doc["findings"][0]["evidence"]

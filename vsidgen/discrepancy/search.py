@@ -27,7 +27,7 @@ One round:
    the log-likelihood; both fits maximise it over the same assumed-density family,
    so Λ is an approximation of the likelihood ratio, not an exact one. Before the
    decision, the refit that leads the round without an optimum is continued
-   (:func:`lead_to_continue`);
+   (:func:`lead_to_continue`, :func:`polish`);
 4. when validation records are given the accepted candidate must also raise the
    validation ELBO (θ and noise fixed, smoothing only) — otherwise it is rejected
    as over-fitting;
@@ -642,17 +642,11 @@ def lead_to_continue(trials: Sequence[Trial], *, alpha: float, n_examined: int) 
     return lead
 
 
-def continue_refit(t: Trial, *, iterations: int, max_iter: int,
-                   time_limit: float | None = None) -> FitState:
-    """``t``'s refit continued from where it stopped (:func:`polish`: the same model and
-    problem — a gated model keeps its configuration —, warm-started from its iterate,
-    ``iterations`` more)."""
-    return polish(t.state, max_iter=max_iter, iterations=iterations, time_limit=time_limit)
-
-
-def _continue_task(t, iterations, max_iter, time_limit):
-    """:func:`continue_refit` on an engine worker; a FitState."""
-    return continue_refit(t, iterations=iterations, max_iter=max_iter, time_limit=time_limit)
+def _continue_task(st, iterations, max_iter, time_limit):
+    """A refit's state continued from where it stopped, on an engine worker: :func:`polish`
+    (the same model and problem — a gated model keeps its configuration —, warm-started from
+    its iterate, ``iterations`` more); a FitState."""
+    return polish(st, max_iter=max_iter, iterations=iterations, time_limit=time_limit)
 
 
 def continued_trial(t: Trial, st: FitState, current: FitState, iterations: int) -> Trial:
@@ -1606,7 +1600,7 @@ def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitS
     run.say(f"round {rnd}: continuing {t.candidate.key} (2ΔELBO ≥ {t.statistic:.4g}, "
             f"{conv_label(t.state.fit)}: {t.state.fit.stop_reason.value}) for up to {n} more "
             "iterations: it leads the round without an optimum")
-    (o,) = run.engine.run(_continue_task, [(t.candidate.key, (t, n, run.max_iter, left))],
+    (o,) = run.engine.run(_continue_task, [(t.candidate.key, (t.state, n, run.max_iter, left))],
                           deadline=run.deadline)
     if o.status is not TaskStatus.DONE:
         run.say(f"    continuation {o.status.value}: {o.error}")
