@@ -31,6 +31,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -433,3 +434,32 @@ def test_spreadsheet_exports(tmp_path, command):
         bom = run("bom")
         assert bom.returncode == 0, bom.stderr[-2000:]
         assert "ok (attas_sp" in bom.stdout + bom.stderr
+
+
+def test_numpy_savetxt_header_is_read_and_comment_lines_are_refused(tmp_path):
+    """A header written by ``numpy.savetxt(..., header=...)`` (``# t_s,de_rad,...``) gives the
+    record of the plain file; comment or metadata lines above the header are refused, by
+    ``check`` and ``fit``, with the line and what to do (they were read as the header and
+    the message named a column ``# t_s`` or a non-numeric '# date' cell)."""
+    from vsidgen.data import load_record
+    from vsidgen.spec import compile_spec
+
+    lines = DATA.read_text().splitlines()
+    saved = tmp_path / "savetxt.csv"
+    saved.write_text("# " + lines[0] + "\n" + "\n".join(lines[1:]) + "\n")
+    model = compile_spec(SPEC)
+    a, b = load_record(model, DATA), load_record(model, saved)
+    np.testing.assert_array_equal(a.u, b.u)
+    np.testing.assert_array_equal(a.y, b.y)
+    assert a.dt == b.dt and a.y.shape == b.y.shape
+    ok = run_cli(["check", SPEC, "--data", saved], tmp_path)
+    assert ok.returncode == 0, ok.stderr[-2000:]
+
+    meta = tmp_path / "meta.csv"
+    meta.write_text("\n# flight 12, run 3\n# exported 2026-11-27\n" + "\n".join(lines) + "\n")
+    for args in (["check", SPEC, "--data", meta],
+                 ["fit", SPEC, meta, "--out", tmp_path / "out", "--quiet", "--max-iter", "1"]):
+        proc = run_cli(args, tmp_path)
+        expect_refused(proc, "meta.csv", "line 2 is a comment", "'# flight 12,",
+                       "delete the comment or metadata lines")
+    assert not (tmp_path / "out").exists()

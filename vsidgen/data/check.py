@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .records import cell_hint, cell_value, load_record, refuse_other_delimiter
+from .records import cell_hint, cell_value, hash_header, load_record, refuse_other_delimiter
 from ..errors import DataError, Location, SpecError, SpecWarning
 from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
@@ -48,15 +48,18 @@ def read_first_row(csv_path) -> dict[str, float]:
     try:
         with csv_path.open(newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
-            header = next(reader, None)
-            row = next(reader, None)
+            # blank lines are skipped, as the record's readers skip them
+            rows = (r for r in reader if any(c.strip() for c in r))
+            header = next(rows, None)
+            line = reader.line_num
+            row = next(rows, None)
     except FileNotFoundError:
         raise DataError("data file not found", path=csv_path) from None
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise DataError(f"cannot read data file: {exc}", path=csv_path) from None
     if not header or row is None:
         raise DataError("data file needs a header row and at least one data row", path=csv_path)
-    header = [h.strip() for h in header]
+    header = hash_header([h.strip() for h in header], row, csv_path, line=line)
     refuse_other_delimiter(header, csv_path)
     if len(row) != len(header):
         raise DataError(f"first data row has {len(row)} fields but the header has {len(header)}",

@@ -131,14 +131,41 @@ def _names(model, kind: str) -> tuple[str, ...]:
     return tuple(v.name for v in getattr(model, kind + "s"))
 
 
+def hash_header(header: list[str], following: list[str] | None, path, *, line: int = 1) -> list[str]:
+    """The column names of a header row whose first field starts with ``#``.
+
+    ``numpy.savetxt(..., header=...)`` writes ``# t,alpha,q``: when the next non-blank row
+    has as many fields and is not a comment itself, that row is the header with the ``#``
+    taken off. Anything else is a comment or metadata line above the header, which the
+    readers do not skip (one header row, then data): DataError naming the line.
+    """
+    if not header or not header[0].lstrip().startswith("#"):
+        return header
+    names = [header[0].lstrip()[1:].strip()] + [c.strip() for c in header[1:]]
+    if (len(header) > 1 and names[0] and following is not None
+            and len(following) == len(header) and not following[0].lstrip().startswith("#")):
+        return names
+    text = ",".join(header).strip()
+    raise DataError(f"line {line} is a comment ({text[:60]!r}), not the column names",
+                    path=path, hint="vsidgen reads the column names from the first line: delete "
+                                    "the comment or metadata lines above the header (a header "
+                                    "written by numpy.savetxt, '# t,alpha,q', is read as it is)")
+
+
 def _read_header(path: pathlib.Path) -> list[str]:
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
+            header, line = None, 0
             for row in reader:
-                if any(c.strip() for c in row):
-                    return [c.strip() for c in row]
-            return []
+                if not any(c.strip() for c in row):
+                    continue
+                if header is not None:
+                    return hash_header(header, row, path, line=line)
+                header, line = [c.strip() for c in row], reader.line_num
+                if not header[0].startswith("#"):
+                    return header
+            return hash_header(header, None, path, line=line) if header is not None else []
     except FileNotFoundError:
         raise DataError("file not found", path=path,
                         hint="check the path (relative paths are taken from the current directory)") from None
@@ -713,4 +740,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "load_record", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "hash_header", "load_record", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]
