@@ -94,6 +94,27 @@ def test_typographic_characters_get_a_hint(text, hint):
     assert hint in (ei.value.hint or "")
 
 
+@pytest.mark.parametrize("text, hint", [
+    ("log(V) + ln(q)", "the natural logarithm is `log(x)`"),
+    ("V * deg2rad(q)", "multiply by `pi/180`"),
+    ("arctan(V)", "asin, acos, atan and atan2"),
+    ("clip(V, 0, 1)", "`sat(x, lo, hi)`"),
+    ("delay(q, 0.1)", "declared on the input, in seconds"),
+    ("V + q(t - 0.1)", "`q` is a variable, not a function: write `q`"),
+    ("V if q > 0 else 0", "max/min (a break"),
+    ("V * (q > 0)", "max/min (a break"),
+    ("V + q;", "remove the trailing `;`"),
+    ("qdot = V + q", "right-hand side only"),
+    ("sinn(V)", "did you mean `sin`?"),
+])
+def test_what_other_languages_write_gets_the_spec_equivalent(text, hint):
+    """Functions and statements a new user brings from MATLAB, numpy or Modelica are refused
+    with what to write in a spec (before: the list of allowed functions, or no hint)."""
+    with pytest.raises(SpecError) as ei:
+        parse_expression(text, NS, path="s.yaml", line=3, column=1)
+    assert hint in (ei.value.hint or ""), ei.value
+
+
 @pytest.mark.parametrize("text, fragment, col", [
     ("V.real", "attribute access", 1),
     ("V[0]", "subscript", 1),

@@ -51,6 +51,37 @@ FUNCTIONS: dict[str, int | None] = {
     "min": None, "max": None, "sat": 3, "smoothsat": 3, "interp": 3,
 }
 
+_DELAY_HINT = ("a pure transport delay of an input is declared on the input, in seconds: "
+               "`inputs: {de: {unit: rad, delay: 0.1}}`")
+_PIECEWISE_HINT = ("piecewise terms are written with max/min (a break: `max(alpha - 0.2, 0)`), "
+                   "sign, sat(x, lo, hi) or interp(x, [x0, x1, ...], [y0, y1, ...])")
+#: functions of other languages a new user writes, and what to write in a spec instead
+FUNCTION_EQUIVALENTS: dict[str, str] = {
+    **dict.fromkeys(("ln",), "the natural logarithm is `log(x)`"),
+    **dict.fromkeys(("log10",), "write `log(x)/log(10)`"),
+    **dict.fromkeys(("log2",), "write `log(x)/log(2)`"),
+    **dict.fromkeys(("pow", "power"), "write `x**y` for a power"),
+    **dict.fromkeys(("sq", "square", "sqr"), "write `x**2`"),
+    **dict.fromkeys(("fabs",), "write `abs(x)`"),
+    **dict.fromkeys(("arcsin", "arccos", "arctan", "arctan2"),
+                    "inverse trigonometric functions are asin, acos, atan and atan2"),
+    **dict.fromkeys(("sinh", "cosh"), "write it with exp: sinh(x) = (exp(x) - exp(-x))/2"),
+    **dict.fromkeys(("deg2rad", "radians", "deg", "d2r"),
+                    "multiply by `pi/180` (`pi` is built in), or convert the data column to "
+                    "radians in the data map (`scale:`)"),
+    **dict.fromkeys(("rad2deg", "degrees", "r2d"), "multiply by `180/pi` (`pi` is built in)"),
+    **dict.fromkeys(("clip", "clamp", "saturate", "saturation", "limit", "sat2"),
+                    "hard limits are `sat(x, lo, hi)`, smooth ones `smoothsat(x, lo, hi)`"),
+    **dict.fromkeys(("heaviside", "step", "Heaviside"),
+                    "a unit step is `(sign(x) + 1)/2`; " + _PIECEWISE_HINT),
+    **dict.fromkeys(("if", "ifelse", "where", "piecewise", "Piecewise", "switch"), _PIECEWISE_HINT),
+    **dict.fromkeys(("delay", "Delay", "timedelay", "transport_delay", "lag"), _DELAY_HINT),
+    **dict.fromkeys(("der", "diff", "d", "derivative", "dot", "ddt"),
+                    "the left side of a `drift:` entry is the state's derivative; the right side "
+                    "uses values only (a derivative of another state: write its equation, or "
+                    "name it under `definitions:`)"),
+}
+
 #: names available in every expression unless the spec declares them
 BUILTIN_NAMES: dict[str, sympy.Basic] = {"pi": sympy.pi}
 
@@ -216,6 +247,17 @@ _IMPLICIT_PRODUCT = re.compile(
     r"(\)|(?<![\w.])\d+\.?\d*(?:[eE][-+]?\d+)?(?![eE][-+]?\d)(?=[A-Za-z_(])"
     r"|(?<![\w.])[A-Za-z_]\w*(?=\s+[A-Za-z_]))"
     r"(\s*)([A-Za-z_]\w*|\()")
+
+
+def _statement_hint(text: str) -> str | None:
+    """A hint for a statement written where one expression belongs (``x;``, ``qdot = …``)."""
+    t = text.strip()
+    if t.endswith(";"):
+        return "remove the trailing `;`: an entry holds one expression"
+    if "=" in t.replace("==", "").replace("<=", "").replace(">=", "").replace("!=", ""):
+        return ("an entry holds the right-hand side only: the key names what it defines "
+                "(`q: MQ*q + MDE*de`, not `q: qdot = MQ*q + MDE*de`)")
+    return None
 
 
 def _implicit_product_hint(text: str) -> str | None:
@@ -386,8 +428,9 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
     if isinstance(node, ast.Call):
         return _folded(ctx, _call(ctx, node, depth), node)
     raise _error(ctx, _describe(node) + " is not allowed in an expression", node,
-                 hint="expressions may use numbers, declared names, + - * / **, and the "
-                      "functions " + ", ".join(FUNCTIONS))
+                 hint=(_PIECEWISE_HINT if isinstance(node, (ast.IfExp, ast.Compare, ast.BoolOp))
+                       else "expressions may use numbers, declared names, + - * / **, and the "
+                            "functions " + ", ".join(FUNCTIONS)))
 
 
 def _op_text(op) -> str:
@@ -468,7 +511,14 @@ def _call(ctx: _Ctx, node: ast.Call, depth: int):
                      hint="allowed functions: " + ", ".join(FUNCTIONS))
     name = func.id
     if ctx.units or name not in FUNCTIONS:
-        hint = did_you_mean(name, FUNCTIONS) if not ctx.units else None
+        hint = None
+        if not ctx.units:
+            hint = FUNCTION_EQUIVALENTS.get(name)
+            if hint is None and name in ctx.namespace:
+                # a declared variable called like a function: `de(t - 0.1)`, `alpha(t)`
+                hint = (f"`{name}` is a variable, not a function: write `{name}` (for an input "
+                        f"read late, {_DELAY_HINT[2:]})")
+            hint = hint or did_you_mean(name, FUNCTIONS)
         raise _error(ctx, f"unknown function `{name}`", func,
                      hint=hint or "allowed functions: " + ", ".join(FUNCTIONS))
     if node.keywords:
@@ -592,7 +642,8 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
             off = None
         raise _make_error(text, f"syntax error: {exc.msg}", path=path, line=line, column=column,
                           offset=off, length=1,
-                          hint=_typography_hint(flat, units) or _implicit_product_hint(flat)) from None
+                          hint=(_typography_hint(flat, units) or _implicit_product_hint(flat)
+                                or _statement_hint(flat))) from None
     except (RecursionError, MemoryError):
         raise _make_error(text, "expression is nested too deeply", path=path, line=line,
                           column=column, offset=None, length=None) from None
