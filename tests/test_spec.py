@@ -111,6 +111,14 @@ def test_unknown_entry_key(tmp_path):
     assert err.hint == "did you mean `initial`?"
 
 
+@pytest.mark.parametrize("key", ["min", "upper", "lb"])
+def test_limits_written_as_other_tools_write_them(tmp_path, key):
+    """`min:`/`max:`, `lower:`/`upper:`, `lb:`/`ub:` point to the one key vsidgen has."""
+    err = error(tmp_path, replace("CD0: {initial: 0.1, bounds: [0, 1]}", f"CD0: {{initial: 0.1, {key}: 0}}"))
+    assert err.message == f"unknown key `{key}` in parameter `CD0`"
+    assert err.hint == "a parameter's limits are one key: `bounds: [lower, upper]`"
+
+
 def test_type_error(tmp_path):
     err = error(tmp_path, replace("value: 9.80665", "value: fast"))
     assert err.message == "value of constant `G0` must be a number, got str `fast`"

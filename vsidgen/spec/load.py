@@ -212,12 +212,19 @@ class YNode:
                          hint=err.hint, span=err.span)
 
 
+#: keys other tools use for a parameter's limits (vsidgen: ``bounds: [lower, upper]``)
+_BOUND_KEYS = frozenset({"min", "max", "lower", "upper", "lb", "ub", "lo", "hi", "minimum",
+                         "maximum", "low", "high", "limits", "range"})
+
+
 def keys_check(node: YNode, allowed, what: str) -> dict:
     """The mapping of ``node``; unknown keys raise SpecError with a did-you-mean hint."""
     mapping = node.expect_map(what)
     for key, child in mapping.items():
         if key not in allowed:
             hint = did_you_mean(key, allowed) or ("allowed keys: " + ", ".join(allowed))
+            if "bounds" in allowed and str(key).lower() in _BOUND_KEYS:
+                hint = "a parameter's limits are one key: `bounds: [lower, upper]`"
             if (child.kind == "scalar" and child.value is None) \
                     or not re.fullmatch(r"[A-Za-z_][\w-]*", str(key)):
                 # `{description: roll rate, measured}`: in a {...} mapping a comma ends the
