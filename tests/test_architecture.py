@@ -31,7 +31,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("vsidgen", "errors", "interrupts", "precision", "limits", "atomic", "suggest",
                     "metadata", "compilecache", "progress", "engine")),
     ("spec", ("spec.expr", "spec.units", "spec.dataunits", "spec.load", "spec.typed",
-              "spec.symbolic", "spec.overrides", "spec")),
+              "spec.symbolic", "spec.identifiability", "spec.overrides", "spec")),
     ("codegen", ("codegen.jaxmodule", "codegen")),
     ("model", ("model.runtime", "model.dynamics", "model")),
     ("data", ("data.formats", "data.records", "data.check", "data.simulate", "data")),

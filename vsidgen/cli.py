@@ -81,14 +81,18 @@ def _cmd_check(args) -> int:
     from .data.check import check_record
     from .spec import compile_spec
 
+    from .spec.identifiability import symmetry_warnings
+
     symbolic = compile_spec(args.spec)
     _print_warnings(symbolic.warnings)
+    symmetric = symmetry_warnings(symbolic)
+    _print_warnings(symmetric)
     data_warnings = []
     data = args.data if args.data is not None else args.record
     if data is not None:
         data_warnings = check_record(symbolic, data, start=_fit_start(args.spec, symbolic))
         _print_warnings(data_warnings)
-    n = len(symbolic.warnings) + len(data_warnings)
+    n = len(symbolic.warnings) + len(symmetric) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
           f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
           f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")

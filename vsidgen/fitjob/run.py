@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
+import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -193,9 +194,14 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                            reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
     print_recovered(plan)
     from ..spec import compile_spec
+    from ..spec.identifiability import symmetry_warnings
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
-    apply_overrides(symbolic, overrides)  # unknown names and bounds, before any computation
+    # unknown names and bounds, before any computation; then the parameter combinations the
+    # equations cannot separate with the overrides' fixed and free parameters
+    symmetric = symmetry_warnings(apply_overrides(symbolic, overrides))
+    for w in symmetric:
+        print(str(w), file=sys.stderr)
     records = unique_names([load_record(symbolic, p) for p in data])
     vrecords = unique_names([load_record(symbolic, p) for p in validate])
     repeated = repeated_record_warnings(records, vrecords)
@@ -266,8 +272,9 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                         "iterations": int(vresult.iterations),
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),
                         "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
-        "warnings": [w.to_json() for r in records + vrecords
-                     for w in r.warnings] + list(result.warnings)
+        "warnings": [{"code": w.code, "message": w.message, "hint": w.hint} for w in symmetric]
+        + [w.to_json() for r in records + vrecords
+           for w in r.warnings] + list(result.warnings)
         + repeated + _validation_warnings(result, vresult, records, vrecords) + [
             {"code": "evaluation", "message": f"{s.record}: {w}"}
             for s in signals + vsignals for w in getattr(s, "warnings", ())]

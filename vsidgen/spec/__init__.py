@@ -8,6 +8,7 @@ Modules, in order::
     load       YAML with line/column marks, ``extends`` resolved (RawSpec)
     typed      the typed, immutable, located Spec
     symbolic   Spec -> SymbolicModel (sympy drift f, outputs h, noise, data map)
+    identifiability  parameter combinations the equations cannot separate (warnings)
     overrides  --fix/--free/--init/--init-from/--method applied to a model
 
 Public API (what later stages use)::

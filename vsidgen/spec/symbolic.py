@@ -511,11 +511,13 @@ def expanded_sizes(definitions) -> dict[sympy.Symbol, int]:
     """
     sizes: dict[sympy.Basic, int] = {}
     for nm, e in definitions:
-        sizes[_sym(nm)] = _tree_size(e, sizes)
+        sizes[_sym(nm)] = tree_size(e, sizes)
     return {k: v for k, v in sizes.items() if isinstance(k, sympy.Symbol)}
 
 
-def _tree_size(expr, memo: dict) -> int:
+def tree_size(expr, memo: dict) -> int:
+    """Nodes of ``expr``'s tree, counted on its DAG (``memo`` maps sub-expressions to their
+    sizes and may be shared between calls), so that the cost stays linear in the DAG."""
     stack = [(expr, False)]
     while stack:
         node, done = stack.pop()
@@ -571,7 +573,7 @@ def _check_expanded_size(definitions, def_at, drift, states, observations, outpu
     """
     memo: dict[sympy.Basic, int] = {}
     for nm, e in definitions:
-        size = _tree_size(e, memo)
+        size = tree_size(e, memo)
         memo[_sym(nm)] = size
         if size > MAX_EXPANDED_SIZE:
             at = def_at[nm].name
@@ -584,7 +586,7 @@ def _check_expanded_size(definitions, def_at, drift, states, observations, outpu
     for section, variables, exprs in (("drift", states, drift),
                                       ("observations", outputs, observations)):
         for v, e in zip(variables, exprs):
-            size = _tree_size(e, memo)
+            size = tree_size(e, memo)
             if size > MAX_EXPANDED_SIZE:
                 at = sections[section][v.name].expression
                 raise SpecError(f"{section} equation of `{v.name}` expands to {size} expression "

@@ -1,0 +1,100 @@
+"""Structural parameter symmetries (vsidgen.spec.identifiability) on specs written as users
+write them: a product, a sum and a ratio of two free parameters are found and named; models
+whose parameters all act on their own are not flagged (every shipped spec, a product whose
+factor also appears alone, a parameter inside a lookup table); fixing one parameter removes
+the symmetry. The CLI's `check` prints the warning and `fit` records it in results.json."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SPEC = ROOT / "specs" / "attas_sp.yaml"
+DATA = ROOT / "data" / "attas_sp_synthetic.csv"
+Q_EQ = "  q: M0 + MAL*alpha + MQ*q + MDE*de"
+
+
+def _spec(tmp_path, q_equation: str, extra: str = "", name: str = "u.yaml") -> pathlib.Path:
+    text = SPEC.read_text()
+    assert Q_EQ in text
+    text = text.replace(Q_EQ, "  q: " + q_equation)
+    if extra:
+        text = text.replace("\ndrift:", "\n" + extra + "\ndrift:")
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _sym(path):
+    from vsidgen.spec import compile_spec
+    from vsidgen.spec.identifiability import parameter_symmetries
+
+    return parameter_symmetries(compile_spec(path))
+
+
+def test_a_product_of_two_parameters_is_a_scaling_symmetry(tmp_path):
+    from vsidgen.spec import compile_spec
+    from vsidgen.spec.identifiability import symmetry_warnings
+
+    p = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}")
+    (s,) = _sym(p)
+    assert s.kind == "scaling" and set(s.parameters) == {"MAL", "K"}
+    assert sorted(s.coefficients) == pytest.approx([-1.0, 1.0])
+    assert s.combination() in ("the product MAL·K", "the product K·MAL")
+    (w,) = symmetry_warnings(compile_spec(p))
+    assert w.code == "parameter_symmetry" and "product" in w.message
+    assert "start at 0" in w.hint and "fixed: true" in w.hint
+    assert w.line == 34                      # the drift equation of q that uses them
+
+
+def test_a_sum_and_a_ratio(tmp_path):
+    (s,) = _sym(_spec(tmp_path, "M0 + MB + MAL*alpha + MQ*q + MDE*de", "  MB: {unit: rad/s^2}"))
+    assert s.kind == "translation" and set(s.parameters) == {"M0", "MB"}
+    assert s.combination() in ("the sum M0 + MB", "the sum MB + M0")
+    (s,) = _sym(_spec(tmp_path, "M0 + MAL/K*alpha + MQ*q + MDE*de",
+                      "  K: {unit: \"1\", initial: 1}", name="ratio.yaml"))
+    assert s.kind == "scaling" and s.combination() in ("the ratio MAL/K", "the ratio K/MAL")
+
+
+def test_a_factor_that_also_acts_alone_is_determined(tmp_path):
+    # Z*(alpha + T*q): Z and T both start at 0, but Z also scales alpha; MAL*K*alpha + MAL*q
+    assert _sym(_spec(tmp_path, "M0 + MAL*(alpha + T*q) + MDE*de", "  T: {unit: s}")) == ()
+    assert _sym(_spec(tmp_path, "M0 + MAL*K*alpha + MAL*q + MDE*de",
+                      "  K: {unit: \"1\"}", name="b.yaml")) == ()
+    # a lookup table in the equation (evaluated through its own numeric rule)
+    assert _sym(_spec(tmp_path, "M0 + MAL*interp(alpha, [0, 0.5, 1], [0, 0.4, 1.2]) + MQ*q "
+                      "+ MDE*de", name="c.yaml")) == ()
+
+
+def test_fixing_one_parameter_removes_the_symmetry(tmp_path):
+    assert _sym(_spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de",
+                      "  K: {unit: \"1\", initial: 1, fixed: true}")) == ()
+
+
+@pytest.mark.parametrize("spec", sorted((ROOT / "specs").glob("*.yaml")), ids=lambda p: p.stem)
+def test_shipped_specs_have_no_symmetry(spec):
+    assert _sym(spec) == ()
+
+
+def _cli(args, cwd):
+    return subprocess.run([sys.executable, "-m", "vsidgen.cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=600,
+                          env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+
+
+def test_check_and_fit_report_it(tmp_path):
+    p = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}")
+    chk = _cli(["check", p], tmp_path)
+    assert chk.returncode == 0 and "the product" in chk.stderr and "1 warning" in chk.stdout
+    fit = _cli(["fit", p, DATA, "--out", tmp_path / "res", "--quiet", "--max-iter", "2",
+                "--fix", "K=1"], tmp_path)
+    assert "product" not in fit.stderr               # K fixed on the command line
+    fit = _cli(["fit", p, DATA, "--out", tmp_path / "res2", "--quiet", "--max-iter", "2"], tmp_path)
+    assert "the product" in fit.stderr, fit.stderr[-2000:]
+    res = json.loads((tmp_path / "res2" / "results.json").read_text())
+    assert any(w.get("code") == "parameter_symmetry" for w in res["warnings"])
