@@ -240,4 +240,34 @@ def test_degrees_read_as_radians_warn(tmp_path, capsys):
     assert main(["check", str(spec), "--data", str(tmp_path / "d2.csv")]) == 0
     err = capsys.readouterr().err
     assert "{column: de_deg, unit: deg}" in err and "{column: q_degps, unit: deg/s}" in err
-    assert "alpha" not in err
+    # the 2π rule misses α (5 deg read as rad is within one revolution); its column's name does not
+    assert "input `alpha`" not in err and "output `alpha` (column" not in err
+    assert "column `alpha_deg` of output `alpha` is named in `deg`" in err
+
+
+def test_a_column_named_in_other_units_than_the_spec_warns(tmp_path, capsys):
+    """`alpha: alpha_deg` for an angle in rad (and `q (deg/s)`, `az_g`-style suffixes) with no
+    conversion in the data map: the spec check warns at the entry and names the fix (the 2π
+    rule above misses an α of a few degrees read as radians); declared units, a `scale`, or a
+    suffix in the spec's own unit give no warning."""
+    from vsidgen.spec.dataunits import column_suffix_unit, suffix_mismatch
+
+    assert column_suffix_unit("alpha_deg") == "deg" and column_suffix_unit("q_deg_s") == "deg/s"
+    assert column_suffix_unit("q (deg/s)") == "deg/s" and column_suffix_unit("az_g") == "g"
+    assert column_suffix_unit("delta_e") is None and column_suffix_unit("alpha") is None
+    assert suffix_mismatch("V_kts", "m/s") == "knot" and suffix_mismatch("alpha_rad", "rad") is None
+    assert suffix_mismatch("h_m", "rad") is None               # another dimension: not a scale
+    path = tmp_path / "suffix.yaml"
+    path.write_text(f"extends: {SPEC}\nname: suffix\ndata:\n  time: t_s\n"
+                    "  inputs: {de: {column: \"de (deg)\"}}\n"
+                    "  outputs:\n    alpha: alpha_deg\n"
+                    "    q: {column: q_degps, scale: 0.017453292519943295}\n")
+    sym = compile_spec(path)
+    got = [w for w in sym.warnings if w.code == "column_unit_suffix"]
+    assert [(w.line, w.message.split("`")[1]) for w in got] == [(5, "de (deg)"), (7, "alpha_deg")]
+    assert "`alpha: {column: alpha_deg, unit: deg}`" in got[1].hint
+    assert '`de: {column: "de (deg)", unit: deg}`' in got[0].hint
+    assert main(["check", str(path)]) == 0
+    assert "column `alpha_deg` of output `alpha` is named in `deg`" in capsys.readouterr().err
+    assert not [w for w in compile_spec(_unit_spec(tmp_path)).warnings
+                if w.code == "column_unit_suffix"]

@@ -137,6 +137,56 @@ def _angle_kind(spec_unit: str | None) -> tuple[str, float] | None:
     return None
 
 
+#: unit suffixes of column names (``alpha_deg``, ``q_degps``, ``az_g``, ``V_kts``) and the
+#: unit each one names; only unambiguous tokens (no ``rps``: rad/s or revolutions per second)
+COLUMN_SUFFIX_UNITS: dict[str, str] = {
+    "deg": "deg", "degrees": "deg", "rad": "rad", "radians": "rad",
+    "degps": "deg/s", "dps": "deg/s", "deg_s": "deg/s", "degpersec": "deg/s",
+    "radps": "rad/s", "rad_s": "rad/s",
+    "degps2": "deg/s^2", "dps2": "deg/s^2", "deg_s2": "deg/s^2",
+    "radps2": "rad/s^2", "rad_s2": "rad/s^2",
+    "ft": "ft", "m": "m", "fps": "ft/s", "ftps": "ft/s", "ft_s": "ft/s", "mps": "m/s",
+    "m_s": "m/s", "kt": "knot", "kts": "knot", "knots": "knot", "kn": "knot",
+    "mps2": "m/s^2", "m_s2": "m/s^2", "fps2": "ft/s^2", "ftps2": "ft/s^2", "ft_s2": "ft/s^2",
+    "g": "g", "n": "N", "kn_force": "kN", "lbf": "lbf", "pa": "Pa", "psf": "lbf/ft^2",
+}
+_BRACKETED = re.compile(r"[\[(]\s*([^\])]+?)\s*[\])]\s*$")
+
+
+def column_suffix_unit(column: str) -> str | None:
+    """The unit a column's name states (``alpha_deg`` → ``deg``, ``q (deg/s)`` → ``deg/s``,
+    ``az_g`` → ``g``), or None. A bracketed unit must parse (pint); a ``_suffix`` must be one
+    of :data:`COLUMN_SUFFIX_UNITS` (two tokens, ``deg_s``, before one)."""
+    name = column.strip()
+    m = _BRACKETED.search(name)
+    if m:
+        try:
+            check_unit(m.group(1))
+        except UnitConversionError:
+            return None
+        return m.group(1)
+    parts = name.lower().split("_")
+    if len(parts) >= 3 and "_".join(parts[-2:]) in COLUMN_SUFFIX_UNITS:
+        return COLUMN_SUFFIX_UNITS["_".join(parts[-2:])]
+    if len(parts) >= 2:
+        return COLUMN_SUFFIX_UNITS.get(parts[-1])
+    return None
+
+
+def suffix_mismatch(column: str, spec_unit: str | None) -> str | None:
+    """The unit ``column``'s name states when it has the spec unit's dimension but another
+    scale (``alpha_deg`` for an angle in ``rad``), else None: the values would be read in the
+    spec's unit."""
+    named = column_suffix_unit(column)
+    if named is None or not spec_unit:
+        return None
+    try:
+        a, b = conversion(named, spec_unit)
+    except UnitConversionError:
+        return None
+    return None if (math.isclose(a, 1.0, rel_tol=1e-9) and b == 0.0) else named
+
+
 def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> tuple[DataWarning, ...]:
     """Warnings for channels whose value range is implausible for the spec's unit.
 
@@ -179,5 +229,6 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
     return tuple(out)
 
 
-__all__ = ["DataWarning", "DataWarningCode", "UnitConversionError", "check_unit", "conversion",
-           "dimensionality", "plausibility_warnings"]
+__all__ = ["COLUMN_SUFFIX_UNITS", "DataWarning", "DataWarningCode", "UnitConversionError",
+           "check_unit", "column_suffix_unit", "conversion", "dimensionality",
+           "plausibility_warnings", "suffix_mismatch"]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -487,7 +488,8 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     process, measurement = _noise(spec, [v.name for v in decl.states], output_names)
     var_units = {("input", v.name): v.unit for v in decl.inputs}
     var_units.update({("output", v.name): v.unit for v in decl.outputs})
-    data = _data_spec(spec, [v.name for v in decl.inputs], output_names, root_loc, var_units)
+    data = _data_spec(spec, [v.name for v in decl.inputs], output_names, root_loc, var_units,
+                      warnings)
     _check_dimensions(warnings, decl.dims, definitions, decl.definitions, drift, eqs.sections,
                       decl.states, observations, decl.outputs, decl.output_dims)
 
@@ -702,8 +704,29 @@ def _channel(ch: ChannelDecl, what: str = "input", spec_unit: str | None = None)
                       unit=unit, unit_conversion=conv)
 
 
+def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -> None:
+    """Warn when a column's name states a unit of the spec unit's dimension but another scale
+    (``alpha: alpha_deg`` for an angle in rad) and the entry converts nothing (no ``unit``,
+    ``scale`` 1, ``offset`` 0): the values would be read as if in the spec's unit."""
+    from . import dataunits
+
+    if ch.column is None or ch.unit is not None or ch.scale != 1.0 or ch.offset != 0.0:
+        return
+    named = dataunits.suffix_mismatch(ch.column.value, spec_unit)
+    if named is None:
+        return
+    name, col = ch.name.value, ch.column.value
+    shown = col if re.fullmatch(r"[A-Za-z_][\w.]*", col) else '"' + col.replace('"', '\\"') + '"'
+    _warn(warnings, f"column `{col}` of {what} `{name}` is named in `{named}`, but `{name}` is "
+          f"in `{spec_unit}` and the data map converts nothing: its values are read as "
+          f"`{spec_unit}`", ch.column, key=False, code="column_unit_suffix",
+          hint=f"declare the column's unit, converted on reading: `{name}: {{column: {shown}, "
+               f"unit: {named}}}` (or `unit: {spec_unit}` if the name misleads)")
+
+
 def _data_spec(spec: Spec, input_names, output_names, root_loc,
-               units: Mapping[tuple[str, str], str | None] | None = None) -> DataSpec:
+               units: Mapping[tuple[str, str], str | None] | None = None,
+               warnings: list | None = None) -> DataSpec:
     data = spec.data
     if data is None:
         if input_names or output_names:
@@ -729,6 +752,8 @@ def _data_spec(spec: Spec, input_names, output_names, root_loc,
                                 text=where.key_text,
                                 hint=f"add `{nm}: <column name>` under `data.{key}`")
             out.append(_channel(given[nm], what, (units or {}).get((what, nm))))
+            if warnings is not None:
+                _warn_column_suffix(warnings, given[nm], what, (units or {}).get((what, nm)))
         result[key] = tuple(out)
     return DataSpec(data.time, result["inputs"], result["outputs"])
 
