@@ -1304,9 +1304,13 @@ class _RoundPlan:
         return sum(len(self.families.get(k, (k,))) for k, _ in self.tasks)
 
     def next_refitted(self, pending) -> str | None:
-        """The first key of ``pending`` that an engine task refits (a profiled delay runs
-        after them)."""
+        """The first key of ``pending`` that an engine task refits (a profiled delay is not an
+        engine task of its own)."""
         return next((k for k in pending if self.by_key[k][0] not in self.profiled), None)
+
+    def task_rank(self, key: str) -> int:
+        """Rank index of an engine task: its candidate's, or a family's first member's."""
+        return min(self.by_key[k][0] for k in self.families.get(key, (key,)))
 
     def outcomes(self, oc) -> list:
         """The per-candidate outcomes of a finished engine task (:func:`.family.member_outcomes`)."""
@@ -1541,26 +1545,33 @@ def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
 
 def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                  current: FitState) -> list[Trial] | None:
-    """The round's refits on the engine, then its delay profiles: the trials, in that
-    order (None when the time limit cancelled one)."""
+    """The round's refits on the engine and its delay profiles, in the round's rank order (the
+    refits ranked above a delay run before its profile, the rest after it, so that under a time
+    limit the most promising candidates are examined first): the trials, the refits in rank
+    order, then the profiled delays (None when the time limit cancelled one)."""
     from ..engine import TaskStatus
 
     status = getattr(run.progress, "refitting", None)  # live status line with time left
     nxt = plan.next_refitted(st.unfinished["pending"])
     if status is not None and plan.tasks and nxt is not None:
         run.say(status(rnd, 1, plan.n_refits, nxt))
-    done = run.engine.run(_round_task, plan.tasks, deadline=run.deadline,
-                          on_done=functools.partial(_refit_done, run, st, rnd, plan, current))
-    # per candidate, in the round's rank order (a family's members come back together)
-    outcomes = sorted((o for t in done for o in plan.outcomes(t)),
-                      key=lambda o: plan.by_key[o.key][0])
-    if any(o.status is TaskStatus.CANCELLED for o in outcomes):
-        return None
-    trials = []
-    for o in outcomes:
-        i, score, c, sr = plan.by_key[o.key]
-        trials.append(_trial_of(o, c, score, sr, plan.paths[i], current))
-    for i in plan.profiled:
+    on_done = functools.partial(_refit_done, run, st, rnd, plan, current)
+    remaining = sorted(plan.tasks, key=lambda task: plan.task_rank(task[0]))
+    outcomes, profiles = [], []
+    for i in list(plan.profiled) + [None]:
+        if i is None:
+            batch, remaining = remaining, []
+        else:
+            batch = [task for task in remaining if plan.task_rank(task[0]) < i]
+            remaining = [task for task in remaining if plan.task_rank(task[0]) >= i]
+        if batch:
+            done = run.engine.run(_round_task, batch, deadline=run.deadline, on_done=on_done)
+            got = [o for t in done for o in plan.outcomes(t)]
+            if any(o.status is TaskStatus.CANCELLED for o in got):
+                return None
+            outcomes.extend(got)
+        if i is None:
+            break
         _, score, c, sr = plan.ranked[i]
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
@@ -1578,8 +1589,13 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                     f"2ΔELBO {t.statistic:.4g}")
         elif t.refit is not None:
             run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
-        trials.append(t)
-    return trials
+        profiles.append(t)
+    # per candidate, in the round's rank order (a family's members come back together)
+    trials = []
+    for o in sorted(outcomes, key=lambda o: plan.by_key[o.key][0]):
+        i, score, c, sr = plan.by_key[o.key]
+        trials.append(_trial_of(o, c, score, sr, plan.paths[i], current))
+    return trials + profiles
 
 
 def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitState,
