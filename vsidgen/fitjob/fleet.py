@@ -2,8 +2,8 @@
 
 Every record is an independent ``vsidgen fit`` (:func:`vsidgen.fitjob.run.run_fit`) writing
 its own results directory ``DIR/<record>/``; the fits run on the task engine
-(:mod:`vsidgen.engine`: serially, on a local ``dask.distributed`` cluster of all cores, or
-on an existing cluster). ``DIR/fleet.json`` lists every record with a typed
+(:mod:`vsidgen.engine`: serially, on a local ``dask.distributed`` cluster — one worker per two
+cores — or on an existing cluster). ``DIR/fleet.json`` lists every record with a typed
 :class:`FleetStatus` and is written atomically after each fit, so an interrupted fleet
 keeps the fits that finished. A record with bad data does not stop the others.
 """
@@ -90,7 +90,7 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     """Fit ``spec`` to every record of ``data`` separately; results in ``out/<record>/``.
 
     ``workers`` worker processes of a local dask cluster (1: serially in this process; None:
-    every local core) or the cluster at ``scheduler``. The spec is compiled once here
+    one per two local cores) or the cluster at ``scheduler``. The spec is compiled once here
     first (a bad spec is an error before any fit starts). ``out`` follows the rules of every
     results directory (:mod:`vsidgen.atomic`): a folder holding files vsidgen did not write
     is refused unless ``overwrite`` (then only vsidgen's files are replaced), and the
@@ -177,7 +177,7 @@ def add_fleet_parser(subparsers):
     p = subparsers.add_parser(
         "fleet", help="fit one spec to many records, each separately, in parallel",
         description="Fit SPEC to each record on its own (one `vsidgen fit` per record) on a "
-                    "local dask cluster of all cores (--workers) or an existing one "
+                    "local dask cluster (--workers, default one per two cores) or an existing one "
                     "(--scheduler). Writes DIR/<record>/ (results of each fit) and "
                     "DIR/fleet.json (status of every record, updated after each fit). Exit "
                     "status 0 when every fit converged, 1 when some did not or were lost, "
