@@ -98,3 +98,23 @@ def test_check_and_fit_report_it(tmp_path):
     assert "the product" in fit.stderr, fit.stderr[-2000:]
     res = json.loads((tmp_path / "res2" / "results.json").read_text())
     assert any(w.get("code") == "parameter_symmetry" for w in res["warnings"])
+
+
+def test_diagnose_says_it_before_the_base_fit(tmp_path, monkeypatch):
+    import types
+
+    from vsidgen.discrepancy import search
+
+    class Stop(Exception):
+        pass
+
+    def fit_spec(*a, **k):
+        raise Stop
+    monkeypatch.setattr(search, "fit_spec", fit_spec)
+    said = []
+    run = types.SimpleNamespace(say=said.append, data=[DATA], validate=[], gen=tmp_path / "g",
+                                max_iter=5)
+    p = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}")
+    with pytest.raises(Stop):
+        search._fit_base(run, types.SimpleNamespace(), p)
+    assert "the product" in said[0] and said[-1].startswith("fitting the base model")

@@ -1360,6 +1360,11 @@ def _checkpoint(run: _RunConfig, st: _RunState, stop: StopReason, *,
 
 def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
     """Fit the base spec (continued once when unconverged) and locate its mismatch."""
+    from ..spec import compile_spec
+    from ..spec.identifiability import symmetry_warnings
+
+    for w in symmetry_warnings(compile_spec(spec)):
+        run.say(str(w))       # a combination the data cannot separate: the base fit may stall
     run.say(f"fitting the base model {spec}")
     base = fit_spec(spec, run.data, validate=run.validate, generated_dir=run.gen,
                     max_iter=run.max_iter)
