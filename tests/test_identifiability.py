@@ -118,3 +118,58 @@ def test_diagnose_says_it_before_the_base_fit(tmp_path, monkeypatch):
     with pytest.raises(Stop):
         search._fit_base(run, types.SimpleNamespace(), p)
     assert "the product" in said[0] and said[-1].startswith("fitting the base model")
+
+
+ACTUATOR = """name: act2
+description: a second-order actuator driving a pitch-rate model, as a new user writes it
+states:
+  de: {unit: rad}
+  dedot: {unit: rad/s}
+  q: {unit: rad/s}
+inputs:
+  dc: {unit: rad}
+outputs:
+  de: {unit: rad}
+  q: {unit: rad/s}
+parameters:
+  wn: {unit: rad/s%s}
+  zeta: {unit: "1"}
+  Mq: {unit: 1/s}
+  Mde: {unit: 1/s^2}
+drift:
+  de: dedot
+  dedot: wn**2*(dc - de) - 2*zeta*wn*dedot
+  q: Mq*q + Mde*de
+observations:
+  de: de
+  q: q
+data:
+  time: t_s
+  inputs: {dc: de_rad}
+  outputs: {de: de_rad, q: q_radps}
+"""
+
+
+def test_parameters_a_fit_cannot_move_from_their_initial_values(tmp_path):
+    """wn and zeta of a second-order actuator both starting at 0: every derivative of the
+    equations in them vanishes there whatever Mq and Mde are (no symmetry: they are
+    identifiable from a good start). From wn = 10 nothing is frozen; T in Z*(alpha + T*q) is
+    not frozen (it moves once Z has)."""
+    from vsidgen.spec import compile_spec
+    from vsidgen.spec.identifiability import frozen_at_start, symmetry_warnings
+
+    p = tmp_path / "act.yaml"
+    p.write_text(ACTUATOR % "")
+    m = compile_spec(p)
+    assert frozen_at_start(m) == ("wn", "zeta") and _sym(p) == ()
+    (w,) = symmetry_warnings(m)
+    assert w.code == "parameter_frozen_at_start" and "wn = 0, zeta = 0" in w.message
+    assert w.line == 19 and "initial value" in w.hint
+    p.write_text(ACTUATOR % ", initial: 10")
+    assert frozen_at_start(compile_spec(p)) == ()
+    q = _spec(tmp_path, "M0 + MAL*(alpha + T*q) + MDE*de", "  T: {unit: s}")
+    assert frozen_at_start(compile_spec(q)) == ()
+    # the product MAL*K at 0 is frozen too, but said once, by its symmetry warning
+    r = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}", name="r.yaml")
+    assert set(frozen_at_start(compile_spec(r))) == {"MAL", "K"}
+    assert [w.code for w in symmetry_warnings(compile_spec(r))] == ["parameter_symmetry"]

@@ -24,7 +24,10 @@ tested.
 
 A product of parameters that all start at 0 is a saddle point of the fit: the gradient of
 ``a·b`` with respect to each factor vanishes there, so a fit from null initial values cannot
-move them; the warning says so.
+move them; the warning says so. More generally (:func:`frozen_at_start`), parameters whose
+equations do not depend on them at their initial values, whatever the other parameters are
+(``wn`` and ``zeta`` of ``wn**2*(u - x) - 2*zeta*wn*v`` both at 0), stay there: the ELBO's
+gradient in them is zero along the whole fit.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import sympy
 from ..errors import SpecWarning
 from .symbolic import SymbolicModel, tree_size
 
-__all__ = ["Symmetry", "parameter_symmetries", "symmetry_warnings"]
+__all__ = ["Symmetry", "frozen_at_start", "parameter_symmetries", "symmetry_warnings"]
 
 #: largest total size (expression-tree nodes) of the expanded equations that is analysed;
 #: larger specs are skipped (the test would cost more than the check it serves)
@@ -80,64 +83,119 @@ def _random_point(rng, n):
     return rng.uniform(0.2, 1.2, n)
 
 
+class _Jacobian:
+    """``∂(f, h)/∂θ`` of the expanded equations for the free parameters that reach them, as a
+    numeric function of (states, inputs, those parameters); constants and fixed parameters at
+    their values. ``fn`` is None when the equations exceed :data:`MAX_SIZE` nodes."""
+
+    def __init__(self, model: SymbolicModel):
+        free = [p for p in model.parameters if not p.fixed]
+        exprs = list(model.drift_expanded()) + list(model.observations_expanded())
+        self.fn, self.names, self.initial, self.n_eq = None, [], np.zeros(0), len(exprs)
+        memo: dict = {}
+        if not free or sum(tree_size(e, memo) for e in exprs) > MAX_SIZE:
+            return
+        values = {c.symbol: sympy.Float(c.value) for c in model.constants}
+        values.update({p.symbol: sympy.Float(p.initial) for p in model.parameters if p.fixed})
+        exprs = [e.xreplace(values) for e in exprs]
+        used = [p for p in free if any(p.symbol in e.free_symbols for e in exprs)]
+        if not used:
+            return
+        self.names = [p.name for p in used]
+        self.initial = np.array([float(p.initial) for p in used])
+        psyms = [p.symbol for p in used]
+        jac = [sympy.diff(e, q) for e in exprs for q in psyms]
+        self.n_var = len(model.states) + len(model.inputs)
+        from .expr import Interp, InterpSlope
+
+        def interp(x, xs, ys):
+            return float(Interp(sympy.Float(float(x)), xs, ys))
+
+        def slope(x, xs, ys):
+            return float(InterpSlope(sympy.Float(float(x)), xs, ys))
+
+        self.fn = sympy.lambdify(list(model.state_symbols) + list(model.input_symbols) + psyms,
+                                 jac, modules=[{Interp.__name__: interp,
+                                                InterpSlope.__name__: slope}, "numpy"])
+
+    def at(self, xu, theta) -> np.ndarray | None:
+        """The Jacobian (equations × parameters) at one point; None when not finite there."""
+        try:
+            with np.errstate(all="ignore"):
+                J = np.asarray(self.fn(*xu, *theta), dtype=float)
+        except (ValueError, ZeroDivisionError, OverflowError, TypeError):
+            return None
+        J = J.reshape(self.n_eq, len(self.names))
+        return J if np.all(np.isfinite(J)) else None
+
+    def samples(self, rng, count: int, theta=None):
+        """Up to ``count`` finite (θ, J) at random states and inputs, with ``theta(rng)`` (default:
+        every parameter random) — at most ten tries per sample."""
+        out = []
+        for _ in range(10 * count):
+            if len(out) == count:
+                break
+            th = _random_point(rng, len(self.names)) if theta is None else theta(rng)
+            J = self.at(_random_point(rng, self.n_var), th)
+            if J is not None:
+                out.append((th, J))
+        return out
+
+
 def parameter_symmetries(model: SymbolicModel, *, extra_points: int = EXTRA_POINTS,
-                         seed: int = 0) -> tuple[Symmetry, ...]:
+                         seed: int = 0, jacobian: _Jacobian | None = None) -> tuple[Symmetry, ...]:
     """The scaling and translation symmetries of ``model``'s free parameters (module docstring).
 
     Returns () when fewer than two free parameters reach the equations, when the expanded
-    equations exceed :data:`MAX_SIZE` nodes, or when no point gives finite Jacobians.
+    equations exceed :data:`MAX_SIZE` nodes, or when too few points give finite Jacobians.
     """
-    free = [p for p in model.parameters if not p.fixed]
-    if len(free) < 2:
+    jac = jacobian or _Jacobian(model)
+    if jac.fn is None or len(jac.names) < 2:
         return ()
-    exprs = list(model.drift_expanded()) + list(model.observations_expanded())
-    memo: dict = {}
-    if sum(tree_size(e, memo) for e in exprs) > MAX_SIZE:
-        return ()
-    values = {c.symbol: sympy.Float(c.value) for c in model.constants}
-    values.update({p.symbol: sympy.Float(p.initial) for p in model.parameters if p.fixed})
-    exprs = [e.xreplace(values) for e in exprs]
-    psyms = [p.symbol for p in free]
-    used = [j for j, s in enumerate(psyms) if any(s in e.free_symbols for e in exprs)]
-    if len(used) < 2:
-        return ()
-    psyms = [psyms[j] for j in used]
-    names = [free[j].name for j in used]
-    jac = [sympy.diff(e, s) for e in exprs for s in psyms]
-    args = list(model.state_symbols) + list(model.input_symbols) + psyms
-    from .expr import Interp, InterpSlope
-
-    def interp(x, xs, ys):
-        return float(Interp(sympy.Float(float(x)), xs, ys))
-
-    def slope(x, xs, ys):
-        return float(InterpSlope(sympy.Float(float(x)), xs, ys))
-
-    fn = sympy.lambdify(args, jac, modules=[{Interp.__name__: interp,
-                                              InterpSlope.__name__: slope}, "numpy"])
-    points = len(psyms) + extra_points
-    rng = np.random.default_rng(seed)
-    scal, trans = [], []
-    tries = 0
-    while len(scal) < points and tries < 10 * points:
-        tries += 1
-        x = _random_point(rng, len(args))
-        try:
-            with np.errstate(all="ignore"):
-                J = np.asarray(fn(*x), dtype=float).reshape(len(exprs), len(psyms))
-        except (ValueError, ZeroDivisionError, OverflowError, TypeError):
-            continue
-        if not np.all(np.isfinite(J)):
-            continue
-        theta = x[-len(psyms):]
-        trans.append(J)
-        scal.append(J * theta[None, :])
-    if len(scal) < points:
+    points = len(jac.names) + extra_points
+    got = jac.samples(np.random.default_rng(seed), points)
+    if len(got) < points:
         return ()
     out = []
-    for kind, blocks in (("scaling", scal), ("translation", trans)):
-        out.extend(_null_groups(kind, np.vstack(blocks), names))
+    for kind, blocks in (("scaling", [J * th[None, :] for th, J in got]),
+                         ("translation", [J for _, J in got])):
+        out.extend(_null_groups(kind, np.vstack(blocks), jac.names))
     return tuple(out)
+
+
+def frozen_at_start(model: SymbolicModel, *, points: int = 3, seed: int = 1,
+                    jacobian: _Jacobian | None = None) -> tuple[str, ...]:
+    """Free parameters a gradient-based fit cannot move from their initial values.
+
+    The largest set ``S`` such that, with ``θ_S`` at its initial values and every other free
+    parameter anywhere, no equation depends on ``θ_S`` (``∂(f, h)/∂θ_S = 0`` for all states and
+    inputs): the gradient of the ELBO in ``θ_S`` is then zero along the whole fit. Found by
+    starting from every parameter at its initial value and releasing (to random values) each
+    parameter whose column is not zero, until none is released (``wn`` and ``zeta`` of
+    ``wn**2*(u - x) - 2*zeta*wn*v`` both starting at 0; ``T`` in ``Z*(alpha + T*q)`` is released
+    once ``Z`` is). Zero is tested at random points, relative to the Jacobian's scale."""
+    jac = jacobian or _Jacobian(model)
+    if jac.fn is None:
+        return ()
+    rng = np.random.default_rng(seed)
+    frozen = np.ones(len(jac.names), bool)
+    while frozen.any():
+        def theta(r, frozen=frozen.copy()):
+            th = _random_point(r, len(jac.names))
+            th[frozen] = jac.initial[frozen]
+            return th
+        got = jac.samples(rng, points, theta)
+        if not got:
+            return ()
+        live = np.zeros(len(jac.names), bool)
+        for _, J in got:
+            scale = max(float(np.max(np.abs(J))), 1e-300)
+            live |= np.max(np.abs(J), axis=0) > 1e-12 * scale
+        release = frozen & live
+        if not release.any():
+            break
+        frozen &= ~release
+    return tuple(n for n, f in zip(jac.names, frozen) if f)
 
 
 def _null_groups(kind: str, A: np.ndarray, names: list[str]) -> list[Symmetry]:
@@ -174,11 +232,15 @@ def _where(model: SymbolicModel, name: str):
 
 
 def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
-    """:func:`parameter_symmetries` as spec warnings (code ``parameter_symmetry``), each at the
-    first equation that uses the group's first parameter, with what to do."""
+    """:func:`parameter_symmetries` and :func:`frozen_at_start` as spec warnings (codes
+    ``parameter_symmetry``, ``parameter_frozen_at_start``), each at the first equation that
+    uses the first parameter named, with what to do."""
     out = []
     init = {p.name: p.initial for p in model.parameters}
-    for s in parameter_symmetries(model):
+    jac = _Jacobian(model)
+    frozen = set(frozen_at_start(model, jacobian=jac))
+    told: set = set()
+    for s in parameter_symmetries(model, jacobian=jac):
         what = s.combination()
         hint = (f"fix one of them at a value of your choice (e.g. `{s.parameters[-1]}: "
                 f"{{initial: {1 if s.kind == 'scaling' else 0}, fixed: true}}`) or write the "
@@ -186,10 +248,26 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
         if s.kind == "scaling" and all(init[n] == 0 for n in s.parameters):
             hint += ("; they all start at 0, where the gradient of a product vanishes: a fit "
                      "from these initial values cannot move them")
+            told |= set(s.parameters)
         loc = _where(model, s.parameters[0])
         kw = {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
         out.append(SpecWarning(
             f"parameters {', '.join(f'`{n}`' for n in s.parameters)} enter the equations only "
             f"through {what}: the data determine that, not each parameter", hint=hint,
             code="parameter_symmetry", **kw))
+    stuck = [n for n in init if n in frozen and n not in told]
+    if stuck:
+        loc = _where(model, stuck[0])
+        kw = {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
+        values = ", ".join(f"{n} = {init[n]:g}" for n in stuck)
+        out.append(SpecWarning(
+            f"parameter{'s' if len(stuck) > 1 else ''} {', '.join(f'`{n}`' for n in stuck)} "
+            f"cannot leave {'their' if len(stuck) > 1 else 'its'} initial value"
+            f"{'s' if len(stuck) > 1 else ''} ({values}): there no equation depends on "
+            f"{'them' if len(stuck) > 1 else 'it'}, whatever the other parameters are, so the "
+            "fit's gradient in them stays zero",
+            hint=(f"give {'them' if len(stuck) > 1 else 'it'} an initial value of the right "
+                  f"size and sign (e.g. `{stuck[0]}: {{initial: 1}}`), e.g. from a handbook or "
+                  "an earlier fit"),
+            code="parameter_frozen_at_start", **kw))
     return out
