@@ -173,3 +173,20 @@ def test_parameters_a_fit_cannot_move_from_their_initial_values(tmp_path):
     r = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}", name="r.yaml")
     assert set(frozen_at_start(compile_spec(r))) == {"MAL", "K"}
     assert [w.code for w in symmetry_warnings(compile_spec(r))] == ["parameter_symmetry"]
+
+
+def test_independent_symmetries_are_reported_apart(tmp_path):
+    """Three parameters on q and two on de (two sums) are two groups, not one mixed basis
+    vector of the null space; each says how many of its parameters are undetermined."""
+    from vsidgen.spec import compile_spec
+    from vsidgen.spec.identifiability import symmetry_warnings
+
+    p = _spec(tmp_path, "M0 + MAL*alpha + MQ*q + A*q + B*q + MDE*de + C*de",
+              "  A: {unit: 1/s}\n  B: {unit: 1/s}\n  C: {unit: 1/s^2}")
+    got = {frozenset(s.parameters): s for s in _sym(p)}
+    assert set(got) == {frozenset({"MQ", "A", "B"}), frozenset({"MDE", "C"})}
+    assert got[frozenset({"MQ", "A", "B"})].dimension == 2
+    assert got[frozenset({"MDE", "C"})].combination() in ("the sum MDE + C", "the sum C + MDE")
+    texts = [str(w) for w in symmetry_warnings(compile_spec(p))]
+    assert any("2 of these 3 parameters are undetermined" in t and "fix 2 of them" in t
+               for t in texts), texts

@@ -58,11 +58,14 @@ class Symmetry:
     """Free parameters the equations determine only in combination.
 
     ``kind`` is ``"scaling"`` (``θ_j → θ_j e^{c_j t}``) or ``"translation"`` (``θ → θ + t c``);
-    ``coefficients`` are the ``c_j`` of ``parameters`` (largest magnitude 1)."""
+    ``coefficients`` are the ``c_j`` of ``parameters`` (largest magnitude 1); ``dimension``
+    the number of independent such directions within the group."""
 
     kind: str
     parameters: tuple[str, ...]
     coefficients: tuple[float, ...]
+    #: independent symmetries within the group (the coefficients are NaN when more than one)
+    dimension: int = 1
 
     def combination(self) -> str:
         """What the equations see, in words (``the product a·b``, ``the sum a + b``)."""
@@ -75,8 +78,10 @@ class Symmetry:
                     return f"the ratio {a[0]}/{a[1]}" if same else f"the product {a[0]}·{a[1]}"
                 return f"the difference {a[0]} − {a[1]}" if same else f"the sum {a[0]} + {a[1]}"
         names = ", ".join(a)
-        return (f"a combination of {names} invariant under a common rescaling"
-                if self.kind == "scaling" else f"a linear combination of {names}")
+        free = (f" ({self.dimension} of these {len(a)} parameters are undetermined)"
+                if self.dimension > 1 else "")
+        return (f"a combination of {names} invariant under a common rescaling{free}"
+                if self.kind == "scaling" else f"a linear combination of {names}{free}")
 
 
 def _random_point(rng, n):
@@ -198,7 +203,32 @@ def frozen_at_start(model: SymbolicModel, *, points: int = 3, seed: int = 1,
     return tuple(n for n, f in zip(jac.names, frozen) if f)
 
 
+def _rref(M: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Reduced row echelon form of ``M`` (Gauss–Jordan with partial pivoting); rows that
+    vanish are dropped. A null space in this form has sparse rows, one pivot parameter each."""
+    R = np.array(M, float)
+    rows, cols = R.shape
+    r = 0
+    for c in range(cols):
+        if r == rows:
+            break
+        p = r + int(np.argmax(np.abs(R[r:, c])))
+        if abs(R[p, c]) <= tol:
+            continue
+        R[[r, p]] = R[[p, r]]
+        R[r] /= R[r, c]
+        for i in range(rows):
+            if i != r:
+                R[i] -= R[i, c] * R[r]
+        r += 1
+    R[np.abs(R) <= tol] = 0.0
+    return R[:r]
+
+
 def _null_groups(kind: str, A: np.ndarray, names: list[str]) -> list[Symmetry]:
+    """The symmetries in the null space of ``A`` (columns: parameters), one per group of
+    parameters that the null directions connect (several independent symmetries — ``a·q + b·q``
+    and ``c·α + d·α`` — are reported apart, not as one mixed basis vector)."""
     norms = np.linalg.norm(A, axis=0)
     live = np.nonzero(norms > 0)[0]
     if live.size < 2:
@@ -207,15 +237,36 @@ def _null_groups(kind: str, A: np.ndarray, names: list[str]) -> list[Symmetry]:
     _, sv, vt = np.linalg.svd(An, full_matrices=True)
     sv = np.concatenate([sv, np.zeros(vt.shape[0] - sv.size)])
     null = vt[sv <= NULL_RTOL * max(float(sv[0]), 1e-300)]
+    if not len(null):
+        return []
+    basis = _rref(null / norms[live][None, :])          # the parameters' own scale
+    # groups: connected components of the parameters the sparse basis rows join
+    parent = list(range(live.size))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+    for row in basis:
+        nz = np.nonzero(row)[0]
+        for j in nz[1:]:
+            parent[find(j)] = find(nz[0])
+    groups: dict = {}
+    for row in basis:
+        nz = np.nonzero(row)[0]
+        if nz.size >= 2:
+            groups.setdefault(find(nz[0]), []).append(row)
     out = []
-    for v in null:
-        c = v / norms[live]                  # back to the parameters' own scale
-        c = c / np.max(np.abs(c))
-        keep = np.nonzero(np.abs(c) > 1e-6)[0]
-        if keep.size < 2:
-            continue
-        out.append(Symmetry(kind, tuple(names[live[j]] for j in keep),
-                            tuple(float(c[j]) for j in keep)))
+    for rows in groups.values():
+        support = sorted({int(j) for row in rows for j in np.nonzero(row)[0]})
+        if len(rows) == 1:
+            c = rows[0][support]
+            c = c / np.max(np.abs(c))
+        else:
+            c = np.full(len(support), np.nan)          # several directions: no one vector
+        out.append(Symmetry(kind, tuple(names[live[j]] for j in support),
+                            tuple(float(x) for x in c), len(rows)))
     return out
 
 
@@ -242,7 +293,9 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
     told: set = set()
     for s in parameter_symmetries(model, jacobian=jac):
         what = s.combination()
-        hint = (f"fix one of them at a value of your choice (e.g. `{s.parameters[-1]}: "
+        which = ("one of them" if s.dimension == 1 else
+                 f"{s.dimension} of them ({', '.join(s.parameters[-s.dimension:])})")
+        hint = (f"fix {which} at a value of your choice (e.g. `{s.parameters[-1]}: "
                 f"{{initial: {1 if s.kind == 'scaling' else 0}, fixed: true}}`) or write the "
                 "combination as one parameter")
         if s.kind == "scaling" and all(init[n] == 0 for n in s.parameters):
