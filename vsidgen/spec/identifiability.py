@@ -13,10 +13,12 @@ parameter Jacobian ``J(x, u, θ) = ∂(f, h)/∂θ`` of the expanded equations:
   e.g. ``c = (1, −1)`` for two parameters that appear only as their sum (two constant terms of
   one equation, ``M0 + MB``).
 
-The conditions are checked at random points (six more than free parameters) (states, inputs and free parameters drawn in
-[0.2, 1.2], fixed parameters and constants at their values): ``c`` is a common null vector
-of the stacked, column-normalised matrices ``[J_k diag(θ_k)]`` (scaling) and ``[J_k]``
-(translation). A polynomial or analytic identity that holds at random points holds
+The conditions are checked at random points, six more than free parameters (states, inputs
+and free parameters drawn in [0.2, 1.2], fixed parameters and constants at their values):
+``c`` is a common null vector of the stacked, column-normalised matrices
+``[J_k diag(θ_k)]`` (scaling) and ``[J_k]`` (translation); the null space, in reduced row
+echelon form, is split into the groups of parameters its rows join (independent symmetries
+are reported apart). A polynomial or analytic identity that holds at random points holds
 everywhere with probability one (Schwartz–Zippel); a symmetry that holds is found at every
 point. Columns of parameters that reach no equation are left out (the spec check warns about
 those already). Symmetries that also move states (a state rescaled with a parameter) are not
