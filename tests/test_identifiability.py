@@ -48,7 +48,7 @@ def test_a_product_of_two_parameters_is_a_scaling_symmetry(tmp_path):
     assert s.combination() in ("the product MAL·K", "the product K·MAL")
     (w,) = symmetry_warnings(compile_spec(p))
     assert w.code == "parameter_symmetry" and "product" in w.message
-    assert "start at 0" in w.hint and "fixed: true" in w.hint
+    assert "start at 0" in w.hint and "saddle" in w.hint and "fixed: true" in w.hint
     assert w.line == 34                      # the drift equation of q that uses them
 
 

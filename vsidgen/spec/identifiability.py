@@ -301,8 +301,8 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
                 f"{{initial: {1 if s.kind == 'scaling' else 0}, fixed: true}}`) or write the "
                 "combination as one parameter")
         if s.kind == "scaling" and all(init[n] == 0 for n in s.parameters):
-            hint += ("; they all start at 0, where the gradient of a product vanishes: a fit "
-                     "from these initial values cannot move them")
+            hint += ("; they all start at 0, a saddle point of the fit (the gradient of a "
+                     "product vanishes there): the fit leaves it only along negative curvature")
             told |= set(s.parameters)
         loc = _where(model, s.parameters[0])
         kw = {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
@@ -317,10 +317,10 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
         values = ", ".join(f"{n} = {init[n]:g}" for n in stuck)
         out.append(SpecWarning(
             f"parameter{'s' if len(stuck) > 1 else ''} {', '.join(f'`{n}`' for n in stuck)} "
-            f"cannot leave {'their' if len(stuck) > 1 else 'its'} initial value"
-            f"{'s' if len(stuck) > 1 else ''} ({values}): there no equation depends on "
-            f"{'them' if len(stuck) > 1 else 'it'}, whatever the other parameters are, so the "
-            "fit's gradient in them stays zero",
+            f"start{'' if len(stuck) > 1 else 's'} where no equation depends on "
+            f"{'them' if len(stuck) > 1 else 'it'} ({values}), whatever the other parameters "
+            "are: the fit's gradient in them is zero there, and the fit leaves this point only "
+            "along negative curvature of the ELBO (a saddle), if there is some",
             hint=(f"give {'them' if len(stuck) > 1 else 'it'} an initial value of the right "
                   f"size and sign (e.g. `{stuck[0]}: {{initial: 1}}`), e.g. from a handbook or "
                   "an earlier fit"),
