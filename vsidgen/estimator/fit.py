@@ -231,52 +231,55 @@ SADDLE_RTOL = 1e-8
 
 
 def _saddle_step(P: Problem, s, recs, m: _Measured):
-    """Leave a saddle along negative curvature of −ELBO in the parameters whose gradient is zero.
+    """Leave a saddle along negative curvature of −ELBO in parameters nothing else depends on.
 
-    A free parameter that no equation depends on at the iterate (``wn`` and ``zeta`` of
-    ``wn**2*(u - x) - 2*zeta*wn*v`` both at 0, two factors of a product both at 0) has a zero
-    gradient, and no damped Newton step moves it: the step solves (H + λD)Δ = −g, and H does
-    not couple it to the others there. When H restricted to these parameters (the state means
-    eliminated) has a negative eigenvalue, −ELBO falls along its eigenvector v whatever the
-    sign: the step α v (state means following, Δμ = −A⁻¹W Δb) with the lowest −ELBO over
-    α = α₀·4⁻ᵏ, k = 0…11, α₀ = √(2 max(|f|, 1)/|e_min|), is taken when it lowers −ELBO.
-    Returns the new (s, recs), or None (no such parameter, no negative curvature, or no
-    decrease). Held parameters are not moved.
+    A set Z of free parameters that no equation depends on at the iterate (two factors of a
+    product both at 0; ``wn`` and ``zeta`` of ``wn**2*(u - x) - 2*zeta*wn*v`` both at 0) has a
+    zero gradient and Hessian rows that vanish outside Z (no coupling to the state means, the
+    assumed density, the noise or the other parameters): no damped Newton step
+    (H + λD)Δ = −g moves it. When the block H_ZZ has a negative eigenvalue e, −ELBO falls along
+    its eigenvector v (either sign); the step α v with the lowest −ELBO over
+    α = α₀·4⁻ᵏ, k = 0…11, α₀ = √(2 max(|f|, 1)/|e|), is taken when it lowers −ELBO. Only such
+    exactly decoupled sets qualify (a parameter of an unmeasured state that starts at zero has
+    a zero gradient but couples to the state means: the ordinary step handles it). Returns the
+    new (s, recs), or None. Held parameters are not moved.
     """
     nt = P.tm.n_free
     gs = np.asarray(m.grad.shared, float)
     if nt == 0 or not gs.size:
         return None
     scale = max(float(np.max(np.abs(gs))), 1e-300)
-    zero = [j for j in range(nt) if abs(gs[j]) <= ZERO_GRADIENT_RTOL * scale and not P.held[j]]
-    off = P.nrec * P.layout.nq
-    if not zero or not np.any(m.Hg[np.ix_(off + np.asarray(zero), off + np.asarray(zero))]):
-        return None     # none, or no curvature among them (an unused parameter, a break point
-        #                 whose slope is still 0): nothing to leave along
-    red = P.reduced_system(m.blks, lam=0.0)
-    if red is None:
+    zero = np.array([j for j in range(nt)
+                     if abs(gs[j]) <= ZERO_GRADIENT_RTOL * scale and not P.held[j]], int)
+    if not zero.size:
         return None
-    k = off + np.asarray(zero)
-    Sz = red.S[np.ix_(k, k)]
-    w, V = np.linalg.eigh(0.5 * (Sz + Sz.T))
-    big = max(float(np.max(np.abs(w))), 1e-300)
-    if not w[0] < -SADDLE_RTOL * big:
+    nq = P.layout.nq
+    off = P.nrec * nq
+    kz = off + zero
+    Hzz = m.Hg[np.ix_(kz, kz)]
+    hmax = max(float(np.max(np.abs(m.Hg))), 1e-300)
+    if not np.any(np.abs(Hzz) > ZERO_GRADIENT_RTOL * hmax):
+        return None     # no curvature among them (an unused parameter, a break point whose
+        #                 slope is still 0): nothing to leave along
+    others = np.setdiff1d(np.arange(P.nglob), kz)
+    if np.any(np.abs(m.Hg[np.ix_(kz, others)]) > ZERO_GRADIENT_RTOL * hmax):
         return None
-    v = np.zeros(P.nglob)
-    v[k] = V[:, 0]
-    _, mu0, _ = P.back_substitute(red, np.zeros(P.nglob))      # the μ step from g_μ alone
+    for b in m.blks:
+        W = np.asarray(b["W"])
+        if np.any(np.abs(W[..., nq + zero]) > ZERO_GRADIENT_RTOL * hmax):
+            return None
+    w, V = np.linalg.eigh(0.5 * (Hzz + Hzz.T))
+    if not w[0] < -SADDLE_RTOL * max(float(np.max(np.abs(w))), 1e-300):
+        return None
     a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(float(w[0])))
     best = None
     for j in range(12):
-        a = a0 * 4.0 ** -j
-        ds, dmu, dr = P.back_substitute(red, a * v)
-        dmu = [d - d0 for d, d0 in zip(dmu, mu0)]
-        s_new = s + ds
-        recs_new = [(mu + d1, r + d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
-        f_new = P.value(s_new, recs_new)
+        s_new = np.array(s, float)
+        s_new[zero] += a0 * 4.0 ** -j * V[:, 0]
+        f_new = P.value(s_new, recs)
         if math.isfinite(f_new) and f_new < m.f and (best is None or f_new < best[0]):
-            best = (f_new, s_new, recs_new)
-    return None if best is None else (best[1], best[2])
+            best = (f_new, s_new)
+    return None if best is None else (best[1], recs)
 
 
 def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float):
