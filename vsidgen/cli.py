@@ -80,7 +80,6 @@ def _add_check(subparsers) -> None:
 def _cmd_check(args) -> int:
     from .data.check import check_record
     from .spec import compile_spec
-
     from .spec.identifiability import symmetry_warnings
 
     symbolic = compile_spec(args.spec)

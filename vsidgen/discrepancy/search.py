@@ -1563,20 +1563,20 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     on_done = functools.partial(_refit_done, run, st, rnd, plan, current)
     remaining = sorted(plan.tasks, key=lambda task: plan.task_rank(task[0]))
     outcomes, profiles = [], []
-    for i in list(plan.profiled) + [None]:
-        if i is None:
-            batch, remaining = remaining, []
-        else:
-            batch = [task for task in remaining if plan.task_rank(task[0]) < i]
-            remaining = [task for task in remaining if plan.task_rank(task[0]) >= i]
-        if batch:
-            done = run.engine.run(_round_task, batch, deadline=run.deadline, on_done=on_done)
-            got = [o for t in done for o in plan.outcomes(t)]
-            if any(o.status is TaskStatus.CANCELLED for o in got):
-                return None
-            outcomes.extend(got)
-        if i is None:
-            break
+
+    def refit(batch) -> bool:
+        """Run ``batch`` on the engine; False when the time limit cancelled a task."""
+        if not batch:
+            return True
+        done = run.engine.run(_round_task, batch, deadline=run.deadline, on_done=on_done)
+        got = [o for t in done for o in plan.outcomes(t)]
+        outcomes.extend(got)
+        return not any(o.status is TaskStatus.CANCELLED for o in got)
+
+    for i in plan.profiled:
+        if not refit([task for task in remaining if plan.task_rank(task[0]) < i]):
+            return None
+        remaining = [task for task in remaining if plan.task_rank(task[0]) >= i]
         _, score, c, sr = plan.ranked[i]
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
@@ -1595,6 +1595,8 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         elif t.refit is not None:
             run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
         profiles.append(t)
+    if not refit(remaining):
+        return None
     # per candidate, in the round's rank order (a family's members come back together)
     trials = []
     for o in sorted(outcomes, key=lambda o: plan.by_key[o.key][0]):

@@ -223,9 +223,9 @@ def _marquardt_diagonal(m: _Measured):
     return [np.maximum(d, floor) for d in dmus], np.maximum(dglob, floor)
 
 
-#: relative size of a gradient component that is exactly zero (a parameter no equation depends
-#: on at the iterate: :func:`_saddle_step`)
-ZERO_GRADIENT_RTOL = 1e-14
+#: relative size (to the largest entry) below which a gradient component or a Hessian entry
+#: counts as exactly zero (:func:`_saddle_step`: parameters no equation depends on)
+ZERO_RTOL = 1e-14
 #: an eigenvalue below −SADDLE_RTOL · (largest |eigenvalue|) is negative curvature
 SADDLE_RTOL = 1e-8
 
@@ -250,7 +250,7 @@ def _saddle_step(P: Problem, s, recs, m: _Measured):
         return None
     scale = max(float(np.max(np.abs(gs))), 1e-300)
     zero = np.array([j for j in range(nt)
-                     if abs(gs[j]) <= ZERO_GRADIENT_RTOL * scale and not P.held[j]], int)
+                     if abs(gs[j]) <= ZERO_RTOL * scale and not P.held[j]], int)
     if not zero.size:
         return None
     nq = P.layout.nq
@@ -258,15 +258,15 @@ def _saddle_step(P: Problem, s, recs, m: _Measured):
     kz = off + zero
     Hzz = m.Hg[np.ix_(kz, kz)]
     hmax = max(float(np.max(np.abs(m.Hg))), 1e-300)
-    if not np.any(np.abs(Hzz) > ZERO_GRADIENT_RTOL * hmax):
+    if not np.any(np.abs(Hzz) > ZERO_RTOL * hmax):
         return None     # no curvature among them (an unused parameter, a break point whose
         #                 slope is still 0): nothing to leave along
     others = np.setdiff1d(np.arange(P.nglob), kz)
-    if np.any(np.abs(m.Hg[np.ix_(kz, others)]) > ZERO_GRADIENT_RTOL * hmax):
+    if np.any(np.abs(m.Hg[np.ix_(kz, others)]) > ZERO_RTOL * hmax):
         return None
     for b in m.blks:
         W = np.asarray(b["W"])
-        if np.any(np.abs(W[..., nq + zero]) > ZERO_GRADIENT_RTOL * hmax):
+        if np.any(np.abs(W[..., nq + zero]) > ZERO_RTOL * hmax):
             return None
     w, V = np.linalg.eigh(0.5 * (Hzz + Hzz.T))
     if not w[0] < -SADDLE_RTOL * max(float(np.max(np.abs(w))), 1e-300):

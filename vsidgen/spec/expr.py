@@ -51,18 +51,19 @@ FUNCTIONS: dict[str, int | None] = {
     "min": None, "max": None, "sat": 3, "smoothsat": 3, "interp": 3,
 }
 
-_DELAY_HINT = ("a pure transport delay of an input is declared on the input, in seconds: "
-               "`inputs: {de: {unit: rad, delay: 0.1}}`")
+_DELAY_DECLARATION = ("declared on the input, in seconds: "
+                      "`inputs: {de: {unit: rad, delay: 0.1}}`")
+_DELAY_HINT = "a pure transport delay of an input is " + _DELAY_DECLARATION
 _PIECEWISE_HINT = ("piecewise terms are written with max/min (a break: `max(alpha - 0.2, 0)`), "
                    "sign, sat(x, lo, hi) or interp(x, [x0, x1, ...], [y0, y1, ...])")
 #: functions of other languages a new user writes, and what to write in a spec instead
 FUNCTION_EQUIVALENTS: dict[str, str] = {
-    **dict.fromkeys(("ln",), "the natural logarithm is `log(x)`"),
-    **dict.fromkeys(("log10",), "write `log(x)/log(10)`"),
-    **dict.fromkeys(("log2",), "write `log(x)/log(2)`"),
+    "ln": "the natural logarithm is `log(x)`",
+    "log10": "write `log(x)/log(10)`",
+    "log2": "write `log(x)/log(2)`",
     **dict.fromkeys(("pow", "power"), "write `x**y` for a power"),
     **dict.fromkeys(("sq", "square", "sqr"), "write `x**2`"),
-    **dict.fromkeys(("fabs",), "write `abs(x)`"),
+    "fabs": "write `abs(x)`",
     **dict.fromkeys(("arcsin", "arccos", "arctan", "arctan2"),
                     "inverse trigonometric functions are asin, acos, atan and atan2"),
     **dict.fromkeys(("sinh", "cosh"), "write it with exp: sinh(x) = (exp(x) - exp(-x))/2"),
@@ -516,8 +517,8 @@ def _call(ctx: _Ctx, node: ast.Call, depth: int):
             hint = FUNCTION_EQUIVALENTS.get(name)
             if hint is None and name in ctx.namespace:
                 # a declared variable called like a function: `de(t - 0.1)`, `alpha(t)`
-                hint = (f"`{name}` is a variable, not a function: write `{name}` (for an input "
-                        f"read late, {_DELAY_HINT[2:]})")
+                hint = (f"`{name}` is a variable, not a function: write `{name}` (the delay "
+                        f"of an input read late is {_DELAY_DECLARATION})")
             hint = hint or did_you_mean(name, FUNCTIONS)
         raise _error(ctx, f"unknown function `{name}`", func,
                      hint=hint or "allowed functions: " + ", ".join(FUNCTIONS))

@@ -25,11 +25,11 @@ those already). Symmetries that also move states (a state rescaled with a parame
 tested.
 
 A product of parameters that all start at 0 is a saddle point of the fit: the gradient of
-``a·b`` with respect to each factor vanishes there, so a fit from null initial values cannot
-move them; the warning says so. More generally (:func:`frozen_at_start`), parameters whose
-equations do not depend on them at their initial values, whatever the other parameters are
-(``wn`` and ``zeta`` of ``wn**2*(u - x) - 2*zeta*wn*v`` both at 0), stay there: the ELBO's
-gradient in them is zero along the whole fit.
+``a·b`` with respect to each factor vanishes there. More generally (:func:`frozen_at_start`),
+parameters whose equations do not depend on them at their initial values, whatever the other
+parameters are (``wn`` and ``zeta`` of ``wn**2*(u - x) - 2*zeta*wn*v`` both at 0), have a zero
+gradient as long as they stay there: a fit leaves such a start only along negative curvature
+(``estimator.fit._saddle_step``), and the warnings say so.
 """
 
 from __future__ import annotations
@@ -98,6 +98,10 @@ class _Jacobian:
     def __init__(self, model: SymbolicModel):
         free = [p for p in model.parameters if not p.fixed]
         exprs = list(model.drift_expanded()) + list(model.observations_expanded())
+        #: (equation key of ``model.locations``, its symbols once expanded), drift then outputs
+        self.uses = [(f"{section}:{v.name}", e.free_symbols) for (section, v), e in zip(
+            [("drift", v) for v in model.states] + [("observations", v) for v in model.outputs],
+            exprs)]
         self.fn, self.names, self.initial, self.n_eq = None, [], np.zeros(0), len(exprs)
         memo: dict = {}
         if not free or sum(tree_size(e, memo) for e in exprs) > MAX_SIZE:
@@ -172,11 +176,12 @@ def parameter_symmetries(model: SymbolicModel, *, extra_points: int = EXTRA_POIN
 
 def frozen_at_start(model: SymbolicModel, *, points: int = 3, seed: int = 1,
                     jacobian: _Jacobian | None = None) -> tuple[str, ...]:
-    """Free parameters a gradient-based fit cannot move from their initial values.
+    """Free parameters whose gradient stays zero as long as they keep their initial values.
 
     The largest set ``S`` such that, with ``θ_S`` at its initial values and every other free
     parameter anywhere, no equation depends on ``θ_S`` (``∂(f, h)/∂θ_S = 0`` for all states and
-    inputs): the gradient of the ELBO in ``θ_S`` is then zero along the whole fit. Found by
+    inputs): the gradient of the ELBO in ``θ_S`` is then zero until they move, which a damped
+    Newton step never makes them do (only a step along negative curvature can). Found by
     starting from every parameter at its initial value and releasing (to random values) each
     parameter whose column is not zero, until none is released (``wn`` and ``zeta`` of
     ``wn**2*(u - x) - 2*zeta*wn*v`` both starting at 0; ``T`` in ``Z*(alpha + T*q)`` is released
@@ -272,16 +277,16 @@ def _null_groups(kind: str, A: np.ndarray, names: list[str]) -> list[Symmetry]:
     return out
 
 
-def _where(model: SymbolicModel, name: str):
-    """The location of the first equation that uses parameter ``name`` (expanded)."""
-    sym = next(p.symbol for p in model.parameters if p.name == name)
-    for section, variables, exprs in (("drift", model.states, model.drift_expanded()),
-                                      ("observations", model.outputs,
-                                       model.observations_expanded())):
-        for v, e in zip(variables, exprs):
-            if sym in e.free_symbols:
-                return model.locations.get(f"{section}:{v.name}")
-    return None
+def _locator(model: SymbolicModel, uses):
+    """``where(name)``: the location (as SpecWarning keywords) of the first drift or observation
+    equation that uses parameter ``name`` (``uses``: :attr:`_Jacobian.uses`; {} if none)."""
+    symbol = {p.name: p.symbol for p in model.parameters}
+
+    def where(name: str) -> dict:
+        key = next((k for k, syms in uses if symbol[name] in syms), None)
+        loc = None if key is None else model.locations.get(key)
+        return {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
+    return where
 
 
 def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
@@ -293,6 +298,7 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
     jac = _Jacobian(model)
     frozen = set(frozen_at_start(model, jacobian=jac))
     told: set = set()
+    where = _locator(model, jac.uses)
     for s in parameter_symmetries(model, jacobian=jac):
         what = s.combination()
         which = ("one of them" if s.dimension == 1 else
@@ -304,16 +310,12 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
             hint += ("; they all start at 0, a saddle point of the fit (the gradient of a "
                      "product vanishes there): the fit leaves it only along negative curvature")
             told |= set(s.parameters)
-        loc = _where(model, s.parameters[0])
-        kw = {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
         out.append(SpecWarning(
             f"parameters {', '.join(f'`{n}`' for n in s.parameters)} enter the equations only "
             f"through {what}: the data determine that, not each parameter", hint=hint,
-            code="parameter_symmetry", **kw))
+            code="parameter_symmetry", **where(s.parameters[0])))
     stuck = [n for n in init if n in frozen and n not in told]
     if stuck:
-        loc = _where(model, stuck[0])
-        kw = {} if loc is None else {"path": loc.path, "line": loc.line, "column": loc.column}
         values = ", ".join(f"{n} = {init[n]:g}" for n in stuck)
         out.append(SpecWarning(
             f"parameter{'s' if len(stuck) > 1 else ''} {', '.join(f'`{n}`' for n in stuck)} "
@@ -324,5 +326,5 @@ def symmetry_warnings(model: SymbolicModel) -> list[SpecWarning]:
             hint=(f"give {'them' if len(stuck) > 1 else 'it'} an initial value of the right "
                   f"size and sign (e.g. `{stuck[0]}: {{initial: 1}}`), e.g. from a handbook or "
                   "an earlier fit"),
-            code="parameter_frozen_at_start", **kw))
+            code="parameter_frozen_at_start", **where(stuck[0])))
     return out
