@@ -132,12 +132,53 @@ def test_time_limit_stops_between_refits_and_keeps_the_accepted_effect(patched, 
     assert doc["stop"]["reason"] == "time_limit" and doc["stop"]["time_limit_s"] == 600.0
     assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
     assert doc["findings"][0]["evidence"]["statistic"] == pytest.approx(100.0)
-    un = doc["unfinished_round"]
-    assert un["round"] == 2 and [t["key"] for t in un["refitted"]] == [refits.calls[2]]
-    assert len(un["pending"]) == 1 and refits.calls[2] not in un["pending"]
+    # round 2 is decided on its one refit (nothing significant); the other is named
+    assert doc["unfinished_round"] is None and len(doc["rounds"]) == 2
+    r2 = doc["rounds"][1]
+    assert [t["key"] for t in r2["trials"]] == [refits.calls[2]]
+    assert len(r2["not_refitted"]) == 1 and refits.calls[2] not in r2["not_refitted"]
+    assert doc["stop"]["partial_round"]["not_refitted"] == r2["not_refitted"]
     assert doc["conclusion"].startswith("STOPPED at the time limit")
+    assert "after deciding round 2 on the 1 of 2 candidates" in doc["conclusion"]
     assert "1 effect accepted" in doc["conclusion"]
     assert (tmp_path / "o" / "diagnose.html").read_text().count("STOPPED") >= 1
+
+
+def test_a_round_cut_by_its_refit_deadline_is_decided_on_what_it_refitted(patched, monkeypatch,
+                                                                         base_state, tmp_path):
+    """The round keeps the current model's fit time for its decision: a refit that ends
+    after the round's refit deadline (limit − that time) but before the limit cuts the rest,
+    and the round is decided on it (the lead's projected refit runs in the time kept): the
+    significant gain is accepted, its explanation naming the candidate not refitted."""
+    clock = _Clock(time.monotonic)
+    monkeypatch.setattr(time, "monotonic", clock)
+    slow_base = dataclasses.replace(base_state, fit=dataclasses.replace(base_state.fit,
+                                                                         wall_time_s=200.0))
+    monkeypatch.setattr(search, "fit_spec", lambda *a, **k: slow_base)
+    refits = patched([("slow", 450.0, "gain")], clock)
+    res = search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
+                              screen=False, effects=EFFECTS, time_limit=600.0, workers=1)
+    assert res.stop is search.StopReason.TIME_LIMIT and len(refits.calls) == 1
+    doc = _doc(tmp_path / "o")
+    assert [f["key"] for f in doc["findings"]] == [refits.calls[0]]
+    (r1,) = doc["rounds"]
+    assert len(r1["not_refitted"]) == 1 and r1["projected_refits"]
+    assert r1["not_refitted"][0] in doc["findings"][0]["explanation"]
+    assert "Decided under the time limit" in doc["findings"][0]["explanation"]
+
+
+def test_a_refit_running_at_the_refit_deadline_stops_there():
+    """diag_options inside refit_deadline: the estimator's time limit is the time left."""
+    from vsidgen.discrepancy.fitstate import diag_options, refit_deadline
+    from vsidgen.discrepancy.family import TaskDeadline
+
+    assert diag_options(10).time_limit is None
+    with refit_deadline(TaskDeadline.of(time.monotonic() + 50.0)):
+        assert 45.0 < diag_options(10).time_limit <= 50.0
+        assert diag_options(10, time_limit=5.0).time_limit == 5.0
+    with refit_deadline(TaskDeadline.of(time.monotonic() - 1.0)):
+        assert diag_options(10).time_limit == 0.0          # one iteration, then TIME_LIMIT
+    assert diag_options(10).time_limit is None
 
 
 def test_an_unfinished_round_names_its_leading_refit_without_accepting_it(patched, monkeypatch,

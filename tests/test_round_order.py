@@ -3,7 +3,8 @@ run before the delay's profile, those ranked below it after (before, every refit
 the profiles last, so under a time limit a delay ranked third waited behind weaker refits:
 hfb_de_lag_0.15_s1 stopped at its limit with the delay pending after four C_m hinge refits
 whose score statistics were 20–40 times smaller). The trials come back in the order the
-decision expects: refits in rank order, then the profiled delays."""
+decision expects: refits in rank order, then the profiled delays; with the keys of the
+candidates the round's refit deadline left unrefitted (none starts after the first is cut)."""
 
 from __future__ import annotations
 
@@ -51,22 +52,25 @@ def _run(monkeypatch, keys, profiled, cancel_at=None):
                                 say=lambda *a: None, gen=None, max_iter=10, alpha=0.01)
     st = types.SimpleNamespace(unfinished={"pending": list(keys), "refitted": []})
     current = types.SimpleNamespace(model=types.SimpleNamespace(name="m"))
-    trials = search._refit_round(run, st, 1, _plan(keys, profiled), current)
-    return log, trials
+    trials, cut = search._refit_round(run, st, 1, _plan(keys, profiled), current)
+    return log, trials, cut
 
 
 def test_refits_and_delay_profiles_run_in_rank_order(monkeypatch):
     keys = ["lag", "skew", "delay_de", "hinge1", "hinge2", "delay_th", "sq"]
-    log, trials = _run(monkeypatch, keys, [2, 5])
+    log, trials, cut = _run(monkeypatch, keys, [2, 5])
     assert log == [("refit", "lag"), ("refit", "skew"), ("profile", "delay_de"),
                    ("refit", "hinge1"), ("refit", "hinge2"), ("profile", "delay_th"),
                    ("refit", "sq")]
     assert trials[:5] == ["lag", "skew", "hinge1", "hinge2", "sq"]
-    assert [t.key for t in trials[5:]] == ["delay_de", "delay_th"]
+    assert [t.key for t in trials[5:]] == ["delay_de", "delay_th"] and cut == []
 
 
-def test_a_delay_ranked_first_is_profiled_first_and_a_cancelled_refit_ends_the_round(monkeypatch):
-    log, _ = _run(monkeypatch, ["delay_de", "lag", "hinge"], [0])
+def test_a_delay_ranked_first_is_profiled_first_and_a_cancelled_refit_cuts_the_rest(monkeypatch):
+    log, _, _ = _run(monkeypatch, ["delay_de", "lag", "hinge"], [0])
     assert log[0] == ("profile", "delay_de")
-    log, trials = _run(monkeypatch, ["lag", "delay_de", "hinge"], [1], cancel_at="lag")
-    assert trials is None and log == [("refit", "lag")]      # the delay was never profiled
+    log, trials, cut = _run(monkeypatch, ["skew", "lag", "delay_de", "hinge"], [2],
+                            cancel_at="lag")
+    # the delay was never profiled, the hinge never started; the skew's trial is kept
+    assert log == [("refit", "skew"), ("refit", "lag")]
+    assert trials == ["skew"] and cut == ["lag", "delay_de", "hinge"]

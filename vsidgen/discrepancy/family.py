@@ -50,10 +50,14 @@ class TaskDeadline:
             return None
         return cls(os.getpid(), float(deadline), time.time() + (deadline - time.monotonic()))
 
-    def passed(self) -> bool:
+    def left(self) -> float:
+        """Seconds to the deadline (negative once it has passed)."""
         if os.getpid() == self.pid:
-            return time.monotonic() >= self.monotonic
-        return time.time() >= self.wall
+            return self.monotonic - time.monotonic()
+        return self.wall - time.time()
+
+    def passed(self) -> bool:
+        return self.left() <= 0.0
 
 
 def family_shape(c: Candidate) -> tuple[int, int, int] | None:

@@ -459,6 +459,12 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
     what = {"time_limit": f"STOPPED at the time limit ({(stop or {}).get('time_limit_s')} s)",
             "interrupted": "INTERRUPTED",
             "running": "RUNNING (checkpoint of a run in progress)"}.get(reason, reason.upper())
+    part = (stop or {}).get("partial_round")
+    if part:
+        cut = list(part.get("not_refitted", ()))
+        what += (f" after deciding round {part['round']} on the {part['refitted']} of "
+                 f"{part['refitted'] + len(cut)} candidates it had refitted (not refitted, "
+                 f"counted as not significant: {', '.join(cut)})")
     if unfinished is not None:
         done = len(unfinished.get("refitted", ()))
         pend = list(unfinished.get("pending", ()))

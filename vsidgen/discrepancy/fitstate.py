@@ -4,6 +4,8 @@ warm-started from another fit, convergence by the estimator's typed stop reason.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import pathlib
 from typing import Any
@@ -36,10 +38,35 @@ class FitState:
         return None if self.vfit is None else float(self.vfit.elbo)
 
 
+#: the deadline of the refit under way in this context (:func:`refit_deadline`)
+_REFIT_DEADLINE: contextvars.ContextVar = contextvars.ContextVar("refit_deadline", default=None)
+
+
+@contextlib.contextmanager
+def refit_deadline(deadline):
+    """Within the block, every fit configured by :func:`diag_options` stops at ``deadline``
+    (an object with ``left()``, the seconds to it, e.g. :class:`.family.TaskDeadline`; None:
+    no deadline) with the estimator's ``StopReason.TIME_LIMIT``: a refit still running when a
+    round's time is up ends as an unconverged refit (its 2ΔELBO a lower bound when its Hessian
+    is positive definite) instead of running past the time the round kept for its decision."""
+    token = _REFIT_DEADLINE.set(deadline)
+    try:
+        yield
+    finally:
+        _REFIT_DEADLINE.reset(token)
+
+
 def diag_options(max_iter, **kw):
-    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see refit.py)."""
+    """Refit options: the states a candidate adds are quasi-deterministic (fixed small std, see
+    refit.py); inside :func:`refit_deadline`, the time limit is the time left to it (at least
+    one iteration runs: the estimator checks its limit after each)."""
     from ..estimator import FitOptions
     kw.setdefault("deterministic", "quasi")
+    d = _REFIT_DEADLINE.get()
+    if d is not None:
+        left = max(float(d.left()), 0.0)
+        given = kw.get("time_limit")
+        kw["time_limit"] = left if given is None else min(float(given), left)
     return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
 
 

@@ -900,12 +900,17 @@ def _family_task(members, current, info, generated_dir, max_iter, deadline=None)
     return out
 
 
-def _round_task(kind, *args):
+def _round_task(kind, deadline, *args):
     """An engine task of a round's refits: ``"one"`` candidate (:func:`_refit_task`) or a
-    ``"family"`` of candidates that add states (:func:`_family_task`)."""
-    if kind == "family":
-        return _family_task(*args)
-    return _refit_task(*args)
+    ``"family"`` of candidates that add states (:func:`_family_task`), its fits stopped at
+    ``deadline`` (a :class:`.family.TaskDeadline`, the round's refit deadline; None: none,
+    :func:`.fitstate.refit_deadline`)."""
+    from .fitstate import refit_deadline
+
+    with refit_deadline(deadline):
+        if kind == "family":
+            return _family_task(*args, deadline=deadline)
+        return _refit_task(*args)
 
 
 def _projected_task(t, current, path, name, generated_dir, max_iter, group=None):
@@ -1260,7 +1265,8 @@ class _RunState:
     ``rounds``: the finished rounds' records; ``accepted``: (trial, fit it was tested
     against, that fit's evidence) per accepted effect; ``unfinished``: the record of the
     round under way (None between rounds); ``numres``: the integrator-settings stage;
-    ``noiseres``: the noise-model stage.
+    ``noiseres``: the noise-model stage; ``partial_round``: the round the time limit cut
+    and that was decided on the candidates refitted (:func:`_run_round`), or None.
     """
 
     base: FitState | None = None
@@ -1272,6 +1278,7 @@ class _RunState:
     rounds: list[dict] = dataclasses.field(default_factory=list)
     accepted: list[tuple[Trial, FitState, Evidence]] = dataclasses.field(default_factory=list)
     unfinished: dict | None = None
+    partial_round: dict | None = None
 
 
 class _RoundEnd(enum.Enum):
@@ -1297,6 +1304,7 @@ class _RoundPlan:
     tasks: list
     by_key: dict
     families: dict = dataclasses.field(default_factory=dict)
+    deadline: float | None = None    # time.monotonic() after which the round's refits stop
 
     @property
     def n_refits(self) -> int:
@@ -1334,7 +1342,9 @@ def _document(run: _RunConfig, st: _RunState, stop: StopReason) -> dict:
                              final_evidence=st.evidence, alpha=run.alpha, version=run.version,
                              wall_time_s=time.perf_counter() - run.t_start, out=run.out,
                              options=run.options,
-                             stop={"reason": stop.value, "time_limit_s": run.time_limit},
+                             stop={"reason": stop.value, "time_limit_s": run.time_limit,
+                                   **({"partial_round": st.partial_round}
+                                      if st.partial_round else {})},
                              unfinished_round=st.unfinished,
                              numerics=None if st.numres is None else st.numres.to_json(),
                              noise_model=None if st.noiseres is None else st.noiseres.to_json())
@@ -1450,10 +1460,11 @@ def _gated_round_models(run: _RunConfig, current: FitState, info: ModelInfo, rnd
 
 
 def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
-                ranked: list) -> _RoundPlan:
+                ranked: list, refit_until: float | None = None) -> _RoundPlan:
     """Spec paths, gated models and engine tasks of the round's selected candidates;
     transport delays are profiled over a grid of delays (:mod:`.delay`), not refitted; lags
-    and Padé delays are refitted from the screen's best time constant (:func:`filter_start`)."""
+    and Padé delays are refitted from the screen's best time constant (:func:`filter_start`).
+    ``refit_until``: the round's refit deadline (:func:`round_refit_deadline`)."""
     ranked = [(pr, loc, filter_start(c, sr), sr) for pr, loc, c, sr in ranked]
     paths = [run.out / "candidates" / f"r{rnd}_{i + 1:02d}_{safe_name(c.key)}.yaml"
              for i, (_, _, c, _) in enumerate(ranked)]
@@ -1470,14 +1481,14 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
                                     if i not in profiled], 1 if run.engine.serial else
                                    run.engine.workers) if len(ch) > 1]
     in_family = {c.key: ch for ch in chunks for c in ch}
-    deadline = TaskDeadline.of(run.deadline)
+    deadline = TaskDeadline.of(refit_until)
     tasks, families = [], {}
     for i, (_, _, c, _) in enumerate(ranked):
         if i in profiled:
             continue
         ch = in_family.get(c.key)
         if ch is None:
-            tasks.append((c.key, ("one", c, current, info, paths[i],
+            tasks.append((c.key, ("one", deadline, c, current, info, paths[i],
                                   _round_name(current, rnd, i + 1), run.gen, run.max_iter,
                                   groups.get(c.key))))
         elif ch[0] is c:
@@ -1485,12 +1496,12 @@ def _plan_round(run: _RunConfig, current: FitState, info: ModelInfo, rnd: int,
                        for m in ch]
             key = family_key(ch)
             families[key] = [m.key for m in ch]
-            tasks.append((key, ("family", members, current, info, run.gen, run.max_iter,
-                                deadline)))
+            tasks.append((key, ("family", deadline, members, current, info, run.gen,
+                                run.max_iter)))
     # a trial carries the candidate's locate score (findings: locate_score) and its score
     # test (score_test); the priority that ranked it is in the round's screen
     by_key = {c.key: (i, loc, c, sr) for i, (_, loc, c, sr) in enumerate(ranked)}
-    return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key, families)
+    return _RoundPlan(ranked, paths, profiled, groups, tasks, by_key, families, refit_until)
 
 
 def filter_start(c: Candidate, sr) -> Candidate:
@@ -1548,12 +1559,24 @@ def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
             run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), nxt))
 
 
+def round_refit_deadline(deadline: float | None, reserve_s: float) -> float | None:
+    """The instant (``time.monotonic()``) after which a round's refits stop: the run's
+    ``deadline`` less ``reserve_s``, the time kept for deciding the round (its lead's projected
+    refit, a fit of the current model: diagnose reserves the current model's own fit time).
+    None without a deadline."""
+    if deadline is None:
+        return None
+    return deadline - max(float(reserve_s), 0.0)
+
+
 def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
-                 current: FitState) -> list[Trial] | None:
+                 current: FitState) -> tuple[list[Trial], list[str]]:
     """The round's refits on the engine and its delay profiles, in the round's rank order (the
     refits ranked above a delay run before its profile, the rest after it, so that under a time
-    limit the most promising candidates are examined first): the trials, the refits in rank
-    order, then the profiled delays (None when the time limit cancelled one)."""
+    limit the most promising candidates are examined first), until the round's refit deadline
+    (``plan.deadline``; a refit running then stops there, unconverged). Returns the trials
+    (the refits in rank order, then the profiled delays) and the keys of the candidates the
+    deadline left unrefitted, in rank order (none started after the first was cut)."""
     from ..engine import TaskStatus
 
     status = getattr(run.progress, "refitting", None)  # live status line with time left
@@ -1562,28 +1585,34 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         run.say(status(rnd, 1, plan.n_refits, nxt))
     on_done = functools.partial(_refit_done, run, st, rnd, plan, current)
     remaining = sorted(plan.tasks, key=lambda task: plan.task_rank(task[0]))
-    outcomes, profiles = [], []
+    outcomes, profiles, cut = [], [], []
 
-    def refit(batch) -> bool:
-        """Run ``batch`` on the engine; False when the time limit cancelled a task."""
+    def refit(batch) -> None:
+        """Run ``batch`` on the engine (nothing once the deadline has cut a refit); the
+        cancelled candidates go to ``cut``."""
+        if cut:
+            cut.extend(k for task in batch for k in plan.families.get(task[0], (task[0],)))
+            return
         if not batch:
-            return True
-        done = run.engine.run(_round_task, batch, deadline=run.deadline, on_done=on_done)
-        got = [o for t in done for o in plan.outcomes(t)]
-        outcomes.extend(got)
-        return not any(o.status is TaskStatus.CANCELLED for o in got)
+            return
+        done = run.engine.run(_round_task, batch, deadline=plan.deadline, on_done=on_done)
+        for o in (o for t in done for o in plan.outcomes(t)):
+            (cut.append(o.key) if o.status is TaskStatus.CANCELLED else outcomes.append(o))
 
     for i in plan.profiled:
-        if not refit([task for task in remaining if plan.task_rank(task[0]) < i]):
-            return None
+        refit([task for task in remaining if plan.task_rank(task[0]) < i])
         remaining = [task for task in remaining if plan.task_rank(task[0]) >= i]
         _, score, c, sr = plan.ranked[i]
+        if cut:
+            cut.append(c.key)
+            continue
         run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
                         engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
-                        deadline=run.deadline, screen=sr, alpha=run.alpha)
+                        deadline=plan.deadline, screen=sr, alpha=run.alpha)
         if t is None:
-            return None
+            cut.append(c.key)
+            continue
         st.unfinished["pending"].remove(c.key)
         st.unfinished["refitted"].append(t.to_json())
         if t.state is not None:
@@ -1595,21 +1624,20 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         elif t.refit is not None:
             run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
         profiles.append(t)
-    if not refit(remaining):
-        return None
+    refit(remaining)
     # per candidate, in the round's rank order (a family's members come back together)
     trials = []
     for o in sorted(outcomes, key=lambda o: plan.by_key[o.key][0]):
         i, score, c, sr = plan.by_key[o.key]
         trials.append(_trial_of(o, c, score, sr, plan.paths[i], current))
-    return trials + profiles
+    return trials + profiles, sorted(cut, key=lambda k: plan.by_key[k][0])
 
 
 def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitState,
-                   n_examined: int) -> list[Trial]:
-    """The round's unconverged lead refit (:func:`lead_to_continue`) continued once, within
-    the run's time limit; the trials with it replaced (unchanged when there is none, or the
-    continuation failed or was cut by the time limit before it started)."""
+                   n_examined: int, deadline: float | None) -> list[Trial]:
+    """The round's unconverged lead refit (:func:`lead_to_continue`) continued once, until
+    the round's refit ``deadline``; the trials with it replaced (unchanged when there is none,
+    or the continuation failed or was cut by the deadline before it started)."""
     from ..engine import TaskStatus
 
     i = lead_to_continue(trials, alpha=run.alpha, n_examined=n_examined)
@@ -1617,14 +1645,14 @@ def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitS
         return trials
     t = trials[i]
     n = CONTINUE_FACTOR * run.max_iter
-    left = None if run.deadline is None else run.deadline - time.monotonic()
+    left = None if deadline is None else deadline - time.monotonic()
     if left is not None and left <= 0:
         return trials
     run.say(f"round {rnd}: continuing {t.candidate.key} (2ΔELBO ≥ {t.statistic:.4g}, "
             f"{conv_label(t.state.fit)}: {t.state.fit.stop_reason.value}) for up to {n} more "
             "iterations: it leads the round without an optimum")
     (o,) = run.engine.run(_continue_task, [(t.candidate.key, (t.state, n, run.max_iter, left))],
-                          deadline=run.deadline)
+                          deadline=deadline)
     if o.status is not TaskStatus.DONE:
         run.say(f"    continuation {o.status.value}: {o.error}")
         return trials
@@ -1634,9 +1662,12 @@ def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitS
 
 
 def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
-                     trials: list[Trial]) -> tuple[list[Trial], list[dict], FitState | None] | None:
+                     trials: list[Trial], *, lead_only: bool = False
+                     ) -> tuple[list[Trial], list[dict], FitState | None] | None:
     """Projected refits (:func:`projected_refit`) of the nominally significant trials that
-    add no state: a candidate's gain may be a better optimum of the current model itself.
+    add no state: a candidate's gain may be a better optimum of the current model itself
+    (``lead_only``: only the one with the largest 2ΔELBO, in a round cut by the time limit:
+    the time kept for its decision is one fit's).
     When one is found it becomes ``st.current`` (re-based on the current spec,
     :func:`rebase`) and every trial's statistic is taken against it. Returns (trials,
     projected-refit records, the better optimum or None); None when the time limit
@@ -1645,9 +1676,13 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
 
     current = st.current
     ptasks = []
+    eligible = [t for t in trials if not (
+        t.state is None or t.candidate.states or not t.candidate.screenable
+        or not t.converged or not (t.p_value < run.alpha))]
+    if lead_only:
+        eligible = sorted(eligible, key=lambda t: -t.statistic)[:1]
     for i, t in enumerate(trials):
-        if (t.state is None or t.candidate.states or not t.candidate.screenable
-                or not t.converged or not (t.p_value < run.alpha)):
+        if not any(t is e for e in eligible):
             continue
         ppath = (run.out / "candidates"
                  / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
@@ -1875,7 +1910,8 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
                                   "the score test"})
         return _RoundEnd.DONE
     _say_screen(run, table)
-    plan = _plan_round(run, current, info, rnd, ranked)
+    plan = _plan_round(run, current, info, rnd, ranked,
+                       round_refit_deadline(run.deadline, current.fit.wall_time_s))
     st.unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                      "base_elbo": current.elbo, "base_val_elbo": current.val_elbo,
                      "n_candidates": n_examined,
@@ -1887,24 +1923,35 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
             f"({run.engine.describe()}): "
             + ", ".join(c.key for i, (_, _, c, _) in enumerate(ranked)
                         if i not in plan.profiled) + "".join(fams))
-    trials = _refit_round(run, st, rnd, plan, current)
-    if trials is None:
-        return _RoundEnd.TIME_LIMIT
-    trials = _continue_lead(run, rnd, trials, current, n_examined)
+    trials, cut = _refit_round(run, st, rnd, plan, current)
+    if cut:
+        # decided on what was refitted: the others enter the Holm family as not significant
+        # (n_examined counts them), which keeps the round's error rate; nothing refitted,
+        # or no time left for the lead's projected refit, leaves the round unfinished
+        if not any(t.state is not None for t in trials):
+            return _RoundEnd.TIME_LIMIT
+        run.say(f"round {rnd}: the time limit left {len(cut)} of {len(ranked)} candidates "
+                f"unrefitted ({', '.join(cut)}): deciding on the {len(trials)} refitted, the "
+                "others counted as not significant")
+    else:
+        trials = _continue_lead(run, rnd, trials, current, n_examined, plan.deadline)
     before = st.current
-    checked = _projected_round(run, st, rnd, plan, trials)
+    checked = _projected_round(run, st, rnd, plan, trials, lead_only=bool(cut))
     if checked is None:
         return _RoundEnd.TIME_LIMIT
     trials, projected, better = checked
     trials = _lags_with_their_hold(run, trials, st.current, rnd)
     st.unfinished = None
     finished = _decide_round(rnd, trials, st.current, n_examined, run.alpha, table,
-                             projected, better_reference(before, better, projected))
+                             projected, better_reference(before, better, projected),
+                             not_refitted=cut)
     st.rounds.append(finished.record)
+    if cut:
+        st.partial_round = {"round": rnd, "refitted": len(trials), "not_refitted": cut}
     if finished.base_unconverged or finished.best is None:
-        return _RoundEnd.DONE
+        return _RoundEnd.TIME_LIMIT if cut else _RoundEnd.DONE
     _accept(run, st, rnd, plan, info, finished.best)
-    return _RoundEnd.ACCEPTED
+    return _RoundEnd.TIME_LIMIT if cut else _RoundEnd.ACCEPTED
 
 
 def _run_diagnose(spec, data, *, validate, out, max_rounds, max_candidates, alpha, min_score,
@@ -1987,10 +2034,12 @@ def better_reference(before: FitState, better: FitState | None,
 
 
 def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
-                  reference: dict | None) -> RoundDecision:
+                  reference: dict | None, *, not_refitted: Sequence[str] = ()) -> RoundDecision:
     """Holm over the round's family, validation check, best and its alternatives.
     ``reference``: :func:`better_reference` (the current model re-estimated at a better
-    optimum, which ``current`` then is) or None."""
+    optimum, which ``current`` then is) or None. ``not_refitted``: the candidates the time
+    limit left unrefitted (in the family with p = 1, as every examined candidate not refitted;
+    the accepted effect's explanation says it was the best of those refitted)."""
     # an unconverged refit enters the Holm family with p = 1 — unless it stopped at its limit
     # with a positive-definite Hessian (stopped_short): its Λ is then a lower bound and its p
     # an upper bound; so do the candidates examined (screened) but not refitted
@@ -2016,6 +2065,8 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
               "n_refitted": len(trials),
               "trials": [t.to_json() for t in final_trials], "screen": table,
               "projected_refits": projected}
+    if not_refitted:
+        record["not_refitted"] = list(not_refitted)
     if good and not refit_converged(current.fit):
         # an unconverged base ELBO is below its optimum: Λ would be inflated by the
         # refit merely finishing the base fit (a false positive), so nothing is accepted
@@ -2047,6 +2098,14 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         best = dataclasses.replace(best, candidate=dataclasses.replace(
             c, explanation=c.explanation + note,
             info={**(c.info or {}), "stopped_short_nats": short}))
+    if not_refitted:
+        c = best.candidate
+        note = (f" Decided under the time limit on the {len(trials)} candidates refitted: "
+                f"{', '.join(not_refitted)} were not refitted and count as not "
+                "significant; rerun with a longer --time-limit to compare them with it.")
+        best = dataclasses.replace(best, candidate=dataclasses.replace(
+            c, explanation=c.explanation + note,
+            info={**(c.info or {}), "not_refitted": list(not_refitted)}))
     return RoundDecision(record, dataclasses.replace(best, alternatives=alternatives))
 
 
