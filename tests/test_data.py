@@ -156,6 +156,24 @@ def test_non_numeric_cell(tmp_path):
     assert "'abc'" in str(err) and "sample 7" in str(err)
 
 
+def test_units_row_under_the_header_is_named_as_such(tmp_path):
+    """Spreadsheet exports and loggers write a units row under the header: it is named as a
+    units row (by the loader and by ``vsidgen check``), not as one odd cell."""
+    from vsidgen.data.check import read_first_row
+
+    rows = [["s", "rad", "rad", "rad/s"]] + _good_rows()
+    err = _err(tmp_path, rows)
+    assert err.sample == 0 and "units or description row" in str(err)
+    assert "'s', 'rad', 'rad', 'rad/s'" in str(err) and "delete that row" in str(err)
+    with pytest.raises(DataError, match="units or description row"):
+        read_first_row(tmp_path / "rec.csv")
+    # a first row with one bad cell among numbers is still that cell's error
+    rows = _good_rows()
+    rows[0][2] = "abc"
+    err = _err(tmp_path, rows)
+    assert err.column == "alpha_rad" and "units or description" not in str(err)
+
+
 @pytest.mark.parametrize("cell, fragment", [
     ("1_5", "no digit separators"),                      # float() would read 15
     ("\u0661.\u0665", "U+0661 ARABIC-INDIC DIGIT ONE"),    # float() would read 1.5

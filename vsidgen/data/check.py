@@ -16,7 +16,8 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .records import cell_hint, cell_value, hash_header, load_record, refuse_other_delimiter
+from .records import (cell_hint, cell_value, hash_header, load_record, refuse_other_delimiter,
+                      refuse_units_row)
 from ..errors import DataError, Location, SpecError, SpecWarning
 from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
@@ -64,6 +65,7 @@ def read_first_row(csv_path) -> dict[str, float]:
     if len(row) != len(header):
         raise DataError(f"first data row has {len(row)} fields but the header has {len(header)}",
                         path=csv_path, sample=0)
+    refuse_units_row(row, header, csv_path)
     out = {}
     for h, cell in zip(header, row):
         if not cell.strip():

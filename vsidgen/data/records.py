@@ -214,6 +214,27 @@ def cell_hint(text: str) -> str:
     return "use plain decimal numbers, an empty cell or 'nan' for a missing output sample"
 
 
+def refuse_units_row(row, header, path) -> None:
+    """A DataError when the first data row has no number at all (a units or description row
+    under the header, as spreadsheet exports and logging software write): named as such, with
+    what to do, rather than as the first cell that is not a number."""
+    cells = [c.strip() for c in row if c.strip()]
+    if not cells:
+        return
+    for c in cells:
+        try:
+            cell_value(c)
+            return
+        except ValueError:
+            pass
+    shown = ", ".join(repr(c[:12]) for c in cells[:4]) + (", ..." if len(cells) > 4 else "")
+    raise DataError(f"the first row below the header holds no number ({shown}): a units or "
+                    "description row?", path=path, column=header[0] if header else None,
+                    sample=0,
+                    hint="delete that row (file line 2); put units in the column names "
+                         "(alpha_rad) or convert them in the spec's data map (unit:, scale:)")
+
+
 def _parse_cell(text: str, path, column: str, sample: int) -> float:
     try:
         return cell_value(text)
@@ -279,6 +300,8 @@ def _slow_parse(path: pathlib.Path, header: list[str], idx: list[int]) -> np.nda
                     hint=f"file line {sample + 2} has extra values: a decimal comma, or a comma "
                          "inside a value that is not quoted? (vsidgen reads comma-separated files "
                          "with a decimal point)")
+            if sample == 0:
+                refuse_units_row(row, header, path)
             rows.append([_parse_cell(row[j], path, header[j], sample) for j in idx])
             sample += 1
     return np.asarray(rows, dtype=np.float64).reshape(len(rows), len(idx))
