@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax.numpy as jnp
@@ -218,3 +219,58 @@ def test_validation_elbo_per_sample_below_a_model_without_dynamics_is_flagged():
     assert iid_gaussian_loglik(y * 1000.0) == pytest.approx(base + shift)
     assert validation_elbo_warning(7375.0 + shift * 626 / 500, 626, base + 50.0 + shift, [y * 1000.0]) is None
     assert validation_elbo_warning(7375.0, 626, base - 1.0, [y]) is not None
+
+
+def test_predictive_loglik_is_the_exact_likelihood_of_a_linear_model():
+    """Σ_k ℓ_k of the steady-state filter equals log p(y_0..y_N) of the linear Gaussian model
+    with x_0 ~ N(μ_0, P) at the filter's steady-state P: the reference is the joint Gaussian of
+    all outputs, built by hand (state covariances propagated, outputs stacked) and evaluated by
+    scipy.stats.multivariate_normal; no filter involved."""
+    from scipy import stats
+
+    from vsidgen.evaluation import predictive_loglik
+
+    res = _sim(process_std={"alpha": 0.05, "q": 0.3},
+               measurement_std={"alpha": 1e-3, "q": 4e-3, "nz": 0.05}, seed=5)
+    n = 60
+    rec = Record(name="syn", path=None, t=res.t[:n], dt=T, u=res.u[:n], y=res.y[:n],
+                 input_names=("de",), output_names=("alpha", "q", "nz"), t_raw=res.t[:n])
+    mu = res.x[:n]
+    sig = evaluate(_model(), rec, THETA, mu=mu, G=G, R=RM)
+    ll = predictive_loglik(sig)
+    assert ll.shape == (n,) and np.isfinite(ll).all()
+    # the hand-built joint Gaussian
+    Ad, Bd, Q = np.eye(2) + T * A, T * B, T * G @ G.T
+    P = np.eye(2)
+    for _ in range(100_000):                      # Riccati recursion to its fixed point
+        S = C @ P @ C.T + RM
+        Pn = Ad @ P @ Ad.T - Ad @ P @ C.T @ np.linalg.solve(S, C @ P @ Ad.T) + Q
+        if np.max(np.abs(Pn - P)) < 1e-18:
+            P = Pn
+            break
+        P = Pn
+    m, covs = [mu[0]], [P]
+    for k in range(n - 1):
+        m.append(Ad @ m[-1] + Bd @ res.u[k])
+        covs.append(Ad @ covs[-1] @ Ad.T + Q)
+    ny = C.shape[0]
+    mean = np.concatenate([C @ m[k] + D @ res.u[k] for k in range(n)])
+    cov = np.zeros((n * ny, n * ny))
+    for i in range(n):
+        for j in range(i + 1):
+            cx = np.linalg.matrix_power(Ad, i - j) @ covs[j]        # Cov(x_i, x_j)
+            block = C @ cx @ C.T + (RM if i == j else 0.0)
+            cov[i * ny:(i + 1) * ny, j * ny:(j + 1) * ny] = block
+            cov[j * ny:(j + 1) * ny, i * ny:(i + 1) * ny] = block.T
+    ref = stats.multivariate_normal(mean, cov).logpdf(res.y[:n].reshape(-1))
+    assert float(ll.sum()) == pytest.approx(ref, rel=1e-9, abs=1e-7)
+    # a sample with nothing measured contributes nothing; one channel missing: its marginal
+    y = res.y[:n].copy()
+    y[10, :] = np.nan
+    y[11, 2] = np.nan
+    sig2 = evaluate(_model(), dataclasses.replace(rec, y=y), THETA, mu=mu, G=G, R=RM)
+    ll2 = predictive_loglik(sig2)
+    assert ll2[10] == 0.0 and np.isfinite(ll2).all()
+    e = (y[11] - sig2.y_pred[11])[:2]
+    S2 = sig2.innovation_cov[:2, :2]
+    assert ll2[11] == pytest.approx(stats.multivariate_normal(np.zeros(2), S2).logpdf(e), rel=1e-12)

@@ -220,6 +220,15 @@ def statistic_text(d: dict) -> str:
     return f"{own:.4g}; {cmp_:.4g} over the current model"
 
 
+def vuong_text(a: dict) -> str:
+    """An alternative's Vuong test against the finding, for text ("" without one)."""
+    v = a.get("vuong")
+    if not v:
+        return ""
+    return (f"; Vuong z = {v['z']:.2g}, p = {v['p_value']:.2g}: one-step predictions "
+            f"{v['loglik_difference']:+.3g} nats over {v['n']} samples")
+
+
 def separating_experiment(effect: str, target: str, other_effect: str, other_target: str) -> str:
     """What data would separate two explanations of one mismatch (plain words, for a finding
     whose alternative the data could not rule out).
@@ -330,7 +339,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                 conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
                                f"{f['key']} (2ΔELBO = {statistic_text(f['evidence'])}) is not "
                                "clearly better than " + ", ".join(
-                                   f"{a['key']} ({statistic_text(a)})" for a in f["alternatives"])
+                                   f"{a['key']} ({statistic_text(a)}{vuong_text(a)})"
+                                   for a in f["alternatives"])
                                + " — the data do not separate these explanations; an engineer "
                                  "must judge the label. What would separate them: "
                                + "; ".join(f"from {a['key']}, {a['separated_by']}"

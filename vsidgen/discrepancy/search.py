@@ -21,8 +21,10 @@ One round:
    free parameters), Holm step-down over the ``m`` candidates *examined* in the
    round (all proposed candidates, since the screen selected the refitted ones from
    them; those not refitted enter with p = 1): the best must reach :math:`p < α/m`.
-   Another significant refit within ``AMBIGUITY_NATS`` of the best (non-nested,
-   same round) is reported as an alternative explanation: the finding is then
+   Another significant refit (non-nested, same round) that Vuong's test on the
+   per-sample one-step predictive log-likelihoods does not separate from the best
+   (:func:`alternatives_of`, :mod:`.vuong`; within ``AMBIGUITY_NATS`` where the test is
+   unavailable) is reported as an alternative explanation: the finding is then
    marked ambiguous. The ELBO is a lower bound of
    the log-likelihood; both fits maximise it over the same assumed-density family,
    so Λ is an approximation of the likelihood ratio, not an exact one. Before the
@@ -76,9 +78,10 @@ from .fitstate import (FitState, conv_label, diag_options, evaluated, fit_stage2
 from .specwrite import clip_to_bounds, extends_text, safe_name, warm_parameters, write_spec
 
 
-#: a refit whose Λ is within 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the
-#: two explanations below e³ ≈ 20, "not strong" on the Kass–Raftery scale) is reported as an
-#: alternative explanation and the finding is marked ambiguous
+#: where Vuong's test is unavailable (:func:`alternatives_of`), a refit whose Λ is within
+#: 2·AMBIGUITY_NATS of the accepted one (likelihood ratio of the two explanations below e³ ≈ 20,
+#: "not strong" on the Kass–Raftery scale) is reported as an alternative explanation and the
+#: finding is marked ambiguous
 AMBIGUITY_NATS = 3.0
 
 
@@ -103,6 +106,7 @@ class Trial:
     screen: Any = None               # ScoreResult of the pre-screen (None: not screenable)
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
     verdict: Any = None              # refit.RefitVerdict (None: no refit)
+    vuong: Any = None                # as an alternative: .vuong.VuongResult of the best against it
 
     @property
     def comparison(self) -> float:
@@ -157,7 +161,8 @@ class Trial:
                 "statistic_vs_current": _f(self.comparison),
                 "dof": self.dof, "p_value": _f(self.p_value), "threshold": _f(self.threshold),
                 "elbo": None if self.state is None else _f(self.state.elbo),
-                "parameters": params, "spec": str(self.spec_path)}
+                "parameters": params, "spec": str(self.spec_path),
+                "vuong": None if self.vuong is None else self.vuong.to_json()}
 
 
 #: the top-level names a diagnose run writes into its results directory
@@ -664,15 +669,51 @@ def continued_trial(t: Trial, st: FitState, current: FitState, iterations: int) 
                                verdict=trial_verdict(t.candidate, st, lam))
 
 
+def trial_loglik(t: Trial) -> list | None:
+    """Per-record, per-sample one-step predictive log-likelihoods of a trial's refit
+    (:func:`vsidgen.evaluation.predictive_loglik`); None when a record has no steady-state
+    filter or the trial no refit."""
+    from ..evaluation import predictive_loglik
+
+    signals = getattr(getattr(t, "state", None), "signals", None)
+    if not signals:
+        return None
+    lls = [predictive_loglik(sig) for sig in signals]
+    return None if any(ll is None for ll in lls) else lls
+
+
+def vuong_of(best: Trial, other: Trial):
+    """Vuong's test (:mod:`.vuong`) of ``best`` against ``other`` on the records (both extend
+    the current model, so their parameter counts differ by their new free parameters); None
+    when either has no predictive log-likelihood."""
+    from .vuong import vuong_test
+
+    a, b = trial_loglik(best), trial_loglik(other)
+    if a is None or b is None or len(a) != len(b):
+        return None
+    return vuong_test(a, b, p1=best.dof, p2=other.dof)
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
-    """Accepted-quality refits (significant, converged, validated) of the same round whose
-    comparison statistic (:attr:`Trial.comparison`) is within
-    ``2·nats`` of the best one's: explanations the data do not separate from it. Candidates
-    of one round each extend the current model by different terms, so none nests another;
-    their ELBOs are compared over the current model."""
-    return tuple(sorted((t for t in good if t is not best
-                         and t.comparison >= best.comparison - 2.0 * nats),
-                        key=lambda t: -t.comparison))
+    """Accepted-quality refits (significant, converged, validated) of the same round that the
+    records do not separate from the best: Vuong's test of non-nested models (:mod:`.vuong`,
+    on the per-sample one-step predictive log-likelihoods) does not favour the best at
+    :data:`.vuong.VUONG_ALPHA` — a z that favours the other one counts as not separated too,
+    the ELBO and the predictions then disagree. Candidates of one round each extend the
+    current model by different terms, so none nests another and the likelihood ratio has no
+    χ² reference. Where the test is unavailable (a record without a steady-state filter),
+    a comparison statistic (:attr:`Trial.comparison`) within ``2·nats`` of the best one's.
+    Each alternative carries its test (:attr:`Trial.vuong`)."""
+    out = []
+    for t in good:
+        if t is best:
+            continue
+        v = vuong_of(best, t)
+        close = (not (v.z > 0.0 and v.separated()) if v is not None
+                 else t.comparison >= best.comparison - 2.0 * nats)
+        if close:
+            out.append(t if v is None else dataclasses.replace(t, vuong=v))
+    return tuple(sorted(out, key=lambda t: -t.comparison))
 
 
 class ScreenTier(enum.Enum):

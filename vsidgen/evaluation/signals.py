@@ -77,6 +77,9 @@ class Signals:
         output_names, state_names: channel names in column order.
         warnings: human-readable messages (e.g. Riccati fallback).
         gain: (nx, ny) steady-state Kalman gain K (None after a fallback).
+        innovation_cov: (ny, ny) covariance ``S = H P Hᵀ + R`` of the predictor's
+            innovations ``y_k − ŷ_k`` (``R`` when ``K = 0``; None after a fallback), for
+            :func:`predictive_loglik`.
     """
 
     record: str
@@ -93,6 +96,7 @@ class Signals:
     state_names: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     gain: np.ndarray | None = None
+    innovation_cov: np.ndarray | None = None
 
 
 def fit_metrics(measured, predicted) -> dict:
@@ -125,7 +129,14 @@ def fit_metrics(measured, predicted) -> dict:
 
 
 def steady_state_gain(A, H, Q, R) -> np.ndarray:
-    """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹``.
+    """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹``
+    (:func:`steady_state_filter`'s gain)."""
+    return steady_state_filter(A, H, Q, R)[0]
+
+
+def steady_state_filter(A, H, Q, R) -> tuple[np.ndarray, np.ndarray]:
+    """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹`` and
+    innovation covariance ``S = H P Hᵀ + R``.
 
     ``P`` is the stabilising solution of the filter DARE (module docstring);
     the predictor ``A (I − K H)`` must have spectral radius <= 1 (else the
@@ -145,7 +156,36 @@ def steady_state_gain(A, H, Q, R) -> np.ndarray:
         raise np.linalg.LinAlgError(
             f"the filter is unstable (spectral radius {rho:.6g} of A(I - KH)): "
             "an unstable mode is not seen by the outputs (undetectable)")
-    return K
+    return K, S
+
+
+def predictive_loglik(signals: Signals) -> np.ndarray | None:
+    r"""Per-sample log-likelihood of the one-step predictions (signal 3), (N,):
+
+    .. math:: ℓ_k = −½ (\log\det(2π S_{oo}) + e_oᵀ S_{oo}^{-1} e_o),\quad e = y_k − ŷ_k,
+
+    over the outputs ``o`` measured at sample k (S's rows and columns of the missing ones
+    removed: the marginal of the Gaussian; ℓ_k = 0 when none is). For a linear model this is
+    the exact log-likelihood decomposition of the record, ``Σ_k ℓ_k = log p(y_{0:N})``, once the
+    filter has reached its steady state. None when the filter is unavailable (no
+    stabilising Riccati solution)."""
+    S = signals.innovation_cov
+    if S is None:
+        return None
+    e = np.asarray(signals.y_meas, dtype=np.float64) - np.asarray(signals.y_pred, dtype=np.float64)
+    seen = np.isfinite(e)
+    out = np.zeros(e.shape[0])
+    for mask in {tuple(m) for m in seen}:
+        m = np.asarray(mask, dtype=bool)
+        rows = np.flatnonzero((seen == m).all(axis=1))
+        if not m.any():
+            continue
+        c, low = scipy.linalg.cho_factor(S[np.ix_(m, m)], lower=True)
+        eo = e[np.ix_(rows, np.flatnonzero(m))]
+        quad = np.einsum("ij,ij->i", eo, scipy.linalg.cho_solve((c, low), eo.T).T)
+        logdet = 2.0 * float(np.sum(np.log(np.diag(c))))
+        out[rows] = -0.5 * (quad + logdet + m.sum() * math.log(2.0 * math.pi))
+    return out
 
 
 def _matrix(a, shape0, name, square=False) -> np.ndarray:
@@ -262,12 +302,12 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     x0, u0, v0 = mu_j[0], u_j[0], v_j[0]
     A, H = (np.asarray(a) for a in linearised(x0, u0, v0, p, Tj))
     Q = T * G @ G.T
-    K = None
+    K = S = None
     try:
-        K = steady_state_gain(A, H, Q, R)
+        K, S = steady_state_filter(A, H, Q, R)
     except (np.linalg.LinAlgError, ValueError) as exc:
         if not Q.any() and np.max(np.abs(np.linalg.eigvals(A))) < 1.0:
-            K = np.zeros((model.nx, model.ny))
+            K, S = np.zeros((model.nx, model.ny)), R.copy()
         else:
             warnings.append("steady-state Kalman filter unavailable (Riccati equation has no "
                             f"stabilising solution: {exc}); prediction signal = free simulation")
@@ -285,7 +325,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     return Signals(record=record.name, t=np.asarray(record.t), y_meas=y, y_smooth=y_smooth,
                    y_sim=y_sim, y_pred=y_pred, x_smooth=mu, xdot_fd=xdot_fd, f_smooth=f_smooth,
                    metrics=metrics, output_names=model.output_names, state_names=model.state_names,
-                   warnings=tuple(warnings), gain=K)
+                   warnings=tuple(warnings), gain=K, innovation_cov=S)
 
 
 def iid_gaussian_loglik(y) -> float:
