@@ -274,3 +274,15 @@ def test_predictive_loglik_is_the_exact_likelihood_of_a_linear_model():
     e = (y[11] - sig2.y_pred[11])[:2]
     S2 = sig2.innovation_cov[:2, :2]
     assert ll2[11] == pytest.approx(stats.multivariate_normal(np.zeros(2), S2).logpdf(e), rel=1e-12)
+
+
+def test_predictive_loglik_without_a_usable_innovation_covariance_is_none():
+    from vsidgen.evaluation import predictive_loglik
+
+    sig = _signals_with(np.zeros(5), smoother=np.zeros(5), simulation=np.zeros(5),
+                        prediction=np.zeros(5))
+    assert predictive_loglik(sig) is None                       # no filter
+    bad = dataclasses.replace(sig, innovation_cov=np.array([[-1.0]]))
+    assert predictive_loglik(bad) is None                       # not positive definite
+    ok = dataclasses.replace(sig, innovation_cov=np.array([[4.0]]))
+    np.testing.assert_allclose(predictive_loglik(ok), -0.5 * math.log(2 * math.pi * 4.0))

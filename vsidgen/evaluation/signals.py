@@ -168,7 +168,7 @@ def predictive_loglik(signals: Signals) -> np.ndarray | None:
     removed: the marginal of the Gaussian; ℓ_k = 0 when none is). For a linear model this is
     the exact log-likelihood decomposition of the record, ``Σ_k ℓ_k = log p(y_{0:N})``, once the
     filter has reached its steady state. None when the filter is unavailable (no
-    stabilising Riccati solution)."""
+    stabilising Riccati solution) or ``S`` is not positive definite."""
     S = signals.innovation_cov
     if S is None:
         return None
@@ -180,7 +180,10 @@ def predictive_loglik(signals: Signals) -> np.ndarray | None:
         rows = np.flatnonzero((seen == m).all(axis=1))
         if not m.any():
             continue
-        c, low = scipy.linalg.cho_factor(S[np.ix_(m, m)], lower=True)
+        try:
+            c, low = scipy.linalg.cho_factor(S[np.ix_(m, m)], lower=True)
+        except (np.linalg.LinAlgError, ValueError):
+            return None              # S not positive definite (or not finite)
         eo = e[np.ix_(rows, np.flatnonzero(m))]
         quad = np.einsum("ij,ij->i", eo, scipy.linalg.cho_solve((c, low), eo.T).T)
         logdet = 2.0 * float(np.sum(np.log(np.diag(c))))
