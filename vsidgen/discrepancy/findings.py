@@ -880,8 +880,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                      f"Holm)</p>")
         if f.get("alternatives"):
             parts.append("<p><b>" + ("Ambiguous" if f.get("ambiguous") else "Form uncertain")
-                         + ":</b> nearly as good: " + e(", ".join(
-                             f"{a['key']} (2ΔELBO = {statistic_text(a)})"
+                         + ":</b> not separated by the records: " + e(", ".join(
+                             f"{a['key']} (2ΔELBO = {statistic_text(a)}{vuong_text(a)})"
                              for a in f["alternatives"])) + "</p>")
             seps = [a for a in f["alternatives"] if a.get("separated_by")]
             if seps:
