@@ -41,6 +41,12 @@ One round:
 6. the most significant accepted candidate becomes the new base; repeat until no
    candidate is significant or ``max_rounds`` is reached.
 
+Under ``time_limit`` each round keeps the current model's own fit time for its decision: its
+refits run in rank order until ``limit − that time`` (:func:`round_refit_deadline`; the refit in
+progress then stops, :func:`.fitstate.refit_deadline`), and a round cut there is decided on the
+candidates it refitted — the others enter the Holm family with p = 1, only the lead's projected
+refit runs — after which the search stops (:func:`_run_round`).
+
 Empty findings are a result: the findings file then says that no significant
 discrepancy was found.
 """
