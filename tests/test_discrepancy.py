@@ -485,7 +485,7 @@ def test_ambiguity_alternatives_and_benchmark_outcome():
 
     def trial(key, stat):
         return types.SimpleNamespace(candidate=types.SimpleNamespace(key=key), statistic=stat,
-                                     comparison=stat)
+                                     comparison=stat, state=None)
 
     best = trial("time_skew:alpha", 507.0)
     near = trial("sensor_position:alpha:q", 507.0 - 2 * AMBIGUITY_NATS + 0.5)
@@ -882,7 +882,7 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
                                      states=("z",) if states else (), info={"filter": filt},
                                      parameters=())
         lam = 2.0 * (elbo - ref)
-        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None,
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, signals=(),
                                    fit=types.SimpleNamespace(converged=True, status="converged"))
         return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)),
@@ -967,7 +967,7 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
                          explanation="A bias.")
         fit = types.SimpleNamespace(converged=converged, stop_reason=reason, status="stopped",
                                     newton_decrement=dec)
-        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, fit=fit)
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, fit=fit, signals=())
         lam = 2.0 * (elbo - current.elbo)
         return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)), refit=types.SimpleNamespace(

@@ -48,7 +48,7 @@ def test_round_accepts_the_stronger_of_two_candidates_beyond_the_underflow():
     def trial(key, lam, grid=()):
         c = Candidate(effect=key.split(":")[0], key=key, target="input:de",
                       explanation="", info={"profile_result": {"grid_s": list(grid)}})
-        st = types.SimpleNamespace(fit=fit, vfit=None, elbo=lam / 2, val_elbo=None)
+        st = types.SimpleNamespace(fit=fit, vfit=None, elbo=lam / 2, val_elbo=None, signals=())
         return Trial(c, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)), converged=True, statistic_vs_base=lam,
                      verdict=RefitVerdict.ORDINARY)

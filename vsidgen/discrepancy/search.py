@@ -681,23 +681,10 @@ def trial_loglik(t: Trial) -> list | None:
     filter or the trial no refit."""
     from ..evaluation import predictive_loglik
 
-    signals = getattr(getattr(t, "state", None), "signals", None)
-    if not signals:
+    if t.state is None or not t.state.signals:
         return None
-    lls = [predictive_loglik(sig) for sig in signals]
+    lls = [predictive_loglik(sig) for sig in t.state.signals]
     return None if any(ll is None for ll in lls) else lls
-
-
-def vuong_of(best: Trial, other: Trial):
-    """Vuong's test (:mod:`.vuong`) of ``best`` against ``other`` on the records (both extend
-    the current model, so their parameter counts differ by their new free parameters); None
-    when either has no predictive log-likelihood."""
-    from .vuong import vuong_test
-
-    a, b = trial_loglik(best), trial_loglik(other)
-    if a is None or b is None or len(a) != len(b):
-        return None
-    return vuong_test(a, b, p1=best.dof, p2=other.dof)
 
 
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
@@ -709,12 +696,17 @@ def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_
     current model by different terms, so none nests another and the likelihood ratio has no
     χ² reference. Where the test is unavailable (a record without a steady-state filter),
     a comparison statistic (:attr:`Trial.comparison`) within ``2·nats`` of the best one's.
-    Each alternative carries its test (:attr:`Trial.vuong`)."""
+    Each alternative carries its test (:attr:`Trial.vuong`; both extend the current model, so
+    their parameter counts differ by their new free parameters)."""
+    from .vuong import vuong_test
+
+    ll_best = trial_loglik(best)
     out = []
     for t in good:
         if t is best:
             continue
-        v = vuong_of(best, t)
+        ll = None if ll_best is None else trial_loglik(t)
+        v = None if ll is None else vuong_test(ll_best, ll, p1=best.dof, p2=t.dof)
         close = (not (v.z > 0.0 and v.separated()) if v is not None
                  else t.comparison >= best.comparison - 2.0 * nats)
         if close:
@@ -1644,7 +1636,10 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
             return
         done = run.engine.run(_round_task, batch, deadline=plan.deadline, on_done=on_done)
         for o in (o for t in done for o in plan.outcomes(t)):
-            (cut.append(o.key) if o.status is TaskStatus.CANCELLED else outcomes.append(o))
+            if o.status is TaskStatus.CANCELLED:
+                cut.append(o.key)
+            else:
+                outcomes.append(o)
 
     for i in plan.profiled:
         refit([task for task in remaining if plan.task_rank(task[0]) < i])
@@ -1728,8 +1723,9 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         or not t.converged or not (t.p_value < run.alpha))]
     if lead_only:
         eligible = sorted(eligible, key=lambda t: -t.statistic)[:1]
+    chosen = {id(t) for t in eligible}
     for i, t in enumerate(trials):
-        if not any(t is e for e in eligible):
+        if id(t) not in chosen:
             continue
         ppath = (run.out / "candidates"
                  / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")

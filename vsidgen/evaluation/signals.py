@@ -128,12 +128,6 @@ def fit_metrics(measured, predicted) -> dict:
     return {"rms": rms, "theil": theil, "r2": r2, "fit_percent": fit_percent, "n": n}
 
 
-def steady_state_gain(A, H, Q, R) -> np.ndarray:
-    """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹``
-    (:func:`steady_state_filter`'s gain)."""
-    return steady_state_filter(A, H, Q, R)[0]
-
-
 def steady_state_filter(A, H, Q, R) -> tuple[np.ndarray, np.ndarray]:
     """Steady-state (predictor-form covariance) Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹`` and
     innovation covariance ``S = H P Hᵀ + R``.
@@ -173,13 +167,12 @@ def predictive_loglik(signals: Signals) -> np.ndarray | None:
     if S is None:
         return None
     e = np.asarray(signals.y_meas, dtype=np.float64) - np.asarray(signals.y_pred, dtype=np.float64)
-    seen = np.isfinite(e)
+    masks, group = np.unique(np.isfinite(e), axis=0, return_inverse=True)
     out = np.zeros(e.shape[0])
-    for mask in {tuple(m) for m in seen}:
-        m = np.asarray(mask, dtype=bool)
-        rows = np.flatnonzero((seen == m).all(axis=1))
+    for g, m in enumerate(masks):
         if not m.any():
             continue
+        rows = np.flatnonzero(group.ravel() == g)
         try:
             c, low = scipy.linalg.cho_factor(S[np.ix_(m, m)], lower=True)
         except (np.linalg.LinAlgError, ValueError):
@@ -455,5 +448,6 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
     return out
 
 
-__all__ = ["OUTPUT_SIGNALS", "Signals", "evaluate", "fit_metrics", "iid_gaussian_loglik", "steady_state_gain",
+__all__ = ["OUTPUT_SIGNALS", "Signals", "evaluate", "fit_metrics", "iid_gaussian_loglik", "predictive_loglik",
+           "steady_state_filter",
            "unexplained_outputs", "validation_elbo_warning"]
