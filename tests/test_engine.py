@@ -207,3 +207,34 @@ def test_default_workers_one_per_two_usable_cores(monkeypatch, cores, workers):
     assert engine.usable_cores() == cores
     assert engine.default_workers() == workers
     assert Engine().workers == workers and Engine().serial == (workers == 1)
+
+
+CLOSE_SCRIPT = """
+from vsidgen.engine import Engine
+
+def task(x):
+    import vsidgen.precision  # noqa: F401  (wraps the worker's gc callbacks, dask's too)
+    return x * 2
+
+if __name__ == "__main__":
+    with Engine(workers=2) as e:
+        print([o.value for o in e.run(task, [("a", (1,)), ("b", (2,))])])
+"""
+
+
+def test_workers_close_without_tracebacks(tmp_path):
+    """Local workers that imported vsidgen close cleanly: dask removes its gc callback when a
+    worker closes, and vsidgen's interrupt guard (:mod:`vsidgen.interrupts`) had wrapped it,
+    so every closing worker printed ``ValueError: list.remove(x): x not in list`` with a
+    traceback into the user's diagnose output."""
+    import subprocess
+
+    script = tmp_path / "close.py"
+    script.write_text(CLOSE_SCRIPT)
+    root = pathlib.Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                       timeout=300, env=env, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert "[2, 4]" in p.stdout
+    assert "Traceback" not in p.stderr and "not in list" not in p.stderr, p.stderr[-2000:]

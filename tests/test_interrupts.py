@@ -64,3 +64,28 @@ def test_an_interrupt_swallowed_by_a_gc_callback_is_delivered_again(tmp_path, mo
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip().splitlines()[-1] == expected, (proc.stdout, proc.stderr)
+
+
+def test_a_library_removes_its_own_callback_after_the_guard():
+    """dask's workers remove their gc callback when they close
+    (``gc.callbacks.remove(self._gc_callback)``); after the guard wrapped it, the removal
+    must still find it (it raised ``ValueError: list.remove(x): x not in list`` and printed
+    a traceback from every closing worker)."""
+    from vsidgen.interrupts import guard_gc_callbacks
+
+    def library_callback(phase, info):
+        pass
+
+    gc.callbacks.append(library_callback)
+    try:
+        guard_gc_callbacks()
+        assert library_callback in gc.callbacks
+        assert any(getattr(cb, "vsidgen_guarded", None) is library_callback
+                   for cb in gc.callbacks)
+        gc.callbacks.remove(library_callback)
+        assert library_callback not in gc.callbacks
+        assert not any(getattr(cb, "vsidgen_guarded", None) is library_callback
+                       for cb in gc.callbacks)
+    finally:
+        gc.callbacks[:] = [cb for cb in gc.callbacks
+                           if getattr(cb, "vsidgen_guarded", cb) is not library_callback]

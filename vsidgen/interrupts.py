@@ -7,6 +7,10 @@ Python prints "Exception ignored in gc callback" and the computation goes on (ob
 once in seven interrupts of a fit). :func:`guard_gc_callbacks` wraps every registered
 callback so that an interrupt caught there is delivered again to the main thread a moment
 later, outside the callback, where it propagates as usual.
+
+A wrapped callback compares equal to (and hashes as) the callback it wraps, so a library
+that later removes its own callback (``gc.callbacks.remove(cb)``: dask's workers do when
+they close) still finds it.
 """
 
 from __future__ import annotations
@@ -19,15 +23,33 @@ import threading
 REDELIVERY_DELAY_S = 0.02
 
 
-def _guarded(callback):
-    def guarded(phase, info):
+class _Guarded:
+    """``callback`` with a ``KeyboardInterrupt`` raised in it delivered again later; equal to
+    ``callback`` (``list.remove`` and ``in`` on ``gc.callbacks`` find it by the original)."""
+
+    __slots__ = ("vsidgen_guarded",)
+
+    def __init__(self, callback):
+        self.vsidgen_guarded = callback
+
+    def __call__(self, phase, info):
         try:
-            callback(phase, info)
+            self.vsidgen_guarded(phase, info)
         except KeyboardInterrupt:
             threading.Timer(REDELIVERY_DELAY_S, _thread.interrupt_main).start()
 
-    guarded.vsidgen_guarded = callback
-    return guarded
+    def __eq__(self, other):
+        return other is self or other == self.vsidgen_guarded
+
+    def __hash__(self):
+        return hash(self.vsidgen_guarded)
+
+    def __repr__(self):
+        return f"guarded({self.vsidgen_guarded!r})"
+
+
+def _guarded(callback):
+    return _Guarded(callback)
 
 
 def guard_gc_callbacks() -> None:
