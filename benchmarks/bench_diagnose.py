@@ -94,11 +94,15 @@ def xla_defaults_dir(work: pathlib.Path) -> pathlib.Path:
 
 
 def run_one(spec, data, out, workers, extra, cache, *, gated: bool, log: pathlib.Path,
-            pre_path: pathlib.Path | None = None) -> dict:
+            pre_path: pathlib.Path | None = None, cores: str | None = None,
+            platform: str | None = None) -> dict:
     path = [str(pre_path)] if pre_path else []
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(path + [str(ROOT), os.environ.get("PYTHONPATH", "")]),
                VSIDGEN_CACHE_DIR=cache)
-    cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(spec), *map(str, data),
+    if platform:
+        env["JAX_PLATFORMS"] = platform
+    cmd = ["taskset", "-c", cores] if cores else []
+    cmd += [sys.executable, "-m", "vsidgen.cli", "diagnose", str(spec), *map(str, data),
            "--out", str(out), "--workers", str(workers), "--overwrite", *extra]
     if not gated:
         cmd.append("--per-candidate-models")
@@ -128,6 +132,7 @@ def run_one(spec, data, out, workers, extra, cache, *, gated: bool, log: pathlib
     comp = doc.get("compile_s") or {}
     compile_s = (comp.get("this_process") or 0.0) + (comp.get("refits") or 0.0 if workers > 1 else 0.0)
     return {"path": "gated" if gated else "per-candidate", "phases": phases,
+            "cores": cores or "all", "platform": platform or "default",
             "load": (load0, load1), "workers": workers, "wall_s": wall, "rounds": len(doc["rounds"]),
             "candidates": sum(r.get("n_candidates") or r.get("n_examined") or 0
                               for r in doc["rounds"]),
@@ -149,6 +154,24 @@ def same(a: dict, b: dict) -> bool:
     return True
 
 
+def side_by_side(configs, spec, data, work, extra, *, shared_cache: bool) -> list[dict]:
+    """Run the gated diagnose once per ``WORKERS:CORES:PLATFORM`` configuration, all at the
+    same time (threads waiting on pinned child processes); rows in the order given."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(cfg: str) -> dict:
+        w, cores, platform = cfg.split(":")
+        tag = f"w{w}_c{cores.replace(',', '_')}_{platform}"
+        cache = str(work / ("cache" if shared_cache else f"cache_{tag}"))
+        r = run_one(spec, data, work / tag, int(w), extra, cache, gated=True,
+                    log=work / f"{tag}.log", cores=cores, platform=platform)
+        print(f"# {tag}: {r['wall_s']:.1f} s", file=sys.stderr, flush=True)
+        return r
+
+    with ThreadPoolExecutor(len(configs)) as ex:
+        return list(ex.map(one, configs))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", nargs="+", type=int, default=[1, 2])
@@ -161,6 +184,10 @@ def main(argv=None) -> int:
                     help="one persistent compilation cache for all configurations")
     ap.add_argument("--xla-defaults", action="store_true",
                     help="compile with XLA's default options instead of vsidgen's CPU_COMPILER_OPTIONS")
+    ap.add_argument("--side-by-side", nargs="+", default=None, metavar="WORKERS:CORES:PLATFORM",
+                    help="run these configurations at the same time instead of one after the "
+                         "other, each pinned to its cores (taskset) with JAX_PLATFORMS=PLATFORM "
+                         "(e.g. 1:0-3:cuda 1:4-7:cpu 2:8-9:cpu); gated path only")
     ap.add_argument("diagnose_args", nargs=argparse.REMAINDER,
                     help="after --: extra diagnose options, e.g. -- --max-rounds 1")
     a = ap.parse_args(argv)
@@ -176,7 +203,9 @@ def main(argv=None) -> int:
         spec, data, case = pathlib.Path(a.spec), [pathlib.Path(d) for d in a.data], pathlib.Path(a.spec).stem
     extra = [x for x in a.diagnose_args if x != "--"]
     rows = []
-    for w in a.workers:
+    if a.side_by_side:
+        rows = side_by_side(a.side_by_side, spec, data, work, extra, shared_cache=a.shared_cache)
+    for w in ([] if a.side_by_side else a.workers):
         for path in a.paths:
             tag = f"{path}_w{w}" + ("_xla_defaults" if a.xla_defaults else "")
             cache = str(work / ("cache" if a.shared_cache else f"cache_{tag}"))
@@ -188,13 +217,14 @@ def main(argv=None) -> int:
     ref = rows[0]
     print(f"case: {case}; diagnose options: {' '.join(extra) or '(CLI defaults)'}; "
           f"{os.cpu_count()} CPUs; compiler options: {'XLA defaults' if a.xla_defaults else 'vsidgen'}")
-    print("| path | workers | rounds | candidates | refits | compile (s) | wall (s) | "
+    print("| path | workers | cores | platform | rounds | candidates | refits | compile (s) | wall (s) | "
           "base fit + locate / numerics / rounds (s) | load before → after | findings | "
           "same findings as 1st row |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         ph = " / ".join(f"{r['phases'][n]:.0f}" if n in r["phases"] else "–" for n, _ in PHASES)
-        print(f"| {r['path']} | {r['workers']} | {r['rounds']} | {r['candidates']} | "
+        print(f"| {r['path']} | {r['workers']} | {r['cores']} | {r['platform']} | "
+              f"{r['rounds']} | {r['candidates']} | "
               f"{r['refits']} | {r['compile_s']:.0f} | {r['wall_s']:.0f} | {ph} | "
               f"{r['load'][0]:.1f} → {r['load'][1]:.1f} | "
               f"{', '.join(r['findings']) or 'none'}{'' if r['stop'] == 'completed' else ' (' + r['stop'] + ')'} | "
