@@ -521,7 +521,38 @@ def load_record(model, path, *, name: str | None = None) -> Record:
                         "the record is empty", path=path,
                         hint="the file must hold at least "
                              f"{MIN_SAMPLES} samples")
-    return _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps)
+    rec = _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out_maps)
+    if fmt is DataFormat.CSV:
+        extra = _constant_warnings(model, path, needed, n)
+        if extra:
+            rec = dataclasses.replace(rec, warnings=rec.warnings + extra)
+    return rec
+
+
+def _constant_warnings(model, path: pathlib.Path, needed: list[str], n: int) -> tuple:
+    """Warnings for constants outside the range of an unmapped column that records the same
+    quantity (:func:`vsidgen.spec.dataunits.constant_range_warnings`). Best effort: a column
+    that does not parse as numbers is skipped (it is not the record's data)."""
+    from ..spec.dataunits import constant_columns, constant_range_warnings
+
+    sym = model if hasattr(model, "drift_expanded") else getattr(model, "symbolic", None)
+    if sym is None or not getattr(sym, "constants", ()):
+        return ()
+    used = set().union(*(e.free_symbols for e in sym.drift_expanded() + sym.observations_expanded()))
+    constants = [c for c in sym.constants if c.symbol in used]   # an unused one is warned of
+    if not constants:
+        return ()
+    header = _read_header(path)
+    matches = constant_columns(constants, header, taken=needed)
+    values = {}
+    for col in sorted({c for cols in matches.values() for c in cols}):
+        try:
+            v = _read_block(path, header, [header.index(col)])[:, 0]
+        except (DataError, ValueError, IndexError):
+            continue
+        if v.shape[0] == n:
+            values[col] = v
+    return constant_range_warnings(constants, values, matches, path=path)
 
 
 def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,

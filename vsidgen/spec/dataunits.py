@@ -42,6 +42,7 @@ class DataWarningCode(enum.Enum):
 
     IMPLAUSIBLE_RANGE = "implausible_range"
     MISSING_SAMPLES = "missing_samples"
+    CONSTANT_OUTSIDE_RECORD = "constant_outside_record"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,6 +150,8 @@ COLUMN_SUFFIX_UNITS: dict[str, str] = {
     "m_s": "m/s", "kt": "knot", "kts": "knot", "knots": "knot", "kn": "knot",
     "mps2": "m/s^2", "m_s2": "m/s^2", "fps2": "ft/s^2", "ftps2": "ft/s^2", "ft_s2": "ft/s^2",
     "g": "g", "n": "N", "kn_force": "kN", "lbf": "lbf", "pa": "Pa", "psf": "lbf/ft^2",
+    "s": "s", "sec": "s", "kg": "kg", "kgpm3": "kg/m^3", "kg_m3": "kg/m^3",
+    "kgm2": "kg*m^2", "kg_m2": "kg*m^2",
 }
 _BRACKETED = re.compile(r"[\[(]\s*([^\])]+?)\s*[\])]\s*$")
 
@@ -229,6 +232,85 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
     return tuple(out)
 
 
+def column_stem(column: str) -> str:
+    """A column's name without the unit its name states (``v_mps`` → ``v``, ``mass_kg`` →
+    ``mass``, ``V (kts)`` → ``V``; :func:`column_suffix_unit`), else the name itself."""
+    name = column.strip()
+    m = _BRACKETED.search(name)
+    if m and column_suffix_unit(name) is not None:
+        return name[:m.start()].strip()
+    parts = name.split("_")
+    low = [x.lower() for x in parts]
+    if len(parts) >= 3 and "_".join(low[-2:]) in COLUMN_SUFFIX_UNITS:
+        return "_".join(parts[:-2])
+    if len(parts) >= 2 and low[-1] in COLUMN_SUFFIX_UNITS:
+        return "_".join(parts[:-1])
+    return name
+
+
+def constant_columns(constants, header, *, taken=()) -> dict[str, list[str]]:
+    """Columns of ``header`` that record the quantity a constant names: the column's name
+    without its unit (:func:`column_stem`) equals the constant's name, case aside (``V`` and
+    ``v_mps``, ``mass`` and ``MASS_KG``). Columns in ``taken`` (the time, the mapped channels)
+    and columns that appear more than once are left out. {constant name: [columns]}."""
+    once = {h for h in header if header.count(h) == 1 and h not in set(taken)}
+    out: dict[str, list[str]] = {}
+    for c in constants:
+        cols = [h for h in header if h in once and column_stem(h).lower() == c.name.lower()]
+        if cols:
+            out[c.name] = cols
+    return out
+
+
+def constant_range_warnings(constants, columns, matches, *, path=None) -> tuple[DataWarning, ...]:
+    """One warning per constant whose value lies outside the recorded range of a column that
+    records the same quantity (``matches``: :func:`constant_columns`; ``columns``: {column:
+    values}).
+
+    A constant that stands for a flight condition (airspeed, mass, density) should lie within
+    what the record measured for it: a constant outside ``[min, max]`` of that column is a
+    trim value from another flight, or a unit slip. The column is converted to the constant's
+    unit where its name states a unit (``v_kts`` for a constant in ``m/s``); a column whose
+    unit has another dimension records something else and is skipped. Scale-free: no
+    tolerance beyond the recorded range itself."""
+    out = []
+    by_name = {c.name: c for c in constants}
+    for name, cols in matches.items():
+        c = by_name[name]
+        for col in cols:
+            v = np.asarray(columns.get(col, ()), dtype=np.float64)
+            v = v[np.isfinite(v)]
+            if v.size == 0:
+                continue
+            named = column_suffix_unit(col)
+            shown = c.unit or ""
+            if named and c.unit:
+                try:
+                    a, b = conversion(named, c.unit)
+                except UnitConversionError:
+                    continue
+                v = a * v + b
+            elif named and not c.unit:
+                shown = named
+            lo, hi, mean = float(v.min()), float(v.max()), float(v.mean())
+            if lo <= c.value <= hi:
+                continue
+            unit = f" {shown}" if shown else ""
+            conv = f" (converted from {named})" if named and c.unit and named != c.unit else ""
+            out.append(DataWarning(
+                DataWarningCode.CONSTANT_OUTSIDE_RECORD,
+                f"constant `{name}` = {c.value:.6g}{unit} lies outside the range column `{col}` "
+                f"records ({lo:.6g} … {hi:.6g}{unit}{conv}, mean {mean:.6g})",
+                path=path, channel=name,
+                hint=(f"if `{name}` is the recorded quantity, set it to this record's value "
+                      f"(mean {mean:.6g}{unit}) or map the column as an input "
+                      f"(`data: {{inputs: {{{name}: {col}}}}}` with `{name}` under inputs); "
+                      f"check its unit")))
+            break
+    return tuple(out)
+
+
 __all__ = ["COLUMN_SUFFIX_UNITS", "DataWarning", "DataWarningCode", "UnitConversionError",
-           "check_unit", "column_suffix_unit", "conversion", "dimensionality",
+           "check_unit", "column_stem", "column_suffix_unit", "constant_columns",
+           "constant_range_warnings", "conversion", "dimensionality",
            "plausibility_warnings", "suffix_mismatch"]
