@@ -1417,6 +1417,8 @@ def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
     run.say(f"fitting the base model {spec}")
     base = fit_spec(spec, run.data, validate=run.validate, generated_dir=run.gen,
                     max_iter=run.max_iter)
+    for w in (w for r in tuple(base.records) + tuple(base.vrecords or ()) for w in r.warnings):
+        run.say(str(w))       # the records' data warnings (units, constants, missing samples)
     if not base.fit.converged and not run.past_deadline():
         base = polish(base, max_iter=run.max_iter, progress=run.progress)
     st.base = st.current = base
