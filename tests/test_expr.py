@@ -106,6 +106,8 @@ def test_typographic_characters_get_a_hint(text, hint):
     ("V + q;", "remove the trailing `;`"),
     ("qdot = V + q", "right-hand side only"),
     ("sinn(V)", "did you mean `sin`?"),
+    ("V * e**q", "write `exp(x)` (not `e**x`)"),
+    ("V * 1,5", "a decimal comma?"),
 ])
 def test_what_other_languages_write_gets_the_spec_equivalent(text, hint):
     """Functions and statements a new user brings from MATLAB, numpy or Modelica are refused

@@ -428,6 +428,9 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
         return _folded(ctx, left / right, node)
     if isinstance(node, ast.Call):
         return _folded(ctx, _call(ctx, node, depth), node)
+    if isinstance(node, ast.Tuple) and re.search(r"\d,\d", ast.unparse(node).replace(", ", ",")):
+        raise _error(ctx, "a tuple is not allowed in an expression", node,
+                     hint="a decimal comma? write numbers with a point (`1.5`, not `1,5`)")
     raise _error(ctx, _describe(node) + " is not allowed in an expression", node,
                  hint=(_PIECEWISE_HINT if isinstance(node, (ast.IfExp, ast.Compare, ast.BoolOp))
                        else "expressions may use numbers, declared names, + - * / **, and the "
@@ -482,6 +485,9 @@ def _name(ctx: _Ctx, node: ast.Name):
                 + (", e.g. m/s^2 for accelerations" if name == "g" else
                    ", e.g. m/s for speeds" if name in ("kt", "knot", "mph") else
                    ", e.g. N for forces or kg for masses"))
+    if not ctx.units and name == "e":
+        hint = "for Euler's number write `exp(x)` (not `e**x`); " + (hint or
+                "else declare `e` under states, inputs, constants, parameters or definitions")
     if hint is None:
         hint = ("declare it under states, inputs, constants, parameters or definitions"
                 if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))
