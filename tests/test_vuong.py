@@ -87,9 +87,17 @@ class _Trial:
     vuong: object = None
 
 
-def _trial(key, comparison, ll):
-    return _Trial(types.SimpleNamespace(key=key), comparison, comparison, 1,
-                  types.SimpleNamespace(signals=(types.SimpleNamespace(ll=ll),)))
+def _trial(key, comparison, ll, *, effect=None, params=None):
+    """A refit with one new parameter ``x`` (``params``: (estimate, std error)) of the effect
+    ``effect`` (default: its own, ``key``)."""
+    theta, se = params or (0.0, 1.0)
+    cand = types.SimpleNamespace(key=key, effect=effect or key, target="drift:q", add_terms={},
+                                 parameters=(types.SimpleNamespace(name="x", fixed=False),))
+    state = types.SimpleNamespace(signals=(types.SimpleNamespace(ll=ll),),
+                                  model=types.SimpleNamespace(parameter_names=("a", "x")),
+                                  fit=types.SimpleNamespace(theta=np.array([1.0, theta]),
+                                                            std_errors=np.array([0.1, se])))
+    return _Trial(cand, comparison, comparison, 1, state)
 
 
 def test_alternatives_are_the_refits_the_records_do_not_separate(monkeypatch):
@@ -112,3 +120,28 @@ def test_alternatives_are_the_refits_the_records_do_not_separate(monkeypatch):
     monkeypatch.setattr(evaluation, "predictive_loglik", lambda sig: None)
     alts = search.alternatives_of(best, [best, noisy, steady])
     assert [a.candidate.key for a in alts] == ["steady"] and alts[0].vuong is None
+
+
+def test_one_fitted_model_from_two_starts_is_not_its_own_alternative(monkeypatch):
+    """Two refits of one term (a break point started at two grid values) that converged to the
+    same estimates (within a tenth of a standard error) are one explanation, not a tie: the
+    second is not listed as the first's alternative, nor twice among the alternatives; the
+    same terms at estimates several standard errors apart are two fits, and stay."""
+    from vsidgen import evaluation
+
+    monkeypatch.setattr(evaluation, "predictive_loglik", lambda sig: sig.ll)
+    rng = np.random.default_rng(5)
+    base = rng.normal(size=600)
+    best = _trial("hinge:0.12", 300.0, base, effect="hinge", params=(0.133, 0.001))
+    twin = _trial("hinge:0.14", 299.99, base + rng.normal(scale=1e-4, size=600),
+                  effect="hinge", params=(0.13305, 0.001))
+    other = _trial("vane", 299.0, base + rng.normal(scale=0.5, size=600), params=(2.0, 0.2))
+    other_twin = _trial("vane:b", 298.99, base + rng.normal(scale=0.5, size=600),
+                        effect="vane", params=(2.01, 0.2))
+    alts = search.alternatives_of(best, [best, twin, other, other_twin])
+    assert [a.candidate.key for a in alts] == ["vane"]
+    assert search.same_fitted_model(best, twin) and not search.same_fitted_model(best, other)
+    apart = _trial("hinge:0.2", 299.5, base + rng.normal(scale=0.5, size=600),
+                   effect="hinge", params=(0.2, 0.001))
+    assert not search.same_fitted_model(best, apart)
+    assert "hinge:0.2" in [a.candidate.key for a in search.alternatives_of(best, [best, apart])]

@@ -687,6 +687,35 @@ def trial_loglik(t: Trial) -> list | None:
     return None if any(ll is None for ll in lls) else lls
 
 
+#: two refits of one structure are one fitted model when every new parameter's estimates
+#: differ by at most this fraction of the larger standard error (:func:`same_fitted_model`)
+SAME_FIT_SE = 0.1
+
+
+def same_fitted_model(a: Trial, b: Trial, *, se_fraction: float = SAME_FIT_SE) -> bool:
+    """Whether two refits are one fitted model reached from two starts: the same terms (effect,
+    target, new parameter names and added terms; only the start values differ, e.g. a break
+    point started at two grid values) and every new parameter's estimates within
+    ``se_fraction`` of the larger of their standard errors. Such a pair is not an alternative
+    explanation of a finding: it is the same explanation twice."""
+    ca, cb = a.candidate, b.candidate
+    if a.state is None or b.state is None or (ca.effect, ca.target) != (cb.effect, cb.target):
+        return False
+    if [q.name for q in ca.parameters] != [q.name for q in cb.parameters] \
+            or getattr(ca, "add_terms", None) != getattr(cb, "add_terms", None):
+        return False
+    na, nb = list(a.state.model.parameter_names), list(b.state.model.parameter_names)
+    for q in ca.parameters:
+        if q.fixed or q.name not in na or q.name not in nb:
+            continue
+        ia, ib = na.index(q.name), nb.index(q.name)
+        ta, tb = float(a.state.fit.theta[ia]), float(b.state.fit.theta[ib])
+        se = max(float(a.state.fit.std_errors[ia]), float(b.state.fit.std_errors[ib]))
+        if not (math.isfinite(se) and abs(ta - tb) <= se_fraction * se):
+            return False
+    return True
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round that the
     records do not separate from the best: Vuong's test of non-nested models (:mod:`.vuong`,
@@ -697,13 +726,15 @@ def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_
     χ² reference. Where the test is unavailable (a record without a steady-state filter),
     a comparison statistic (:attr:`Trial.comparison`) within ``2·nats`` of the best one's.
     Each alternative carries its test (:attr:`Trial.vuong`; both extend the current model, so
-    their parameter counts differ by their new free parameters)."""
+    their parameter counts differ by their new free parameters). A refit that is the best's
+    own fitted model reached from another start (:func:`same_fitted_model`), or that of an
+    alternative already listed, is not listed again."""
     from .vuong import vuong_test
 
     ll_best = trial_loglik(best)
     out = []
-    for t in good:
-        if t is best:
+    for t in sorted(good, key=lambda t: -t.comparison if math.isfinite(t.comparison) else math.inf):
+        if t is best or same_fitted_model(best, t) or any(same_fitted_model(o, t) for o in out):
             continue
         ll = None if ll_best is None else trial_loglik(t)
         v = None if ll is None else vuong_test(ll_best, ll, p1=best.dof, p2=t.dof)
