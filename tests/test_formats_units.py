@@ -271,3 +271,32 @@ def test_a_column_named_in_other_units_than_the_spec_warns(tmp_path, capsys):
     assert "column `alpha_deg` of output `alpha` is named in `deg`" in capsys.readouterr().err
     assert not [w for w in compile_spec(_unit_spec(tmp_path)).warnings
                 if w.code == "column_unit_suffix"]
+
+
+def test_a_column_named_in_another_dimension_is_a_wrong_column(tmp_path):
+    """`alpha: v_mps` (a speed column mapped to an angle; a slip of the data map): the spec
+    check says the column's name states another dimension, and the 2π plausibility warning no
+    longer suggests declaring the column in degrees but asks whether it is the right column."""
+    import numpy as np
+
+    from vsidgen.data import load_record
+    from vsidgen.spec.dataunits import DataWarningCode, suffix_other_dimension
+
+    assert suffix_other_dimension("v_mps", "rad") == "m/s"
+    assert suffix_other_dimension("alpha_deg", "rad") is None      # same dimension: a scale
+    assert suffix_other_dimension("alpha", "rad") is None          # no unit in the name
+    path = tmp_path / "wrong.yaml"
+    path.write_text(f"extends: {SPEC}\nname: wrongcol\ndata:\n  time: t_s\n"
+                    "  inputs: {de: de_rad}\n"
+                    "  outputs:\n    alpha: v_mps\n    q: q_radps\n")
+    sym = compile_spec(path)
+    got = [w for w in sym.warnings if w.code == "column_other_dimension"]
+    assert len(got) == 1 and got[0].line == 7 and "a wrong column?" in got[0].message
+    t = 0.1 * np.arange(40)
+    csv = tmp_path / "d.csv"
+    csv.write_text("t_s,de_rad,v_mps,q_radps\n" + "".join(
+        f"{a},{0.01 * np.sin(a)},{70 + np.sin(a)},{0.01 * np.cos(a)}\n" for a in t))
+    rec = load_record(sym, csv)
+    plaus = [w for w in rec.warnings if w.code is DataWarningCode.IMPLAUSIBLE_RANGE]
+    assert len(plaus) == 1 and "is `v_mps` the right column for `alpha`?" in plaus[0].hint
+    assert "unit: deg" not in plaus[0].hint

@@ -190,6 +190,23 @@ def suffix_mismatch(column: str, spec_unit: str | None) -> str | None:
     return None if (math.isclose(a, 1.0, rel_tol=1e-9) and b == 0.0) else named
 
 
+def suffix_other_dimension(column: str, spec_unit: str | None) -> str | None:
+    """The unit ``column``'s name states when it has another dimension than the spec unit
+    (``v_mps`` mapped to an angle in ``rad``: most likely the wrong column), else None."""
+    named = column_suffix_unit(column)
+    if named is None or not spec_unit:
+        return None
+    try:
+        conversion(named, spec_unit)
+    except UnitConversionError:
+        try:
+            dimensionality(spec_unit)
+        except UnitConversionError:
+            return None            # the spec unit itself is unknown to pint: nothing to say
+        return named
+    return None
+
+
 def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> tuple[DataWarning, ...]:
     """Warnings for channels whose value range is implausible for the spec's unit.
 
@@ -217,9 +234,13 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
             declared = getattr(cmap, "unit", None)
             what = "angle" if ak[0] == "angle" else "angular rate"
             limit = "2π rad (360°)" if ak[0] == "angle" else "2π rad/s (360°/s)"
+            other = None if declared else suffix_other_dimension(source, v.unit)
             if declared:
                 hint = (f"the data map declares `{declared}` for `{source}`: check that unit "
                         "and the column")
+            elif other:
+                hint = (f"the column's name states `{other}` ({dimensionality(other)}), not an "
+                        f"{what}: is `{source}` the right column for `{v.name}`?")
             else:
                 deg = "deg" if ak[0] == "angle" else "deg/s"
                 hint = (f"if the column is in degrees, declare it in the data map: "
@@ -313,4 +334,4 @@ def constant_range_warnings(constants, columns, matches, *, path=None) -> tuple[
 __all__ = ["COLUMN_SUFFIX_UNITS", "DataWarning", "DataWarningCode", "UnitConversionError",
            "check_unit", "column_stem", "column_suffix_unit", "constant_columns",
            "constant_range_warnings", "conversion", "dimensionality",
-           "plausibility_warnings", "suffix_mismatch"]
+           "plausibility_warnings", "suffix_mismatch", "suffix_other_dimension"]

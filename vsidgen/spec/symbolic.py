@@ -710,12 +710,23 @@ def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -
     ``scale`` 1, ``offset`` 0): the values would be read as if in the spec's unit."""
     from . import dataunits
 
-    if ch.column is None or ch.unit is not None or ch.scale != 1.0 or ch.offset != 0.0:
-        return
-    named = dataunits.suffix_mismatch(ch.column.value, spec_unit)
-    if named is None:
+    if ch.column is None or ch.unit is not None:
         return
     name, col = ch.name.value, ch.column.value
+    other = dataunits.suffix_other_dimension(col, spec_unit)
+    if other is not None:
+        _warn(warnings, f"column `{col}` of {what} `{name}` is named in `{other}` "
+              f"({dataunits.dimensionality(other)}), but `{name}` is in `{spec_unit}` "
+              f"({dataunits.dimensionality(spec_unit)}): a wrong column?", ch.column, key=False,
+              code="column_other_dimension",
+              hint=f"map `{name}` to the column that records it (or rename the column if its "
+                   f"name misleads)")
+        return
+    if ch.scale != 1.0 or ch.offset != 0.0:
+        return
+    named = dataunits.suffix_mismatch(col, spec_unit)
+    if named is None:
+        return
     shown = col if re.fullmatch(r"[A-Za-z_][\w.]*", col) else '"' + col.replace('"', '\\"') + '"'
     _warn(warnings, f"column `{col}` of {what} `{name}` is named in `{named}`, but `{name}` is "
           f"in `{spec_unit}` and the data map converts nothing: its values are read as "
