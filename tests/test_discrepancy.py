@@ -874,7 +874,7 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
 
     from vsidgen.discrepancy.search import Trial, _decide_round
 
-    current = types.SimpleNamespace(elbo=17003.44, val_elbo=None, spec_path="c.yaml",
+    current = types.SimpleNamespace(elbo=17003.44, val_elbo=None, val_elbo_own_noise=None, spec_path="c.yaml",
                                     fit=types.SimpleNamespace(converged=True))
 
     def trial(key, filt, elbo, ref, x0, states=True):
@@ -882,7 +882,7 @@ def test_alternatives_are_ranked_over_the_current_model_not_their_own_nesting_po
                                      states=("z",) if states else (), info={"filter": filt},
                                      parameters=())
         lam = 2.0 * (elbo - ref)
-        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, signals=(),
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, val_elbo_own_noise=None, signals=(),
                                    fit=types.SimpleNamespace(converged=True, status="converged"))
         return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)),
@@ -959,7 +959,7 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
     from vsidgen.discrepancy.search import Trial, _decide_round, stopped_short
     from vsidgen.estimator import StopReason
 
-    current = types.SimpleNamespace(elbo=17318.863, val_elbo=None, spec_path="c.yaml",
+    current = types.SimpleNamespace(elbo=17318.863, val_elbo=None, val_elbo_own_noise=None, spec_path="c.yaml",
                                     fit=types.SimpleNamespace(converged=True))
 
     def trial(key, elbo, dec, reason=StopReason.ITERATION_LIMIT, converged=False):
@@ -967,7 +967,7 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
                          explanation="A bias.")
         fit = types.SimpleNamespace(converged=converged, stop_reason=reason, status="stopped",
                                     newton_decrement=dec)
-        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, fit=fit, signals=())
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, val_elbo_own_noise=None, fit=fit, signals=())
         lam = 2.0 * (elbo - current.elbo)
         return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)), refit=types.SimpleNamespace(

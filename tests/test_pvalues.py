@@ -42,13 +42,13 @@ def test_round_accepts_the_stronger_of_two_candidates_beyond_the_underflow():
     from vsidgen.discrepancy.search import Trial, _decide_round
 
     fit = types.SimpleNamespace(converged=True, stop_reason=None, status="converged")
-    current = types.SimpleNamespace(fit=fit, val_elbo=None, elbo=0.0,
+    current = types.SimpleNamespace(fit=fit, val_elbo=None, val_elbo_own_noise=None, elbo=0.0,
                                     spec_path=pathlib.Path("base.yaml"))
 
     def trial(key, lam, grid=()):
         c = Candidate(effect=key.split(":")[0], key=key, target="input:de",
                       explanation="", info={"profile_result": {"grid_s": list(grid)}})
-        st = types.SimpleNamespace(fit=fit, vfit=None, elbo=lam / 2, val_elbo=None, signals=())
+        st = types.SimpleNamespace(fit=fit, vfit=None, elbo=lam / 2, val_elbo=None, val_elbo_own_noise=None, signals=())
         return Trial(c, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
                      float(stats.chi2.sf(lam, 1)), converged=True, statistic_vs_base=lam,
                      verdict=RefitVerdict.ORDINARY)

@@ -418,7 +418,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                    for t in noncausal) + ".")
     if val_rej:
         conclusion += (" Significant on the estimation records but rejected because the validation "
-                       "ELBO did not improve (over-fitting): " + ", ".join(val_rej) + ".")
+                       "ELBO (θ fixed, each validation record with its own noise) did not improve "
+                       "(over-fitting): " + ", ".join(val_rej) + ".")
     if unconv:
         unconv = _keys_by_round([t for t in tried if t["key"] in set(unconv)
                                  and t.get("converged") is False])
@@ -679,6 +680,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "score_test": None if trial.screen is None else trial.screen.to_json(),
                 "validation_elbo_before": _f(before.val_elbo),
                 "validation_elbo_after": _f(after.val_elbo),
+                "validation_elbo_own_noise_before": _f(before.val_elbo_own_noise),
+                "validation_elbo_own_noise_after": _f(after.val_elbo_own_noise),
                 "metrics_before": _target_metrics(mb, c.target),
                 "metrics_after": _target_metrics(ma, c.target),
                 "locate": locate_part,
@@ -708,8 +711,10 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
         "records": _records(base), "options": options, "conclusion": conclusion,
         "numerics": numerics, "noise_model": noise_model, "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
+                 "validation_elbo_own_noise": _f(base.val_elbo_own_noise),
                  "metrics": metrics_summary(base)},
         "final": {"elbo": _f(final.elbo), "validation_elbo": _f(final.val_elbo),
+                  "validation_elbo_own_noise": _f(final.val_elbo_own_noise),
                   "metrics": metrics_summary(final)},
         "locate": evidence.to_json(), "locate_final": final_evidence.to_json(),
         "rounds": rounds, "unfinished_round": unfinished_round,

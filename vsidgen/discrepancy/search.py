@@ -139,6 +139,8 @@ class Trial:
                 "target": self.candidate.target, "score": _f(self.score),
                 "spec": str(self.spec_path), "elbo": None if self.state is None else _f(self.state.elbo),
                 "val_elbo": None if self.state is None else _f(self.state.val_elbo),
+                "val_elbo_own_noise": None if self.state is None
+                else _f(self.state.val_elbo_own_noise),
                 "statistic": _f(self.statistic), "dof": self.dof, "p_value": _f(self.p_value),
                 "threshold": _f(self.threshold), "significant": self.significant,
                 "validation_ok": self.validation_ok, "error": self.error,
@@ -2095,6 +2097,18 @@ class RoundDecision:
     base_unconverged: bool = False
 
 
+def validation_improved(state: FitState, current: FitState, x0_entropy: float = 0.0) -> bool:
+    """The validation gate: the candidate's validation ELBO (less ``x0_entropy``, the entropy
+    of its added states' initial values, which the current model's ELBO does not carry) above
+    the current model's — each with the validation records' own noise when both have it
+    (:func:`.fitstate.validate_own_noise`: noise is a property of the flight, the physics must
+    carry over), else with the estimation's noise."""
+    both = state.val_elbo_own_noise is not None and current.val_elbo_own_noise is not None
+    vt = state.val_elbo_own_noise if both else state.val_elbo
+    vc = current.val_elbo_own_noise if both else current.val_elbo
+    return bool(vt - x0_entropy > vc)
+
+
 def better_reference(before: FitState, better: FitState | None,
                      projected: Sequence[dict]) -> dict | None:
     """The round record's account of a better optimum of the current model (None when the
@@ -2131,7 +2145,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         vok = None
         if sig and t.state is not None and t.state.vfit is not None:
             corr = t.refit.val_x0_entropy if t.refit is not None else 0.0
-            vok = bool(t.state.val_elbo - corr > current.val_elbo)
+            vok = validation_improved(t.state, current, corr)
         final_trials.append(dataclasses.replace(t, threshold=thr, significant=bool(sig),
                                                 validation_ok=vok))
     good = [t for t in final_trials if t.significant and t.validation_ok is not False
