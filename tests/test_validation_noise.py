@@ -59,7 +59,7 @@ def test_own_noise_validation_is_at_least_the_fixed_noise_smoothing():
 
 @pytest.mark.slow
 @pytest.mark.flight
-def test_attas_without_pitch_damping_loses_on_own_noise_validation(flight_data_dir):
+def test_attas_without_pitch_damping_loses_on_own_noise_validation(flight_data_dir, tmp_path):
     """The real case (estimation attas_elv1, validation attas_elv2): with the estimation's
     noise the model without M_q validates higher than the textbook model; with each
     record's own noise, lower."""
@@ -70,7 +70,7 @@ def test_attas_without_pitch_damping_loses_on_own_noise_validation(flight_data_d
     out = {}
     for spec in (ROOT / "specs" / "attas_sp.yaml",
                  ROOT / "benchmarks" / "real_records" / "attas_sp_no_mq.yaml"):
-        m = load_model(spec)
+        m = load_model(spec, generated_dir=tmp_path)
         r1 = load_record(m, flight_data_dir / "attas_elv1.csv")
         r2 = load_record(m, flight_data_dir / "attas_elv2.csv")
         res = fit(m, [r1])
