@@ -964,7 +964,7 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
 
     def trial(key, elbo, dec, reason=StopReason.ITERATION_LIMIT, converged=False):
         cand = Candidate(effect=key.split(":")[0], key=key, target="output:p",
-                         explanation="A bias.")
+                         explanation="A bias.", add_terms={"observations": {"p": key}})
         fit = types.SimpleNamespace(converged=converged, stop_reason=reason, status="stopped",
                                     newton_decrement=dec)
         st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, val_elbo_own_noise=None, fit=fit, signals=())
@@ -993,6 +993,23 @@ def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_dec
     assert _decide_round(1, [saddle], current, 150, 0.01, [], [], None).best is None
     stalled = trial("sensor_bias:p", 17341.440, 0.199, reason=StopReason.STALLED)
     assert _decide_round(1, [stalled], current, 150, 0.01, [], [], None).best is None
+
+    # a refit stopped where no step raises its ELBO (a kink: hinge break point, Hessian
+    # indefinite) is decided on its lower bound and outranks a converged, lower form
+    # (hfb_lift_stall_4_s2: hinge 2927.8 undecided, the quadratic 1706.2 accepted)
+    from vsidgen.discrepancy.search import stopped_at_kink
+
+    hinge = trial("coefficient_nonlinear:CL:hinge", current.elbo + 1463.9, float("nan"),
+                  reason=StopReason.INDEFINITE_HESSIAN)
+    square = trial("coefficient_nonlinear:CL:sq", current.elbo + 853.1, 1e-4,
+                   reason=StopReason.NEWTON_DECREMENT, converged=True)
+    assert stopped_at_kink(hinge) and not stopped_at_kink(square) and not stopped_at_kink(saddle)
+    dec = _decide_round(1, [hinge, square], current, 150, 0.01, [], [], None)
+    assert dec.best.candidate.key == "coefficient_nonlinear:CL:hinge"
+    assert "without standard errors" in dec.best.candidate.explanation
+    assert dec.best.candidate.info["stopped_at_kink"] is True
+    for reason in (StopReason.NO_PROGRESS, StopReason.DAMPING_OVERFLOW):
+        assert stopped_at_kink(trial("x:p", 17341.440, 0.5, reason=reason))
 
 
 def test_aerodynamic_candidates_use_aerodynamic_variables_only():

@@ -616,6 +616,30 @@ def stopped_short(t: Trial) -> float | None:
     return None
 
 
+def stopped_at_kink(t: Trial) -> bool:
+    """A refit that stopped, short of the gradient test, because no step raises its ELBO any
+    more — every step rejected until it vanished (the optimizer's ``NO_PROGRESS``,
+    ``DAMPING_OVERFLOW``, or their form at an indefinite Hessian, ``INDEFINITE_HESSIAN``) —
+    and that :func:`.fitstate.near_optimum` does not already count as converged.
+
+    Such a point is where the ELBO has a kink: a hinge ``max(α − α_b, 0)`` whose break point
+    a sample's sigma points straddle makes the expectation piecewise smooth in ``α_b``, its
+    one-sided gradient stays non-zero and its Hessian is indefinite there
+    (``hfb_lift_stall_4_s2``: both hinge refits stopped at 2ΔELBO 2927.8 with a relative
+    gradient of 0.024, continued 800 iterations without change, and the converged quadratic
+    form, 1706.2, was accepted instead). As every ELBO the optimizer reaches, its 2ΔELBO is a
+    lower bound of the candidate's maximum, so it is decided on that bound — conservative for
+    its significance and for its rank; its estimates are those of that point, without
+    standard errors. An iteration or time limit with an indefinite Hessian, or a stall,
+    stays undecided (the refit was still climbing)."""
+    from ..estimator import StopReason
+
+    if t.state is None or t.converged or not math.isfinite(t.statistic):
+        return False
+    return getattr(t.state.fit, "stop_reason", None) in (
+        StopReason.NO_PROGRESS, StopReason.DAMPING_OVERFLOW, StopReason.INDEFINITE_HESSIAN)
+
+
 #: an unconverged refit that leads its round (:func:`lead_to_continue`) is continued for this
 #: many times the round's ``max_iter`` more iterations (within the run's time limit)
 CONTINUE_FACTOR = 4
@@ -713,7 +737,9 @@ def same_fitted_model(a: Trial, b: Trial, *, se_fraction: float = SAME_FIT_SE) -
         ia, ib = na.index(q.name), nb.index(q.name)
         ta, tb = float(a.state.fit.theta[ia]), float(b.state.fit.theta[ib])
         se = max(float(a.state.fit.std_errors[ia]), float(b.state.fit.std_errors[ib]))
-        if not (math.isfinite(se) and abs(ta - tb) <= se_fraction * se):
+        # without standard errors (a refit stopped at a kink) only equal estimates are one fit
+        tol = se_fraction * se if math.isfinite(se) else 1e-6 * max(abs(ta), abs(tb), 1e-300)
+        if not abs(ta - tb) <= tol:
             return False
     return True
 
@@ -2131,10 +2157,12 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     limit left unrefitted (in the family with p = 1, as every examined candidate not refitted;
     the accepted effect's explanation says it was the best of those refitted)."""
     # an unconverged refit enters the Holm family with p = 1 — unless it stopped at its limit
-    # with a positive-definite Hessian (stopped_short): its Λ is then a lower bound and its p
-    # an upper bound; so do the candidates examined (screened) but not refitted
+    # with a positive-definite Hessian (stopped_short) or where no step raises its ELBO
+    # (stopped_at_kink): its Λ is then a lower bound and its p an upper bound; so do the
+    # candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if (t.converged or stopped_short(t) is not None)
+    decisions = holm([t.p_value if (t.converged or stopped_short(t) is not None
+                                    or stopped_at_kink(t))
                       and t.verdict is RefitVerdict.ORDINARY
                       else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
@@ -2188,6 +2216,15 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         best = dataclasses.replace(best, candidate=dataclasses.replace(
             c, explanation=c.explanation + note,
             info={**(c.info or {}), "stopped_short_nats": short}))
+    elif stopped_at_kink(best):
+        c = best.candidate
+        note = (" Its refit stopped where no step raises the ELBO, short of the gradient test "
+                "(the Hessian indefinite there: a kink of the ELBO, e.g. a break point that "
+                "samples straddle): its 2ΔELBO is a lower bound of the maximum, so the effect "
+                "is significant; its estimates are those of that point, without standard "
+                "errors.")
+        best = dataclasses.replace(best, candidate=dataclasses.replace(
+            c, explanation=c.explanation + note, info={**(c.info or {}), "stopped_at_kink": True}))
     if not_refitted:
         c = best.candidate
         note = (f" Decided under the time limit on the {len(trials)} candidates refitted: "
