@@ -214,6 +214,12 @@ def test_leading_refit_text_checks_validation_and_skips_what_cannot_be_used():
     un["refitted"][-1]["val_elbo"] = 140.0
     assert "110 against the current model's 100 (higher)" in findings.stop_text(
         {"reason": "time_limit"}, un, 0)
+    # the gate's own-noise validation ELBOs, where both have them (search.validation_improved)
+    un["base_val_elbo_own_noise"] = 200.0
+    un["refitted"][-1]["val_elbo_own_noise"] = 220.0
+    assert "190 against the current model's 200 (not higher" in findings.stop_text(
+        {"reason": "time_limit"}, un, 0)
+    del un["base_val_elbo_own_noise"]
     # the unconverged refit above the lead is named beside it, not as the lead
     assert "refitted without converging above it: a (2ΔELBO 500 when it stopped" in text
     un["refitted"] = un["refitted"][:3]

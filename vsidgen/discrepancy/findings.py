@@ -485,7 +485,11 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
         lead = leading_refit(unfinished, alpha)
         if lead is not None:
             val = ""
-            v, v0 = lead.get("val_elbo"), unfinished.get("base_val_elbo")
+            # as the validation gate compares (search.validation_improved): each validation
+            # record's own noise when both have it, else the estimation's noise
+            v, v0 = lead.get("val_elbo_own_noise"), unfinished.get("base_val_elbo_own_noise")
+            if v is None or v0 is None:
+                v, v0 = lead.get("val_elbo"), unfinished.get("base_val_elbo")
             if v is not None and v0 is not None:
                 v -= float((lead.get("refit") or {}).get("val_x0_entropy") or 0.0)
                 val = (f", validation ELBO {v:.6g} against the current model's {v0:.6g}"

@@ -2018,6 +2018,7 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
                        round_refit_deadline(run.deadline, current.fit.wall_time_s))
     st.unfinished = {"round": rnd, "base_spec": str(current.spec_path),
                      "base_elbo": current.elbo, "base_val_elbo": current.val_elbo,
+                     "base_val_elbo_own_noise": current.val_elbo_own_noise,
                      "n_candidates": n_examined,
                      "refitted": [], "pending": [c.key for _, _, c, _ in ranked],
                      "screen": table}
