@@ -8,6 +8,7 @@ Pipeline (one subpackage per stage, data flowing one way; docs/architecture.md):
     load_record(model, csv) -> Record            # flight record through the spec's data map
     fit(model, records, *, options) -> FitResult # variational ML (ELBO), process + measurement noise
     smooth(model, records, theta, noise)         # validation: θ fixed, smoothing only
+    validate_own_noise(model, records, theta)    # validation: θ fixed, the records' own noise
     evaluate(model, record, theta, *, mu, G, R) -> Signals   # the four evaluation signals
     run_fit(spec, data, *, out, ...) -> FitJob   # the whole `vsidgen fit` job
     write_report(results_dir) -> Path            # self-contained HTML report
@@ -26,7 +27,8 @@ _LAZY = {
     "build": "codegen",
     "Model": "model", "load_model": "model",
     "Record": "data", "load_record": "data",
-    "fit": "estimator", "smooth": "estimator", "FitOptions": "estimator", "FitResult": "estimator",
+    "fit": "estimator", "smooth": "estimator", "validate_own_noise": "estimator",
+    "FitOptions": "estimator", "FitResult": "estimator",
     "evaluate": "evaluation", "Signals": "evaluation",
     "simulate": "data.simulate",
     "run_fit": "fitjob",

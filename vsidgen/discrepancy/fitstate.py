@@ -117,27 +117,14 @@ def fit_stage2(model, records, res1, *, max_iter: int, notes: list, warm_start=N
 
 
 def validate_own_noise(model, vrecords, theta, *, max_iter):
-    """The validation records fitted with every model parameter fixed at ``theta`` and the
-    noise parameters (process and measurement) and assumed densities estimated on them: the
-    ELBO of the model's physics at the validation flight's own turbulence and sensor noise.
-
-    Validation with the estimation's noise fixed (:func:`vsidgen.estimator.smooth`, the
-    paper's θ-fixed smoothing) compares two models also by how well their noise levels suit
-    the other flight, and noise is a property of the flight (the atmosphere's turbulence that
-    day, a sensor's noise), not of the physics: on ATTAS (estimation ``attas_elv1``,
-    validation ``attas_elv2``) the textbook short-period model validates at 6284.7 with the
-    estimation's noise (its q measurement std at 6.6e-6 rad/s, its floor, where ``elv2``'s
-    own is 7.8e-4) and the same model without the pitch damping M_q at 6437.1 — the missing
-    physics "validates" better because its inflated process noise covers ``elv2``'s sensor
-    noise; with each record's own noise, 6861.6 against 6559.7. None when the fit fails."""
+    """The validation records fitted with θ fixed and their own noise
+    (:func:`vsidgen.estimator.validate_own_noise`) with diagnose's options; None when that fit
+    fails (the gate then compares the estimation-noise smoothing)."""
     from ..errors import FitError
-    from ..estimator import fit
+    from ..estimator import validate_own_noise as own_noise
 
-    fixed = tuple(dataclasses.replace(p, fixed=True, initial=float(v))
-                  for p, v in zip(model.parameters, np.asarray(theta, float)))
     try:
-        return fit(dataclasses.replace(model, parameters=fixed), list(vrecords),
-                   options=diag_options(max_iter))
+        return own_noise(model, list(vrecords), theta, options=diag_options(max_iter))
     except FitError:
         return None
 

