@@ -40,6 +40,10 @@ def test_demo_fit_converges_and_recovers_truth(demo_fit):
     res = json.loads((out / "results.json").read_text())
     assert res["converged"] is True and res["stop_reason"] in ("newton_decrement", "gradient")
     assert res["validation"]["converged"] is True and res["validation"]["elbo"] is not None
+    # the validation record at its own noise (θ fixed): never below the fixed-noise smoothing
+    val = res["validation"]
+    assert val["own_noise_converged"] is True
+    assert val["elbo_own_noise"] >= val["elbo"] - 1e-6 * abs(val["elbo"])
     assert res["iterations"] > 0 and res["wall_time_s"] > 0
     for name, truth in TRUTH.items():
         p = res["parameters"][name]
