@@ -538,12 +538,13 @@ def _constant_warnings(model, path: pathlib.Path, needed: list[str], n: int) -> 
     sym = model if hasattr(model, "drift_expanded") else getattr(model, "symbolic", None)
     if sym is None or not getattr(sym, "constants", ()):
         return ()
+    header = _read_header(path)
+    matches = constant_columns(sym.constants, header, taken=needed)
+    if not matches:
+        return ()          # the common case: no column named like a constant, no sympy work
     used = set().union(*(e.free_symbols for e in sym.drift_expanded() + sym.observations_expanded()))
     constants = [c for c in sym.constants if c.symbol in used]   # an unused one is warned of
-    if not constants:
-        return ()
-    header = _read_header(path)
-    matches = constant_columns(constants, header, taken=needed)
+    matches = {k: v for k, v in matches.items() if k in {c.name for c in constants}}
     values = {}
     for col in sorted({c for cols in matches.values() for c in cols}):
         try:

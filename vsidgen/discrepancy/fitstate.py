@@ -45,13 +45,6 @@ class FitState:
         (:func:`validate_own_noise`); None where not computed."""
         return None if self.vfit_noise is None else float(self.vfit_noise.elbo)
 
-    @property
-    def val_gate_elbo(self) -> float | None:
-        """The validation ELBO diagnose's validation gate compares: with the records' own noise
-        where computed, else with the estimation's noise (:attr:`val_elbo`)."""
-        own = self.val_elbo_own_noise
-        return own if own is not None else self.val_elbo
-
 
 #: the deadline of the refit under way in this context (:func:`refit_deadline`)
 _REFIT_DEADLINE: contextvars.ContextVar = contextvars.ContextVar("refit_deadline", default=None)

@@ -156,24 +156,30 @@ COLUMN_SUFFIX_UNITS: dict[str, str] = {
 _BRACKETED = re.compile(r"[\[(]\s*([^\])]+?)\s*[\])]\s*$")
 
 
-def column_suffix_unit(column: str) -> str | None:
-    """The unit a column's name states (``alpha_deg`` → ``deg``, ``q (deg/s)`` → ``deg/s``,
-    ``az_g`` → ``g``), or None. A bracketed unit must parse (pint); a ``_suffix`` must be one
-    of :data:`COLUMN_SUFFIX_UNITS` (two tokens, ``deg_s``, before one)."""
+def _split_unit(column: str) -> tuple[str, str | None]:
+    """(the name without the unit it states, that unit) of a column, or (name, None)."""
     name = column.strip()
     m = _BRACKETED.search(name)
     if m:
         try:
             check_unit(m.group(1))
         except UnitConversionError:
-            return None
-        return m.group(1)
-    parts = name.lower().split("_")
-    if len(parts) >= 3 and "_".join(parts[-2:]) in COLUMN_SUFFIX_UNITS:
-        return COLUMN_SUFFIX_UNITS["_".join(parts[-2:])]
-    if len(parts) >= 2:
-        return COLUMN_SUFFIX_UNITS.get(parts[-1])
-    return None
+            return name, None
+        return name[:m.start()].strip(), m.group(1)
+    parts = name.split("_")
+    low = [x.lower() for x in parts]
+    if len(parts) >= 3 and "_".join(low[-2:]) in COLUMN_SUFFIX_UNITS:
+        return "_".join(parts[:-2]), COLUMN_SUFFIX_UNITS["_".join(low[-2:])]
+    if len(parts) >= 2 and low[-1] in COLUMN_SUFFIX_UNITS:
+        return "_".join(parts[:-1]), COLUMN_SUFFIX_UNITS[low[-1]]
+    return name, None
+
+
+def column_suffix_unit(column: str) -> str | None:
+    """The unit a column's name states (``alpha_deg`` → ``deg``, ``q (deg/s)`` → ``deg/s``,
+    ``az_g`` → ``g``), or None. A bracketed unit must parse (pint); a ``_suffix`` must be one
+    of :data:`COLUMN_SUFFIX_UNITS` (two tokens, ``deg_s``, before one)."""
+    return _split_unit(column)[1]
 
 
 def suffix_mismatch(column: str, spec_unit: str | None) -> str | None:
@@ -256,17 +262,7 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
 def column_stem(column: str) -> str:
     """A column's name without the unit its name states (``v_mps`` → ``v``, ``mass_kg`` →
     ``mass``, ``V (kts)`` → ``V``; :func:`column_suffix_unit`), else the name itself."""
-    name = column.strip()
-    m = _BRACKETED.search(name)
-    if m and column_suffix_unit(name) is not None:
-        return name[:m.start()].strip()
-    parts = name.split("_")
-    low = [x.lower() for x in parts]
-    if len(parts) >= 3 and "_".join(low[-2:]) in COLUMN_SUFFIX_UNITS:
-        return "_".join(parts[:-2])
-    if len(parts) >= 2 and low[-1] in COLUMN_SUFFIX_UNITS:
-        return "_".join(parts[:-1])
-    return name
+    return _split_unit(column)[0]
 
 
 def constant_columns(constants, header, *, taken=()) -> dict[str, list[str]]:
