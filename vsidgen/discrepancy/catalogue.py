@@ -11,6 +11,7 @@ period.
 id                     what is added
 =====================  ===========================================================
 missing_derivative     :math:`f_s \\mathrel{+}= D\\,v` for a state/input ``v`` absent from :math:`f_s`
+trim_term              :math:`f_s \\mathrel{+}= D` where :math:`f_s` has no free constant
 nonlinear_aero         :math:`D\\,v^2`, :math:`D\\,a v` (a flow angle), :math:`D\\max(v-b,0)`,
                        :math:`D\\max(b-v,0)` (stall break / control saturation at ``b``)
 unsteady_aero          :math:`D\\,\\dot a` through a downwash-lag state
@@ -34,6 +35,8 @@ unmodelled_wind        a Gauss–Markov gust angle :math:`\\dot w = -w/τ_w + σ
 from __future__ import annotations
 
 import functools
+
+import sympy
 
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
                    spec_text)
@@ -146,6 +149,61 @@ class MissingDerivative(Effect):
 
     def score(self, c, ev):
         return ev.state_score(c.info["state"], c.info["regressor"])
+
+
+def has_constant_term(info: ModelInfo, state: str) -> bool:
+    """Whether the drift of ``state`` already has a free constant: an additive term of its
+    expanded equation that names a parameter and no state or input (``Z0 + Zα α + …``)."""
+    e = info.drift_expanded.get(state)
+    if e is None:
+        return True
+    xu = set(info.state_names) | set(info.input_names)
+    pars = set(info.parameters)
+    for term in sympy.Add.make_args(sympy.expand(e)):
+        names = {s.name for s in term.free_symbols}
+        if names & pars and not names & xu:
+            return True
+    return False
+
+
+@register_effect
+class TrimTerm(Effect):
+    """A constant (trim) term missing from a state equation.
+
+    A model written in the recorded (absolute) variables, ``α̇ = Z_α α + q + Z_δ δ``, balances
+    its forces and moments only at ``α = δ = 0``; in flight the aircraft is trimmed elsewhere,
+    so the equation needs the constant ``Z_0`` that the linearisation about the trim point
+    leaves (the trim lift, weight and thrust components, the pitching moment at zero α).
+    Without it the process noise carries the constant and the other derivatives bend to absorb
+    it (on ATTAS ``attas_elv1`` without ``M_0`` the pitch damping came out positive and the free
+    simulation diverged). Offered for every non-kinematic state whose drift has no free
+    constant (:func:`has_constant_term`)."""
+
+    id = "trim_term"
+    title = "missing trim (constant) term"
+    explanation = ("The {state} equation lacks a constant term ({param}): at the trim point of "
+                   "the record its forces or moments do not balance — the equation error of "
+                   "{state} has a mean the model's terms cannot supply. Physically the trim "
+                   "force or moment (the value at zero of the variables the equation is written "
+                   "in; d{state}/dt += {param}).")
+    doc = "A constant (trim) term in a state equation that has none."
+
+    def applies_to(self, info):
+        out = []
+        for s in info.state_names:
+            if kinematic_state(info, s) or has_constant_term(info, s):
+                continue
+            p = info.fresh(f"D_TRIM_{s}")
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{s}", target=f"drift:{s}",
+                explanation=self.explain(state=s, param=p),
+                parameters=(NewParameter(p, _drift_unit(info, s),
+                                         f"trim (constant) term of d{s}/dt"),),
+                add_terms={"drift": {s: p}}, info={"regressor": "1", "state": s}))
+        return out
+
+    def score(self, c, ev):
+        return ev.state_score(c.info["state"], "1")
 
 
 def _coefficient_definitions(info: ModelInfo):
@@ -1158,7 +1216,7 @@ class UnmodelledWind(Effect):
         return max((ev.colored_score(s) for s in c.info["states"]), default=0.0)
 
 
-BUILTIN_EFFECTS = ("missing_derivative", "coefficient_derivative", "output_derivative",
+BUILTIN_EFFECTS = ("missing_derivative", "trim_term", "coefficient_derivative", "output_derivative",
                    "nonlinear_aero",
                    "coefficient_nonlinear", "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
                    "missing_dynamics", "speed_dynamics", "unmodelled_wind")

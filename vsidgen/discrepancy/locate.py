@@ -826,7 +826,10 @@ def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha
             if e_t is None:
                 e_t = e
             own = {k: r for k, r in ((k, part(v)) for k, v in own.items()) if r is not None}
-        tests = sorted((corr_test(e_t, v, seg_s, name=k) for k, v in own.items()),
+        # the constant "1" (a missing trim term) is tested on the equation error itself: a
+        # mean offset, which partialling on [1, Z] would remove
+        tests = sorted([*(corr_test(e_t, v, seg_s, name=k) for k, v in own.items()),
+                        corr_test(e, np.ones_like(e), seg_s, name="1")],
                        key=lambda r: r.log10_p())
         lb = ljung_box(e, seg_s)
         lf = lowfreq_ratio(e, seg_s)

@@ -1,0 +1,133 @@
+"""The catalogue's missing trim (constant) term, ``trim_term``: ``f_s += D`` for a state
+equation without a free constant.
+
+* It is offered exactly where a user's linear model written in absolute variables has no
+  constant (the textbook ATTAS short period has ``Z0`` and ``M0``: nothing; with ``M0``
+  deleted as a new user would write it: the q equation only; never a kinematic state).
+* Its score statistic on a record from an independent numpy simulation (a one-state model
+  trimmed away from zero) equals Rao's statistic of an exact Kalman filter written in
+  jax.numpy (tests/test_score_states.py's references).
+* Marked slow and flight: the real ATTAS record ``attas_elv1`` fitted without ``M0`` —
+  diagnose names the q equation's trim term first and estimates it near the textbook's
+  output-error ``M0`` (../shared/reference/attas_sp_reference.json).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_score_states import DT, _simulate, fit_lin1, null_mle, rao_statistic
+
+from vsidgen.discrepancy.base import model_info, propose
+from vsidgen.discrepancy.catalogue import has_constant_term
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+ATTAS = ROOT / "specs" / "attas_sp.yaml"
+HFB = ROOT / "specs" / "hfb320.yaml"
+
+
+def _without_m0(tmp_path) -> pathlib.Path:
+    """specs/attas_sp.yaml with M0 deleted the way a user edits it (parameter and term)."""
+    lines = [ln for ln in ATTAS.read_text().splitlines() if not ln.strip().startswith("M0:")]
+    text = "\n".join(lines).replace("q: M0 + MAL*alpha", "q: MAL*alpha")
+    text = text.replace("name: attas_sp\n", "name: attas_sp_no_m0\n")
+    assert "M0" not in text
+    p = tmp_path / "attas_sp_no_m0.yaml"
+    p.write_text(text + "\n")
+    return p
+
+
+def _trim_keys(spec) -> list[str]:
+    return sorted(c.key for c in propose(model_info(spec, dt=0.04)) if c.effect == "trim_term")
+
+
+def test_trim_term_only_where_an_equation_has_no_free_constant(tmp_path):
+    assert _trim_keys(ATTAS) == []
+    no_m0 = _without_m0(tmp_path)
+    assert _trim_keys(no_m0) == ["trim_term:q"]
+    info = model_info(no_m0, dt=0.04)
+    assert has_constant_term(info, "alpha") and not has_constant_term(info, "q")
+    c = next(c for c in propose(info) if c.key == "trim_term:q")
+    (p,) = c.parameters
+    assert p.initial == 0.0 and p.unit == "(rad/s)/s" and c.add_terms == {"drift": {"q": p.name}}
+    # HFB-320: θ̇ = q is kinematics (no trim force); its aerodynamic states have no free
+    # additive constant (CL0 etc. are scaled by the dynamic pressure)
+    assert _trim_keys(HFB) == ["trim_term:V", "trim_term:alpha", "trim_term:q"]
+
+
+def _kf_trim(p, u, y, c):
+    """Exact log-likelihood of y_k = x_k + v_k, x_{k+1} = (1 + T A) x_k + T (B u_k + c) + w_k
+    (a scalar Kalman filter in jax.numpy)."""
+    A, B, lg, ls = p[0], p[1], p[2], p[3]
+    T = DT
+    q, R = T * jnp.exp(2 * lg), jnp.exp(2 * ls)
+
+    def step(carry, inp):
+        xh, P, ll = carry
+        ui, yi = inp
+        S = P + R
+        e = yi - xh
+        ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
+        K = P / S
+        return ((1 + T * A) * (xh + K * e) + T * (B * ui + c),
+                (1 + T * A) ** 2 * (P - K * P) + q, ll), None
+
+    init = (jnp.asarray(y[0]), R, jnp.asarray(0.0))
+    return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]
+
+
+def test_trim_term_score_statistic_against_kalman_filter(tmp_path):
+    """x′ = −1.2 x + 2 u + 0.08 (independent numpy simulation, 10 substeps per sample),
+    fitted with the constant left out: the screen's statistic of ``trim_term:x`` against an
+    exact Kalman filter's Rao statistic at the null maximum-likelihood estimate."""
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
+    from vsidgen.discrepancy.score import screen
+
+    rng = np.random.default_rng(23)
+    n, sub = 800, 10
+    h = DT / sub
+    t, u, _ = _simulate(n=n)
+    x, xs = 0.0, np.empty(n)
+    for i in range(n):
+        xs[i] = x
+        for _ in range(sub):
+            x += h * (-1.2 * x + 2.0 * u[i] + 0.08) + 0.08 * math.sqrt(h) * rng.standard_normal()
+    y = xs + 0.02 * rng.standard_normal(n)
+    st, info = fit_lin1(tmp_path, t, u, y)
+    cand = next(c for c in propose(info) if c.key == "trim_term:x")
+    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
+                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
+    p0 = null_mle(lambda p: _kf_trim(p, u, y, 0.0))
+    ref = rao_statistic(lambda z: _kf_trim(z[:4], u, y, z[4]), np.append(p0, 0.0))
+    print("trim_term:x score statistic", res.statistic, "Kalman-filter reference", ref)
+    assert res.dof == 1 and 10.0 < ref < 5000.0, (res, ref)
+    # measured: 24.878 against 24.742
+    assert res.statistic == pytest.approx(ref, rel=0.02), (res.statistic, ref)
+
+
+@pytest.mark.slow
+@pytest.mark.flight
+def test_attas_without_m0_names_the_trim_term(flight_data_dir, tmp_path):
+    """attas_elv1 (validation attas_elv2) with the textbook spec less M0. Measured
+    2026-11-28: trim_term:q first, 2ΔELBO 1767, D_TRIM_q 0.4698 ± 0.0047 (rad/s)/s against
+    the output-error M0 0.4752 ± 0.0014; ELBO 7375.18 = the textbook spec's 7375.17."""
+    from vsidgen.discrepancy import search
+
+    ref = json.loads((ROOT.parent / "shared" / "reference" / "attas_sp_reference.json")
+                     .read_text()) if (ROOT.parent / "shared" / "reference").is_dir() else None
+    out = tmp_path / "diag"
+    search.run_diagnose(_without_m0(tmp_path), [flight_data_dir / "attas_elv1.csv"],
+                        validate=[flight_data_dir / "attas_elv2.csv"], out=out, max_rounds=1,
+                        max_candidates=3, numerics=False, workers=1)
+    doc = json.loads((out / "findings.json").read_text())
+    first = doc["findings"][0]
+    assert first["key"] == "trim_term:q", [f["key"] for f in doc["findings"]]
+    (est,) = first["parameters"].values()
+    m0 = ref["oem"]["parameters"]["M0"]["value"] if ref else 0.475234
+    assert abs(est["estimate"] - m0) < 0.05 * abs(m0), (est, m0)
