@@ -286,3 +286,29 @@ def test_predictive_loglik_without_a_usable_innovation_covariance_is_none():
     assert predictive_loglik(bad) is None                       # not positive definite
     ok = dataclasses.replace(sig, innovation_cov=np.array([[4.0]]))
     np.testing.assert_allclose(predictive_loglik(ok), -0.5 * math.log(2 * math.pi * 4.0))
+
+
+def test_an_unstable_fit_says_its_free_simulation_diverges_along_a_growing_mode():
+    """``growth_rates``: ln|λ|/T of the eigenvalues of the Euler transition I + T A with
+    |λ| > 1 (a hand-computed reference); none for the stable model. A free simulation that
+    explains nothing from an unstable fit gets the growth rate and the usual causes."""
+    from vsidgen.evaluation import unexplained_outputs
+
+    res = _sim()
+    stable = evaluate(_model(), _record(res), dict(zip(("Za", "Ma", "Mq", "Mde"), THETA)),
+                      mu=res.x, G=np.diag([0.05, 0.3]), R=RM)
+    assert stable.growth_rates == ()
+    bad_theta = np.array([-0.8, 5.0, -2.0, -8.0])           # M_α > 0: statically unstable
+    sig = evaluate(_model(), _record(res), dict(zip(("Za", "Ma", "Mq", "Mde"), bad_theta)),
+                   mu=res.x, G=np.diag([0.05, 0.3]), R=RM)
+    lam = np.linalg.eigvals(np.eye(2) + T * np.array([[-0.8, 1.0], [5.0, -2.0]]))
+    want = sorted((math.log(abs(v)) / T for v in lam if abs(v) > 1), reverse=True)
+    assert len(want) == 1 and want[0] > 0
+    assert sig.growth_rates == pytest.approx(tuple(want), rel=1e-9)
+    warns = unexplained_outputs(sig)
+    sim_named = [w for w in warns if "simulation" in w["r2"]]
+    assert sim_named, warns
+    for w in sim_named:
+        assert w["growth_rate"] == pytest.approx(want[0], rel=1e-9)
+        assert "unstable" in w["message"] and "trim" in w["message"]
+        assert f"{want[0]:.3g}/s" in w["message"]

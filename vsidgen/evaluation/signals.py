@@ -80,6 +80,9 @@ class Signals:
         innovation_cov: (ny, ny) covariance ``S = H P Hᵀ + R`` of the predictor's
             innovations ``y_k − ŷ_k`` (``R`` when ``K = 0``; None after a fallback), for
             :func:`predictive_loglik`.
+        growth_rates: the unstable modes of the fitted model linearised at the first sample,
+            ``ln|λ_i|/T`` (1/s, largest first) for the eigenvalues ``λ_i`` of ``∂F/∂x`` with
+            ``|λ_i| > 1``: a free simulation diverges along them (e-folding time 1/rate).
     """
 
     record: str
@@ -97,6 +100,7 @@ class Signals:
     warnings: tuple[str, ...] = ()
     gain: np.ndarray | None = None
     innovation_cov: np.ndarray | None = None
+    growth_rates: tuple[float, ...] = ()
 
 
 def fit_metrics(measured, predicted) -> dict:
@@ -298,6 +302,8 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     x0, u0, v0 = mu_j[0], u_j[0], v_j[0]
     A, H = (np.asarray(a) for a in linearised(x0, u0, v0, p, Tj))
     Q = T * G @ G.T
+    lam = np.abs(np.linalg.eigvals(A)) if np.isfinite(A).all() else np.zeros(0)
+    growth = tuple(sorted((float(np.log(v) / T) for v in lam if v > 1.0 + 1e-9), reverse=True))
     K = S = None
     try:
         K, S = steady_state_filter(A, H, Q, R)
@@ -321,7 +327,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
     return Signals(record=record.name, t=np.asarray(record.t), y_meas=y, y_smooth=y_smooth,
                    y_sim=y_sim, y_pred=y_pred, x_smooth=mu, xdot_fd=xdot_fd, f_smooth=f_smooth,
                    metrics=metrics, output_names=model.output_names, state_names=model.state_names,
-                   warnings=tuple(warnings), gain=K, innovation_cov=S)
+                   warnings=tuple(warnings), gain=K, innovation_cov=S, growth_rates=growth)
 
 
 def iid_gaussian_loglik(y) -> float:
@@ -404,7 +410,10 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
 
     One warning per record and output: ``{"code": "output_not_explained", "reliable": True,
     "record", "output", "kind" (estimation|validation), "r2": {signal: R²}, "offset": {signal:
-    ē}, "r2_without_offset": {signal: R²}, "message"}``.
+    ē}, "r2_without_offset": {signal: R²}, "growth_rate", "message"}``: ``growth_rate`` is the
+    largest of :attr:`Signals.growth_rates` (None for a stable linearisation); when the free
+    simulation is named and the model is unstable there, the message says so and names the
+    usual causes (ATTAS ``attas_elv1`` fitted without ``M0``: M_q +0.81/s, simulation R² −905).
     """
     arrays = {"smoother": signals.y_smooth, "simulation": signals.y_sim,
               "prediction": signals.y_pred}
@@ -430,6 +439,15 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
         where = f"{'validation ' if kind == 'validation' else ''}record '{signals.record}'"
         hint = (f"check the equation of '{o}', its data column and its measurement-noise "
                 f"settings")
+        unstable = ""
+        if "simulation" in bad and signals.growth_rates:
+            g = signals.growth_rates[0]
+            unstable = (f"; the fitted model is unstable at the record's first sample (a mode "
+                     f"growing at {g:.3g}/s, e-folding in {1.0 / g:.3g} s), so its free "
+                     f"simulation drifts away: a derivative whose sign the data did not fix, or "
+                     f"a term the equations lack that the others bend to absorb — a constant "
+                     f"(trim) term in an equation written in the recorded variables is a common "
+                     f"one (`vsidgen diagnose` tests them)")
         # above 0 beyond rounding (a constant signal has exactly 0 without its offset)
         if r2_off and len(r2_off) == len(bad) and all(v > 1e-9 for v in r2_off.values()):
             first = next(iter(r2_off))
@@ -443,8 +461,10 @@ def unexplained_outputs(signals: Signals, *, kind: str = "estimation") -> list[d
         out.append({"code": "output_not_explained", "reliable": True, "record": signals.record,
                     "output": o, "kind": kind, "r2": bad, "offset": offset,
                     "r2_without_offset": r2_off,
+                    "growth_rate": signals.growth_rates[0] if signals.growth_rates else None,
                     "message": f"{where}, output '{o}': the model explains none of its variance "
-                               f"({what}; R² ≤ 0: no better than the channel's mean); {hint}"})
+                               f"({what}; R² ≤ 0: no better than the channel's mean); {hint}"
+                               f"{unstable}"})
     return out
 
 
