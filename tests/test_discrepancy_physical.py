@@ -92,6 +92,30 @@ def test_refit_verdicts():
         is RefitVerdict.ORDINARY
 
 
+def test_a_lag_at_the_end_of_its_labels_range_is_not_accepted_as_that_label():
+    """An actuator lag whose time constant ended at the catalogue's upper limit (5 s: the
+    spec value 4.99999917 of a new user's Tu-144 model without trim terms) is beyond the
+    label's range; an interior one (0.15 s) and a Padé delay inside its 1 s are ordinary."""
+    import types
+
+    import numpy as np
+
+    from vsidgen.discrepancy.refit import RefitVerdict, refit_verdict
+    from vsidgen.discrepancy.search import trial_verdict
+
+    assert refit_verdict(3022.0, {"T": 4.99999917}, {}, {"T": 5.0}) is RefitVerdict.BEYOND_RANGE
+    assert refit_verdict(3022.0, {"T": 0.15}, {}, {"T": 5.0}) is RefitVerdict.ORDINARY
+    for key, upper in (("actuator_lag:de", 5.0), ("control_delay:de", 1.0)):
+        _, c = _candidate(ATTAS, key)
+        (p,) = c.parameters
+        assert c.info["label_upper"] == {p.name: upper} and p.upper == upper
+        st = types.SimpleNamespace(model=types.SimpleNamespace(parameter_names=("MQ", p.name)),
+                                   fit=types.SimpleNamespace(theta=np.array([-2.0, upper])))
+        assert trial_verdict(c, st, 3022.0) is RefitVerdict.BEYOND_RANGE
+        st.fit.theta[1] = 0.3 * upper
+        assert trial_verdict(c, st, 3022.0) is RefitVerdict.ORDINARY
+
+
 def test_time_skew_is_causal_and_its_explanation_has_no_unfilled_number():
     _, c = _candidate(HFB, "time_skew:alpha")
     (p,) = c.parameters
@@ -129,10 +153,12 @@ def test_conclusion_flags_failures_and_the_cli_prints_it_last(tmp_path):
     rounds = [{"round": 1, "trials": [
         _trial("control_delay:de", -1017.0, 15.8, verdict="below_nesting_point"),
         _trial("time_skew:beta", 11.3, 10.9, verdict="non_causal"),
-        _trial("sensor_position:beta:r", 6.1, 11.0)]}]
+        _trial("sensor_position:beta:r", 6.1, 11.0),
+        _trial("actuator_lag:de", 3022.0, 13.9, verdict="beyond_range")]}]
     text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
     assert "optimizer failure" in text and "control_delay:de" in text
     assert "non-causal" in text and "time_skew:beta" in text
+    assert "upper end of the range its label allows" in text and "actuator_lag:de (2ΔELBO = 3022)" in text
     doc = {"conclusion": text, "findings": []}
     lines = summary_lines(doc, tmp_path / "findings.json")
     assert lines[-1].startswith(text)

@@ -61,6 +61,8 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
                       "mass and inertia per sample as inputs, abs(), bounds and initial values"),
     "attas_lat_arm": (("attas_ail1", "attas_rud1"), ("attas_ail2",),
                       "lateral with the accelerometer at its lever arm, da from an expression"),
+    "tu144_mine": (("tu144_lon_f20_4f",), ("tu144_lon_f20_4d",),
+                   "short period in the recorded variables without trim terms"),
     "otter_lon_nl": (("totter_lon_020213f1_018",), ("totter_lon_020213f1_017",),
                      "nonlinear V, alpha, q, theta with coefficients, two thrust inputs, "
                      "density as an input"),

@@ -584,7 +584,8 @@ class _InputDynamics(Effect):
                                          lower=lo, upper=self.upper),),
                 states=(NewState(z, pc["drift"], info.unit(u), pc["state_doc"]),),
                 add_terms={"drift": adds, **({"observations": obs} if obs else {})},
-                info={"input": u, "states": tuple(gains), "filter": self.filter},
+                info={"input": u, "states": tuple(gains), "filter": self.filter,
+                      "label_upper": {tau: self.upper}},
                 screenable=False))
         return out
 

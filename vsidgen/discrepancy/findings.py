@@ -416,6 +416,14 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                        "before the motion; a sensor ahead of the CG reads early): "
                        + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})"
                                    for t in noncausal) + ".")
+    beyond = [t for t in tried if t.get("verdict") == "beyond_range"]
+    if beyond:
+        conclusion += (" Not accepted because a time constant ended at the upper end of the "
+                       "range its label allows (the data want a slower process than the label "
+                       "names: a missing mode, trim terms or the speed dynamics, not an actuator "
+                       "or a delay): "
+                       + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})"
+                                   for t in beyond) + ".")
     if val_rej:
         conclusion += (" Significant on the estimation records but rejected because the validation "
                        "ELBO (θ fixed, each validation record with its own noise) did not improve "
@@ -922,7 +930,8 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                          f"<td>{val}</td><td>{e(t.get('verdict') or '–')}</td></tr>")
         parts.append("</table><p>An unconverged refit is never accepted (it enters the Holm "
                      "family with p = 1); nor is one with the verdict <i>below_nesting_point</i> "
-                     "(an optimizer failure, not a rejection) or <i>non_causal</i> (an estimate "
-                     "impossible under its label).</p>")
+                     "(an optimizer failure, not a rejection), <i>non_causal</i> (an estimate "
+                     "impossible under its label) or <i>beyond_range</i> (a time constant at the "
+                     "upper end of the range its label allows).</p>")
     parts.append("</section>")
     return "\n".join(parts)

@@ -66,24 +66,35 @@ class RefitVerdict(str, enum.Enum):
     one-sample shift): neither a rejection nor evidence; it is flagged, never reported as
     "not significant". ``non_causal``: the estimate is physically impossible as labelled
     (a channel that reads *before* the motion, a negative delay or time constant); it is not
-    accepted under that label.
+    accepted under that label. ``beyond_range``: a time constant ended at the upper end of the
+    range its label allows (an actuator lag of 5 s, a control delay of 1 s): the data want a
+    slower process than the label names — on a new user's Tu-144 model without trim terms an
+    "elevator lag" ended at 5.0 s, a low-passed elevator standing in for the missing constants
+    and slow dynamics — so it is not accepted under that label either.
     """
 
     ORDINARY = "ordinary"
     BELOW_NESTING_POINT = "below_nesting_point"
     NON_CAUSAL = "non_causal"
+    BEYOND_RANGE = "beyond_range"
 
 
 #: Λ below −BELOW_TOL (2ΔELBO, i.e. 0.05 nats) counts as ending below the nested reference
 BELOW_TOL = 0.1
 
 
-def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: dict[str, int]
-                  ) -> RefitVerdict:
+#: a time constant within this fraction of its label's upper limit is at the limit
+RANGE_TOL = 1e-3
+
+
+def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: dict[str, int],
+                  label_upper: dict[str, float] | None = None) -> RefitVerdict:
     """Verdict of a refit from its statistic ``Λ = 2(ELBO − ELBO_ref)`` and its estimates.
 
     ``causal_sign`` maps parameters whose sign is physical (a time skew: +1, late) to the
-    admissible sign; an estimate of the other sign is non-causal.
+    admissible sign; an estimate of the other sign is non-causal. ``label_upper`` maps time
+    constants to the largest value their label allows (the candidate's upper bound); an
+    estimate within :data:`RANGE_TOL` of it (relative) is beyond the label's range.
     """
     if math.isfinite(statistic) and statistic < -BELOW_TOL:
         return RefitVerdict.BELOW_NESTING_POINT
@@ -91,6 +102,10 @@ def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: di
         v = estimates.get(name)
         if v is not None and math.isfinite(v) and v * sign < 0:
             return RefitVerdict.NON_CAUSAL
+    for name, hi in (label_upper or {}).items():
+        v = estimates.get(name)
+        if v is not None and math.isfinite(v) and v >= hi * (1.0 - RANGE_TOL):
+            return RefitVerdict.BEYOND_RANGE
     return RefitVerdict.ORDINARY
 
 

@@ -588,7 +588,8 @@ def trial_verdict(c: Candidate, st: FitState, statistic: float):
     names = list(st.model.parameter_names)
     est = {p.name: float(st.fit.theta[names.index(p.name)]) for p in c.parameters
            if p.name in names}
-    return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}))
+    return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}),
+                         dict(c.info.get("label_upper") or {}))
 
 
 def stopped_short(t: Trial) -> float | None:
