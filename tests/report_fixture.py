@@ -262,7 +262,8 @@ def write_results_dir(path, *, n_samples: int = 601, dt: float = 0.1, validation
         "iterations": 23 if converged else 200,
         "wall_time_s": 4.2,
         "metrics": metrics,
-        "validation": {"elbo": 7950.1 if validation else None},
+        "validation": ({"elbo": 7950.1, "elbo_own_noise": 7961.25, "own_noise_converged": True}
+                       if validation else {"elbo": None}),
         "warnings": ([{"code": "noise_at_floor",
                        "message": "measurement noise std of output 'theta' is at its floor 0.00045 rad",
                        "reliable": False}] if warnings else []),

@@ -106,6 +106,9 @@ def test_sections_and_content(report):
     for s in ("hfb320", "3f9a1c0d5e7b2a49", "synthetic/hfb320_1_10.csv", "structured-newton",
               "converged: gradient norm", "23", "4.2", "0.1.0"):
         assert s in body, s
+    # both validation ELBOs: with the estimation's noise and with each record's own
+    assert "ELBO (validation)" in body and "7950.1" in body
+    assert "ELBO (validation, its own noise)" in body and "7961.25" in body
     # warnings shown, noise at floor flagged
     assert "noise_at_floor" in body and "at floor" in body
     # validation has its own section with its record

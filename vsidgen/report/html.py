@@ -751,6 +751,9 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
         "wall_time": _fmt(res.get("wall_time_s"), 3), "elbo": _fmt(res.get("elbo"), 8),
         "validation_elbo": _fmt(val.get("elbo"), 8),
         "validation_converged": val.get("converged", True) is not False,
+        "validation_elbo_own_noise": _fmt(val.get("elbo_own_noise"), 8)
+        if val.get("elbo_own_noise") is not None else None,
+        "validation_own_noise_converged": val.get("own_noise_converged", True) is not False,
         "validation_status": str(val.get("status") or ""),
         "versions": _versions(res),
         "warnings": warnings,
