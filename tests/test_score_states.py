@@ -319,36 +319,3 @@ def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
     # measured: 17.1928 against 17.1967 (zeroing the noise cross terms before the latent
     # path is profiled out gave 40.0; the observed cross terms 23.3)
     assert res.statistic == pytest.approx(ref, rel=0.01), (res.statistic, ref)
-
-
-def test_null_solver_profiles_over_the_positive_curvature_subspace_at_a_saddle():
-    """The current model's reduced system over the profiled variables: Cholesky when it is
-    positive definite (the exact inverse); at a saddle (an eigenvalue ≤ 0) the directions of
-    non-positive curvature are held — the solve is the inverse on the positive eigenspace —
-    and the note says so. With the negative direction along one variable's axis that is the
-    score test with that variable held at its value (hand-built 3 × 3 reference)."""
-    from vsidgen.discrepancy.score import null_solver
-
-    rng = np.random.default_rng(4)
-    A = rng.normal(size=(4, 4))
-    spd = A @ A.T + 4 * np.eye(4)
-    solve, note = null_solver(spd)
-    b = rng.normal(size=(4, 2))
-    assert note is None and np.allclose(solve(b), np.linalg.solve(spd, b))
-    # a saddle: variable 0 has negative curvature and no coupling to variable 1
-    S = np.array([[-3.0, 0.0, 0.7], [0.0, 2.0, 0.5], [0.7, 0.5, 4.0]])   # 2 = the new one
-    g = np.array([0.3, -0.4, 1.1])
-    rest, J = [0, 1], [2]
-    solve, note = null_solver(S[np.ix_(rest, rest)])
-    assert "saddle" in note and "1 direction" in note
-    SJ = S[np.ix_(J, rest)]
-    schur = S[np.ix_(J, J)] - SJ @ solve(SJ.T)
-    rJ = g[J] - SJ @ solve(g[rest])
-    stat = float(rJ @ np.linalg.solve(schur, rJ))
-    # reference: variable 0 held (deleted), the score test over variables 1 and 2
-    k = [1, 2]
-    Sk, gk = S[np.ix_(k, k)], g[k]
-    ref_schur = Sk[1, 1] - Sk[1, 0] ** 2 / Sk[0, 0]
-    ref_r = gk[1] - Sk[1, 0] * gk[0] / Sk[0, 0]
-    assert stat == pytest.approx(ref_r ** 2 / ref_schur, rel=1e-12)
-    assert null_solver(-np.eye(2))[0] is None

@@ -593,11 +593,15 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float, hvp: bool 
     held_all = (set(gpos[n] for n in new_par if n in gpos) | set(new_noise) | held_r
                 | {gpos[n] for n in pads if n in gpos})
     rest = np.array([j for j in range(nglob) if j not in held_all], int)
-    solve0, saddle_note = null_solver(S[np.ix_(rest, rest)])
-    if solve0 is None:
+    try:
+        L0 = np.linalg.cholesky(S[np.ix_(rest, rest)])
+    except np.linalg.LinAlgError:
         for c in cands:
             out[c.key] = ScoreResult(None, 0, None, note="Hessian not positive definite")
         return out
+
+    def solve0(B):
+        return np.linalg.solve(L0.T, np.linalg.solve(L0, B))
 
     a0 = solve0(rhs[rest])
     gain0 = 0.5 * float(rhs[rest] @ a0)
@@ -638,42 +642,8 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float, hvp: bool 
             j = free_names.index(bn[n])
             step[n] = float(theta[free_idx[j]] + dth[j] * dzn)
         out[c.key] = ScoreResult(stat, len(tested), float(stats.chi2.sf(stat, len(tested))),
-                                 tuple(tested), tuple(held), gain0 + 0.5 * stat, gain0, step,
-                                 note=saddle_note or "")
+                                 tuple(tested), tuple(held), gain0 + 0.5 * stat, gain0, step)
     return out
-
-
-def null_solver(S_rest):
-    """``(solve, note)``: ``solve(B) = S_rest⁻¹ B`` for the null model's reduced system over the
-    variables profiled out (Cholesky; ``note`` None).
-
-    When the current model is not at a minimum of its own objective there (a saddle: an
-    accepted mode whose gain and time constant trade against each other with negative
-    curvature, as on a new user's Tu-144 model after a missing mode with τ 0.18 s was
-    accepted), ``S_rest`` is indefinite and a quadratic model cannot profile along its
-    directions of non-positive curvature. Those eigen-directions are then held at the current
-    values — the statistic is the score test profiled over the positive-curvature subspace,
-    ``solve(B) = V₊ diag(1/w₊) V₊ᵀ B`` — and ``note`` says how many were held. ``(None,
-    note)`` when nothing positive is left."""
-    try:
-        L0 = np.linalg.cholesky(S_rest)
-    except np.linalg.LinAlgError:
-        pass
-    else:
-        return (lambda B: np.linalg.solve(L0.T, np.linalg.solve(L0, B))), None
-    Ssym = 0.5 * (S_rest + S_rest.T)
-    if not np.all(np.isfinite(Ssym)):
-        return None, "Hessian not finite"
-    w, V = np.linalg.eigh(Ssym)
-    scale = float(np.max(np.abs(w))) if w.size else 0.0
-    pos = w > 1e-12 * scale
-    if scale <= 0 or not pos.any():
-        return None, "Hessian not positive definite"
-    Vp, wp = V[:, pos], w[pos]
-    n_held = int((~pos).sum())
-    return ((lambda B: Vp @ ((Vp.T @ B) / (wp[:, None] if np.ndim(B) > 1 else wp))),
-            f"the current model is at a saddle of its own ELBO ({n_held} direction(s) of "
-            f"non-positive curvature held at the current values, not profiled)")
 
 
 def screen_group(group, current, info, workdir: pathlib.Path, tag: str, name: str, *,
