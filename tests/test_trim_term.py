@@ -58,7 +58,27 @@ def test_trim_term_only_where_an_equation_has_no_free_constant(tmp_path):
     assert p.initial == 0.0 and p.unit == "(rad/s)/s" and c.add_terms == {"drift": {"q": p.name}}
     # HFB-320: θ̇ = q is kinematics (no trim force); its aerodynamic states have no free
     # additive constant (CL0 etc. are scaled by the dynamic pressure)
-    assert _trim_keys(HFB) == ["trim_term:V", "trim_term:alpha", "trim_term:q"]
+    assert _trim_keys(HFB) == ["trim_term:V", "trim_term:all", "trim_term:alpha", "trim_term:q"]
+
+
+def test_all_trim_terms_together_for_a_model_without_any(tmp_path):
+    """A model linearised about zero instead of its trim point lacks every constant: one
+    candidate adds them all (its spec compiles; at zero it is the user's model)."""
+    from vsidgen.spec import compile_spec
+
+    user = ROOT / "benchmarks" / "users" / "tu144_mine.yaml"
+    info = model_info(user, dt=0.03125)
+    assert _trim_keys(user) == ["trim_term:all", "trim_term:alpha", "trim_term:q"]
+    c = next(c for c in propose(info) if c.key == "trim_term:all")
+    assert c.target == "drift:alpha+q" and len(c.parameters) == 2 and c.n_free == 2
+    p = tmp_path / "all.yaml"
+    p.write_text(c.spec_yaml(user, name="tu144_trims", candidate_path=p, info=info))
+    sym = compile_spec(p)
+    base = compile_spec(user)
+    for i, (a, b) in enumerate(zip(sym.drift_expanded(), base.drift_expanded())):
+        (new,) = {s.name for s in a.free_symbols} - {s.name for s in b.free_symbols}
+        assert new.startswith("D_TRIM_")
+        assert (a - b).free_symbols == {next(s for s in a.free_symbols if s.name == new)}
 
 
 def _kf_trim(p, u, y, c):
