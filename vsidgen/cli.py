@@ -497,8 +497,11 @@ def _cmd_fit(args) -> int:
         print(f"validation smoothing: {vstate}; validation ELBO {val['elbo']:.6g}"
               + (" (FAR BELOW the estimation's per sample: see the warning)" if far else ""))
         if val.get("elbo_own_noise") is not None:
-            print(f"validation ELBO at the validation records' own noise (θ fixed, noise "
-                  f"re-estimated; compares models by their physics): {val['elbo_own_noise']:.6g}"
+            trims = val.get("own_noise_free") or []
+            print(f"validation ELBO at the validation records' own noise (θ fixed"
+                  + (f" but the trim constants {', '.join(trims)}" if trims else "")
+                  + f", noise re-estimated; compares models by their physics): "
+                  f"{val['elbo_own_noise']:.6g}"
                   + ("" if val.get("own_noise_converged") else " (not converged)"))
     return 0 if res["converged"] and val_ok else 1
 

@@ -109,17 +109,31 @@ def fit_stage2(model, records, res1, *, max_iter: int, notes: list, warm_start=N
     return res2
 
 
-def validate_own_noise(model, vrecords, theta, *, max_iter):
-    """The validation records fitted with θ fixed and their own noise
-    (:func:`vsidgen.estimator.validate_own_noise`) with diagnose's options; None when that fit
-    fails (the gate then compares the estimation-noise smoothing)."""
+def validate_own_noise(model, vrecords, theta, *, max_iter, free=()):
+    """The validation records fitted with θ fixed — except the trim constants ``free`` — and
+    their own noise (:func:`vsidgen.estimator.validate_own_noise`) with diagnose's options;
+    None when that fit fails (the gate then compares the estimation-noise smoothing)."""
     from ..errors import FitError
     from ..estimator import validate_own_noise as own_noise
 
     try:
-        return own_noise(model, list(vrecords), theta, options=diag_options(max_iter))
+        return own_noise(model, list(vrecords), theta, free=free, options=diag_options(max_iter))
     except FitError:
         return None
+
+
+def trim_free(spec_path, model) -> tuple[str, ...]:
+    """The model's free trim constants (:meth:`.SymbolicModel.trim_parameters` of its spec),
+    re-estimated with the noise on each validation flight; () when the spec cannot be read."""
+    from ..errors import VsidgenError
+    from ..spec import compile_spec
+
+    try:
+        names = compile_spec(spec_path).trim_parameters()
+    except (VsidgenError, OSError):
+        return ()
+    own = {p.name for p in model.parameters if not p.fixed}
+    return tuple(n for n in names if n in own)
 
 
 def evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState:
@@ -136,7 +150,8 @@ def evaluated(spec_path, model, records, res, vrecords, *, max_iter) -> FitState
         vfit = smooth(model, list(vrecords), res.theta, res, options=diag_options(max_iter))
         vsignals = tuple(evaluate(model, r, res.theta, mu=np.asarray(sm.mu), G=res.G, R=res.R)
                          for r, sm in zip(vrecords, vfit.smoothers))
-        vfit_noise = validate_own_noise(model, vrecords, res.theta, max_iter=max_iter)
+        vfit_noise = validate_own_noise(model, vrecords, res.theta, max_iter=max_iter,
+                                        free=trim_free(spec_path, model))
     return FitState(pathlib.Path(spec_path), model, tuple(records), res, signals, tuple(vrecords),
                     vfit, vsignals, vfit_noise)
 

@@ -4,7 +4,7 @@ Public API::
 
     fit(model, records, *, options=FitOptions()) -> FitResult
     smooth(model, records, theta, noise, *, options=FitOptions()) -> FitResult
-    validate_own_noise(model, records, theta, *, options=FitOptions()) -> FitResult
+    validate_own_noise(model, records, theta, *, free=(), options=FitOptions()) -> FitResult
     FitOptions, FitPhase, PhaseKind, FitResult, SmootherPath, StopReason, StdErrorIssue, StdErrorFlag, WarmStart
     Problem(model, records, options)    # decision-vector layout, objective, reduced Newton system
     ModelFamily(models).active()        # problems of these models share one compilation

@@ -222,8 +222,11 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                          options=dataclasses.replace(options, progress=None))
         # the same physics at the validation records' own noise (the flight's turbulence and
         # sensor noise): the comparison of models by their physics (estimator.validate_own_noise)
+        # and its own trim constants (Z0, biases: properties of the flight condition)
+        own_free = tuple(n for n in symbolic.trim_parameters()
+                         if n in {p.name for p in model.parameters if not p.fixed})
         try:
-            vown = validate_own_noise(model, vrecords, result.theta,
+            vown = validate_own_noise(model, vrecords, result.theta, free=own_free,
                                       options=dataclasses.replace(options, progress=None))
         except FitError:
             vown = None
@@ -278,6 +281,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                        {"elbo": float(vresult.elbo), "converged": bool(vresult.converged),
                         "elbo_own_noise": None if vown is None else float(vown.elbo),
                         "own_noise_converged": None if vown is None else bool(vown.converged),
+                        "own_noise_free": list(own_free),
                         "stop_reason": _reason(vresult), "status": vresult.status,
                         "iterations": int(vresult.iterations),
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),

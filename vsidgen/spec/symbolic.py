@@ -110,6 +110,30 @@ class SymbolicModel:
     def constant_values(self) -> dict[sympy.Symbol, float]:
         return {c.symbol: c.value for c in self.constants}
 
+    def trim_parameters(self) -> tuple[str, ...]:
+        """Free parameters that are trim constants: every additive term of the expanded drift
+        and observations that names one names no state and no input, and it enters those
+        terms linearly (``Z0`` in ``α̇ = Z0 + Z_α α + …``, ``az0`` in ``a_z = V(…) + az0``, a
+        sensor bias). They are properties of the flight condition of a record, not of the
+        aircraft (the textbook's multi-manoeuvre estimation fits biases per time segment), so
+        validation on another record re-estimates them (``estimator.validate_own_noise``)."""
+        xu = {v.symbol for v in self.states} | {v.symbol for v in self.inputs}
+        free = [p for p in self.parameters if not p.fixed]
+        seen: dict[sympy.Symbol, bool] = {p.symbol: False for p in free}
+        bad: set = set()
+        for e in self.drift_expanded() + self.observations_expanded():
+            for term in sympy.Add.make_args(sympy.expand(e)):
+                syms = term.free_symbols
+                for ps in syms & set(seen):
+                    seen[ps] = True
+                    try:
+                        linear = sympy.degree(term, ps) == 1
+                    except (sympy.PolynomialError, ValueError, TypeError):
+                        linear = False
+                    if syms & xu or not linear:
+                        bad.add(ps)
+        return tuple(p.name for p in free if seen[p.symbol] and p.symbol not in bad)
+
 
 # ---------------------------------------------------------------------------
 # helpers
