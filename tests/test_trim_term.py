@@ -151,3 +151,27 @@ def test_attas_without_m0_names_the_trim_term(flight_data_dir, tmp_path):
     (est,) = first["parameters"].values()
     m0 = ref["oem"]["parameters"]["M0"]["value"] if ref else 0.475234
     assert abs(est["estimate"] - m0) < 0.05 * abs(m0), (est, m0)
+
+
+@pytest.mark.slow
+@pytest.mark.flight
+def test_a_users_model_without_trim_terms_gets_them_all(flight_data_dir, tmp_path):
+    """benchmarks/users/tu144_mine.yaml (short period in absolute α, δe without constants) on
+    tu144_lon_f20_4f (validation f20_4d). Measured 2026-11-28: trim_term:all screened first
+    (−log10 p 132) and accepted, 2ΔELBO 1022; D_TRIM_alpha 0.0573 ± 0.0014 rad/s and D_TRIM_q
+    0.1152 ± 0.0074 rad/s² against the textbook spec's Z0 0.0579 ± 0.0007 and M0
+    0.1155 ± 0.0066 on the same record; an 'elevator lag' of 5.0 s (2ΔELBO 3022) beyond its
+    label's range, not accepted."""
+    from vsidgen.discrepancy import search
+
+    out = tmp_path / "diag"
+    search.run_diagnose(ROOT / "benchmarks" / "users" / "tu144_mine.yaml",
+                        [flight_data_dir / "tu144_lon_f20_4f.csv"],
+                        validate=[flight_data_dir / "tu144_lon_f20_4d.csv"], out=out,
+                        max_rounds=1, workers=1)
+    doc = json.loads((out / "findings.json").read_text())
+    first = doc["findings"][0]
+    assert first["key"] == "trim_term:all", [f["key"] for f in doc["findings"]]
+    est = {k: v["estimate"] for k, v in first["parameters"].items()}
+    assert abs(est["D_TRIM_alpha"] - 0.0579) < 0.005 and abs(est["D_TRIM_q"] - 0.1155) < 0.02
+

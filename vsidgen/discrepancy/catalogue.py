@@ -181,11 +181,16 @@ class TrimTerm(Effect):
 
     id = "trim_term"
     title = "missing trim (constant) term"
-    explanation = ("The {state} equation lacks a constant term ({param}): at the trim point of "
-                   "the record its forces or moments do not balance — the equation error of "
-                   "{state} has a mean the model's terms cannot supply. Physically the trim "
-                   "force or moment (the value at zero of the variables the equation is written "
-                   "in; d{state}/dt += {param}).")
+    explanation = ("The {state} equation lacks a constant (trim) term ({param}): its equation "
+                   "error has a mean the model's terms cannot supply. Physically it is the trim "
+                   "force or moment — d{state}/dt where the variables the equation is written in "
+                   "are zero — which a model linearised about zero instead of its trim point "
+                   "leaves out (d{state}/dt += {param}).")
+    explanation_all = ("The {states} equations lack their constant (trim) terms ({params}): the "
+                       "model is written in the recorded variables without the trim point, so "
+                       "no equation balances its forces or moments where the aircraft was "
+                       "trimmed. All constants are added together (one omission; "
+                       "d{first}/dt += {first_param}, …).")
     doc = "A constant (trim) term in a state equation that has none."
 
     def applies_to(self, info):
@@ -207,10 +212,9 @@ class TrimTerm(Effect):
             ps = [info.fresh(f"D_TRIM_{s}") for s in states]
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:all", target="drift:" + "+".join(states),
-                explanation=self.explain(state=", ".join(states), param=", ".join(ps))
-                + (" The constants of all these equations are added together: a model "
-                   "written in the recorded variables without its trim point lacks each of "
-                   "them (one omission)."),
+                explanation=self.explanation_all.format(
+                    states=", ".join(states[:-1]) + " and " + states[-1],
+                    params=", ".join(ps), first=states[0], first_param=ps[0]),
                 parameters=tuple(NewParameter(p, _drift_unit(info, s),
                                               f"trim (constant) term of d{s}/dt")
                                  for s, p in zip(states, ps)),
