@@ -154,11 +154,12 @@ def test_conclusion_flags_failures_and_the_cli_prints_it_last(tmp_path):
         _trial("control_delay:de", -1017.0, 15.8, verdict="below_nesting_point"),
         _trial("time_skew:beta", 11.3, 10.9, verdict="non_causal"),
         _trial("sensor_position:beta:r", 6.1, 11.0),
-        _trial("actuator_lag:de", 3022.0, 13.9, verdict="beyond_range")]}]
+        _trial("actuator_lag:de", 3022.0, 13.9, verdict="beyond_range", converged=False)]}]
     text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
     assert "optimizer failure" in text and "control_delay:de" in text
     assert "non-causal" in text and "time_skew:beta" in text
     assert "upper end of the range its label allows" in text and "actuator_lag:de (2ΔELBO = 3022)" in text
+    assert "did not converge" not in text     # named once, as refused under its label
     doc = {"conclusion": text, "findings": []}
     lines = summary_lines(doc, tmp_path / "findings.json")
     assert lines[-1].startswith(text)

@@ -380,7 +380,10 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     # lower bound) is a finding, not an unconverged rejection
     named = {(f.get("rank"), f["key"]) for f in findings}
     tried = [t for t in tried if (t.get("round"), t["key"]) not in named]
-    unconv = [t["key"] for t in tried if t.get("converged") is False]
+    # a refit refused under its label (a time constant beyond the label's range) is named as
+    # such, not again as unconverged
+    unconv = [t["key"] for t in tried if t.get("converged") is False
+              and t.get("verdict") != "beyond_range"]
     strong = [t for t in tried if t.get("converged") is False
               and isinstance(t.get("statistic"), (int, float))
               and isinstance(t.get("threshold"), (int, float))
@@ -426,7 +429,7 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                                    for t in beyond) + ".")
     if val_rej:
         conclusion += (" Significant on the estimation records but rejected because the validation "
-                       "ELBO (θ fixed, each validation record with its own noise) did not improve "
+                       "ELBO (θ fixed, each validation record with its own noise and trim) did not improve "
                        "(over-fitting): " + ", ".join(val_rej) + ".")
     if unconv:
         unconv = _keys_by_round([t for t in tried if t["key"] in set(unconv)
