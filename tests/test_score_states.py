@@ -269,9 +269,9 @@ def test_ascent_candidates_are_refitted_before_non_significant_score_tests():
     assert [r.candidate.key for r in got] == ["strong", "sad1", "sad2", "sad0"]
 
 
-def _kf_bias(p, u, y, b):
-    """Exact log-likelihood of y_k = x_k + b + v_k, x_{k+1} = (1 + T A) x_k + T B u_k + w_k
-    (a scalar Kalman filter in jax.numpy)."""
+def _kf_bias(p, u, y, b, c=0.0):
+    """Exact log-likelihood of y_k = x_k + b + v_k, x_{k+1} = (1 + T A) x_k + T (B u_k + c) + w_k
+    (a scalar Kalman filter in jax.numpy; ``b`` a sensor bias, ``c`` a constant of the drift)."""
     A, B, lg, ls = p[0], p[1], p[2], p[3]
     T = DT
     q, R = T * jnp.exp(2 * lg), jnp.exp(2 * ls)
@@ -283,7 +283,8 @@ def _kf_bias(p, u, y, b):
         e = yi - b - xh
         ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
         K = P / S
-        return ((1 + T * A) * (xh + K * e) + T * B * ui, (1 + T * A) ** 2 * (P - K * P) + q, ll), None
+        return ((1 + T * A) * (xh + K * e) + T * (B * ui + c),
+                (1 + T * A) ** 2 * (P - K * P) + q, ll), None
 
     init = (y[0] - b, R, jnp.asarray(0.0))
     return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]

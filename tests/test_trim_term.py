@@ -18,11 +18,9 @@ import json
 import math
 import pathlib
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_score_states import DT, _simulate, fit_lin1, null_mle, rao_statistic
+from test_score_states import DT, _kf_bias, _simulate, fit_lin1, null_mle, rao_statistic
 
 from vsidgen.discrepancy.base import model_info, propose
 from vsidgen.discrepancy.catalogue import has_constant_term
@@ -82,24 +80,8 @@ def test_all_trim_terms_together_for_a_model_without_any(tmp_path):
 
 
 def _kf_trim(p, u, y, c):
-    """Exact log-likelihood of y_k = x_k + v_k, x_{k+1} = (1 + T A) x_k + T (B u_k + c) + w_k
-    (a scalar Kalman filter in jax.numpy)."""
-    A, B, lg, ls = p[0], p[1], p[2], p[3]
-    T = DT
-    q, R = T * jnp.exp(2 * lg), jnp.exp(2 * ls)
-
-    def step(carry, inp):
-        xh, P, ll = carry
-        ui, yi = inp
-        S = P + R
-        e = yi - xh
-        ll = ll - 0.5 * (jnp.log(2 * math.pi * S) + e * e / S)
-        K = P / S
-        return ((1 + T * A) * (xh + K * e) + T * (B * ui + c),
-                (1 + T * A) ** 2 * (P - K * P) + q, ll), None
-
-    init = (jnp.asarray(y[0]), R, jnp.asarray(0.0))
-    return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]
+    """The scalar Kalman filter of tests/test_score_states.py with a drift constant ``c``."""
+    return _kf_bias(p, u, y, 0.0, c)
 
 
 def test_trim_term_score_statistic_against_kalman_filter(tmp_path):
