@@ -290,31 +290,43 @@ def _kf_bias(p, u, y, b, c=0.0):
     return jax.lax.scan(step, init, (jnp.asarray(u), jnp.asarray(y)))[0][2]
 
 
-def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
-    """A sensor bias (y = x + 0.03, independent numpy simulation): the screen's statistic of
-    ``sensor_bias:y`` (a candidate that adds no state; the cross terms of the bias with the
-    noise parameters at their null expectation, zero) against a numpy Kalman filter's Rao
-    statistic, with exact derivatives at the null maximum-likelihood estimate."""
-    from vsidgen.discrepancy import propose
-    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
-    from vsidgen.discrepancy.score import screen
-
-    rng = np.random.default_rng(11)
-    n, sub = 800, 10
+def simulate_lin1(seed, *, bias=0.0, trim=0.0, n=800, sub=10):
+    """Independent numpy simulation (``sub`` Euler substeps per sample) of x' = −1.2 x + 2 u +
+    ``trim`` with process noise, measured as y = x + ``bias`` + noise."""
+    rng = np.random.default_rng(seed)
     h = DT / sub
     t, u, _ = _simulate(n=n)
     x, xs = 0.0, np.empty(n)
     for i in range(n):
         xs[i] = x
         for _ in range(sub):
-            x += h * (-1.2 * x + 2.0 * u[i]) + 0.08 * math.sqrt(h) * rng.standard_normal()
-    y = xs + 0.03 + 0.02 * rng.standard_normal(n)
-    st, info = fit_lin1(tmp_path, t, u, y)
-    cand = next(c for c in propose(info) if c.key == "sensor_bias:y")
-    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
+            x += h * (-1.2 * x + 2.0 * u[i] + trim) + 0.08 * math.sqrt(h) * rng.standard_normal()
+    return t, u, xs + bias + 0.02 * rng.standard_normal(n)
+
+
+def screen_against_kalman(tmp, t, u, y, key, kf):
+    """(the screen's ScoreResult of candidate ``key`` of the fitted one-state model, Rao's
+    statistic of the Kalman filter ``kf(p, new)`` at its null maximum-likelihood estimate)."""
+    from vsidgen.discrepancy import propose
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
+    from vsidgen.discrepancy.score import screen
+
+    st, info = fit_lin1(tmp, t, u, y)
+    cand = next(c for c in propose(info) if c.key == key)
+    res = screen([cand], st, info, tmp / "screen", "t", generated_dir=tmp / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    p0 = null_mle(lambda p: _kf_bias(p, u, y, 0.0))
-    ref = rao_statistic(lambda z: _kf_bias(z[:4], u, y, z[4]), np.append(p0, 0.0))
+    p0 = null_mle(lambda p: kf(p, 0.0))
+    return res, rao_statistic(lambda z: kf(z[:4], z[4]), np.append(p0, 0.0))
+
+
+def test_plain_candidate_score_statistic_against_kalman_filter(tmp_path):
+    """A sensor bias (y = x + 0.03, independent numpy simulation): the screen's statistic of
+    ``sensor_bias:y`` (a candidate that adds no state; the cross terms of the bias with the
+    noise parameters at their null expectation, zero) against a numpy Kalman filter's Rao
+    statistic, with exact derivatives at the null maximum-likelihood estimate."""
+    t, u, y = simulate_lin1(11, bias=0.03)
+    res, ref = screen_against_kalman(tmp_path, t, u, y, "sensor_bias:y",
+                                     lambda p, c: _kf_bias(p, u, y, c))
     print("sensor_bias:y score statistic", res.statistic, "Kalman-filter reference", ref)
     assert res.dof == 1 and 10.0 < ref < 5000.0, (res, ref)
     # measured: 17.1928 against 17.1967 (zeroing the noise cross terms before the latent

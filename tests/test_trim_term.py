@@ -15,12 +15,10 @@ equation without a free constant.
 from __future__ import annotations
 
 import json
-import math
 import pathlib
 
-import numpy as np
 import pytest
-from test_score_states import DT, _kf_bias, _simulate, fit_lin1, null_mle, rao_statistic
+from test_score_states import _kf_bias, screen_against_kalman, simulate_lin1
 
 from vsidgen.discrepancy.base import model_info, propose
 from vsidgen.discrepancy.catalogue import has_constant_term
@@ -79,34 +77,13 @@ def test_all_trim_terms_together_for_a_model_without_any(tmp_path):
         assert (a - b).free_symbols == {next(s for s in a.free_symbols if s.name == new)}
 
 
-def _kf_trim(p, u, y, c):
-    """The scalar Kalman filter of tests/test_score_states.py with a drift constant ``c``."""
-    return _kf_bias(p, u, y, 0.0, c)
-
-
 def test_trim_term_score_statistic_against_kalman_filter(tmp_path):
     """x′ = −1.2 x + 2 u + 0.08 (independent numpy simulation, 10 substeps per sample),
     fitted with the constant left out: the screen's statistic of ``trim_term:x`` against an
     exact Kalman filter's Rao statistic at the null maximum-likelihood estimate."""
-    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD
-    from vsidgen.discrepancy.score import screen
-
-    rng = np.random.default_rng(23)
-    n, sub = 800, 10
-    h = DT / sub
-    t, u, _ = _simulate(n=n)
-    x, xs = 0.0, np.empty(n)
-    for i in range(n):
-        xs[i] = x
-        for _ in range(sub):
-            x += h * (-1.2 * x + 2.0 * u[i] + 0.08) + 0.08 * math.sqrt(h) * rng.standard_normal()
-    y = xs + 0.02 * rng.standard_normal(n)
-    st, info = fit_lin1(tmp_path, t, u, y)
-    cand = next(c for c in propose(info) if c.key == "trim_term:x")
-    res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
-                 det_std=REFIT_DETERMINISTIC_STD)[cand.key]
-    p0 = null_mle(lambda p: _kf_trim(p, u, y, 0.0))
-    ref = rao_statistic(lambda z: _kf_trim(z[:4], u, y, z[4]), np.append(p0, 0.0))
+    t, u, y = simulate_lin1(23, trim=0.08)
+    res, ref = screen_against_kalman(tmp_path, t, u, y, "trim_term:x",
+                                     lambda p, c: _kf_bias(p, u, y, 0.0, c))
     print("trim_term:x score statistic", res.statistic, "Kalman-filter reference", ref)
     assert res.dof == 1 and 10.0 < ref < 5000.0, (res, ref)
     # measured: 24.878 against 24.742
