@@ -54,7 +54,7 @@ def test_own_noise_validation_is_at_least_the_fixed_noise_smoothing():
     assert own is not None and own.converged
     assert own.elbo >= fixed.elbo - 1e-6 * abs(fixed.elbo)
     assert own.elbo > fixed.elbo + 100.0
-    np.testing.assert_allclose(own.theta, res.theta, rtol=0, atol=0)   # the physics is held
+    np.testing.assert_allclose(own.fits[0].theta, res.theta, rtol=0, atol=0)   # physics held
 
 
 def test_trim_constants_are_those_that_enter_additively_alone():
@@ -122,15 +122,25 @@ def test_validation_re_estimates_the_trim_constants_of_another_flight(tmp_path):
     free = validate_own_noise(model, [val], res.theta, max_iter=200, free=("Z0", "M0"))
     assert held is not None and free is not None and free.converged
     print("validation ELBO, trim held", held.elbo, "free", free.elbo,
-          "M0", free.theta[names.index("M0")])
+          "M0", free.fits[0].theta[names.index("M0")])
     assert free.elbo > held.elbo + 50.0
     # the shift of the trim (0.05) recovered within 0.02 from the estimate's own error
-    assert abs(free.theta[names.index("M0")] - m0 - 0.05) < 0.02
+    assert abs(free.fits[0].theta[names.index("M0")] - m0 - 0.05) < 0.02
     for j, n in enumerate(names):
         if n not in ("Z0", "M0"):
-            assert free.theta[j] == res.theta[j], n
+            assert free.fits[0].theta[j] == res.theta[j], n
     with pytest.raises(FitError, match="not parameters"):
         own(model, [val], res.theta, free=("nope",))
+    # two validation flights at two trims: each fitted on its own (its own noise and trim),
+    # the ELBOs summed — not one noise level and one trim for both
+    both = validate_own_noise(model, [est, val], res.theta, max_iter=200, free=("Z0", "M0"))
+    from vsidgen.discrepancy.fitstate import diag_options
+    alone = [own(model, [r], res.theta, free=("Z0", "M0"), options=diag_options(200))
+             for r in (est, val)]
+    assert len(both.fits) == 2 and both.converged
+    assert both.elbo == pytest.approx(sum(a.elbo for a in alone), rel=1e-9)
+    m0s = [f.theta[names.index("M0")] for f in both.fits]
+    assert abs(m0s[1] - m0s[0] - 0.05) < 0.02      # each record its own M0
 
 
 @pytest.mark.slow

@@ -109,17 +109,36 @@ def fit_stage2(model, records, res1, *, max_iter: int, notes: list, warm_start=N
     return res2
 
 
+@dataclasses.dataclass(frozen=True)
+class OwnNoiseValidation:
+    """Validation at each record's own noise and trim, one fit per validation record:
+    ``elbo`` their sum, ``converged`` whether every one converged, ``fits`` the FitResults."""
+
+    elbo: float
+    converged: bool
+    fits: tuple
+
+
 def validate_own_noise(model, vrecords, theta, *, max_iter, free=()):
-    """The validation records fitted with θ fixed — except the trim constants ``free`` — and
-    their own noise (:func:`vsidgen.estimator.validate_own_noise`) with diagnose's options;
-    None when that fit fails (the gate then compares the estimation-noise smoothing)."""
+    """Each validation record fitted on its own with θ fixed — except the trim constants
+    ``free`` — and its own noise (:func:`vsidgen.estimator.validate_own_noise`, diagnose's
+    options): a flight's turbulence, sensor noise and trim are its own, so two validation
+    flights do not share them. :class:`OwnNoiseValidation` (the ELBOs summed); None when a
+    fit fails (the gate then compares the estimation-noise smoothing)."""
     from ..errors import FitError
     from ..estimator import validate_own_noise as own_noise
 
-    try:
-        return own_noise(model, list(vrecords), theta, free=free, options=diag_options(max_iter))
-    except FitError:
+    fits = []
+    for rec in vrecords:
+        try:
+            fits.append(own_noise(model, [rec], theta, free=free,
+                                  options=diag_options(max_iter)))
+        except FitError:
+            return None
+    if not fits:
         return None
+    return OwnNoiseValidation(float(sum(f.elbo for f in fits)),
+                              all(bool(f.converged) for f in fits), tuple(fits))
 
 
 def trim_free(spec_path, model) -> tuple[str, ...]:

@@ -225,9 +225,11 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         # and its own trim constants (Z0, biases: properties of the flight condition)
         own_free = tuple(n for n in symbolic.trim_parameters()
                          if n in {p.name for p in model.parameters if not p.fixed})
+        # one fit per validation record: two flights share neither noise nor trim
         try:
-            vown = validate_own_noise(model, vrecords, result.theta, free=own_free,
-                                      options=dataclasses.replace(options, progress=None))
+            vown = [validate_own_noise(model, [r], result.theta, free=own_free,
+                                       options=dataclasses.replace(options, progress=None))
+                    for r in vrecords]
         except FitError:
             vown = None
     signals = _evaluate_all(model, records, result, integrator=integrator, substeps=substeps)
@@ -279,8 +281,9 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                     "validation": {s.record: s.metrics for s in vsignals}},
         "validation": ({"elbo": None} if vresult is None else
                        {"elbo": float(vresult.elbo), "converged": bool(vresult.converged),
-                        "elbo_own_noise": None if vown is None else float(vown.elbo),
-                        "own_noise_converged": None if vown is None else bool(vown.converged),
+                        "elbo_own_noise": None if vown is None else float(sum(v.elbo for v in vown)),
+                        "own_noise_converged": None if vown is None
+                        else all(bool(v.converged) for v in vown),
                         "own_noise_free": list(own_free),
                         "stop_reason": _reason(vresult), "status": vresult.status,
                         "iterations": int(vresult.iterations),
