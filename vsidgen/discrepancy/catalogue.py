@@ -36,10 +36,9 @@ from __future__ import annotations
 
 import functools
 
-import sympy
-
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
                    spec_text)
+from ..spec.symbolic import split_constant_terms
 from .locate import SPEED_REGRESSOR
 
 
@@ -158,12 +157,8 @@ def has_constant_term(info: ModelInfo, state: str) -> bool:
     if e is None:
         return True
     xu = set(info.state_names) | set(info.input_names)
-    pars = set(info.parameters)
-    for term in sympy.Add.make_args(sympy.expand(e)):
-        names = {s.name for s in term.free_symbols}
-        if names & pars and not names & xu:
-            return True
-    return False
+    constant, _ = split_constant_terms(e, {s for s in e.free_symbols if s.name in xu})
+    return any({s.name for s in term.free_symbols} & set(info.parameters) for term in constant)
 
 
 @register_effect

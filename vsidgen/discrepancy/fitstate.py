@@ -142,13 +142,18 @@ def validate_own_noise(model, vrecords, theta, *, max_iter, free=()):
 
 
 def trim_free(spec_path, model) -> tuple[str, ...]:
-    """The model's free trim constants (:meth:`.SymbolicModel.trim_parameters` of its spec),
-    re-estimated with the noise on each validation flight; () when the spec cannot be read."""
+    """The model's free trim constants (:meth:`.SymbolicModel.trim_parameters` of its spec:
+    the model's own symbolic form when it was loaded from ``spec_path``), re-estimated with the
+    noise on each validation flight; () when the spec cannot be read."""
     from ..errors import VsidgenError
     from ..spec import compile_spec
 
+    sym = getattr(model, "symbolic", None)
     try:
-        names = compile_spec(spec_path).trim_parameters()
+        if sym is None or pathlib.Path(sym.source_path).resolve() != \
+                pathlib.Path(spec_path).resolve():
+            sym = compile_spec(spec_path)
+        names = sym.trim_parameters()
     except (VsidgenError, OSError):
         return ()
     own = {p.name for p in model.parameters if not p.fixed}

@@ -597,11 +597,11 @@ def batch_statistics(cands, current, m, P, bnames, *, det_std: float, hvp: bool 
         L0 = np.linalg.cholesky(S[np.ix_(rest, rest)])
     except np.linalg.LinAlgError:
         for c in cands:
+            # (a projection onto the positive-curvature subspace was tried, session 31: it
+            # inflated the statistics of candidates coupled to the negative directions)
             out[c.key] = ScoreResult(None, 0, None, note=(
                 "Hessian not positive definite: the current model is not at a minimum of its "
-                "own objective along the variables profiled out (a saddle; no statistic — "
-                "projected onto its positive-curvature subspace, the statistics of candidates "
-                "coupled to the negative directions were inflated a thousandfold)"))
+                "own objective along the variables profiled out (a saddle); no statistic"))
         return out
 
     def solve0(B):

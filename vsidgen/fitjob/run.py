@@ -223,8 +223,8 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         # the same physics at the validation records' own noise (the flight's turbulence and
         # sensor noise): the comparison of models by their physics (estimator.validate_own_noise)
         # and its own trim constants (Z0, biases: properties of the flight condition)
-        own_free = tuple(n for n in symbolic.trim_parameters()
-                         if n in {p.name for p in model.parameters if not p.fixed})
+        free_names = {p.name for p in model.parameters if not p.fixed}
+        own_free = tuple(n for n in symbolic.trim_parameters() if n in free_names)
         # one fit per validation record: two flights share neither noise nor trim
         try:
             vown = [validate_own_noise(model, [r], result.theta, free=own_free,

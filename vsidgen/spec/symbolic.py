@@ -122,17 +122,30 @@ class SymbolicModel:
         seen: dict[sympy.Symbol, bool] = {p.symbol: False for p in free}
         bad: set = set()
         for e in self.drift_expanded() + self.observations_expanded():
-            for term in sympy.Add.make_args(sympy.expand(e)):
-                syms = term.free_symbols
-                for ps in syms & set(seen):
+            constant, varying = split_constant_terms(e, xu)
+            for term in varying:
+                for ps in term.free_symbols & set(seen):
+                    seen[ps] = True
+                    bad.add(ps)
+            for term in constant:
+                for ps in term.free_symbols & set(seen):
                     seen[ps] = True
                     try:
                         linear = sympy.degree(term, ps) == 1
                     except (sympy.PolynomialError, ValueError, TypeError):
                         linear = False
-                    if syms & xu or not linear:
+                    if not linear:
                         bad.add(ps)
         return tuple(p.name for p in free if seen[p.symbol] and p.symbol not in bad)
+
+
+def split_constant_terms(expr, variables) -> tuple[list, list]:
+    """(the additive terms of ``expr``, expanded, that contain none of the symbols
+    ``variables``; those that do): the constant part of an equation in its states and inputs."""
+    constant, varying = [], []
+    for term in sympy.Add.make_args(sympy.expand(expr)):
+        (varying if term.free_symbols & set(variables) else constant).append(term)
+    return constant, varying
 
 
 # ---------------------------------------------------------------------------
