@@ -228,7 +228,8 @@ def test_alpha_vane_offset_recovered_in_metres_from_exact_geometry(tmp_path):
 # ---------------------------------------------------------------------------
 
 def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
-    """Its equations, with Δγ = θ − α, are the textbook linear longitudinal model."""
+    """Its equations, with the attitude perturbation Δθ and γ = θ − α, are the textbook
+    linear longitudinal model (states u, α, q, θ)."""
     from vsidgen.spec import compile_spec
 
     info = model_info(TOTTER, dt=0.01)
@@ -245,7 +246,7 @@ def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
     drift = dict(zip(names, sym.drift_expanded()))
     obs = dict(zip([v.name for v in sym.outputs], sym.observations_expanded()))
     s = {x.name: x for e in list(drift.values()) + list(obs.values()) for x in e.free_symbols}
-    a, q, de, dV, gam = (s[k] for k in ("alpha", "q", "de", "D_dV", "D_dgamma"))
+    a, q, de, dV, th = (s[k] for k in ("alpha", "q", "de", "D_dV", "D_dtheta"))
     Z0, Za, Zde, Vo = (s[k] for k in ("Z0", "Za", "Zde", "Vo"))
     XV, Xa, ZV, MV = (s[k] for k in ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
     M0, Ma, Mq, Mde, az0 = (s[k] for k in ("M0", "Ma", "Mq", "Mde", "az0"))
@@ -253,9 +254,9 @@ def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
     g = sympy.Float(G, 15)
     assert sympy.simplify(drift["alpha"] - hand_alpha) == 0
     assert sympy.simplify(drift["q"] - (M0 + Ma * a + Mq * q + Mde * de + MV * dV)) == 0
-    assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * gam)) == 0
-    # flight-path angle: γ̇ = θ̇ − α̇ = q − α̇
-    assert sympy.simplify(drift["D_dgamma"] - (q - hand_alpha)) == 0
+    # gravity along the flight path γ = θ − α
+    assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * (th - a))) == 0
+    assert sympy.simplify(drift["D_dtheta"] - q) == 0
     # vertical specific force Z/m = V₀(α̇ − q) without the bias: gains V₀ Z_V ΔV
     assert sympy.simplify(obs["az"] - (Vo * (Za * a + Zde * de + ZV * dV) + az0)) == 0
 

@@ -1120,15 +1120,19 @@ class SpeedDynamics(Effect):
                    "trades height for speed along its flight path (the phugoid): the speed "
                    "perturbation {dV} (m/s) changes lift ({zv}, into the {alpha} equation{az}) "
                    "and pitching moment ({mv}, into the {q} equation). Added as the standard "
-                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − g·{gam} "
-                   "(drag/thrust change with speed and with {alpha}, gravity along the path) "
-                   "with the flight-path-angle perturbation d{gam}/dt = {q} − d{alpha}/dt "
-                   "(= θ − α kinematically, without the air-mass part of {alpha}); "
-                   "g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} ({v_source}).")
+                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − "
+                   "g·({th} − {alpha}) (drag/thrust change with speed and with {alpha}, gravity "
+                   "along the flight path γ = θ − α) with the pitch-attitude perturbation "
+                   "d{th}/dt = {q}; g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} "
+                   "({v_source}).")
     doc = ("The speed degree of freedom a short-period (α, q) model leaves out: states ΔV and "
-           "Δγ, ΔV̇ = X_V ΔV + X_α α − g Δγ, Δγ̇ = q − α̇, α̇ += Z_V ΔV, q̇ += M_V ΔV "
+           "Δθ, ΔV̇ = X_V ΔV + X_α α − g (Δθ − α), Δθ̇ = q, α̇ += Z_V ΔV, q̇ += M_V ΔV "
            "(a vertical accelerometer += V₀ Z_V ΔV), with g and V₀ from the spec, the "
-           "records or the aircraft constants.")
+           "records or the aircraft constants. The path angle γ = θ − α is formed from the "
+           "attitude, which integrates the model's q exactly: a path angle integrated as "
+           "q − α̇ would miss the part of α that the α equation's process noise carries "
+           "(turbulence acts on the inertial α), drift away from θ − α and couple every error "
+           "of the α equation into the speed.")
 
     def applies_to(self, info):
         a = info.flow_angle("alpha")
@@ -1143,8 +1147,8 @@ class SpeedDynamics(Effect):
         if any(s.lower() in ("v", "u", "vt", "vtas", "tas") for s in info.state_names):
             return []
         dv = info.fresh("D_dV")
-        gam = info.fresh("D_dgamma", taken=[dv])
-        xv, xa, zv, mv = (info.fresh(n, taken=[dv, gam]) for n in
+        th = info.fresh("D_dtheta", taken=[dv])
+        xv, xa, zv, mv = (info.fresh(n, taken=[dv, th]) for n in
                           ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
         g, g_source = _gravity(info)
         v0, v_source = _speed_value(info)
@@ -1168,13 +1172,13 @@ class SpeedDynamics(Effect):
         if obs:
             adds["observations"] = obs
         states = (
-            NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*{gam}", "m/s",
+            NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*({th} - {a})", "m/s",
                      "airspeed perturbation from trim (phugoid)"),
-            NewState(gam, f"{q} - ({info.drift[a]}) - {zv}*{dv}", au,
-                     "flight-path-angle perturbation (inertial θ − α)"))
+            NewState(th, f"{q}", au, "pitch-attitude perturbation (its start absorbs the trim "
+                                     "of the speed equation)"))
         return [Candidate(
             effect=self.id, key=f"{self.id}:{a}:{q}", target=f"drift:{a}",
-            explanation=self.explain(dV=dv, gam=gam, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
+            explanation=self.explain(dV=dv, th=th, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
                                      g=g, g_source=g_source,
                                      v0=(f"{v0} m/s" if v0 and v0[0].isdigit() else v0 or "—"),
                                      v_source=v_source,
