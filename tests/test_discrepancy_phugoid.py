@@ -228,37 +228,47 @@ def test_alpha_vane_offset_recovered_in_metres_from_exact_geometry(tmp_path):
 # ---------------------------------------------------------------------------
 
 def test_speed_candidate_is_the_linearised_longitudinal_model(tmp_path):
-    """Its equations, with the attitude perturbation Δθ and γ = θ − α, are the textbook
-    linear longitudinal model (states u, α, q, θ)."""
+    """Its equations are the textbook linear longitudinal model, with the path angle closed
+    two ways: from the model's α equation (γ̇ = q − α̇, air-relative α) and from the attitude
+    (Δθ̇ = q, γ = Δθ − α, inertial α)."""
     from vsidgen.spec import compile_spec
 
     info = model_info(TOTTER, dt=0.01)
-    (c,) = SpeedDynamics().applies_to(info)
-    assert c.effect == "speed_dynamics" and c.key == "speed_dynamics:alpha:q"
-    units = {p.name: p.unit for p in c.parameters}
-    assert units == {"D_XV": "1/s", "D_Xalpha": "(m/s^2)/(rad)", "D_ZV": "(rad)/m",
-                     "D_MV": "(rad/s)/m"}
-    assert all(p.initial == 0.0 and not p.fixed for p in c.parameters)
-    path = tmp_path / "speed.yaml"
-    path.write_text(c.spec_yaml(TOTTER, name="speed", candidate_path=path, info=info))
-    sym = compile_spec(path)
-    names = [v.name for v in sym.states]
-    drift = dict(zip(names, sym.drift_expanded()))
-    obs = dict(zip([v.name for v in sym.outputs], sym.observations_expanded()))
-    s = {x.name: x for e in list(drift.values()) + list(obs.values()) for x in e.free_symbols}
-    a, q, de, dV, th = (s[k] for k in ("alpha", "q", "de", "D_dV", "D_dtheta"))
-    Z0, Za, Zde, Vo = (s[k] for k in ("Z0", "Za", "Zde", "Vo"))
-    XV, Xa, ZV, MV = (s[k] for k in ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
-    M0, Ma, Mq, Mde, az0 = (s[k] for k in ("M0", "Ma", "Mq", "Mde", "az0"))
-    hand_alpha = Z0 + Za * a + q + Zde * de + ZV * dV
+    air, att = SpeedDynamics().applies_to(info)
+    assert air.key == "speed_dynamics:alpha:q" and att.key == "speed_dynamics:alpha:q:attitude"
+    assert air.info["closure"] == "air" and att.info["closure"] == "attitude"
+    for c in (air, att):
+        assert c.effect == "speed_dynamics" and c.target == "drift:alpha"
+        units = {p.name: p.unit for p in c.parameters}
+        assert units == {"D_XV": "1/s", "D_Xalpha": "(m/s^2)/(rad)", "D_ZV": "(rad)/m",
+                         "D_MV": "(rad/s)/m"}
+        assert all(p.initial == 0.0 and not p.fixed for p in c.parameters)
     g = sympy.Float(G, 15)
-    assert sympy.simplify(drift["alpha"] - hand_alpha) == 0
-    assert sympy.simplify(drift["q"] - (M0 + Ma * a + Mq * q + Mde * de + MV * dV)) == 0
-    # gravity along the flight path γ = θ − α
-    assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * (th - a))) == 0
-    assert sympy.simplify(drift["D_dtheta"] - q) == 0
-    # vertical specific force Z/m = V₀(α̇ − q) without the bias: gains V₀ Z_V ΔV
-    assert sympy.simplify(obs["az"] - (Vo * (Za * a + Zde * de + ZV * dV) + az0)) == 0
+    for c, ang in ((air, "D_dgamma"), (att, "D_dtheta")):
+        path = tmp_path / f"speed_{ang}.yaml"
+        path.write_text(c.spec_yaml(TOTTER, name="speed", candidate_path=path, info=info))
+        sym = compile_spec(path)
+        names = [v.name for v in sym.states]
+        drift = dict(zip(names, sym.drift_expanded()))
+        obs = dict(zip([v.name for v in sym.outputs], sym.observations_expanded()))
+        s = {x.name: x for e in list(drift.values()) + list(obs.values()) for x in e.free_symbols}
+        a, q, de, dV, x = (s[k] for k in ("alpha", "q", "de", "D_dV", ang))
+        Z0, Za, Zde, Vo = (s[k] for k in ("Z0", "Za", "Zde", "Vo"))
+        XV, Xa, ZV, MV = (s[k] for k in ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
+        M0, Ma, Mq, Mde, az0 = (s[k] for k in ("M0", "Ma", "Mq", "Mde", "az0"))
+        hand_alpha = Z0 + Za * a + q + Zde * de + ZV * dV
+        assert sympy.simplify(drift["alpha"] - hand_alpha) == 0
+        assert sympy.simplify(drift["q"] - (M0 + Ma * a + Mq * q + Mde * de + MV * dV)) == 0
+        if ang == "D_dgamma":
+            # flight-path angle: γ̇ = θ̇ − α̇ = q − α̇ (the α equation without its noise)
+            assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * x)) == 0
+            assert sympy.simplify(drift[ang] - (q - hand_alpha)) == 0
+        else:
+            # gravity along the flight path γ = θ − α, θ̇ = q
+            assert sympy.simplify(drift["D_dV"] - (XV * dV + Xa * a - g * (x - a))) == 0
+            assert sympy.simplify(drift[ang] - q) == 0
+        # vertical specific force Z/m = V₀(α̇ − q) without the bias: gains V₀ Z_V ΔV
+        assert sympy.simplify(obs["az"] - (Vo * (Za * a + Zde * de + ZV * dV) + az0)) == 0
 
 
 def test_speed_candidate_needs_alpha_and_q_and_no_speed_state():

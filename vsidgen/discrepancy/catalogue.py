@@ -1120,19 +1120,30 @@ class SpeedDynamics(Effect):
                    "trades height for speed along its flight path (the phugoid): the speed "
                    "perturbation {dV} (m/s) changes lift ({zv}, into the {alpha} equation{az}) "
                    "and pitching moment ({mv}, into the {q} equation). Added as the standard "
-                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − "
-                   "g·({th} − {alpha}) (drag/thrust change with speed and with {alpha}, gravity "
-                   "along the flight path γ = θ − α) with the pitch-attitude perturbation "
-                   "d{th}/dt = {q}; g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} "
+                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − g·γ "
+                   "(drag/thrust change with speed and with {alpha}, gravity along the flight "
+                   "path γ) {closure}; g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} "
                    "({v_source}).")
-    doc = ("The speed degree of freedom a short-period (α, q) model leaves out: states ΔV and "
-           "Δθ, ΔV̇ = X_V ΔV + X_α α − g (Δθ − α), Δθ̇ = q, α̇ += Z_V ΔV, q̇ += M_V ΔV "
-           "(a vertical accelerometer += V₀ Z_V ΔV), with g and V₀ from the spec, the "
-           "records or the aircraft constants. The path angle γ = θ − α is formed from the "
-           "attitude, which integrates the model's q exactly: a path angle integrated as "
-           "q − α̇ would miss the part of α that the α equation's process noise carries "
-           "(turbulence acts on the inertial α), drift away from θ − α and couple every error "
-           "of the α equation into the speed.")
+    #: the two kinematic closures of the path angle γ = θ − α_inertial (see ``doc``)
+    CLOSURES = {
+        "air": ("with the path-angle perturbation d{gam}/dt = {q} − d{alpha}/dt from the "
+                "model's {alpha} equation: the part of the measured {alpha} that its process "
+                "noise carries (gusts: an air-relative vane) does not move the flight path"),
+        "attitude": ("with γ = {th} − {alpha} from the pitch-attitude perturbation "
+                     "d{th}/dt = {q}: the measured {alpha} is the inertial angle of attack "
+                     "(process noise acts on the motion itself, e.g. α from inertial data)"),
+    }
+    doc = ("The speed degree of freedom a short-period (α, q) model leaves out: ΔV̇ = X_V ΔV + "
+           "X_α α − g Δγ, α̇ += Z_V ΔV, q̇ += M_V ΔV (a vertical accelerometer += V₀ Z_V ΔV), "
+           "with g and V₀ from the spec, the records or the aircraft constants. Two closures of "
+           "the path angle γ = θ − α_inertial, two candidates: ``speed_dynamics:α:q`` "
+           "integrates Δγ̇ = q − α̇ with α̇ the model's α equation without its process noise "
+           "(right when α is air-relative, a vane in turbulence: a gust changes the measured α "
+           "but not the path; the real Twin Otter record), ``speed_dynamics:α:q:attitude`` "
+           "carries the attitude, Δθ̇ = q, and Δγ = Δθ − α (right when α is the inertial "
+           "angle and the α equation's process noise moves the aircraft; the independent "
+           "simulator's records, where the air-relative closure's Δγ drifts from θ − α and its "
+           "refit stalls). The evidence decides between them.")
 
     def applies_to(self, info):
         a = info.flow_angle("alpha")
@@ -1146,9 +1157,12 @@ class SpeedDynamics(Effect):
             return []
         if any(s.lower() in ("v", "u", "vt", "vtas", "tas") for s in info.state_names):
             return []
+        return [self._candidate(info, a, q, closure) for closure in self.CLOSURES]
+
+    def _candidate(self, info, a, q, closure):
         dv = info.fresh("D_dV")
-        th = info.fresh("D_dtheta", taken=[dv])
-        xv, xa, zv, mv = (info.fresh(n, taken=[dv, th]) for n in
+        ang = info.fresh("D_dgamma" if closure == "air" else "D_dtheta", taken=[dv])
+        xv, xa, zv, mv = (info.fresh(n, taken=[dv, ang]) for n in
                           ("D_XV", "D_Xalpha", "D_ZV", "D_MV"))
         g, g_source = _gravity(info)
         v0, v_source = _speed_value(info)
@@ -1171,14 +1185,23 @@ class SpeedDynamics(Effect):
         adds = {"drift": {a: f"{zv}*{dv}", q: f"{mv}*{dv}"}}
         if obs:
             adds["observations"] = obs
-        states = (
-            NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*({th} - {a})", "m/s",
-                     "airspeed perturbation from trim (phugoid)"),
-            NewState(th, f"{q}", au, "pitch-attitude perturbation (its start absorbs the trim "
-                                     "of the speed equation)"))
-        return [Candidate(
-            effect=self.id, key=f"{self.id}:{a}:{q}", target=f"drift:{a}",
-            explanation=self.explain(dV=dv, th=th, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
+        if closure == "air":
+            gamma = ang
+            angle_state = NewState(ang, f"{q} - ({info.drift[a]}) - {zv}*{dv}", au,
+                                   "flight-path-angle perturbation (θ − α without the "
+                                   "air-mass part of α)")
+        else:
+            gamma = f"({ang} - {a})"
+            angle_state = NewState(ang, f"{q}", au, "pitch-attitude perturbation (its start "
+                                                    "absorbs the trim of the speed equation)")
+        states = (NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*{gamma}", "m/s",
+                           "airspeed perturbation from trim (phugoid)"), angle_state)
+        fmt = dict(gam=ang, th=ang, alpha=a, q=q)
+        return Candidate(
+            effect=self.id, key=f"{self.id}:{a}:{q}" + ("" if closure == "air" else ":attitude"),
+            target=f"drift:{a}",
+            explanation=self.explain(dV=dv, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
+                                     closure=self.CLOSURES[closure].format(**fmt),
                                      g=g, g_source=g_source,
                                      v0=(f"{v0} m/s" if v0 and v0[0].isdigit() else v0 or "—"),
                                      v_source=v_source,
@@ -1186,7 +1209,8 @@ class SpeedDynamics(Effect):
                                          if obs else "")),
             parameters=params, states=states, add_terms=adds,
             info={"states": (a, q), "regressor": SPEED_REGRESSOR, "gravity": g,
-                  "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source})]
+                  "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source,
+                  "closure": closure})
 
     def score(self, c, ev):
         """The equation errors of α and q follow the kinematic speed perturbation
