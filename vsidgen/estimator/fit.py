@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import Gradient, Problem
+from .problem import SCORE_DAMPING, Gradient, Problem
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
                       StopReason, announce)
 
@@ -282,6 +282,93 @@ def _saddle_step(P: Problem, s, recs, m: _Measured):
     return None if best is None else (best[1], recs)
 
 
+def _curvature_step(P: Problem, s, recs, m: _Measured):
+    """Leave a saddle along the most negative curvature of −ELBO, the state means included.
+
+    With the state means μ eliminated (A_i = H_μ_iμ_i positive definite, the usual case: for
+    fixed θ and density the ELBO is close to concave in μ), the inertia of the Hessian is that
+    of A plus the inertia of the Schur complement S = H_bb − Σ W_iᵀA_i⁻¹W_i over the border b
+    (all r and s; Haynsworth). So H is indefinite exactly when S is, and for an eigenvector v
+    of the Marquardt-scaled pencil S v = e D v with e < 0 (D = :func:`_marquardt_diagonal`:
+    the direction does not depend on the parameters' units) the full direction
+
+        d = (Δb = v,  Δμ_i = −A_i⁻¹ W_i v)
+
+    has curvature dᵀ H d = vᵀ S v = e vᵀ D v < 0: −ELBO falls along ±d to second order
+    whatever the gradient. The sign with gᵀd ≤ 0 is taken and the step α d with the lowest
+    −ELBO over α = α₀·4⁻ᵏ (α₀ = √(2 max(|f|, 1)/|e|), the length at which the quadratic model
+    predicts a fall of max(|f|, 1); k = 0…11, stopping once a shorter step is no better) is
+    returned. :func:`_optimize` takes it where the relative-gradient test would end the
+    iterations at an indefinite Hessian: a stationary point that is not a maximum of the ELBO.
+
+    This is the general case of :func:`_saddle_step` (there the zero-gradient set couples to
+    nothing; here it may couple to the state means, e.g. an added unmeasured state whose
+    couplings into and out of the model all start at zero: a symmetric saddle (the state's
+    sign flipped with the couplings') whose gradient vanishes, so that damped Newton steps
+    only crawl away from it). Held parameters and noise parameters at an active floor are not
+    moved. Returns (s, recs, fall of −ELBO) or None (A not positive definite, S positive
+    semi-definite, or no decrease).
+    """
+    found = _curvature_direction(P, m)
+    if found is None:
+        return None
+    e, ds, dmu, dr = found
+    g = m.grad
+    slope = float(g.shared @ ds + sum(float(np.sum(gm * x)) for gm, x in zip(g.records_mu, dmu))
+                  + sum(float(gr @ x) for gr, x in zip(g.records_r, dr)))
+    sign = -1.0 if slope > 0 else 1.0
+    a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(e))
+    best = None
+    for k in range(12):
+        a = sign * a0 * 4.0 ** -k
+        s_new = np.asarray(s, float) + a * ds
+        recs_new = [(mu + a * d1, r + a * d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
+        f_new = P.value(s_new, recs_new)
+        if not math.isfinite(f_new):
+            continue
+        if best is not None and f_new >= best[0]:
+            break
+        if f_new < m.f and (best is None or f_new < best[0]):
+            best = (f_new, s_new, recs_new)
+    return None if best is None else (best[1], best[2], m.f - best[0])
+
+
+def _curvature_direction(P: Problem, m: _Measured):
+    """(e, Δs, [Δμ_i], [Δr_i]) of :func:`_curvature_step`: the direction d of the most negative
+    eigenvalue e of S v = e D v (vᵀ D v = 1), or None (some A_i not positive definite, or S
+    positive semi-definite on the free border).
+
+    The state means are eliminated with A_i + λD_i, λ = ``SCORE_DAMPING`` relative to |diag A_i|
+    (as for score statistics): A_i is singular where an unmeasured state couples to nothing
+    (its initial value is free). With Δμ = −(A + λD)⁻¹ W v the curvature is
+    dᵀ H d = vᵀ S_λ v − λ Δμᵀ D Δμ ≤ e: still negative, equal to e where A is regular."""
+    if not P.nglob:
+        return None
+    dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
+            for b in m.blks]
+    red = P.reduced_system(m.blks, lam=SCORE_DAMPING, dmus=dmus)
+    if red is None:
+        return None
+    nq = P.layout.nq
+    off = P.nrec * nq
+    keep = np.ones(P.nglob, bool)
+    keep[off + np.nonzero(m.active)[0]] = False
+    if not keep.any():
+        return None
+    _, dglob = _marquardt_diagonal(m)
+    isd = 1.0 / np.sqrt(dglob[keep])
+    St = red.S[np.ix_(keep, keep)] * isd[:, None] * isd[None, :]
+    w, V = np.linalg.eigh(0.5 * (St + St.T))
+    if not w[0] < -SADDLE_RTOL * max(float(np.max(np.abs(w))), 1e-300):
+        return None
+    v = np.zeros(P.nglob)
+    v[keep] = isd * V[:, 0]
+    _, mu0, _ = P.back_substitute(red, np.zeros(P.nglob))   # −A⁻¹ g_μ
+    ds, mu1, dr = P.back_substitute(red, v)                  # −A⁻¹ (g_μ + W v)
+    dmu = [b - a for a, b in zip(mu0, mu1)]
+    return float(w[0]), ds, dmu, dr
+
+
 def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float):
     """One accepted Levenberg–Marquardt step from the measured iterate.
 
@@ -380,6 +467,14 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
                 s, recs = moved
                 history[-1]["saddle_step"] = True
                 continue
+            if stop is not None and options.negative_curvature:
+                # "converged" by the relative gradient at an indefinite Hessian: a saddle
+                # whose directions of descent couple to the state means
+                moved = _curvature_step(P, s, recs, m)
+                if moved is not None:
+                    s, recs = moved[0], moved[1]
+                    history[-1]["curvature_step"] = True
+                    continue
         if stop is not None:
             break
         ws.append(np.asarray(s[P.tm.n_free:], float).copy())

@@ -223,6 +223,11 @@ class FitOptions:
             reparametrisations (the units of every parameter) and, being a difference of
             log-likelihoods, means the same for every record length. See docs/estimator.md.
         xtol: stop (not converged) when the relative step falls below this.
+        negative_curvature: where the relative-gradient test is met at an indefinite
+            Hessian (a saddle of the ELBO, not a maximum), step along the Hessian's most
+            negative curvature (state means included, through the Schur complement of the
+            border; ``estimator.fit._curvature_step``) and go on iterating, instead of
+            reporting the saddle as converged.
         warm_start: a :class:`WarmStart`, or a previous FitResult of the same problem
             shape (its ``decision``), to start from.
         lambda0: initial Levenberg–Marquardt damping (Marquardt diagonal scaling).
@@ -293,6 +298,7 @@ class FitOptions:
     deterministic_std: float = 1e-6
     limit_tol: float = 0.1
     xtol: float = 1e-13
+    negative_curvature: bool = True
     warm_start: WarmStart | FitResult | None = None
     lambda0: float = 1e-3
     noise_start: str = "auto"
