@@ -187,6 +187,54 @@ def test_cli_lines_show_estimates_with_units(tmp_path):
     assert lines[-1].startswith(doc["conclusion"])
 
 
+def test_an_alternative_accepted_in_a_later_round_is_complementary_not_ambiguous(tmp_path):
+    """A new user's Twin Otter model without trim constants and without an a_z bias: the a_z
+    bias (round 1) was reported AMBIGUOUS with the trim constants, whose one-step predictions
+    were far better (Vuong z −4.5); round 2 accepts the trim constants on top of it — both
+    were missing, so they are complementary, and the conclusion, the CLI lines and the
+    report say so; an alternative that no later round accepted stays one."""
+    from vsidgen.discrepancy.findings import (complementary_findings, conclusion_text,
+                                              report_section, summary_lines)
+
+    def alt(key, effect, stat):
+        return {"key": key, "effect": effect, "target": "drift:q", "statistic": stat,
+                "vuong": {"z": -4.5, "p_value": 7.8e-6, "loglik_difference": -86005.8, "n": 376}}
+
+    def finding(rank, key, effect, target, stat, alternatives):
+        return {"rank": rank, "key": key, "effect": effect, "target": target,
+                "title": effect, "explanation": "x", "parameters": {}, "added_terms": {},
+                "evidence": {"statistic": stat, "threshold": 14.4, "dof": 1, "alpha": 0.01,
+                             "n_candidates": 51, "elbo_before": 1.0, "elbo_after": 2.0},
+                "alternatives": alternatives,
+                "ambiguous": any(a["effect"] != effect for a in alternatives)}
+
+    findings = [finding(1, "sensor_bias:az", "sensor_bias", "output:az", 3238.1,
+                        [alt("trim_term:all", "trim_term", 781.9),
+                         alt("missing_derivative:q:theta", "missing_derivative", 324.4)]),
+                finding(2, "trim_term:all", "trim_term", "drift:all", 950.0, [])]
+    complementary_findings(findings)
+    f1 = findings[0]
+    assert [a["key"] for a in f1["alternatives"]] == ["missing_derivative:q:theta"]
+    assert f1["ambiguous"]                         # the one no later round accepted
+    (cm,) = f1["complementary"]
+    assert cm["key"] == "trim_term:all" and cm["accepted_in_round"] == 2
+    text = conclusion_text(findings, [], alpha=0.01, validated=False, final_spec="x.yaml")
+    assert "trim_term:all, not separated from sensor_bias:az in its round, was accepted on " \
+           "top of it in round 2" in text
+    assert "AMBIGUOUS: sensor_bias:az" in text and "is not clearly better than " \
+           "missing_derivative:q:theta" in text
+    lines = summary_lines({"conclusion": text, "findings": findings}, tmp_path / "f.json")
+    assert any(ln.strip().startswith("complementary: trim_term on drift:q") for ln in lines)
+    html_text = report_section({"conclusion": text, "findings": findings, "rounds": []},
+                               base=None, final=None, accepted=[])
+    assert "Complementary:" in html_text
+    # nothing accepted later: the alternative stays
+    again = [finding(1, "sensor_bias:az", "sensor_bias", "output:az", 3238.1,
+                     [alt("trim_term:all", "trim_term", 781.9)])]
+    complementary_findings(again)
+    assert again[0]["alternatives"] and "complementary" not in again[0]
+
+
 # ---------------------------------------------------------------------------
 # locate scores: exact −log10 p, no saturation
 # ---------------------------------------------------------------------------

@@ -63,6 +63,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
                       "lateral with the accelerometer at its lever arm, da from an expression"),
     "tu144_mine": (("tu144_lon_f20_4f",), ("tu144_lon_f20_4d",),
                    "short period in the recorded variables without trim terms"),
+    "otter_pitch": (("totter_lon_020213f1_019",), ("totter_lon_020213f1_018",),
+                    "short period and pitch attitude, a_z from the lift derivatives, no trim "
+                    "constants and no a_z bias"),
     "otter_lon_nl": (("totter_lon_020213f1_018",), ("totter_lon_020213f1_017",),
                      "nonlinear V, alpha, q, theta with coefficients, two thrust inputs, "
                      "density as an input"),

@@ -335,6 +335,10 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                 conclusion += (f" With {f['key']} modelled, the inputs are taken as "
                                f"`integrator: {{{text}}}` (this replaces the "
                                "setting of the numerics stage; the final spec carries it).")
+            for cm in f.get("complementary") or ():
+                conclusion += (f" {cm['key']}, not separated from {f['key']} in its round, was "
+                               f"accepted on top of it in round {cm['accepted_in_round']}: the "
+                               "two are complementary (both were missing), not alternatives.")
             if f["alternatives"]:
                 conclusion += (f" {'AMBIGUOUS' if f['ambiguous'] else 'Form uncertain'}: "
                                f"{f['key']} (2ΔELBO = {statistic_text(f['evidence'])}) is not "
@@ -581,6 +585,10 @@ def summary_lines(document: dict, findings_path) -> list[str]:
                          f"(2ΔELBO = {statistic_text(a)})"
                          + (f"; to separate them: {a['separated_by']}"
                             if a.get("separated_by") else ""))
+        for cm in f.get("complementary") or []:
+            lines.append(f"   complementary: {cm['effect']} on {cm['target']} (not separated "
+                         f"in round {f['rank']}) was accepted on top of it in round "
+                         f"{cm['accepted_in_round']}")
     lines.append(f"{document['conclusion']} Findings in {findings_path}.")
     return lines
 
@@ -708,6 +716,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                   c.effect, c.target, a.candidate.effect, a.candidate.target)}
                              for a in trial.alternatives],
             "spec": str(trial.spec_path)})
+    complementary_findings(findings)
     conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
@@ -735,6 +744,37 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
         "rounds": rounds, "unfinished_round": unfinished_round,
         "stop": stop or {"reason": "completed", "time_limit_s": None},
         "report": "diagnose.html", "wall_time_s": _f(wall_time_s)}
+
+
+def complementary_findings(findings: list) -> list:
+    """Move out of each finding's alternatives those that a *later* round accepted on top of it
+    (in place; returns ``findings``).
+
+    An alternative is a refit of the same round that the records do not separate from the
+    finding (:func:`.search.alternatives_of`: Vuong's test, which also keeps one whose
+    one-step predictions are significantly *better* while its ELBO is lower). When a later
+    round accepts it with the finding already in the model, it raised the ELBO significantly
+    beyond what the finding explains: the two are complementary (both missing), not two
+    explanations of one mismatch. Such entries go to ``complementary`` (with the round that
+    accepted them); ``ambiguous`` is recomputed from the alternatives left. (A new user's Twin
+    Otter model without trim constants and without an a_z bias: the a_z bias, 2ΔELBO 3238,
+    was reported AMBIGUOUS with the trim constants, 782, whose one-step predictions were better
+    by 86 000 nats — both were missing.)"""
+    accepted_in = {}
+    for f in findings:
+        accepted_in.setdefault(f["key"], f["rank"])
+    for f in findings:
+        comp = [a for a in f["alternatives"] if accepted_in.get(a["key"], 0) > f["rank"]]
+        if not comp:
+            continue
+        keys = {a["key"] for a in comp}
+        f["alternatives"] = [a for a in f["alternatives"] if a["key"] not in keys]
+        f["complementary"] = [{"key": a["key"], "effect": a["effect"], "target": a["target"],
+                               "accepted_in_round": accepted_in[a["key"]],
+                               "statistic_as_alternative": a.get("statistic"),
+                               "vuong": a.get("vuong")} for a in comp]
+        f["ambiguous"] = any(a["effect"] != f["effect"] for a in f["alternatives"])
+    return findings
 
 
 def _title(effect_id: str) -> str:
@@ -907,6 +947,11 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             if seps:
                 parts.append("<p><b>What would separate them:</b> " + e("; ".join(
                     f"from {a['key']}, {a['separated_by']}" for a in seps)) + ".</p>")
+        if f.get("complementary"):
+            parts.append("<p><b>Complementary:</b> " + e("; ".join(
+                f"{cm['key']}, not separated in round {f['rank']}, accepted on top of it in "
+                f"round {cm['accepted_in_round']}" for cm in f["complementary"]))
+                + " — both were missing.</p>")
         if base is not None and final is not None:
             img = plot_finding(f, base, final)
             if img:
