@@ -196,8 +196,9 @@ def test_an_alternative_accepted_in_a_later_round_is_complementary_not_ambiguous
     from vsidgen.discrepancy.findings import (complementary_findings, conclusion_text,
                                               report_section, summary_lines)
 
-    def alt(key, effect, stat):
+    def alt(key, effect, stat, added=None):
         return {"key": key, "effect": effect, "target": "drift:q", "statistic": stat,
+                "added_terms": added,
                 "vuong": {"z": -4.5, "p_value": 7.8e-6, "loglik_difference": -86005.8, "n": 376}}
 
     def finding(rank, key, effect, target, stat, alternatives):
@@ -208,16 +209,21 @@ def test_an_alternative_accepted_in_a_later_round_is_complementary_not_ambiguous
                 "alternatives": alternatives,
                 "ambiguous": any(a["effect"] != effect for a in alternatives)}
 
+    both = {"drift": {"alpha": "D_TRIM_alpha", "q": "D_TRIM_q"}}
     findings = [finding(1, "sensor_bias:az", "sensor_bias", "output:az", 3238.1,
-                        [alt("trim_term:all", "trim_term", 781.9),
-                         alt("missing_derivative:q:theta", "missing_derivative", 324.4)]),
+                        [alt("trim_term:all", "trim_term", 781.9, both),
+                         alt("trim_term:q", "trim_term", 659.1, {"drift": {"q": "D_TRIM_q"}}),
+                         alt("missing_derivative:q:theta", "missing_derivative", 324.4,
+                             {"drift": {"q": "D_q_theta*theta"}})]),
                 finding(2, "trim_term:all", "trim_term", "drift:all", 950.0, [])]
+    findings[1]["added_terms"] = both
     complementary_findings(findings)
     f1 = findings[0]
     assert [a["key"] for a in f1["alternatives"]] == ["missing_derivative:q:theta"]
     assert f1["ambiguous"]                         # the one no later round accepted
-    (cm,) = f1["complementary"]
-    assert cm["key"] == "trim_term:all" and cm["accepted_in_round"] == 2
+    # the same candidate, and one whose terms the later finding contains
+    assert [(c["key"], c["accepted_in_round"]) for c in f1["complementary"]] == [
+        ("trim_term:all", 2), ("trim_term:q", 2)]
     text = conclusion_text(findings, [], alpha=0.01, validated=False, final_spec="x.yaml")
     assert "trim_term:all, not separated from sensor_bias:az in its round, was accepted on " \
            "top of it in round 2" in text

@@ -748,7 +748,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
 
 def complementary_findings(findings: list) -> list:
     """Move out of each finding's alternatives those that a *later* round accepted on top of it
-    (in place; returns ``findings``).
+    — the same candidate, or one whose added terms include all of the alternative's (the
+    constants of every equation include the q equation's) — in place; returns ``findings``.
 
     An alternative is a refit of the same round that the records do not separate from the
     finding (:func:`.search.alternatives_of`: Vuong's test, which also keeps one whose
@@ -760,17 +761,29 @@ def complementary_findings(findings: list) -> list:
     Otter model without trim constants and without an a_z bias: the a_z bias, 2ΔELBO 3238,
     was reported AMBIGUOUS with the trim constants, 782, whose one-step predictions were better
     by 86 000 nats — both were missing.)"""
-    accepted_in = {}
+    def terms(added) -> set:
+        return {(kind, name, str(expr).replace(" ", ""))
+                for kind, group in (added or {}).items() if isinstance(group, dict)
+                for name, expr in group.items()}
+
+    def accepted_later(a, rank):
+        """The round that accepted ``a`` itself, or every term it adds, after ``rank``."""
+        mine = terms(a.get("added_terms"))
+        for g in findings:
+            if g["rank"] > rank and (g["key"] == a["key"]
+                                     or (mine and mine <= terms(g.get("added_terms")))):
+                return g["rank"]
+        return None
+
     for f in findings:
-        accepted_in.setdefault(f["key"], f["rank"])
-    for f in findings:
-        comp = [a for a in f["alternatives"] if accepted_in.get(a["key"], 0) > f["rank"]]
+        later = {a["key"]: accepted_later(a, f["rank"]) for a in f["alternatives"]}
+        comp = [a for a in f["alternatives"] if later[a["key"]] is not None]
         if not comp:
             continue
         keys = {a["key"] for a in comp}
         f["alternatives"] = [a for a in f["alternatives"] if a["key"] not in keys]
         f["complementary"] = [{"key": a["key"], "effect": a["effect"], "target": a["target"],
-                               "accepted_in_round": accepted_in[a["key"]],
+                               "accepted_in_round": later[a["key"]],
                                "statistic_as_alternative": a.get("statistic"),
                                "vuong": a.get("vuong")} for a in comp]
         f["ambiguous"] = any(a["effect"] != f["effect"] for a in f["alternatives"])

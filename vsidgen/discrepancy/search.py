@@ -165,7 +165,8 @@ class Trial:
                                       "std_error": _f(self.state.fit.std_errors[i]),
                                       "unit": p.unit}
         return {"key": self.candidate.key, "effect": self.candidate.effect,
-                "target": self.candidate.target, "statistic": _f(self.statistic),
+                "target": self.candidate.target, "added_terms": self.candidate.added_terms(),
+                "statistic": _f(self.statistic),
                 "statistic_vs_current": _f(self.comparison),
                 "dof": self.dof, "p_value": _f(self.p_value), "threshold": _f(self.threshold),
                 "elbo": None if self.state is None else _f(self.state.elbo),
