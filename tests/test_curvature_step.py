@@ -23,6 +23,7 @@ import pytest
 import scipy.linalg
 
 from vsidgen.estimator import FitOptions, Problem, fit
+from vsidgen.estimator.problem import SCORE_DAMPING
 from vsidgen.metadata import MeasurementNoiseSpec, Parameter, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
 
@@ -103,7 +104,7 @@ def test_the_direction_is_the_most_negative_curvature_of_the_dense_hessian():
     nmu = sum(P.lengths) * P.layout.nx
     mu, b = np.arange(nmu), np.arange(nmu, H.shape[0])
     Dmu = np.maximum(np.abs(np.diag(H)[mu]), 1e-300)
-    Al = H[np.ix_(mu, mu)] + F.SCORE_DAMPING * np.diag(Dmu)
+    Al = H[np.ix_(mu, mu)] + SCORE_DAMPING * np.diag(Dmu)
     S = H[np.ix_(b, b)] - H[np.ix_(b, mu)] @ np.linalg.solve(Al, H[np.ix_(mu, b)])
     _, dglob = F._marquardt_diagonal(m)
     w = scipy.linalg.eigh(S, np.diag(dglob), eigvals_only=True)
@@ -111,7 +112,7 @@ def test_the_direction_is_the_most_negative_curvature_of_the_dense_hessian():
     # λ = 1e-10 makes the elimination ill-conditioned (≈ 1e10): agreement to 1e-5
     assert e == pytest.approx(w[0], rel=1e-5)
     dmu = d[:nmu]
-    assert d @ H @ d == pytest.approx(e - F.SCORE_DAMPING * dmu @ (Dmu * dmu), rel=1e-5)
+    assert d @ H @ d == pytest.approx(e - SCORE_DAMPING * dmu @ (Dmu * dmu), rel=1e-5)
     assert d @ H @ d < 0
 
 

@@ -1126,11 +1126,11 @@ class SpeedDynamics(Effect):
                    "({v_source}).")
     #: the two kinematic closures of the path angle γ = θ − α_inertial (see ``doc``)
     CLOSURES = {
-        "air": ("with the path-angle perturbation d{gam}/dt = {q} − d{alpha}/dt from the "
+        "air": ("with the path-angle perturbation d{ang}/dt = {q} − d{alpha}/dt from the "
                 "model's {alpha} equation: the part of the measured {alpha} that its process "
                 "noise carries (gusts: an air-relative vane) does not move the flight path"),
-        "attitude": ("with γ = {th} − {alpha} from the pitch-attitude perturbation "
-                     "d{th}/dt = {q}: the measured {alpha} is the inertial angle of attack "
+        "attitude": ("with γ = {ang} − {alpha} from the pitch-attitude perturbation "
+                     "d{ang}/dt = {q}: the measured {alpha} is the inertial angle of attack "
                      "(process noise acts on the motion itself, e.g. α from inertial data)"),
     }
     doc = ("The speed degree of freedom a short-period (α, q) model leaves out: ΔV̇ = X_V ΔV + "
@@ -1196,12 +1196,11 @@ class SpeedDynamics(Effect):
                                                     "absorbs the trim of the speed equation)")
         states = (NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*{gamma}", "m/s",
                            "airspeed perturbation from trim (phugoid)"), angle_state)
-        fmt = dict(gam=ang, th=ang, alpha=a, q=q)
         return Candidate(
             effect=self.id, key=f"{self.id}:{a}:{q}" + ("" if closure == "air" else ":attitude"),
             target=f"drift:{a}",
             explanation=self.explain(dV=dv, alpha=a, q=q, xv=xv, xa=xa, zv=zv, mv=mv,
-                                     closure=self.CLOSURES[closure].format(**fmt),
+                                     closure=self.CLOSURES[closure].format(ang=ang, alpha=a, q=q),
                                      g=g, g_source=g_source,
                                      v0=(f"{v0} m/s" if v0 and v0[0].isdigit() else v0 or "—"),
                                      v_source=v_source,

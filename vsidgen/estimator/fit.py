@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from ..errors import FitError
 from .core import diff_scale
-from .problem import SCORE_DAMPING, Gradient, Problem
+from .problem import Gradient, Problem
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
                       StopReason, announce)
 
@@ -271,15 +271,38 @@ def _saddle_step(P: Problem, s, recs, m: _Measured):
     w, V = np.linalg.eigh(0.5 * (Hzz + Hzz.T))
     if not w[0] < -SADDLE_RTOL * max(float(np.max(np.abs(w))), 1e-300):
         return None
-    a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(float(w[0])))
-    best = None
-    for j in range(12):
+    def point(a):
         s_new = np.array(s, float)
-        s_new[zero] += a0 * 4.0 ** -j * V[:, 0]
-        f_new = P.value(s_new, recs)
-        if math.isfinite(f_new) and f_new < m.f and (best is None or f_new < best[0]):
-            best = (f_new, s_new)
-    return None if best is None else (best[1], recs)
+        s_new[zero] += a * V[:, 0]
+        return s_new, recs
+
+    best = _along_negative_curvature(P, m, point, float(w[0]), early=False)
+    return None if best is None else best[1]
+
+
+def _along_negative_curvature(P: Problem, m: _Measured, point, e: float, *, early: bool):
+    """(f, (s, recs)) of the lowest −ELBO below ``m.f`` at ``point(α)``, α = α₀·4⁻ᵏ, k = 0…11,
+    α₀ = √(2 max(|f|, 1)/|e|) (where the quadratic model along a direction of curvature e < 0
+    predicts a fall of max(|f|, 1)); ``early``: stop once a shorter step is no better. None
+    when no step lowers −ELBO."""
+    a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(e))
+    best = None
+    for k in range(12):
+        x = point(a0 * 4.0 ** -k)
+        f_new = P.value(*x)
+        if not math.isfinite(f_new):
+            continue
+        if early and best is not None and f_new >= best[0]:
+            break
+        if f_new < m.f and (best is None or f_new < best[0]):
+            best = (f_new, x)
+    return best
+
+
+def _dot(gs, gmus, grs, ds, dmu, dr) -> float:
+    """gᵀΔ over the whole decision: shared part, and state means and densities of every record."""
+    return float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
+                 + sum(float(g @ d) for g, d in zip(grs, dr)))
 
 
 def _curvature_step(P: Problem, s, recs, m: _Measured):
@@ -314,23 +337,15 @@ def _curvature_step(P: Problem, s, recs, m: _Measured):
         return None
     e, ds, dmu, dr = found
     g = m.grad
-    slope = float(g.shared @ ds + sum(float(np.sum(gm * x)) for gm, x in zip(g.records_mu, dmu))
-                  + sum(float(gr @ x) for gr, x in zip(g.records_r, dr)))
-    sign = -1.0 if slope > 0 else 1.0
-    a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(e))
-    best = None
-    for k in range(12):
-        a = sign * a0 * 4.0 ** -k
-        s_new = np.asarray(s, float) + a * ds
-        recs_new = [(mu + a * d1, r + a * d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
-        f_new = P.value(s_new, recs_new)
-        if not math.isfinite(f_new):
-            continue
-        if best is not None and f_new >= best[0]:
-            break
-        if f_new < m.f and (best is None or f_new < best[0]):
-            best = (f_new, s_new, recs_new)
-    return None if best is None else (best[1], best[2], m.f - best[0])
+    sign = -1.0 if _dot(g.shared, g.records_mu, g.records_r, ds, dmu, dr) > 0 else 1.0
+
+    def point(a):
+        a *= sign
+        return (np.asarray(s, float) + a * ds,
+                [(mu + a * d1, r + a * d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)])
+
+    best = _along_negative_curvature(P, m, point, e, early=True)
+    return None if best is None else (*best[1], m.f - best[0])
 
 
 def _curvature_direction(P: Problem, m: _Measured):
@@ -338,15 +353,13 @@ def _curvature_direction(P: Problem, m: _Measured):
     eigenvalue e of S v = e D v (vᵀ D v = 1), or None (some A_i not positive definite, or S
     positive semi-definite on the free border).
 
-    The state means are eliminated with A_i + λD_i, λ = ``SCORE_DAMPING`` relative to |diag A_i|
-    (as for score statistics): A_i is singular where an unmeasured state couples to nothing
+    The state means are eliminated with A_i + λD_i (:meth:`Problem.damped_reduced_system`,
+    λ = ``SCORE_DAMPING`` relative to |diag A_i|, as for score statistics): A_i is singular where an unmeasured state couples to nothing
     (its initial value is free). With Δμ = −(A + λD)⁻¹ W v the curvature is
     dᵀ H d = vᵀ S_λ v − λ Δμᵀ D Δμ ≤ e: still negative, equal to e where A is regular."""
     if not P.nglob:
         return None
-    dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
-            for b in m.blks]
-    red = P.reduced_system(m.blks, lam=SCORE_DAMPING, dmus=dmus)
+    red = P.damped_reduced_system(m.blks)
     if red is None:
         return None
     nq = P.layout.nq
@@ -393,8 +406,7 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
             nu *= 2.0
         else:
             ds, dmu, dr, _ = sol
-            gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
-                         + sum(float(g @ d) for g, d in zip(grs, dr)))
+            gdot = _dot(gs, gmus, grs, ds, dmu, dr)
             dDd = float(dglob[P.nrec * nq:] @ ds ** 2 + sum(float(np.sum(dm[:len(d)] * d ** 2)) for dm, d in zip(dmus, dmu))
                         + sum(float(dglob[i * nq:(i + 1) * nq] @ d ** 2) for i, d in enumerate(dr)))
             pred = -0.5 * gdot + 0.5 * lam * dDd
@@ -505,9 +517,7 @@ def newton_decrement(P: "Problem", blks, gs, gmus, grs, active) -> float:
     if sol is None:
         return float("nan")
     ds, dmu, dr, _ = sol
-    gdot = float(gs @ ds + sum(float(np.sum(g * d)) for g, d in zip(gmus, dmu))
-                 + sum(float(g @ d) for g, d in zip(grs, dr)))
-    lam2 = -gdot
+    lam2 = -_dot(gs, gmus, grs, ds, dmu, dr)
     if not math.isfinite(lam2) or lam2 < -1e-8 * max(1.0, abs(float(np.sum(gs ** 2)))):
         return float("nan")
     return 0.5 * max(lam2, 0.0)

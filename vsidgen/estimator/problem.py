@@ -793,14 +793,20 @@ class Problem:
         λ·max(|diag|, 1e-300) on every diagonal (state means and the global system), the
         system of score (Lagrange-multiplier) statistics at a nesting point; (None, None)
         when the state-mean blocks are not positive definite."""
-        dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
-                for b in blks]
-        red = self.reduced_system(blks, lam=lam, dmus=dmus)
+        red = self.damped_reduced_system(blks, lam=lam)
         if red is None:
             return None, None
         S = red.S
         S += lam * np.diag(np.maximum(np.abs(np.diag(S)), 1e-300))
         return S, red.rhs
+
+    def damped_reduced_system(self, blks, *, lam: float = SCORE_DAMPING) -> ReducedSystem | None:
+        """:meth:`reduced_system` with the state-mean blocks damped by λ·max(|diag|, 1e-300)
+        (the global system undamped): defined where a block is singular, e.g. the free
+        initial value of an unmeasured state that couples to nothing."""
+        dmus = [np.maximum(np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)), 1e-300)
+                for b in blks]
+        return self.reduced_system(blks, lam=lam, dmus=dmus)
 
     def back_substitute(self, red: ReducedSystem, db):
         """(Δs, [Δμ_i], [Δr_i]) of the border step Δb: Δμ_i = −A_i⁻¹(g_μ_i + W_i Δb_i), unpadded."""
