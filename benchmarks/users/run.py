@@ -66,6 +66,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "otter_pitch": (("totter_lon_020213f1_019",), ("totter_lon_020213f1_018",),
                     "short period and pitch attitude, a_z from the lift derivatives, no trim "
                     "constants and no a_z bias"),
+    "hfb_sp": (("hfb320_1_10",), (),
+               "first HFB-320 model: the short period alone (alpha, q, constants) on a record "
+               "whose phugoid is excited"),
     "otter_lon_nl": (("totter_lon_020213f1_018",), ("totter_lon_020213f1_017",),
                      "nonlinear V, alpha, q, theta with coefficients, two thrust inputs, "
                      "density as an input"),

@@ -237,8 +237,11 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
         x = jnp.asarray(mu1[0])
         f = np.asarray(model1.drift(x, jnp.asarray(u[0]), th), float)[ni]
         J = np.asarray(jacf(x, jnp.asarray(u[0])), float)[np.ix_(ni, ni)]
+        # (singular, e.g. a speed state beside an attitude integrator: the least-squares
+        # equilibrium, the speed equation in trim and the integrator at 0)
         try:
-            z0 = -np.linalg.solve(J, f) if np.linalg.cond(J) < 1e12 else np.zeros(len(ni))
+            z0 = (-np.linalg.solve(J, f) if np.linalg.cond(J) < 1e12
+                  else -np.linalg.lstsq(J, f, rcond=1e-10)[0])
         except np.linalg.LinAlgError:
             z0 = np.zeros(len(ni))
         if not np.all(np.isfinite(z0)):

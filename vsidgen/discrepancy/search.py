@@ -1610,9 +1610,21 @@ def filter_start(c: Candidate, sr) -> Candidate:
     """``c`` with its time constant starting at the best grid value of its screen
     (:func:`.score.screen_input_filters`) when ``c`` is a lag or Padé delay of an input that
     has one: the likelihood of a time constant is multimodal and a refit from the smallest
-    (a sample) stops in the nearest optimum. Any other candidate is returned unchanged."""
+    (a sample) stops in the nearest optimum. A speed candidate starts at its screen's speed
+    damping and X_α (:func:`.score.screen_speed`). Any other candidate is returned unchanged."""
+    from .score import is_speed_candidate
     from .specwrite import clip_to_bounds
 
+    if is_speed_candidate(c) and sr is not None and sr.statistic is not None:
+        # the speed damping and X_alpha of the best profiled speed damping (screen_speed):
+        # both are flat at the nesting point (Z_V = M_V = 0), so the refit still starts at
+        # the current model; from X_V = X_alpha = 0 the refit stalled far below its optimum
+        start = {k: float(v) for k, v in (sr.step or {}).items() if math.isfinite(v)}
+        if start:
+            return dataclasses.replace(c, parameters=tuple(
+                dataclasses.replace(p, initial=clip_to_bounds(start[p.name], [p.lower, p.upper]))
+                if p.name in start else p for p in c.parameters))
+        return c
     kind = (c.info or {}).get("filter")
     tau = (getattr(sr, "step", None) or {}).get("tau_s") if sr is not None else None
     if kind not in ("lag", "pade") or tau is None or sr.statistic is None \
@@ -2223,7 +2235,9 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
         c = best.candidate
         note = (" Its refit stopped where no step raises the ELBO, short of the gradient test "
                 "(the Hessian indefinite there: a kink of the ELBO, e.g. a break point that "
-                "samples straddle): its 2ΔELBO is a lower bound of the maximum, so the effect "
+                "samples straddle, or a direction along which it is flat, e.g. the level of an "
+                "added state that the model's constant terms absorb): its 2ΔELBO is a lower "
+                "bound of the maximum, so the effect "
                 "is significant; its estimates are those of that point, without standard "
                 "errors.")
         best = dataclasses.replace(best, candidate=dataclasses.replace(
