@@ -1351,22 +1351,29 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
     channels, owner = [], []
     for c in cands:
         a, q = c.info["states"]
+        ch, ow = [], []
         for xv in grid:
-            sig = speed_channels(c, current, xv)
+            try:
+                sig = speed_channels(c, current, xv)
+            except (*_ERRORS, TypeError, IndexError) as err:   # a model the path breaks
+                out[c.key] = ScoreResult(None, 0, None, note=f"speed screen failed: "
+                                                             f"{str(err).splitlines()[0][:200]}")
+                break
             if sig is None:
+                out[c.key] = ScoreResult(None, 0, None, note="no smoothed path of α and q")
                 break
             cols = []
             for j, lab in enumerate(("α − α₀", "γ", "1")):
                 per = [s[j] for s in sig]
                 rms = float(np.sqrt(np.mean(np.concatenate(per) ** 2))) or 1.0
                 for st in (a, q):
-                    channels.append((st, f"F[{lab}] (X_V = {xv:.4g}) into d{st}/dt",
-                                     [z / rms for z in per]))
+                    ch.append((st, f"F[{lab}] (X_V = {xv:.4g}) into d{st}/dt",
+                               [z / rms for z in per]))
                     cols.append((j, st, rms))
-            owner.append((c, xv, cols))
+            ow.append((c, xv, cols))
         else:
-            continue
-        out[c.key] = ScoreResult(None, 0, None, note="no smoothed path of α and q")
+            channels += ch
+            owner += ow
     owner = [o for o in owner if o[0].key not in out]
     if not owner:
         return out
