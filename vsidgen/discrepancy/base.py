@@ -119,6 +119,8 @@ class ModelInfo(VariableNames):
     definition_users: Mapping[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
     #: declared unit of each parameter (None: none declared)
     parameter_units: Mapping[str, str | None] = dataclasses.field(default_factory=dict)
+    #: unit of each spec constant (``constants:``), None where the spec gives none
+    constant_units: Mapping[str, str | None] = dataclasses.field(default_factory=dict)
 
     @property
     def names(self) -> frozenset[str]:
@@ -311,7 +313,8 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         definition_parameters={n: tuple(sorted(s.name for s in e.free_symbols if s.name in pnames))
                                for n, e in sym.definitions},
         definition_users=_definition_users(sym),
-        parameter_units={p.name: getattr(p, "unit", None) for p in sym.parameters})
+        parameter_units={p.name: getattr(p, "unit", None) for p in sym.parameters},
+        constant_units={c.name: getattr(c, "unit", None) for c in sym.constants})
 
 
 def _expanded_definitions(sym) -> dict[str, Any]:
@@ -556,6 +559,12 @@ class Effect:
             return self.explanation.format(**fields)
         except (KeyError, IndexError, ValueError):
             return self.explanation
+
+    def check_estimates(self, candidate: Candidate, estimates: dict) -> str:
+        """A sentence comparing the refitted estimates with what physics gives for them, for
+        the finding's explanation ("" when the effect has no such reference). ``estimates``:
+        {parameter: (value, standard error or None)}."""
+        return ""
 
     def __repr__(self) -> str:
         return f"<Effect {self.id}>"

@@ -35,6 +35,7 @@ unmodelled_wind        a Gauss–Markov gust angle :math:`\\dot w = -w/τ_w + σ
 from __future__ import annotations
 
 import functools
+import math
 
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
                    spec_text)
@@ -1102,6 +1103,18 @@ def _speed_value(info: ModelInfo) -> tuple[str | None, str]:
     return None, "no airspeed in the model, the records or the aircraft constants"
 
 
+def _number(text: str | None, info: ModelInfo) -> float | None:
+    """The value of ``text``: a number, or the name of one of the model's constants."""
+    if text is None:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        v = (getattr(info, "constant_values", None) or {}).get(text)
+        unit = ((getattr(info, "constant_units", None) or {}).get(text) or "").replace(" ", "")
+        return None if v is None or unit != "m/s" else float(v)
+
+
 def _gravity(info: ModelInfo) -> tuple[float, str]:
     fl = info.flight
     if fl is not None and fl.gravity is not None:
@@ -1209,12 +1222,37 @@ class SpeedDynamics(Effect):
             parameters=params, states=states, add_terms=adds,
             info={"states": (a, q), "regressor": SPEED_REGRESSOR, "gravity": g,
                   "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source,
-                  "closure": closure})
+                  "airspeed_value": _number(v0, info), "closure": closure})
 
     def score(self, c, ev):
         """The equation errors of α and q follow the kinematic speed perturbation
         (:func:`.locate.speed_proxy`)."""
         return max(ev.state_score(s, SPEED_REGRESSOR) for s in c.info["states"])
+
+    def check_estimates(self, c, estimates):
+        """Z_V against −2g/V₀² (lift ∝ V² at the trim lift L = mg, constant α): a phugoid's
+        speed coupling. Far from it (beyond 3 s.e. and outside a factor 2), the candidate
+        absorbs a slow mismatch that is not (only) the phugoid, and the sentence says so."""
+        zv_name = c.parameters[2].name
+        v0 = c.info.get("airspeed_value")
+        zv, se = estimates.get(zv_name, (None, None))
+        if (v0 is None or zv is None or not math.isfinite(zv) or v0 <= 0
+                or (c.parameters[2].unit or "").replace(" ", "") != "(rad)/m"):
+            return ""
+        ref = -2.0 * float(c.info["gravity"]) / v0 ** 2
+        ratio = zv / ref
+        if se is not None and math.isfinite(se) and se > 0:
+            dist = f"{abs(zv - ref) / se:.2g} s.e. apart"
+            near = abs(zv - ref) <= 3.0 * se or 0.5 <= ratio <= 2.0
+        else:
+            dist = "no standard error"
+            near = 0.5 <= ratio <= 2.0
+        text = (f" Physics check: {zv_name} = {zv:.4g} rad/m against −2g/V₀² = {ref:.4g} rad/m "
+                f"(lift ∝ V² in trim at V₀ = {v0:.5g} m/s): ratio {ratio:.2g}, {dist}")
+        if near:
+            return text + ": the speed coupling of a phugoid."
+        return (text + ": not the phugoid's speed coupling — the candidate may be absorbing "
+                "another slow mismatch; read it with its estimates.")
 
 
 @register_effect

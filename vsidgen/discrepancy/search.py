@@ -832,6 +832,24 @@ def screen_priority(loc_score: float, sr) -> float:
     return Ranked(None, loc_score, sr).priority
 
 
+def _physics_check(t: "Trial") -> str:
+    """The effect's comparison of the refit's estimates with physics
+    (:meth:`.base.Effect.check_estimates`), "" without one or on any failure."""
+    from .base import get_effect
+
+    if t.state is None:
+        return ""
+    try:
+        eff = get_effect(t.candidate.effect)
+        fit = t.state.fit
+        se = np.asarray(fit.std_errors, float)
+        est = {n: (float(v), float(e) if math.isfinite(e) else None)
+               for n, v, e in zip(fit.parameter_names, np.asarray(fit.theta, float), se)}
+        return eff.check_estimates(t.candidate, est)
+    except Exception:  # noqa: BLE001 - a remark must never break the decision
+        return ""
+
+
 def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: float,
                   alpha: float, n_examined: int) -> list[Ranked]:
     """The candidates to refit, from ``rows`` sorted by :meth:`Ranked.sort_key`.
@@ -2242,6 +2260,11 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
                 "errors.")
         best = dataclasses.replace(best, candidate=dataclasses.replace(
             c, explanation=c.explanation + note, info={**(c.info or {}), "stopped_at_kink": True}))
+    check = _physics_check(best)
+    if check:
+        c = best.candidate
+        best = dataclasses.replace(best, candidate=dataclasses.replace(
+            c, explanation=c.explanation + check, info={**(c.info or {}), "physics_check": check}))
     if not_refitted:
         c = best.candidate
         note = (f" Decided under the time limit on the {len(trials)} candidates refitted: "
