@@ -843,6 +843,8 @@ def _physics_check(t: "Trial") -> str:
         eff = get_effect(t.candidate.effect)
         fit = t.state.fit
         se = np.asarray(fit.std_errors, float)
+        if stopped_at_kink(t):      # its finding says: estimates without standard errors
+            se = np.full_like(se, np.nan)
         est = {n: (float(v), float(e) if math.isfinite(e) else None)
                for n, v, e in zip(fit.parameter_names, np.asarray(fit.theta, float), se)}
         return eff.check_estimates(t.candidate, est)
