@@ -501,7 +501,7 @@ def test_speed_channels_combine_to_the_speed_equation_along_the_path(closure):
 
     import jax.numpy as jnp
 
-    from vsidgen.discrepancy.score import speed_channels
+    from vsidgen.discrepancy.score import speed_channels, speed_path
 
     dt, n = 0.1, 300
     t = np.arange(n) * dt
@@ -519,30 +519,20 @@ def test_speed_channels_combine_to_the_speed_equation_along_the_path(closure):
         decision={"records": [{"mu": mu}]}, theta=np.zeros(1)))
     cand = types.SimpleNamespace(info={"states": ("alpha", "q"), "closure": closure})
     xv, xa, gam0 = -0.05, 3.0, 0.02
-    F = speed_channels(cand, current, xv)[0]
+    F = speed_channels(speed_path(cand, current), xv)[0]
 
     # independent reference: RK4 with α, q (and f_α) linear between samples
     fa = z0 + za * al + q + zde * de
     rate = q if closure == "attitude" else q - fa
 
-    def f(tt, z):
-        a_t = np.interp(tt, t, al)
-        r_t = np.interp(tt, t, rate)
+    def f(z, inp):
+        a_t, r_t = inp
         gam = (z[1] - a_t) if closure == "attitude" else z[1]
         return np.array([xv * z[0] + xa * a_t - G * gam, r_t])
     # γ(0) = gam0: Δθ(0) = gam0 + α₀ (attitude), γ(0) = gam0 (air)
-    z = np.array([0.0, gam0 + al[0] if closure == "attitude" else gam0])
-    out = [z[0]]
-    h = dt / 10
-    for k in range(n - 1):
-        for j in range(10):
-            tt = t[k] + j * h
-            k1 = f(tt, z)
-            k2 = f(tt + h / 2, z + h / 2 * k1)
-            k3 = f(tt + h / 2, z + h / 2 * k2)
-            k4 = f(tt + h, z + h * k3)
-            z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        out.append(z[0])
+    start = [0.0, gam0 + al[0] if closure == "attitude" else gam0]
+    t_fine = np.arange((n - 1) * 10 + 1) * (dt / 10)
+    out = _rk4(f, start, t_fine, lambda tt: (np.interp(tt, t, al), np.interp(tt, t, rate)))[::10, 0]
     kappa = xa + G if closure == "attitude" else xa
     c = kappa * al[0] - G * gam0 - (G * al[0] if closure == "attitude" else 0.0)
     dv = kappa * F[0] - G * F[1] + c * F[2]
@@ -551,36 +541,6 @@ def test_speed_channels_combine_to_the_speed_equation_along_the_path(closure):
     # any of the three signals is 100 %
     np.testing.assert_allclose(dv, np.array(out), rtol=0, atol=5e-3 * np.ptp(out))
 
-
-_SP_SPEC = """
-name: sp_user
-states:
-  alpha: {unit: rad}
-  q: {unit: rad/s}
-inputs:
-  de: {unit: rad}
-outputs:
-  alpha: {unit: rad}
-  q: {unit: rad/s}
-parameters:
-  Z0: {unit: rad/s}
-  Za: {unit: 1/s}
-  Zde: {unit: 1/s}
-  M0: {unit: rad/s^2}
-  Ma: {unit: 1/s^2}
-  Mq: {unit: 1/s}
-  Mde: {unit: 1/s^2}
-drift:
-  alpha: Z0 + Za*alpha + q + Zde*de
-  q: M0 + Ma*alpha + Mq*q + Mde*de
-observations:
-  alpha: alpha
-  q: q
-data:
-  time: t_s
-  inputs: {de: de_rad}
-  outputs: {alpha: alpha_rad, q: q_radps}
-"""
 
 
 def _longitudinal_record(path, *, coupling: float, seed: int):
@@ -631,7 +591,7 @@ def test_speed_screen_finds_a_left_out_phugoid_and_is_quiet_without_one(tmp_path
     from vsidgen.discrepancy.search import fit_spec, model_info_of, filter_start
 
     spec = tmp_path / "sp.yaml"
-    spec.write_text(_SP_SPEC)
+    spec.write_text(SP_SPEC)
     csv = tmp_path / "rec.csv"
     _longitudinal_record(csv, coupling=coupling, seed=11)
     st = fit_spec(spec, [csv], generated_dir=tmp_path / "gen", max_iter=300)

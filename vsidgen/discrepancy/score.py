@@ -1285,17 +1285,13 @@ def lag_response(s, dt: float, a: float) -> np.ndarray:
     return y - i1 * s[0] * e ** np.arange(len(s))
 
 
-def speed_channels(c, current, xv: float) -> list | None:
-    """The three signals ``[F[α − α₀], F[γ_rel], F[1]]`` per record of speed candidate ``c``
-    at speed damping ``X_V = xv`` (``F``: :func:`lag_response` with ``a = X_V``), or None.
+def speed_path(c, current) -> list | None:
+    """Per record of speed candidate ``c``: ``(dt, α − α₀, γ_rel)`` along the current
+    smoothed path, or None (no path, or a non-finite one).
 
-    At the nesting point (``Z_V = M_V = 0``) the candidate's speed perturbation is a known
-    function of the smoothed path: ``ΔV̇ = X_V ΔV + κ (α − α₀) − g γ_rel + c`` with
-    ``γ_rel`` the path angle from the record's start — the attitude closure
-    ``Δθ = ∫ q`` (κ = X_α + g), the air-relative closure ``∫ (q − f_α)`` with ``f_α`` the
-    model's α equation along the path (κ = X_α) — and ``c`` the unknown trim of the speed
-    equation (its path-angle start). So ``ΔV = κ F[α − α₀] − g F[γ_rel] + c F[1]`` (ΔV
-    starting at 0: the speed at the record's start is the trim speed)."""
+    ``γ_rel`` is the path angle from the record's start: ``∫ q`` for the attitude closure,
+    ``∫ (q − f_α)`` with ``f_α`` the model's α equation along the path for the air-relative
+    one (:func:`lag_response` with ``a = 0``)."""
     import jax
     import jax.numpy as jnp
 
@@ -1306,24 +1302,35 @@ def speed_channels(c, current, xv: float) -> list | None:
         return None
     ja, jq = names.index(a), names.index(q)
     theta = jnp.asarray(np.asarray(current.fit.theta, float))
+    drift = jax.jit(jax.vmap(lambda x, uu: current.model.drift(x, uu, theta)))
     out = []
     for i, r in enumerate(current.records):
         N = np.asarray(r.y).shape[0]
         mu = np.asarray(dec["records"][i]["mu"], float)[:N]
         dt = float(r.dt)
-        al, qq = mu[:, ja], mu[:, jq]
-        rate = qq
+        al, rate = mu[:, ja], mu[:, jq]
         if c.info["closure"] == "air":
-            u = jnp.asarray(np.asarray(r.u, float)[:N])
-            fa = np.asarray(jax.vmap(lambda x, uu: current.model.drift(x, uu, theta))(
-                jnp.asarray(mu), u), float)[:, ja]
-            rate = qq - fa
+            fa = np.asarray(drift(jnp.asarray(mu), jnp.asarray(np.asarray(r.u, float)[:N])),
+                            float)[:, ja]
+            rate = rate - fa
         if not (np.all(np.isfinite(al)) and np.all(np.isfinite(rate))):
             return None
-        gam = lag_response(rate, dt, 0.0)
-        out.append([lag_response(al - al[0], dt, xv), lag_response(gam, dt, xv),
-                    lag_response(np.ones(N), dt, xv)])
+        out.append((dt, al - al[0], lag_response(rate, dt, 0.0)))
     return out
+
+
+def speed_channels(path, xv: float) -> list:
+    """The three signals ``[F[α − α₀], F[γ_rel], F[1]]`` per record of a speed candidate's
+    :func:`speed_path` at speed damping ``X_V = xv`` (``F``: :func:`lag_response` with
+    ``a = X_V``).
+
+    At the nesting point (``Z_V = M_V = 0``) the candidate's speed perturbation is a known
+    function of the smoothed path: ``ΔV̇ = X_V ΔV + κ (α − α₀) − g γ_rel + c`` with κ = X_α + g
+    (attitude closure) or X_α (air-relative) and ``c`` the unknown trim of the speed equation
+    (its path-angle start). So ``ΔV = κ F[α − α₀] − g F[γ_rel] + c F[1]`` (ΔV starting at 0:
+    the speed at the record's start is the trim speed)."""
+    return [[lag_response(s1, dt, xv), lag_response(gam, dt, xv),
+             lag_response(np.ones(len(s1)), dt, xv)] for dt, s1, gam in path]
 
 
 def screen_speed(cands, current, *, det_std: float) -> dict:
@@ -1351,30 +1358,26 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
     channels, owner = [], []
     for c in cands:
         a, q = c.info["states"]
-        ch, ow = [], []
+        try:
+            path = speed_path(c, current)
+        except (*_ERRORS, TypeError, IndexError) as err:   # a model the path breaks
+            out[c.key] = ScoreResult(None, 0, None, note=f"speed screen failed: "
+                                                         f"{str(err).splitlines()[0][:200]}")
+            continue
+        if path is None:
+            out[c.key] = ScoreResult(None, 0, None, note="no smoothed path of α and q")
+            continue
         for xv in grid:
-            try:
-                sig = speed_channels(c, current, xv)
-            except (*_ERRORS, TypeError, IndexError) as err:   # a model the path breaks
-                out[c.key] = ScoreResult(None, 0, None, note=f"speed screen failed: "
-                                                             f"{str(err).splitlines()[0][:200]}")
-                break
-            if sig is None:
-                out[c.key] = ScoreResult(None, 0, None, note="no smoothed path of α and q")
-                break
+            sig = speed_channels(path, xv)
             cols = []
             for j, lab in enumerate(("α − α₀", "γ", "1")):
                 per = [s[j] for s in sig]
                 rms = float(np.sqrt(np.mean(np.concatenate(per) ** 2))) or 1.0
                 for st in (a, q):
-                    ch.append((st, f"F[{lab}] (X_V = {xv:.4g}) into d{st}/dt",
-                               [z / rms for z in per]))
+                    channels.append((st, f"F[{lab}] (X_V = {xv:.4g}) into d{st}/dt",
+                                     [z / rms for z in per]))
                     cols.append((j, st, rms))
-            ow.append((c, xv, cols))
-        else:
-            channels += ch
-            owner += ow
-    owner = [o for o in owner if o[0].key not in out]
+            owner.append((c, xv, cols))
     if not owner:
         return out
     bank = mode_bank(current.model, list(current.records), current.fit.theta, channels)
@@ -1410,11 +1413,9 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
         xv, cols, ps, best = max(ok, key=lambda row: row[3].statistic)
         g = float(c.info["gravity"])
         C = np.zeros((2, 3))
-        a_name, q_name = c.info["states"]
-        theta = dict(zip(bank.model.parameter_names, np.asarray(current.fit.theta, float)))
-        for (j, st, rms), par in zip(cols, ps.parameters):
-            v = best.step.get(par.name, 0.0) - theta.get(par.name, 0.0)
-            C[0 if st == a_name else 1, j] = v / rms
+        a_name = c.info["states"][0]
+        for (j, st, rms), par in zip(cols, ps.parameters):   # the gates start at 0
+            C[0 if st == a_name else 1, j] = best.step.get(par.name, 0.0) / rms
         kappa = 0.0
         rn = np.linalg.norm(C, axis=1)
         if np.all(np.isfinite(C)) and rn.max() > 0:
