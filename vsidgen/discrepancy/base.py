@@ -53,9 +53,81 @@ ENTRY_POINT_GROUP = "vsidgen.effects"
 #: parameter/state names the catalogue creates start with this prefix
 PREFIX = "D_"
 
-FLOW_ANGLE_NAMES = {"alpha": "alpha", "alfa": "alpha", "aoa": "alpha", "beta": "beta",
-                    "bet": "beta"}
-RATE_NAMES = {"p": "p", "q": "q", "r": "r"}
+#: what a variable is to the aircraft (its *role*), recognised by name: the names users write
+ROLE_NAMES: Mapping[str, tuple[str, ...]] = {
+    "alpha": ("alpha", "alfa", "aoa", "alp", "alpha_b"),
+    "beta": ("beta", "bet", "aos", "sideslip", "beta_b"),
+    "p": ("p", "pb", "p_b", "roll_rate", "rollrate"),
+    "q": ("q", "qb", "q_b", "pitch_rate", "pitchrate"),
+    "r": ("r", "rb", "r_b", "yaw_rate", "yawrate"),
+    "V": ("v", "vt", "vtas", "tas", "va", "airspeed", "v_tas", "vel", "vtrue", "speed"),
+    "ax": ("ax", "a_x", "nx", "n_x"),
+    "ay": ("ay", "a_y", "ny", "n_y"),
+    "az": ("az", "a_z", "an", "nz", "n_z"),
+}
+#: ... and by description, where the name says nothing ("a: angle of attack")
+ROLE_DESCRIPTIONS: tuple[tuple[str, re.Pattern], ...] = tuple(
+    (role, re.compile(rx, re.IGNORECASE)) for role, rx in (
+        ("alpha", r"\bangle[\s-]+of[\s-]+attack\b|\bincidence\b|\baoa\b"),
+        ("beta", r"\bside[\s-]?slip\b"),
+        ("p", r"\broll(ing)?[\s-]+rate\b"),
+        ("q", r"\bpitch(ing)?[\s-]+rate\b"),
+        ("r", r"\byaw(ing)?[\s-]+rate\b"),
+        ("V", r"\b(true\s+)?air[\s-]?speed\b|\bflight\s+speed\b"),
+        ("ax", r"\b(longitudinal|axial|forward)\s+(specific\s+force|acceleration|load)"),
+        ("ay", r"\b(lateral|side(ward)?)\s+(specific\s+force|acceleration|load)"),
+        ("az", r"\b(normal|vertical)\s+(specific\s+force|acceleration|load)"),
+    ))
+#: a description naming a rate, derivative, command or trim of the quantity is not the
+#: quantity itself ("angle of attack rate", "pitch rate command")
+_NOT_THE_VARIABLE = re.compile(r"\b(rates?|derivatives?|commands?|commanded|demands?|demanded"
+                               r"|trim|accelerations?)\b|\bd/dt\b", re.IGNORECASE)
+_ROLE_BY_NAME = {n: role for role, names in ROLE_NAMES.items() for n in names}
+_UNIT_SUFFIX = re.compile(r"_(rad|deg|degs|dps|rps|mps|meas|measured|m|b|body|s)$")
+
+
+def variable_role(name: str, description: str = "") -> str | None:
+    """The role of a variable (``"alpha"``, ``"beta"``, ``"p"``, ``"q"``, ``"r"``, ``"V"``,
+    ``"ax"``, ``"ay"``, ``"az"``) from its name (case-insensitive, a unit suffix such as
+    ``_rad``/``_deg``/``_meas`` dropped) or, failing that, its description ("angle of
+    attack", "pitch rate", "true airspeed", "normal acceleration"); None when neither says.
+
+    A description that names a rate, derivative, command or trim of the quantity ("angle of
+    attack rate", "pitch rate command") gives no role: only the angle or the rate itself.
+    """
+    low = name.lower()
+    for cand in (low, _UNIT_SUFFIX.sub("", low)):
+        if cand in _ROLE_BY_NAME:
+            return _ROLE_BY_NAME[cand]
+    if description:
+        for role, rx in ROLE_DESCRIPTIONS:
+            m = rx.search(description)
+            if m is None:
+                continue
+            rest = description[:m.start()] + " " + description[m.end():]
+            return None if _NOT_THE_VARIABLE.search(rest) else role
+    return None
+
+
+def roles_of(variables: Iterable[Any]) -> dict[str, str]:
+    """``{name: role}`` of the variables (objects with ``name`` and optional ``description``)
+    whose role :func:`variable_role` recognises; each role goes to one variable only, a name
+    match before a description match, then the first in order."""
+    by_name: dict[str, str] = {}
+    by_desc: dict[str, str] = {}
+    for v in variables:
+        role = variable_role(v.name)
+        if role is not None:
+            by_name.setdefault(role, v.name)
+            continue
+        role = variable_role(v.name, getattr(v, "description", "") or "")
+        if role is not None:
+            by_desc.setdefault(role, v.name)
+    out = {name: role for role, name in by_name.items()}
+    for role, name in by_desc.items():
+        if role not in by_name:
+            out[name] = role
+    return out
 
 
 class DiscrepancyError(VsidgenError):
@@ -148,15 +220,29 @@ class ModelInfo(VariableNames):
             return e.name
         return None
 
+    @property
+    def state_roles(self) -> dict[str, str]:
+        """``{state: role}`` (:func:`roles_of`): which state is α, β, p, q, r, V."""
+        return roles_of(self.states)
+
+    @property
+    def output_roles(self) -> dict[str, str]:
+        """``{output: role}`` (:func:`roles_of`): which output is α, β, ax, ay, az..."""
+        return roles_of(self.outputs)
+
+    def state_with_role(self, role: str) -> str | None:
+        """The state whose role is ``role`` (e.g. ``"q"``), else None."""
+        return next((s for s, r in self.state_roles.items() if r == role), None)
+
     def flow_angle(self, kind: str) -> str | None:
-        """The state that is the angle of attack (kind 'alpha') or sideslip ('beta')."""
-        for v in self.states:
-            if FLOW_ANGLE_NAMES.get(v.name.lower()) == kind:
-                return v.name
-        return None
+        """The state that is the angle of attack (kind 'alpha') or sideslip ('beta'),
+        recognised by name or description (:func:`variable_role`)."""
+        return self.state_with_role(kind)
 
     def rate_states(self) -> tuple[str, ...]:
-        return tuple(v.name for v in self.states if v.name.lower() in RATE_NAMES)
+        """The body angular-rate states (roles p, q, r), in state order."""
+        roles = self.state_roles
+        return tuple(v.name for v in self.states if roles.get(v.name) in ("p", "q", "r"))
 
     def drift_text_of(self, state: str) -> str:
         return self.drift[state]

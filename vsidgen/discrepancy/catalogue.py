@@ -38,7 +38,7 @@ import functools
 import math
 
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
-                   spec_text)
+                   spec_text, variable_role)
 from ..spec.symbolic import split_constant_terms
 from .locate import SPEED_REGRESSOR
 
@@ -777,7 +777,6 @@ class SensorScale(Effect):
 
 
 _ACCEL = ("ax", "ay", "az", "an", "a_x", "a_y", "a_z", "nx", "ny", "nz")
-_SPEED_STATES = ("v", "vt", "vtas", "tas", "va", "airspeed", "v_tas", "vel")
 _SPEED_CONSTANTS = ("v0", "vt0", "vtas0", "vo", "u0", "vtrim", "v_0", "vref", "v", "vt")
 
 
@@ -786,8 +785,8 @@ def airspeed_name(info: ModelInfo) -> str | None:
     input of that kind (a measured airspeed the model is driven with), else a constant named
     like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
     for v in info.states + info.inputs:
-        if v.name.lower() in _SPEED_STATES and (v.unit or "").replace(" ", "") in (
-                "m/s", "ft/s", "kt", "km/h"):
+        if variable_role(v.name, v.description) == "V" and (v.unit or "").replace(
+                " ", "") in ("m/s", "ft/s", "kt", "km/h"):
             return v.name
     by_lower = {c.lower(): c for c in info.constants}
     for name in _SPEED_CONSTANTS:
@@ -870,7 +869,7 @@ class SensorPosition(Effect):
                 f"(x, y, z from the CG = {pos[0]:g}, {pos[1]:g}, {pos[2]:g} m)."), v
 
     def _vane(self, info, o, r, p, kind, speed, speed_source):
-        sign, where, axis, axsign = self._VANE[(kind, r.lower())]
+        sign, where, axis, axsign = self._VANE[(kind, info.state_roles[r])]
         if speed is not None:
             ref, refv = self._reference(info, "noseboom", axis, axsign)
             what = (f"a flow vane {p} m {where} sees the induced angle "
@@ -898,9 +897,10 @@ class SensorPosition(Effect):
     def _accel(self, info, o, axis, arm, key_suffix, regressor):
         rates = {k: None for k in "pqr"}
         rdots = {k: None for k in "pqr"}
+        roles = info.state_roles
         for s in info.rate_states():
-            rates[s.lower()] = s
-            rdots[s.lower()] = info.drift.get(s) or None
+            rates[roles[s]] = s
+            rdots[roles[s]] = info.drift.get(s) or None
         terms = _arm_terms(arm, axis, rates, rdots)
         if not terms:
             return None
@@ -957,32 +957,40 @@ class SensorPosition(Effect):
         if speed is None and info.flight is not None and info.flight.airspeed is not None:
             speed = repr(round(float(info.flight.airspeed.value), 4))
             speed_source = info.flight.airspeed.source
+        out_roles = info.output_roles
         for o in info.output_names:
             ms = info.measured_state(o)
             kind = None
-            if ms is not None and info.flow_angle("alpha") == ms or o.lower() in ("alpha", "alfa"):
+            orole = out_roles.get(o)
+            if ms is not None and info.flow_angle("alpha") == ms or orole == "alpha":
                 kind = "alpha"
-            elif ms is not None and info.flow_angle("beta") == ms or o.lower() == "beta":
+            elif ms is not None and info.flow_angle("beta") == ms or orole == "beta":
                 kind = "beta"
-            elif o.lower() in _ACCEL or (info.unit(o) or "").replace(" ", "") in ("m/s^2", "m/s**2", "g"):
+            elif orole in ("ax", "ay", "az") or o.lower() in _ACCEL or (
+                    info.unit(o) or "").replace(" ", "") in ("m/s^2", "m/s**2", "g"):
                 kind = "accel"
             if kind is None:
                 continue
             if kind in ("alpha", "beta"):
                 for r in rates:
-                    rl = r.lower()
+                    rl = info.state_roles.get(r)
                     if (kind == "alpha" and rl != "q") or (kind == "beta" and rl not in ("p", "r")):
                         continue
                     p = info.fresh(f"D_POS_{o}_{r}")
                     out.append(self._vane(info, o, r, p, kind, speed, speed_source))
                 continue
-            axis = o.lower()[-1] if o.lower().startswith("a") and o.lower()[-1] in _AXES \
-                else None
+            if o.lower() in _ACCEL:
+                # ax/a_y...; an, nx, nz (load factors, sign conventions vary): generic
+                axis = o.lower()[-1] if o.lower().startswith("a") and o.lower()[-1] in _AXES \
+                    else None
+            else:
+                # named otherwise, recognised by its description ("normal acceleration")
+                axis = orole[-1] if orole in ("ax", "ay", "az") else None
             if axis is None:
                 out.extend(self._generic_accel(info, o, rates))
                 continue
             for r in rates:
-                arm = _ARM_OF_RATE.get((axis, r.lower()))
+                arm = _ARM_OF_RATE.get((axis, info.state_roles.get(r)))
                 if arm is None or not info.drift.get(r):
                     continue
                 c = self._accel(info, o, axis, arm, r, r)
@@ -1160,7 +1168,7 @@ class SpeedDynamics(Effect):
 
     def applies_to(self, info):
         a = info.flow_angle("alpha")
-        q = next((s for s in info.rate_states() if s.lower() == "q"), None)
+        q = info.state_with_role("q")
         if a is None or q is None:
             return []
         own = airspeed_name(info)
@@ -1168,7 +1176,7 @@ class SpeedDynamics(Effect):
             # the model has a speed state already, or is driven by the measured airspeed
             # (its speed variations are in the model through that input)
             return []
-        if any(s.lower() in ("v", "u", "vt", "vtas", "tas") for s in info.state_names):
+        if info.state_with_role("V") or any(s.lower() == "u" for s in info.state_names):
             return []
         return [self._candidate(info, a, q, closure) for closure in self.CLOSURES]
 
@@ -1189,7 +1197,7 @@ class SpeedDynamics(Effect):
             NewParameter(mv, f"({qu})/m", f"M_V: change of d{q}/dt with speed, per m/s"))
         obs = {}
         for o in info.output_names:
-            if o.lower() in ("az", "a_z") and v0 is not None:
+            if info.output_roles.get(o) == "az" and v0 is not None:
                 unit = (info.unit(o) or "").replace(" ", "")
                 if unit in ("m/s^2", "m/s**2"):
                     obs[o] = f"{v0}*{zv}*{dv}"

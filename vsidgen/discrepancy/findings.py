@@ -160,12 +160,14 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     from .catalogue import airspeed_name
     from .flightconst import flight_conditions_of
 
-    if c.effect != "time_skew" or c.target_kind != "output" or c.target_name not in _FLOW_ANGLES:
+    if c.effect != "time_skew" or c.target_kind != "output":
         return None
     tau = next((v for v in params.values() if v.get("unit") == "s" and not v.get("fixed")), None)
     if tau is None or tau.get("estimate") is None:
         return None
     info = info_from_model(st.model)
+    if info.output_roles.get(c.target_name) not in _FLOW_ANGLES:
+        return None
     name = airspeed_name(info)
     # the records' airspeed column or the constants file's trim speed (when the model has no
     # airspeed of its own), and the sensor positions of the constants file
@@ -187,7 +189,8 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     se = tau.get("std_error")
     out = {"x_m": _f(tau["estimate"] * v_bar),
            "std_error_m": None if se is None else _f(se * v_bar),
-           "airspeed_mps": _f(v_bar), "airspeed_source": source}
+           "airspeed_mps": _f(v_bar), "airspeed_source": source,
+           "flow_angle": info.output_roles.get(c.target_name)}
     nose = fc.sensors.get("noseboom")
     if nose is not None:
         out["constants_noseboom_x_m"] = _f(nose[0])
@@ -197,7 +200,8 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
 def equivalent_vane_text(channel: str, ev: dict) -> str:
     """The sentence of :func:`equivalent_vane` for a finding's explanation."""
     se = f" ± {ev['std_error_m']:.2g}" if ev.get("std_error_m") is not None else ""
-    reads = f"{channel} − x·q/V" if channel == "alpha" else f"{channel} + x·r/V"
+    kind = ev.get("flow_angle") or channel
+    reads = f"{channel} − x·q/V" if kind == "alpha" else f"{channel} + x·r/V"
     text = (f" Read as a vane instead: a vane x ahead of the centre of gravity reads "
             f"{reads}, the same to first order as this skew with x = τ·V̄ = "
             f"{ev['x_m']:.3g}{se} m (V̄ = {ev['airspeed_mps']:.4g} m/s, {ev['airspeed_source']})")

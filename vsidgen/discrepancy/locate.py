@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .base import FLOW_ANGLE_NAMES, RATE_NAMES
+from .base import variable_role
 from .pvalues import chi2_log10sf
 
 #: locate significance level (Bonferroni-corrected within a target) for "flagged"
@@ -503,14 +503,24 @@ def _robust_level(x: np.ndarray) -> float:
 # regressor library for state equations
 # ---------------------------------------------------------------------------
 
-def _is_flow_angle(name: str) -> bool:
-    return name.lower() in FLOW_ANGLE_NAMES
+def state_roles(state_names: Sequence[str],
+                roles: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``{state: role}`` (α, β, p, q, r, V...): ``roles`` when given (the model's, which also
+    reads descriptions: :meth:`.base.ModelInfo.state_roles`), else from the names alone."""
+    if roles is not None:
+        return {s: roles[s] for s in state_names if s in roles}
+    out = {}
+    for s in state_names:
+        r = variable_role(s)
+        if r is not None and r not in out.values():
+            out[s] = r
+    return out
 
 
 def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
                      X: np.ndarray, U: np.ndarray, Xdot: np.ndarray, Udot: np.ndarray,
                      *, dt: float | None = None, seg: Sequence[slice] | None = None,
-                     ) -> dict[str, np.ndarray]:
+                     roles: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
     """Candidate regressors for the equation errors (names are used by the catalogue).
 
     ``x:<s>``, ``u:<i>``: linear; ``sq:<v>``: square of a flow angle or input;
@@ -520,7 +530,13 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
     ``xdot:<a>``: flow-angle rate (unsteady aerodynamics; through the downwash-lag filter of
     :func:`downwash_tau` when ``dt`` and ``seg`` are given); ``lp:<v>``: ``v`` through a
     first-order low-pass of time constant :data:`LOWPASS_TAU` (a missing slow mode).
+    ``roles`` (:func:`state_roles`) says which states are flow angles.
     """
+    roles = state_roles(state_names, roles)
+
+    def _is_flow_angle(name: str) -> bool:
+        return roles.get(name) in ("alpha", "beta")
+
     reg: dict[str, np.ndarray] = {}
     for j, s in enumerate(state_names):
         reg[f"x:{s}"] = X[:, j]
@@ -563,7 +579,7 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
                 reg[f"lp:{i}"] = lowpass(U[:, j], dt, LOWPASS_TAU, seg)
                 # signature of a short lag/delay of the input: lowpass(u, 3T) − u
                 reg[f"lag:{i}"] = lowpass(U[:, j], dt, 3 * dt, seg) - U[:, j]
-        sp = speed_proxy(state_names, X, dt, seg)
+        sp = speed_proxy(state_names, X, dt, seg, roles=roles)
         if sp is not None:
             reg[SPEED_REGRESSOR] = sp
     return reg
@@ -572,11 +588,9 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
 #: locate regressor of the speed (phugoid) motion a short-period model leaves out
 SPEED_REGRESSOR = "speed:kin"
 
-_SPEED_STATE_NAMES = ("v", "vt", "vtas", "tas", "u", "va", "airspeed", "v_tas", "vel")
-
-
 def speed_proxy(state_names: Sequence[str], X: np.ndarray, dt: float,
-                seg: Sequence[slice]) -> np.ndarray | None:
+                seg: Sequence[slice], *, roles: Mapping[str, str] | None = None
+                ) -> np.ndarray | None:
     """Shape of the airspeed perturbation a short-period model leaves out, from kinematics.
 
     Along the flight path gravity changes the speed as ``ΔV̇ = −g Δγ`` (plus drag and thrust
@@ -584,15 +598,16 @@ def speed_proxy(state_names: Sequence[str], X: np.ndarray, dt: float,
     ``θ_k = Σ_{i<k} q_i T``, ``Δγ = γ − mean(γ)`` (the trim path angle is unknown),
     ``ΔV_k ∝ −Σ_{i<k} Δγ_i T`` minus its mean (the scale ``g`` and the sign do not matter to a
     correlation). Returns None unless the model has an angle-of-attack state, a pitch rate
-    ``q`` and no speed state.
+    ``q`` and no speed state (a state in the role V, or named ``u``); roles as in
+    :func:`state_roles`.
     """
-    low = [s.lower() for s in state_names]
-    if any(s in _SPEED_STATE_NAMES for s in low) or "q" not in low:
+    roles = state_roles(state_names, roles)
+    by_role = {r: s for s, r in roles.items()}
+    if "V" in by_role or any(s.lower() == "u" for s in state_names):
         return None
-    ja = next((j for j, s in enumerate(low) if FLOW_ANGLE_NAMES.get(s) == "alpha"), None)
-    if ja is None:
+    if "alpha" not in by_role or "q" not in by_role:
         return None
-    jq = low.index("q")
+    ja, jq = state_names.index(by_role["alpha"]), state_names.index(by_role["q"])
     out = np.zeros(X.shape[0])
     for s in seg:
         a, q = X[s, ja], X[s, jq]
@@ -761,7 +776,8 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
            measurement_std: Mapping[str, float] | None = None,
            alpha: float = ALPHA_LOCATE, min_share: float = 0.02,
            window_s: float = 1.0,
-           nuisance: Mapping[str, np.ndarray] | None = None) -> Evidence:
+           nuisance: Mapping[str, np.ndarray] | None = None,
+           roles: Mapping[str, str] | None = None) -> Evidence:
     """Locate mismatches; see the module docstring for the statistics.
 
     Args:
@@ -781,21 +797,25 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
             the model's own terms (``α̇ ≈ Z_α α + q + Z_δ δ`` against ``M_α, M_q,
             M_δ``) is tested for the part the refit could not absorb. ``None``:
             plain correlations.
+        roles: ``{state: role}`` (α, β, p, q, r, V: :meth:`.base.ModelInfo.state_roles`,
+            which reads the states' descriptions too); ``None``: recognised by name.
     """
+    roles = state_roles(state_names, roles)
     process_std = dict(process_std or {})
     measurement_std = dict(measurement_std or {})
     if not records:
         raise ValueError("locate needs at least one record")
     dt = float(np.median(np.concatenate([np.diff(r.t) for r in records])))
     states = _state_evidence(records, state_names, input_names, process_std, dt, alpha=alpha,
-                             min_share=min_share, window_s=window_s, nuisance=nuisance)
+                             min_share=min_share, window_s=window_s, nuisance=nuisance,
+                             roles=roles)
     outputs = _output_evidence(records, state_names, input_names, output_names, measurement_std, dt,
-                               alpha=alpha, min_share=min_share, window_s=window_s)
+                               alpha=alpha, min_share=min_share, window_s=window_s, roles=roles)
     return Evidence(states, outputs, dt, alpha)
 
 
 def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha, min_share, window_s,
-                    nuisance) -> dict[str, StateEvidence]:
+                    nuisance, roles) -> dict[str, StateEvidence]:
     """Per state equation: the equation error e = ẋ_fd − f(x̂) (records concatenated, last sample of
     each dropped) tested against every state regressor (partial correlations given ``nuisance``),
     stepwise selection, whiteness and low-frequency share, and its windows of excess error."""
@@ -806,10 +826,12 @@ def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha
     Xdot = _concat(records, "xdot_fd")
     Udot = np.concatenate([np.diff(np.asarray(r.u, float), axis=0) / dt for r in records], axis=0)
     tt = _concat(records, "t", trim=True)
-    reg = state_regressors(state_names, input_names, X, U, Xdot, Udot, dt=dt, seg=seg_s)
-    cond_src = {s: X[:, j] for j, s in enumerate(state_names) if _is_flow_angle(s)}
+    reg = state_regressors(state_names, input_names, X, U, Xdot, Udot, dt=dt, seg=seg_s,
+                           roles=roles)
+    cond_src = {s: X[:, j] for j, s in enumerate(state_names)
+                if roles.get(s) in ("alpha", "beta")}
     cond_src.update({i: U[:, j] for j, i in enumerate(input_names)})
-    bin_var = next((s for s in state_names if FLOW_ANGLE_NAMES.get(s.lower()) == "alpha"),
+    bin_var = next((s for s in state_names if roles.get(s) == "alpha"),
                    next(iter(cond_src), None))
     total_time = sum(float(r.t[-1] - r.t[0]) for r in records)
     states: dict[str, StateEvidence] = {}
@@ -851,7 +873,7 @@ def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha
 
 
 def _output_evidence(records, state_names, input_names, output_names, measurement_std, dt, *, alpha,
-                     min_share, window_s) -> dict[str, OutputEvidence]:
+                     min_share, window_s, roles) -> dict[str, OutputEvidence]:
     """Per output: the smoothed and predicted residuals tested for a bias, a scale error, a rate
     term and rate/acceleration offsets of the rate states (:func:`_output_tests`), a lag, and
     windows of the simulation residual."""
@@ -864,8 +886,8 @@ def _output_evidence(records, state_names, input_names, output_names, measuremen
     t_o = _concat(records, "t")
     Xs_dot = _rate(Xs, dt, seg_o)
     Ys_dot = _rate(Ys, dt, seg_o)
-    rates = [(s, j) for j, s in enumerate(state_names) if s.lower() in RATE_NAMES]
-    ocond = {s: Xs[:, j] for j, s in enumerate(state_names) if _is_flow_angle(s)}
+    rates = [(s, j) for j, s in enumerate(state_names) if roles.get(s) in ("p", "q", "r")]
+    ocond = {s: Xs[:, j] for j, s in enumerate(state_names) if roles.get(s) in ("alpha", "beta")}
     ocond.update({i: np.concatenate([np.asarray(r.u, float)[:, j] for r in records])
                   for j, i in enumerate(input_names)})
     outputs: dict[str, OutputEvidence] = {}

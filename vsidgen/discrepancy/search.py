@@ -73,7 +73,7 @@ from ..estimator import WarmStart
 from ..limits import check_input_file
 from ..report import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
-                   load_effects_module, propose, registered_effects)
+                   load_effects_module, propose, registered_effects, roles_of)
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .pvalues import chi2_logsf
@@ -498,9 +498,11 @@ def locate_state(st: FitState) -> Evidence:
     equation-error regressor for what the model's own free terms cannot absorb."""
     m = st.model
     recs = [LocateRecord.from_signals(s, r.u) for s, r in zip(st.signals, st.records)]
+    sym = getattr(m, "symbolic", None)
     return locate(recs, state_names=m.state_names, input_names=m.input_names,
                   output_names=m.output_names, process_std=st.fit.process_std,
-                  measurement_std=st.fit.measurement_std, nuisance=drift_sensitivities(st))
+                  measurement_std=st.fit.measurement_std, nuisance=drift_sensitivities(st),
+                  roles=roles_of(sym.states) if sym is not None else None)
 
 
 def model_info_of(st: FitState) -> ModelInfo:
