@@ -68,7 +68,9 @@ def fit_once(a) -> dict:
     if a.cache:
         pathlib.Path(a.cache).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", a.cache)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        from vsidgen.compilecache import MIN_COMPILE_SECS  # what the CLI keeps (every program)
+
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECS)
     else:
         jax.config.update("jax_enable_compilation_cache", False)
     sums: dict = collections.defaultdict(lambda: collections.defaultdict(float))
