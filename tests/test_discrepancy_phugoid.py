@@ -613,7 +613,8 @@ def test_speed_screen_finds_a_left_out_phugoid_and_is_quiet_without_one(tmp_path
 def test_speed_finding_is_checked_against_the_lift_speed_coupling():
     """Effect.check_estimates of the speed class: Z_V against −2g/V₀² with V₀ the spec's own
     airspeed constant (m/s); near it the finding says "a phugoid", far from it (18 s.e., a
-    tenth) that the candidate may absorb another slow mismatch; no sentence for α in degrees."""
+    tenth) that the candidate may absorb another slow mismatch; α in degrees: Z_V in deg/m,
+    compared in rad/m; no sentence for an angle without an angle unit."""
     info = model_info(TOTTER, dt=0.02)
     eff = SpeedDynamics()
     att = next(c for c in eff.applies_to(info) if c.info["closure"] == "attitude")
@@ -623,6 +624,10 @@ def test_speed_finding_is_checked_against_the_lift_speed_coupling():
     assert f"{ref:.4g}" in near and "the speed coupling of a phugoid" in near
     assert "not the phugoid's speed coupling" in far
     assert eff.check_estimates(att, {}) == ""
-    deg = dataclasses.replace(att, parameters=att.parameters[:2] + (dataclasses.replace(
-        att.parameters[2], unit="(deg)/m"),) + att.parameters[3:])
-    assert eff.check_estimates(deg, {"D_ZV": (ref, 0.0003)}) == ""
+    def unit(u, **info):
+        return dataclasses.replace(att, parameters=att.parameters[:2] + (dataclasses.replace(
+            att.parameters[2], unit=u),) + att.parameters[3:], info={**att.info, **info})
+    deg = eff.check_estimates(unit("(deg)/m", angle_radians=math.pi / 180),
+                              {"D_ZV": (0.97 * ref * 180 / math.pi, 0.00029 * 180 / math.pi)})
+    assert deg == near
+    assert eff.check_estimates(unit("(1)/m"), {"D_ZV": (ref, 0.0003)}) == ""

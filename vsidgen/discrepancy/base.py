@@ -205,6 +205,17 @@ class ModelInfo(VariableNames):
                 return v.unit
         return None
 
+    def radians_per(self, name: str) -> float:
+        """Radians (or rad/s, rad/s²) per unit of the state, input or output ``name``: 1 for
+        ``rad``, ``rad/s`` or no unit, π/180 for ``deg``, ``deg/s``; 1 for other units. The
+        physical candidates (vane and accelerometer positions in metres, gravity along the
+        flight path) convert angles and rates with it, so that a model written in degrees
+        gets its positions in metres and its speed equation in m/s."""
+        from ..spec.dataunits import angle_kind
+
+        kind = angle_kind(self.unit(name))
+        return 1.0 if kind is None else kind[1]
+
     def symbol(self, name: str) -> sympy.Symbol:
         return sympy.Symbol(name, real=True)
 

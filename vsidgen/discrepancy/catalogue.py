@@ -101,6 +101,11 @@ def _paren(text: str) -> str:
     return f"({text})"
 
 
+def _times(k: float, text: str) -> str:
+    """``text`` multiplied by the unit factor ``k`` (as is when ``k`` is 1)."""
+    return text if k == 1.0 else f"{k!r}*{_paren(text)}"
+
+
 def _input_dynamics_evidence(c, ev) -> float:
     """Evidence for dynamics (a lag, a delay) between an input and the aircraft: the
     equation errors of the states the input drives correlate with its rate or a lagged copy."""
@@ -870,6 +875,8 @@ class SensorPosition(Effect):
 
     def _vane(self, info, o, r, p, kind, speed, speed_source):
         sign, where, axis, axsign = self._VANE[(kind, info.state_roles[r])]
+        # x·r/V is in radians with r in rad/s: in the vane's unit (degrees too)
+        k = info.radians_per(r) / info.radians_per(o)
         if speed is not None:
             ref, refv = self._reference(info, "noseboom", axis, axsign)
             what = (f"a flow vane {p} m {where} sees the induced angle "
@@ -880,7 +887,7 @@ class SensorPosition(Effect):
                 explanation=self.explain(output=o, what=what, signal=f"the rate {r}",
                                          reference=ref),
                 parameters=(NewParameter(p, "m", f"{o} vane distance {where}"),),
-                add_terms={"observations": {o: f"{sign}{p}*{r}/{speed}"}},
+                add_terms={"observations": {o: f"{sign}{p}*{_times(k, r)}/{speed}"}},
                 info={"output": o, "regressor": f"rate:{r}", "airspeed": speed,
                       "airspeed_source": speed_source, "reference_m": refv})
         what = (f"a flow vane ahead of/above the CG sees an induced angle proportional to the "
@@ -899,8 +906,9 @@ class SensorPosition(Effect):
         rdots = {k: None for k in "pqr"}
         roles = info.state_roles
         for s in info.rate_states():
-            rates[roles[s]] = s
-            rdots[roles[s]] = info.drift.get(s) or None
+            k = info.radians_per(s)  # rates in rad/s, their drifts in rad/s² (degrees too)
+            rates[roles[s]] = s if k == 1.0 else _paren(_times(k, s))
+            rdots[roles[s]] = _times(k, info.drift[s]) if info.drift.get(s) else None
         terms = _arm_terms(arm, axis, rates, rdots)
         if not terms:
             return None
@@ -937,7 +945,8 @@ class SensorPosition(Effect):
             if not rdot:
                 continue
             p = info.fresh(f"D_ARM_{o}_{r}")
-            term = f"{p}*{_paren(rdot)}" + (f"/{g!r}" if g_unit else "")
+            term = f"{p}*{_paren(_times(info.radians_per(r), rdot))}" + (
+                f"/{g!r}" if g_unit else "")
             what = (f"an accelerometer at a lever arm {p} m from the CG measures the tangential "
                     f"acceleration {p}·d{r}/dt{'/g' if g_unit else ''} (ω̇ × r)")
             out.append(Candidate(
@@ -1195,27 +1204,30 @@ class SpeedDynamics(Effect):
                                                  "(lift tilt / induced drag)"),
             NewParameter(zv, f"({au})/m", f"Z_V: change of d{a}/dt with speed (lift), per m/s"),
             NewParameter(mv, f"({qu})/m", f"M_V: change of d{q}/dt with speed, per m/s"))
+        # angles in α's unit and q's in its own (degrees too): gravity along the path and the
+        # vertical accelerometer need radians, the attitude integrates q in α's unit
+        ka, kq = info.radians_per(a), info.radians_per(q)
         obs = {}
         for o in info.output_names:
             if info.output_roles.get(o) == "az" and v0 is not None:
                 unit = (info.unit(o) or "").replace(" ", "")
                 if unit in ("m/s^2", "m/s**2"):
-                    obs[o] = f"{v0}*{zv}*{dv}"
+                    obs[o] = f"{v0}*{_times(ka, zv)}*{dv}"
                 elif unit == "g":
-                    obs[o] = f"{v0}*{zv}*{dv}/{g!r}"
+                    obs[o] = f"{v0}*{_times(ka, zv)}*{dv}/{g!r}"
         adds = {"drift": {a: f"{zv}*{dv}", q: f"{mv}*{dv}"}}
         if obs:
             adds["observations"] = obs
         if closure == "air":
             gamma = ang
-            angle_state = NewState(ang, f"{q} - ({info.drift[a]}) - {zv}*{dv}", au,
+            angle_state = NewState(ang, f"{_times(kq / ka, q)} - ({info.drift[a]}) - {zv}*{dv}", au,
                                    "flight-path-angle perturbation (θ − α without the "
                                    "air-mass part of α)")
         else:
             gamma = f"({ang} - {a})"
-            angle_state = NewState(ang, f"{q}", au, "pitch-attitude perturbation (its start "
+            angle_state = NewState(ang, _times(kq / ka, q), au, "pitch-attitude perturbation (its start "
                                                     "absorbs the trim of the speed equation)")
-        states = (NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g!r}*{gamma}", "m/s",
+        states = (NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g * ka!r}*{gamma}", "m/s",
                            "airspeed perturbation from trim (phugoid)"), angle_state)
         return Candidate(
             effect=self.id, key=f"{self.id}:{a}:{q}" + ("" if closure == "air" else ":attitude"),
@@ -1230,7 +1242,8 @@ class SpeedDynamics(Effect):
             parameters=params, states=states, add_terms=adds,
             info={"states": (a, q), "regressor": SPEED_REGRESSOR, "gravity": g,
                   "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source,
-                  "airspeed_value": _number(v0, info), "closure": closure})
+                  "airspeed_value": _number(v0, info), "closure": closure,
+                  "angle_radians": ka})
 
     def score(self, c, ev):
         """The equation errors of α and q follow the kinematic speed perturbation
@@ -1241,12 +1254,19 @@ class SpeedDynamics(Effect):
         """Z_V against −2g/V₀² (lift ∝ V² at the trim lift L = mg, constant α): a phugoid's
         speed coupling. Far from it (beyond 3 s.e. and outside a factor 2), the candidate
         absorbs a slow mismatch that is not (only) the phugoid, and the sentence says so."""
+        from ..spec.dataunits import angle_kind
+
         zv_name = c.parameters[2].name
         v0 = c.info.get("airspeed_value")
         zv, se = estimates.get(zv_name, (None, None))
+        unit = (c.parameters[2].unit or "").replace(" ", "")
         if (v0 is None or zv is None or not math.isfinite(zv) or v0 <= 0
-                or (c.parameters[2].unit or "").replace(" ", "") != "(rad)/m"):
+                or not unit.endswith(")/m") or angle_kind(unit[1:-3]) is None):
             return ""
+        # in rad/m whatever α's unit (a model in degrees: Z_V in deg/m)
+        k = float(c.info.get("angle_radians", 1.0))
+        zv = zv * k
+        se = None if se is None else se * k
         ref = -2.0 * float(c.info["gravity"]) / v0 ** 2
         ratio = zv / ref
         if se is not None and math.isfinite(se) and se > 0:

@@ -119,7 +119,7 @@ def conversion(data_unit: str, spec_unit: str) -> tuple[float, float]:
     return a, b
 
 
-def _angle_kind(spec_unit: str | None) -> tuple[str, float] | None:
+def angle_kind(spec_unit: str | None) -> tuple[str, float] | None:
     """``("angle"|"rate", radians per spec unit)`` for angle and angular-rate units, else None."""
     if not spec_unit:
         return None
@@ -225,7 +225,7 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
     maps.update({("output", c.name): c for c in model.data.outputs})
     for kind, variables, values in (("input", model.inputs, u), ("output", model.outputs, y)):
         for j, v in enumerate(variables):
-            ak = _angle_kind(v.unit)
+            ak = angle_kind(v.unit)
             if ak is None:
                 continue
             col = values[:, j]
