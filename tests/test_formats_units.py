@@ -300,3 +300,24 @@ def test_a_column_named_in_another_dimension_is_a_wrong_column(tmp_path):
     plaus = [w for w in rec.warnings if w.code is DataWarningCode.IMPLAUSIBLE_RANGE]
     assert len(plaus) == 1 and "is `v_mps` the right column for `alpha`?" in plaus[0].hint
     assert "unit: deg" not in plaus[0].hint
+
+
+def test_fit_shows_and_records_a_column_read_in_another_unit(tmp_path, capsys, monkeypatch):
+    """`fit` (not only `check`) says that `alpha: alpha_rad` feeds a state declared in degrees
+    without conversion, before the fit, and results.json keeps the warning."""
+    import json
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    text = (root / "specs" / "attas_sp.yaml").read_text()
+    text = text.replace("name: attas_sp", "name: attas_sp_deg_user").replace(
+        "alpha: {unit: rad,", "alpha: {unit: deg,")
+    spec = tmp_path / "deg.yaml"
+    spec.write_text(text)
+    out = tmp_path / "out"
+    monkeypatch.chdir(tmp_path)  # the generated module goes to ./generated
+    main(["fit", str(spec), str(root / "data" / "attas_sp_synthetic.csv"), "--out", str(out),
+          "--max-iter", "2", "--quiet", "--noise-start", "data"])
+    err = capsys.readouterr().err
+    assert "column `alpha_rad` of output `alpha` is named in `rad`" in err
+    res = json.loads((out / "results.json").read_text())
+    assert [w["code"] for w in res["warnings"]].count("column_unit_suffix") == 1

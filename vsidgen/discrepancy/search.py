@@ -1494,8 +1494,12 @@ def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
     """Fit the base spec (continued once when unconverged) and locate its mismatch."""
     from ..spec import compile_spec
     from ..spec.identifiability import symmetry_warnings
+    from ..spec.symbolic import data_map_warnings
 
-    for w in symmetry_warnings(compile_spec(spec)):
+    sym = compile_spec(spec)
+    for w in data_map_warnings(sym):
+        run.say(str(w))       # a column read in another unit than its name says
+    for w in symmetry_warnings(sym):
         run.say(str(w))       # a combination the data cannot separate: the base fit may stall
     run.say(f"fitting the base model {spec}")
     base = fit_spec(spec, run.data, validate=run.validate, generated_dir=run.gen,

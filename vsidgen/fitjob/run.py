@@ -195,11 +195,14 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     print_recovered(plan)
     from ..spec import compile_spec
     from ..spec.identifiability import symmetry_warnings
+    from ..spec.symbolic import data_map_warnings
 
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     # unknown names and bounds, before any computation; then the parameter combinations the
     # equations cannot separate with the overrides' fixed and free parameters
     symmetric = symmetry_warnings(apply_overrides(symbolic, overrides))
+    # a column read in another unit than its name says: shown before the fit, not only by check
+    symmetric = data_map_warnings(symbolic) + list(symmetric)
     for w in symmetric:
         print(str(w), file=sys.stderr)
     records = unique_names([load_record(symbolic, p) for p in data])

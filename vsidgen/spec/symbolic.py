@@ -741,6 +741,16 @@ def _channel(ch: ChannelDecl, what: str = "input", spec_unit: str | None = None)
                       unit=unit, unit_conversion=conv)
 
 
+#: warnings about how the data map reads the records (a column named in another unit, or
+#: of another dimension): printed by ``fit`` and ``diagnose`` too, not only by ``check``
+DATA_MAP_WARNING_CODES = ("column_unit_suffix", "column_other_dimension")
+
+
+def data_map_warnings(symbolic) -> list:
+    """The spec's warnings about its data map (:data:`DATA_MAP_WARNING_CODES`)."""
+    return [w for w in getattr(symbolic, "warnings", ()) if w.code in DATA_MAP_WARNING_CODES]
+
+
 def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -> None:
     """Warn when a column's name states a unit of the spec unit's dimension but another scale
     (``alpha: alpha_deg`` for an angle in rad) and the entry converts nothing (no ``unit``,
