@@ -399,6 +399,22 @@ def test_attas_alpha_vane_on_the_noseboom(flight_data_dir, tmp_path):
     assert f["evidence"]["validation_elbo_after"] > f["evidence"]["validation_elbo_before"]
 
 
+@pytest.mark.slow
+def test_attas_alpha_vane_in_metres_from_a_model_written_in_degrees(flight_data_dir, tmp_path):
+    """A new user's ATTAS short period in degrees (benchmarks/users/attas_sp_deg.yaml: α, δe
+    in deg, q in deg/s, the records' radians converted by the data map): the vane position is
+    in metres, the same as the radian model's (11.49 ± 0.33 m, session 34: 11.49 ± 0.33 m,
+    2ΔELBO 749.3, 52 s)."""
+    spec = ROOT / "benchmarks" / "users" / "attas_sp_deg.yaml"
+    doc = _diagnose(spec, [flight_data_dir / "attas_elv1.csv"], tmp_path / "d",
+                    validate=[flight_data_dir / "attas_elv2.csv"],
+                    effects=["sensor_position"], max_candidates=3, noise_model=False)
+    f = next(f for f in doc["findings"] if f["key"] == "sensor_position:alpha:q")
+    x = f["parameters"]["D_POS_alpha_q"]
+    assert x["unit"] == "m" and abs(x["estimate"] - 11.49) < 3 * x["std_error"] < 1.5
+    assert "13.08" in f["explanation"]
+
+
 def test_an_output_modelling_a_force_gets_its_missing_derivatives(tmp_path):
     """An output equation with parameters of its own (a new user's a_y = V(Y_β β + Y_δr δr))
     gets a derivative candidate for every state and input it lacks; an output built on a
