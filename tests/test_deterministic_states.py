@@ -125,7 +125,10 @@ def test_fit_with_a_deterministic_state_from_null_guesses_matches_the_exact_mle(
                                  P0=P0)
 
     v0 = np.concatenate([THETA_TRUE, np.log(G_TRUE[:2]), np.log(R_STD)])
-    assert abs(float(loglik(v0)) - kalman(v0[:4], np.r_[G_TRUE[:2], 0.0], R_STD, rec)) < 1e-6
+    # the diffuse prior P0 = 1e6 costs ~6 of float64's digits at the first update: the two
+    # implementations' rounding differs by ~1e-6 with another summation order (JAX on an H200:
+    # 2.4e-6, docs/gpu.md), against log-likelihoods of ~1e3
+    assert abs(float(loglik(v0)) - kalman(v0[:4], np.r_[G_TRUE[:2], 0.0], R_STD, rec)) < 1e-5
     opt = maximum_likelihood(loglik, v0)
     assert np.all(np.abs(res.theta - opt.x[:4]) < 0.5 * se), (res.theta, opt.x[:4], se)
     assert res.elbo <= -opt.fun + 1e-3          # the ELBO cannot exceed the maximised likelihood
