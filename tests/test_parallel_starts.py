@@ -120,3 +120,41 @@ def test_the_highest_unconverged_start_above_every_optimum_is_continued():
     assert pick(_out(10, lim), _out(30, lim)) == 1
     # a stop without progress is not continued
     assert pick(_out(100, "NO_PROGRESS"), _out(50, conv)) is None
+
+
+def test_outclimbed_compares_the_gap_with_the_fastest_recent_rise():
+    from vsidgen.estimator.fit import _outclimbed
+
+    hist = [{"elbo": e} for e in (0.0, 50.0, 60.0, 62.0, 63.0)]
+    # fastest rise of the last 3 iterations: 10 per iteration
+    assert not _outclimbed(hist, 100.0, 3, 4)        # 63 + 4·10 = 103 ≥ 100: in reach
+    assert _outclimbed(hist, 104.0, 3, 4)            # out of reach
+    assert not _outclimbed(hist, 1e9, 10, 4)         # fewer iterations than the window
+    assert not _outclimbed(hist, 1e9, 0, 4)          # window 0: never
+    assert _outclimbed([{"elbo": 5.0}] * 5, 6.0, 3, 100)   # no rise at all
+
+
+def test_starts_below_an_earlier_optimum_are_abandoned_as_serially(flight_data_dir):
+    """ATTAS lateral (specs/attas_lat.yaml, attas_ail1 + attas_rud1): the data start converges
+    at ELBO 25287 in 25 iterations; data-meas and unit crawl 3–7 nats per iteration (they end
+    at 22077 after 874 and 1645 iterations) and used to run their whole 200 (425 iterations,
+    16.5 s). They are abandoned once that optimum is out of their reach; the concurrent run
+    takes the serial run's decisions, bit for bit."""
+    from vsidgen.data import load_record
+    from vsidgen.estimator import StopReason
+    from vsidgen.model import load_model
+    from vsidgen.spec import compile_spec
+
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    spec = root / "specs" / "attas_lat.yaml"
+    sym = compile_spec(spec)
+    recs = [load_record(sym, flight_data_dir / f"{r}.csv") for r in ("attas_ail1", "attas_rud1")]
+    model = load_model(spec)
+    serial = fit(model, recs, options=FitOptions(parallel_starts=False))
+    par = fit(model, recs, options=FitOptions(parallel_starts=True))
+    _same(serial, par)
+    assert par.converged and abs(par.elbo - 25287.0) < 1.0
+    assert "data-meas (below an earlier optimum" in par.status
+    assert "unit (below an earlier optimum" in par.status
+    assert par.iterations < 200
+    assert par.stop_reason is not StopReason.BELOW_OPTIMUM   # the fit is the converged start
