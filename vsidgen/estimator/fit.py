@@ -76,23 +76,6 @@ def _stalled(P: "Problem", history, ws, window: int, rtol: float, remaining: int
     return True
 
 
-def _outclimbed(history, best: float, window: int, remaining: int) -> bool:
-    """Is ``best`` (an earlier start's converged ELBO) out of this start's reach?
-
-    True when the start has run at least ``window`` iterations and
-    ``best − L_k > max(0, max_j (L_j − L_{j−1})) · remaining`` over its last ``window``
-    iterations: even rising at its fastest recent rate for every remaining iteration of its
-    budget it would end below ``best``. Scale-free in the ELBO (a gap against a rate, both in
-    nats); the rate is the window's maximum, not its mean, so a start that has just begun to
-    accelerate is kept.
-    """
-    if window <= 0 or len(history) <= window:
-        return False
-    e = [h["elbo"] for h in history[-1 - window:]]
-    rise = max(0.0, max(b - a for a, b in zip(e[:-1], e[1:])))
-    return best - e[-1] > rise * max(remaining, 0)
-
-
 #: Levenberg–Marquardt constants (Nielsen's damping rule; :func:`_optimize`)
 #: a step is accepted when the actual reduction of −ELBO is more than this share of the predicted one
 ACCEPT_RATIO = 1e-4
@@ -455,7 +438,7 @@ class _Cancelled(Exception):
 
 
 def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, resume=None,
-              stall=False, phase: FitPhase | None = None, cancel=None, ceiling=None):
+              stall=False, phase: FitPhase | None = None, cancel=None):
     """Levenberg–Marquardt iterations from the noise start ``start`` (or ``resume``: a previous output).
 
     Each iteration measures the iterate (:func:`_lm_measure`), asks whether to stop
@@ -468,13 +451,6 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
     ``stall`` may also be a callable, asked when the stall test fires whether this start may be
     abandoned (the last start of a concurrent multi-start: only when an earlier one converged).
     ``cancel`` (a ``threading.Event``): when set, the iterations end with :class:`_Cancelled`.
-    ``ceiling`` (a callable of the iteration number, asked once per iteration): the highest
-    ELBO an earlier noise start converged to, known at this iteration (None: none). This
-    start is abandoned (:attr:`StopReason.BELOW_OPTIMUM`) when that optimum lies higher above
-    its ELBO L_k than it could climb in its remaining iterations at the fastest rise of its
-    last ``options.stall_window`` iterations: L* − L_k > max_j (L_j − L_{j−1}) · (max_iter − k).
-    Such a start, stopped at its limit below a converged start, is discarded in any case
-    (:func:`_start_to_continue` continues only starts above every optimum).
     """
     t0 = time.perf_counter() if t0 is None else t0
     s, recs, lam, history, it0 = _lm_init(P, options, start, resume)
@@ -495,7 +471,6 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
         if options.verbose:
             print(f"iter {it:4d}  elbo {-m.f: .10e}  relgrad {m.relgrad:.3e}  decrement/2 {m.decrement:.3e}  "
                   f"lambda {lam:.2e}  {elapsed:7.2f} s")
-        best = None if ceiling is None else ceiling(it)
         stop = _lm_terminate(m, options, it, elapsed)
         if not math.isfinite(m.decrement) and (stop is None or stop.converged):
             # a saddle: parameters with a zero gradient along which −ELBO curves down
@@ -515,13 +490,6 @@ def _optimize(P: Problem, options: FitOptions, start: str = "data", t0=None, *, 
         if stop is not None:
             break
         ws.append(np.asarray(s[P.tm.n_free:], float).copy())
-        if best is not None and _outclimbed(history, best, options.stall_window,
-                                            options.max_iter - it):
-            stop = _Stop(StopReason.BELOW_OPTIMUM,
-                         f"abandoned below an earlier start's optimum: ELBO {-m.f:.6g} < "
-                         f"{best:.6g}, out of reach in {options.max_iter - it} iterations at "
-                         f"its fastest recent rise ({_lm_detail(m)})")
-            break
         if stall and _stalled(P, history, ws, options.stall_window, options.stall_rtol, options.max_iter - it) \
                 and (not callable(stall) or stall()):
             stop = _Stop(StopReason.STALLED, f"stalled: ELBO rose by less than {options.stall_rtol:g} (relative) "
@@ -1056,24 +1024,12 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
     # every start is run: a converged start is a local optimum, and another start may reach
     # a higher one (multi-start, the best converged ELBO is kept). A start that stalls is
     # abandoned early while another start remains or an earlier one has converged.
-    # a start is abandoned when an earlier start's optimum is out of its reach (_outclimbed);
-    # an earlier start counts from the iteration it converged at (the same in both runs)
-    prior = max((-_negelbo(o) for _, o in tried if o["converged"]), default=None)
     if options.parallel_starts and len(starts) > 1:
-        tried += _concurrent_starts(P, options, starts, t0, have_optimum=prior is not None,
-                                    prior=prior)
+        tried += _concurrent_starts(P, options, starts, t0, have_optimum=any(o["converged"] for _, o in tried))
     else:
-        n_prior = len(tried)
         for i, start in enumerate(starts):
             have_optimum = any(o["converged"] for _, o in tried)
-            done = [(o["iterations"], -_negelbo(o)) for _, o in tried[n_prior:] if o["converged"]]
-
-            def ceiling(it, done=done):
-                known = [e for n, e in done if n <= it] + ([prior] if prior is not None else [])
-                return max(known, default=None)
-            tried.append((start, _run_start(P, options, start, t0,
-                                            stall=i < len(starts) - 1 or have_optimum,
-                                            ceiling=ceiling if done or prior is not None else None)))
+            tried.append((start, _run_start(P, options, start, t0, stall=i < len(starts) - 1 or have_optimum)))
     k = _start_to_continue(tried)
     if k is not None:
         start, o = tried[k]
@@ -1086,7 +1042,7 @@ def _multistart(P: Problem, options: FitOptions, starts) -> dict:
     # converged optimum (continued, still not converged) is reported as not converged rather
     # than a lower optimum as the fit
     out = min((o for _, o in tried), key=lambda o: (_negelbo(o), not o["converged"]))
-    label = {StopReason.STALLED: "stalled", StopReason.BELOW_OPTIMUM: "below an earlier optimum"}
+    label = {StopReason.STALLED: "stalled"}
     out["starts"] = [(st, bool(o["converged"]), -_negelbo(o), o["iterations"]) for st, o in tried]
     if len(tried) > 1:
         out["status"] += "; noise starts tried: " + ", ".join(
@@ -1113,13 +1069,11 @@ def _start_to_continue(tried) -> int | None:
     return min(open_, key=lambda k: _negelbo(tried[k][1])) if open_ else None
 
 
-def _run_start(P: Problem, options: FitOptions, start: str, t0, *, stall, cancel=None,
-               ceiling=None) -> dict:
+def _run_start(P: Problem, options: FitOptions, start: str, t0, *, stall, cancel=None) -> dict:
     """One noise start of :func:`_multistart`: the iterations, then up to ``MAX_RELEASES``
     releases of saturated parameters (each followed by more iterations)."""
     phase = FitPhase(PhaseKind.NOISE_START, start=start)
-    out = _optimize(P, options, start, t0=t0, stall=stall, phase=phase, cancel=cancel,
-                    ceiling=ceiling)
+    out = _optimize(P, options, start, t0=t0, stall=stall, phase=phase, cancel=cancel)
     released: list[str] = []
     for _ in range(MAX_RELEASES):
         # released after any stop at a point (an optimum, or no progress: a saturated
@@ -1133,8 +1087,7 @@ def _run_start(P: Problem, options: FitOptions, start: str, t0, *, stall, cancel
             break
         released += [P.free_names[j] for j in np.nonzero(s_rel != out["s"])[0]]
         out = _optimize(P, options, start, t0=t0, stall=stall,
-                        resume={**out, "s": s_rel}, phase=phase, cancel=cancel,
-                        ceiling=ceiling)
+                        resume={**out, "s": s_rel}, phase=phase, cancel=cancel)
         out["released"] = tuple(dict.fromkeys(released))
     return out
 
@@ -1190,48 +1143,7 @@ class _LeadProgress:
         return _View()
 
 
-class _Pace:
-    """Where the concurrent noise starts are, for the ceiling test of :func:`_optimize`.
-
-    Start ``i`` publishes each iteration it reaches; its ceiling at iteration ``k`` is the
-    highest ELBO among ``prior`` (an optimum known before the starts) and the earlier starts
-    that finished converged at an iteration ≤ ``k``. To know that, it waits until every
-    earlier start has finished or passed iteration ``k`` (earlier starts never wait for later
-    ones: no deadlock), so each decision is the one the serial run takes."""
-
-    def __init__(self, n: int, prior, cancel):
-        import threading
-
-        self.cond = threading.Condition()
-        self.reached = [-1] * n
-        self.result: list = [None] * n       # (converged, iterations, ELBO) once finished
-        self.prior, self.cancel = prior, cancel
-
-    def ceiling(self, i: int):
-        def ask(it: int):
-            with self.cond:
-                self.reached[i] = it
-                self.cond.notify_all()
-                known = [] if self.prior is None else [self.prior]
-                for k in range(i):
-                    while (self.result[k] is None and self.reached[k] <= it
-                           and not self.cancel.is_set()):
-                        self.cond.wait(0.5)
-                    r = self.result[k]
-                    if r is not None and r[0] and r[1] <= it:
-                        known.append(r[2])
-                return max(known, default=None)
-        return ask
-
-    def finished(self, i: int, out) -> None:
-        with self.cond:
-            self.result[i] = ((bool(out["converged"]), out["iterations"], -_negelbo(out))
-                              if out is not None else (False, 0, None))
-            self.cond.notify_all()
-
-
-def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_optimum: bool,
-                       prior=None) -> list:
+def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_optimum: bool) -> list:
     """The noise starts of :func:`_multistart`, one thread each; [(start, output)] in start order.
 
     The first start runs alone until it has taken one step (its trace and compilation serve
@@ -1246,7 +1158,6 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
     n = len(starts)
     cancel, gate = threading.Event(), threading.Event()
     lead = _LeadProgress(options.progress, n, gate)
-    pace = _Pace(n, prior, cancel)
     futures: list = [None] * n
 
     def earlier_converged() -> bool:
@@ -1257,7 +1168,6 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
                    for f in futures[:-1])
 
     def task(i: int, start: str) -> dict:
-        out = None
         try:
             if i > 0:
                 gate.wait()
@@ -1265,11 +1175,8 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
                 raise _Cancelled(start)
             opts = dataclasses.replace(options, progress=lead.view(i))
             stall = True if i < n - 1 else earlier_converged
-            out = _run_start(P, opts, start, t0, stall=stall, cancel=cancel,
-                             ceiling=pace.ceiling(i))
-            return out
+            return _run_start(P, opts, start, t0, stall=stall, cancel=cancel)
         finally:
-            pace.finished(i, out)
             lead.finished(i)
 
     ex = cf.ThreadPoolExecutor(max_workers=n, thread_name_prefix="vsidgen-start")

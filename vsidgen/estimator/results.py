@@ -24,7 +24,6 @@ class StopReason(enum.Enum):
     ITERATION_LIMIT = "iteration_limit"
     TIME_LIMIT = "time_limit"
     STALLED = "stalled"
-    BELOW_OPTIMUM = "below_optimum"
     NO_PROGRESS = "no_progress"
     INDEFINITE_HESSIAN = "indefinite_hessian"
     DAMPING_OVERFLOW = "damping_overflow"
@@ -46,8 +45,6 @@ _STOP_MESSAGES = {
     StopReason.ITERATION_LIMIT: "stopped at the iteration limit before reaching an optimum",
     StopReason.TIME_LIMIT: "stopped at the time limit before reaching an optimum",
     StopReason.STALLED: "abandoned: the ELBO stopped rising far from an optimum (another noise start is tried)",
-    StopReason.BELOW_OPTIMUM: "abandoned: an earlier noise start converged higher than this start could "
-                              "rise within its iteration budget at its recent fastest rate",
     StopReason.NO_PROGRESS: "stopped: no step raises the ELBO although a Newton step predicts a gain "
                             "(line search failure)",
     StopReason.INDEFINITE_HESSIAN: "stopped: no further progress at a point where the Hessian of −ELBO is "
