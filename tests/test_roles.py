@@ -113,3 +113,16 @@ def test_locate_regressors_follow_roles():
     # without roles the invented names are no flow angles: no α squares, products, speed proxy
     plain = state_regressors(["aa", "pr"], ["de"], X, U, Xd, Ud, dt=0.04, seg=seg)
     assert "sq:aa" not in plain and "speed:kin" not in plain
+
+
+def test_a_velocity_component_is_not_the_airspeed():
+    """`v` described as the lateral velocity, or beside `u`/`w` (body axes), is a component;
+    `V: true airspeed` or a lone `v` is the airspeed."""
+    class V:
+        def __init__(self, name, description=""):
+            self.name, self.description = name, description
+    assert variable_role("v", "lateral velocity (body y)") is None
+    assert variable_role("V", "true airspeed") == "V"
+    assert roles_of([V("v", "side velocity"), V("p"), V("r")]) == {"p": "p", "r": "r"}
+    assert roles_of([V("u"), V("v"), V("w"), V("q")]) == {"q": "q"}
+    assert roles_of([V("V"), V("alpha"), V("q")]) == {"V": "V", "alpha": "alpha", "q": "q"}

@@ -82,6 +82,9 @@ ROLE_DESCRIPTIONS: tuple[tuple[str, re.Pattern], ...] = tuple(
 #: quantity itself ("angle of attack rate", "pitch rate command")
 _NOT_THE_VARIABLE = re.compile(r"\b(rates?|derivatives?|commands?|commanded|demands?|demanded"
                                r"|trim|accelerations?)\b|\bd/dt\b", re.IGNORECASE)
+#: a velocity described as one component (``v: lateral velocity``) is not the airspeed
+_VELOCITY_COMPONENT = re.compile(r"\b(lateral|side(ward)?|vertical|normal|body[\s-]*[xyz]|"
+                                 r"[xyz][\s-]*(axis|component))\b", re.IGNORECASE)
 _ROLE_BY_NAME = {n: role for role, names in ROLE_NAMES.items() for n in names}
 _UNIT_SUFFIX = re.compile(r"_(rad|deg|degs|dps|rps|mps|meas|measured|m|b|body|s)$")
 
@@ -98,7 +101,10 @@ def variable_role(name: str, description: str = "") -> str | None:
     low = name.lower()
     for cand in (low, _UNIT_SUFFIX.sub("", low)):
         if cand in _ROLE_BY_NAME:
-            return _ROLE_BY_NAME[cand]
+            role = _ROLE_BY_NAME[cand]
+            if role == "V" and description and _VELOCITY_COMPONENT.search(description):
+                return None          # `v: lateral velocity` is a body-axis component
+            return role
     if description:
         for role, rx in ROLE_DESCRIPTIONS:
             m = rx.search(description)
@@ -113,14 +119,21 @@ def roles_of(variables: Iterable[Any]) -> dict[str, str]:
     """``{name: role}`` of the variables (objects with ``name`` and optional ``description``)
     whose role :func:`variable_role` recognises; each role goes to one variable only, a name
     match before a description match, then the first in order."""
+    variables = list(variables)
+    # `v` beside `u` or `w` is the body y-velocity, not the airspeed
+    body_axes = {v.name.lower() for v in variables} & {"u", "w"}
     by_name: dict[str, str] = {}
     by_desc: dict[str, str] = {}
     for v in variables:
-        role = variable_role(v.name)
-        if role is not None:
-            by_name.setdefault(role, v.name)
+        if body_axes and v.name.lower() == "v":
             continue
-        role = variable_role(v.name, getattr(v, "description", "") or "")
+        desc = getattr(v, "description", "") or ""
+        named = variable_role(v.name)
+        if named is not None:
+            if variable_role(v.name, desc) == named:    # the description does not veto it
+                by_name.setdefault(named, v.name)
+            continue
+        role = variable_role(v.name, desc)
         if role is not None:
             by_desc.setdefault(role, v.name)
     out = {name: role for role, name in by_name.items()}

@@ -38,7 +38,7 @@ import functools
 import math
 
 from .base import (Candidate, Effect, ModelInfo, NewParameter, NewState, register_effect,
-                   spec_text, variable_role)
+                   roles_of, spec_text)
 from ..spec.symbolic import split_constant_terms
 from .locate import SPEED_REGRESSOR
 
@@ -789,8 +789,9 @@ def airspeed_name(info: ModelInfo) -> str | None:
     """The model's own true airspeed: a state named like V/VT/TAS with a speed unit, else an
     input of that kind (a measured airspeed the model is driven with), else a constant named
     like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
+    roles = {**roles_of(info.inputs), **info.state_roles}
     for v in info.states + info.inputs:
-        if variable_role(v.name, v.description) == "V" and (v.unit or "").replace(
+        if roles.get(v.name) == "V" and (v.unit or "").replace(
                 " ", "") in ("m/s", "ft/s", "kt", "km/h"):
             return v.name
     by_lower = {c.lower(): c for c in info.constants}
