@@ -384,6 +384,26 @@ def test_new_users_hfb320_short_period_names_the_missing_speed_dynamics(flight_d
 
 
 @pytest.mark.slow
+def test_the_same_short_period_in_degrees_names_the_speed_dynamics(flight_data_dir, tmp_path):
+    """benchmarks/users/hfb_sp_deg.yaml (the model above in degrees): the speed candidate's
+    gravity term and the screen's X_α start are per degree, Z_V comes out in deg/m and checks
+    against −2g/V₀² in rad/m (session 34, CLI defaults: 2ΔELBO 388.9, Z_V −0.104 deg/m =
+    −0.00182 rad/m; before the screen used g per radian, both speed refits stalled at 79 and
+    134 and a generic slow mode was named)."""
+    spec = ROOT / "benchmarks" / "users" / "hfb_sp_deg.yaml"
+    doc = _diagnose(spec, [flight_data_dir / "hfb320_1_10.csv"], tmp_path / "d",
+                    effects=["speed_dynamics"], max_candidates=2, min_score=0.0,
+                    noise_model=False)
+    (f,) = doc["findings"]
+    assert f["key"].startswith("speed_dynamics:alpha:q")
+    assert f["evidence"]["statistic"] > 10 * f["evidence"]["threshold"]
+    zv = f["parameters"]["D_ZV"]
+    assert zv["unit"] == "(deg)/m"
+    ratio = zv["estimate"] * math.pi / 180 / (-2 * G / 109.2 ** 2)
+    assert 0.5 < ratio < 2.0
+
+
+@pytest.mark.slow
 def test_attas_alpha_vane_on_the_noseboom(flight_data_dir, tmp_path):
     """With the accelerometer (which fixes the inertial α̇ − q) the α vane's position comes
     out in metres ahead of the CG near the noseboom of attas.constants.yaml (13.08 m); the

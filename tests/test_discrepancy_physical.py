@@ -287,3 +287,28 @@ def test_t_tail_in_logs_matches_scipy_where_scipy_is_finite():
         assert series == pytest.approx(ref, rel=1e-9)
         assert _t_log10p(t, df) == pytest.approx(ref, rel=1e-12)
     assert math.isfinite(_t_log10p(60.0, 3000.0)) and _t_log10p(60.0, 3000.0) < -240
+
+
+def test_a_continued_lead_without_progress_is_decided_on_its_lower_bound():
+    """The round's unconverged lead, continued, that rose by less than the optimizer's
+    convergence tolerance per iteration sits on a ridge or kink (the speed candidate on the real
+    HFB-320 record: 7064.72 → 7064.73 in 800 iterations): on_plateau, and stopped_at_kink
+    then decides it on its lower bound; a continuation that climbs is not a plateau."""
+    import dataclasses as dc
+    from types import SimpleNamespace as NS
+
+    from vsidgen.discrepancy.search import Trial, on_plateau, stopped_at_kink
+    from vsidgen.estimator import StopReason
+
+    def state(elbo, it, reason=StopReason.ITERATION_LIMIT):
+        return NS(elbo=elbo, fit=NS(iterations=it, stop_reason=reason, converged=False,
+                                    newton_decrement=float("nan")))
+    before = state(7064.72, 800)
+    assert on_plateau(before, state(7064.73, 1600))
+    assert not on_plateau(before, state(7070.0, 1600))            # 5.3 nats: climbing
+    assert on_plateau(before, before, budget=800)                  # continuation ended lower
+    assert not on_plateau(before, state(7064.73, 1600, StopReason.NEWTON_DECREMENT))
+    t = Trial(candidate=None, score=0.0, spec_path=None, state=state(7064.73, 1600),
+              statistic=394.1, dof=4, p_value=1e-80)
+    assert not stopped_at_kink(t)
+    assert stopped_at_kink(dc.replace(t, plateau=True))

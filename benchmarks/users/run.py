@@ -72,6 +72,8 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "otter_lon_nl": (("totter_lon_020213f1_018",), ("totter_lon_020213f1_017",),
                      "nonlinear V, alpha, q, theta with coefficients, two thrust inputs, "
                      "density as an input"),
+    "hfb_sp_deg": (("hfb320_1_10",), (),
+                   "the first HFB-320 short-period model written in degrees"),
     "attas_sp_deg": (("attas_elv1",), ("attas_elv2",),
                      "short period and vertical accelerometer written in degrees, the "
                      "records' radians converted by the data map"),

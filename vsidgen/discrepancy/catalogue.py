@@ -1244,7 +1244,7 @@ class SpeedDynamics(Effect):
             info={"states": (a, q), "regressor": SPEED_REGRESSOR, "gravity": g,
                   "gravity_source": g_source, "airspeed": v0, "airspeed_source": v_source,
                   "airspeed_value": _number(v0, info), "closure": closure,
-                  "angle_radians": ka})
+                  "angle_radians": ka, "q_in_alpha_units": kq / ka})
 
     def score(self, c, ev):
         """The equation errors of α and q follow the kinematic speed perturbation

@@ -1289,9 +1289,10 @@ def speed_path(c, current) -> list | None:
     """Per record of speed candidate ``c``: ``(dt, α − α₀, γ_rel)`` along the current
     smoothed path, or None (no path, or a non-finite one).
 
-    ``γ_rel`` is the path angle from the record's start: ``∫ q`` for the attitude closure,
-    ``∫ (q − f_α)`` with ``f_α`` the model's α equation along the path for the air-relative
-    one (:func:`lag_response` with ``a = 0``)."""
+    ``γ_rel`` is the path angle from the record's start, in α's unit: ``∫ q`` for the attitude
+    closure, ``∫ (q − f_α)`` with ``f_α`` the model's α equation along the path for the
+    air-relative one (:func:`lag_response` with ``a = 0``; q converted to α's unit per second,
+    ``info["q_in_alpha_units"]``, for a model in degrees with q in rad/s)."""
     import jax
     import jax.numpy as jnp
 
@@ -1308,7 +1309,7 @@ def speed_path(c, current) -> list | None:
         N = np.asarray(r.y).shape[0]
         mu = np.asarray(dec["records"][i]["mu"], float)[:N]
         dt = float(r.dt)
-        al, rate = mu[:, ja], mu[:, jq]
+        al, rate = mu[:, ja], mu[:, jq] * float(c.info.get("q_in_alpha_units", 1.0))
         if c.info["closure"] == "air":
             fa = np.asarray(drift(jnp.asarray(mu), jnp.asarray(np.asarray(r.u, float)[:N])),
                             float)[:, ja]
@@ -1411,7 +1412,8 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
                                           + "; ".join(notes))
             continue
         xv, cols, ps, best = max(ok, key=lambda row: row[3].statistic)
-        g = float(c.info["gravity"])
+        # gravity per unit of α, as in the candidate's speed equation (g·π/180 in degrees)
+        g = float(c.info["gravity"]) * float(c.info.get("angle_radians", 1.0))
         C = np.zeros((2, 3))
         a_name = c.info["states"][0]
         for (j, st, rms), par in zip(cols, ps.parameters):   # the gates start at 0

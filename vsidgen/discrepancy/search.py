@@ -113,6 +113,7 @@ class Trial:
     alternatives: tuple = ()         # near-equivalent significant refits (ambiguity)
     verdict: Any = None              # refit.RefitVerdict (None: no refit)
     vuong: Any = None                # as an alternative: .vuong.VuongResult of the best against it
+    plateau: bool = False            # continued as the round's lead without progress (stopped_at_kink)
 
     @property
     def comparison(self) -> float:
@@ -151,6 +152,7 @@ class Trial:
                 "statistic_vs_base": _f(self.statistic_vs_base),
                 "statistic_vs_current": _f(self.comparison),
                 "score_test": None if self.screen is None else self.screen.to_json(),
+                "plateau": self.plateau,
                 "refit": None if self.refit is None else self.refit.to_json()}
 
     def alternative_json(self, st_model=None) -> dict:
@@ -635,12 +637,13 @@ def stopped_at_kink(t: Trial) -> bool:
     lower bound of the candidate's maximum, so it is decided on that bound — conservative for
     its significance and for its rank; its estimates are those of that point, without
     standard errors. An iteration or time limit with an indefinite Hessian, or a stall,
-    stays undecided (the refit was still climbing)."""
+    stays undecided (the refit was still climbing) — unless the refit, continued as the round's
+    lead, made no progress by the optimizer's own scale (:func:`on_plateau`)."""
     from ..estimator import StopReason
 
     if t.state is None or t.converged or not math.isfinite(t.statistic):
         return False
-    return getattr(t.state.fit, "stop_reason", None) in (
+    return t.plateau or getattr(t.state.fit, "stop_reason", None) in (
         StopReason.NO_PROGRESS, StopReason.DAMPING_OVERFLOW, StopReason.INDEFINITE_HESSIAN)
 
 
@@ -702,7 +705,28 @@ def continued_trial(t: Trial, st: FitState, current: FitState, iterations: int) 
     return dataclasses.replace(t, state=st, statistic=lam, p_value=p, refit=ro,
                                statistic_vs_base=2.0 * (st.elbo - current.elbo),
                                converged=refit_converged(st.fit),
-                               verdict=trial_verdict(t.candidate, st, lam))
+                               verdict=trial_verdict(t.candidate, st, lam),
+                               plateau=on_plateau(t.state, st, iterations))
+
+
+def on_plateau(before: FitState, after: FitState, budget: int = 0) -> bool:
+    """Did a continuation make no progress by the optimizer's own scale?
+
+    True when the continued refit is still not converged and its ELBO rose, over the
+    continuation's iterations, by less than ``FitOptions.decrement_tol`` nats per iteration —
+    the gain a single Newton step must fall below for convergence. Such a refit sits on a
+    ridge or at a kink of its ELBO (the real HFB-320 record, a new user's short-period model:
+    the speed candidate's refit continued 800 iterations from 7064.72 to 7064.73, the
+    Hessian indefinite along the flat direction of the speed state's level against the trim
+    constants): :func:`stopped_at_kink` then decides it on its 2ΔELBO, a lower bound of the
+    maximum, instead of leaving it undecided while a lower, converged refit is accepted."""
+    from ..estimator import FitOptions
+
+    if refit_converged(after.fit):
+        return False
+    n = int(getattr(after.fit, "iterations", 0)) - int(getattr(before.fit, "iterations", 0))
+    n = n if n > 0 else int(budget)        # ``iterations`` counted from the continuation's start
+    return n > 0 and after.elbo - before.elbo < FitOptions().decrement_tol * n
 
 
 def trial_loglik(t: Trial) -> list | None:
