@@ -312,3 +312,27 @@ def test_a_continued_lead_without_progress_is_decided_on_its_lower_bound():
               statistic=394.1, dof=4, p_value=1e-80)
     assert not stopped_at_kink(t)
     assert stopped_at_kink(dc.replace(t, plateau=True))
+
+
+def test_input_filters_are_ranked_with_the_size_of_their_search():
+    """A transport delay found over a grid of delays and a lag whose time constant the screen
+    profiled are ranked each with its own search's Bonferroni factor (sp_de_delay_0.04_s0: the
+    delay's 214.9 against the lag's 211.2 over the current model; with the delay's grid alone
+    penalised the lag was named)."""
+    from types import SimpleNamespace as NS
+
+    from vsidgen.discrepancy.base import Candidate
+    from vsidgen.discrepancy.search import Trial, _search_size
+
+    def trial(effect, info=None, multiplicity=None):
+        c = Candidate(effect=effect, key=f"{effect}:de", target="input:de", explanation="",
+                      info=info or {})
+        screen = None if multiplicity is None else NS(multiplicity=multiplicity)
+        return Trial(candidate=c, score=0.0, spec_path=None, state=None, statistic=1.0,
+                     dof=1, p_value=0.5, screen=screen)
+    assert _search_size(trial("transport_delay", {"profile_result": {"grid_s": [0.02] * 11}},
+                              multiplicity=11)) == 11
+    assert _search_size(trial("actuator_lag", multiplicity=16)) == 16
+    assert _search_size(trial("control_delay", multiplicity=8)) == 8
+    assert _search_size(trial("actuator_lag")) == 1                 # not screened
+    assert _search_size(trial("sensor_bias", multiplicity=4)) == 1  # not an input filter

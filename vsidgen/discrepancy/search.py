@@ -1090,6 +1090,22 @@ def _grid_size(c: Candidate) -> int:
     return len(((c.info or {}).get("profile_result") or {}).get("grid_s") or ())
 
 
+def _search_size(t: Trial) -> int:
+    """How many values of an input filter's time parameter were searched before its refit,
+    for ranking alternatives: a transport delay's profile grid (:func:`_grid_size`), a lag's
+    or Padé delay's screened time constants (its score test's ``multiplicity``); 1 for every
+    other candidate. The three filters of one input are alternatives of one parameter each,
+    each found by a search over its time: ranking them with the delay's search alone
+    penalised (``sp_de_delay_0.04_s0``: the true delay 214.9 over the current model, a lag
+    211.2 named first) tilts the choice by the size of the delay's grid."""
+    g = _grid_size(t.candidate)
+    if g:
+        return g
+    if t.candidate.effect in ("actuator_lag", "control_delay") and t.screen is not None:
+        return max(int(getattr(t.screen, "multiplicity", 1) or 1), 1)
+    return 1
+
+
 def hold_alternative(current, path: pathlib.Path, name: str, *, engine, generated_dir,
                      max_iter: int, deadline=None):
     """``current`` refitted (warm, on the engine) with :func:`.numerics.accurate_alternative`
@@ -2265,7 +2281,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # chi2.logsf is −∞ beyond Λ ≈ 1400, where every strong candidate would tie: .pvalues), a
     # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
     best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
-                                    + math.log(max(_grid_size(t.candidate), 1)), t.dof))
+                                    + math.log(_search_size(t)), t.dof))
     alternatives = alternatives_of(best, good)
     short = stopped_short(best)
     if short is not None:
