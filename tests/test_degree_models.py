@@ -92,13 +92,18 @@ def _point(au, qu):
             "q": RAD["q"] * (D if qu == "deg/s" else 1)}
 
 
-@pytest.mark.parametrize("tag, au, qu", UNITS)
-def test_vane_position_in_metres_in_any_angle_unit(tmp_path, tag, au, qu):
-    path = _spec(tmp_path, tag, au, qu)
-    c, sym = _candidate_model(path, "sensor_position:alpha:q", tmp_path)
+def _position(tmp_path, tag, au, qu, key, output):
+    """The position candidate ``key`` of the model in these units: its parameter (in metres)
+    and the candidate model's expression of ``output``."""
+    c, sym = _candidate_model(_spec(tmp_path, tag, au, qu), key, tmp_path)
     (p,) = c.parameters
     assert p.unit == "m"
-    h = sym.observations_expanded()[[v.name for v in sym.outputs].index("alpha")]
+    return p, sym, sym.observations_expanded()[[v.name for v in sym.outputs].index(output)]
+
+
+@pytest.mark.parametrize("tag, au, qu", UNITS)
+def test_vane_position_in_metres_in_any_angle_unit(tmp_path, tag, au, qu):
+    p, sym, h = _position(tmp_path, tag, au, qu, "sensor_position:alpha:q", "alpha")
     got = _eval(sym, h, {**_point(au, qu), **THETA, p.name: 8.0})
     # a vane 8 m ahead reads α − x q/V, in the vane's unit
     want = (RAD["alpha"] - 8.0 * RAD["q"] / 100.0) * (D if au == "deg" else 1.0)
@@ -107,11 +112,7 @@ def test_vane_position_in_metres_in_any_angle_unit(tmp_path, tag, au, qu):
 
 @pytest.mark.parametrize("tag, au, qu", UNITS)
 def test_accelerometer_arm_in_metres_in_any_rate_unit(tmp_path, tag, au, qu):
-    path = _spec(tmp_path, tag, au, qu)
-    c, sym = _candidate_model(path, "sensor_position:az:q", tmp_path)
-    (p,) = c.parameters
-    assert p.unit == "m"
-    h = sym.observations_expanded()[[v.name for v in sym.outputs].index("az")]
+    p, sym, h = _position(tmp_path, tag, au, qu, "sensor_position:az:q", "az")
     x = [s for s in h.free_symbols if s.name == p.name][0]
     slope = _eval(sym, sympy.diff(h, x), {**_point(au, qu), **THETA})
     # ∂az/∂x = −q̇ in rad/s² at the physical point
@@ -130,16 +131,13 @@ def test_speed_equation_in_metres_per_second_in_any_angle_unit(tmp_path, tag, au
     f_dv = sym.drift_expanded()[names.index(dv)]
     f_ang = sym.drift_expanded()[names.index(ang)]
     k = D if au == "deg" else 1.0
+    kq = D if qu == "deg/s" else 1.0
     # gravity along the path: ∂ΔV̇/∂(path or attitude angle) = −g per radian
     s_ang = [s for s in f_dv.free_symbols if s.name == ang][0]
-    g = c.info["gravity"]
-    assert float(sympy.diff(f_dv, s_ang)) * k == pytest.approx(-g, rel=1e-12)
-    # the angle state moves with q in α's unit: ∂(angle rate)/∂q = 1 rad per rad
+    assert float(sympy.diff(f_dv, s_ang)) * k == pytest.approx(-c.info["gravity"], rel=1e-12)
+    # the angle state moves with q in α's unit (k/kq per unit of q): the attitude by q itself,
+    # the air-relative path angle by q less the α equation's (1 + ZQ) q, i.e. by −ZQ q
     s_q = [s for s in f_ang.free_symbols if s.name == "q"][0]
-    dq = float(sympy.diff(f_ang, s_q).xreplace({s: 0 for s in f_ang.free_symbols}))
-    kq = D if qu == "deg/s" else 1.0
-    want = (1.0 if closure else 1.0 - 0.0) * k / kq  # q in α's unit per q's unit
-    if not closure:   # the air closure subtracts the model's α equation (which has (1+ZQ) q)
-        assert "ZQ" in {s.name for s in sympy.diff(f_ang, s_q).free_symbols}
-    else:
-        assert dq == pytest.approx(want, rel=1e-12)
+    dq = _eval(sym, sympy.diff(f_ang, s_q), THETA)
+    want = (1.0 if closure else -THETA["ZQ"]) * k / kq
+    assert dq == pytest.approx(want, rel=1e-12)

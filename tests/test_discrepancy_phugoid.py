@@ -362,13 +362,17 @@ def test_twin_otter_short_period_names_the_missing_speed_dynamics(flight_data_di
 
 
 @pytest.mark.slow
-def test_new_users_hfb320_short_period_names_the_missing_speed_dynamics(flight_data_dir,
-                                                                        tmp_path):
-    """A new user's short-period model (α, q with constants; benchmarks/users/hfb_sp.yaml) on
-    the real HFB-320 record whose phugoid is excited (V 104.6–113.1 m/s). Before the profiled
-    speed screen (session 33) both speed refits stalled (2ΔELBO 62 and 97) and a generic slow
-    mode was named; now the speed dynamics lead, with Z_V of the size lift ∝ V² gives."""
-    spec = ROOT / "benchmarks" / "users" / "hfb_sp.yaml"
+@pytest.mark.parametrize("spec_name, unit, rad_per_unit", [
+    ("hfb_sp", "(rad)/m", 1.0), ("hfb_sp_deg", "(deg)/m", math.pi / 180)])
+def test_new_users_hfb320_short_period_names_the_missing_speed_dynamics(
+        flight_data_dir, tmp_path, spec_name, unit, rad_per_unit):
+    """A new user's short-period model (α, q with constants; benchmarks/users/hfb_sp.yaml, and
+    the same model written in degrees, hfb_sp_deg.yaml) on the real HFB-320 record whose
+    phugoid is excited (V 104.6–113.1 m/s). Before the profiled speed screen (session 33) both
+    speed refits stalled (2ΔELBO 62 and 97) and a generic slow mode was named; in degrees,
+    before the screen's gravity term was per degree (session 34), both stalled at 79 and 134.
+    Now the speed dynamics lead, with Z_V of the size lift ∝ V² gives, in the model's unit."""
+    spec = ROOT / "benchmarks" / "users" / f"{spec_name}.yaml"
     doc = _diagnose(spec, [flight_data_dir / "hfb320_1_10.csv"], tmp_path / "d",
                     effects=["speed_dynamics"], max_candidates=2, min_score=0.0,
                     noise_model=False)
@@ -376,31 +380,13 @@ def test_new_users_hfb320_short_period_names_the_missing_speed_dynamics(flight_d
     assert f["key"].startswith("speed_dynamics:alpha:q")
     ev = f["evidence"]
     assert ev["statistic"] > 10 * ev["threshold"]
-    zv = f["parameters"]["D_ZV"]["estimate"]
-    # −2g/V₀² at the record's mean airspeed 109.2 m/s: −0.00164 rad/m (the refit: −0.00194)
-    ratio = zv / (-2 * G / 109.2 ** 2)
+    zv = f["parameters"]["D_ZV"]
+    assert zv["unit"] == unit
+    # −2g/V₀² at the record's mean airspeed 109.2 m/s: −0.00164 rad/m (the refits: −0.00194
+    # and −0.00182 rad/m)
+    ratio = zv["estimate"] * rad_per_unit / (-2 * G / 109.2 ** 2)
     assert 0.5 < ratio < 2.0
     assert doc["final"]["elbo"] > doc["base"]["elbo"]
-
-
-@pytest.mark.slow
-def test_the_same_short_period_in_degrees_names_the_speed_dynamics(flight_data_dir, tmp_path):
-    """benchmarks/users/hfb_sp_deg.yaml (the model above in degrees): the speed candidate's
-    gravity term and the screen's X_α start are per degree, Z_V comes out in deg/m and checks
-    against −2g/V₀² in rad/m (session 34, CLI defaults: 2ΔELBO 388.9, Z_V −0.104 deg/m =
-    −0.00182 rad/m; before the screen used g per radian, both speed refits stalled at 79 and
-    134 and a generic slow mode was named)."""
-    spec = ROOT / "benchmarks" / "users" / "hfb_sp_deg.yaml"
-    doc = _diagnose(spec, [flight_data_dir / "hfb320_1_10.csv"], tmp_path / "d",
-                    effects=["speed_dynamics"], max_candidates=2, min_score=0.0,
-                    noise_model=False)
-    (f,) = doc["findings"]
-    assert f["key"].startswith("speed_dynamics:alpha:q")
-    assert f["evidence"]["statistic"] > 10 * f["evidence"]["threshold"]
-    zv = f["parameters"]["D_ZV"]
-    assert zv["unit"] == "(deg)/m"
-    ratio = zv["estimate"] * math.pi / 180 / (-2 * G / 109.2 ** 2)
-    assert 0.5 < ratio < 2.0
 
 
 @pytest.mark.slow

@@ -34,6 +34,7 @@ and in Python files given to ``vsidgen diagnose --effects-module path.py``
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.util
 import pathlib
 import re
@@ -116,10 +117,10 @@ def variable_role(name: str, description: str = "") -> str | None:
 
 
 def roles_of(variables: Iterable[Any]) -> dict[str, str]:
-    """``{name: role}`` of the variables (objects with ``name`` and optional ``description``)
-    whose role :func:`variable_role` recognises; each role goes to one variable only, a name
-    match before a description match, then the first in order."""
-    variables = list(variables)
+    """``{name: role}`` of the variables (names, or objects with ``name`` and optional
+    ``description``) whose role :func:`variable_role` recognises; each role goes to one
+    variable only, a name match before a description match, then the first in order."""
+    variables = [VarInfo(v) if isinstance(v, str) else v for v in variables]
     # `v` beside `u` or `w` is the body y-velocity, not the airspeed
     body_axes = {v.name.lower() for v in variables} & {"u", "w"}
     by_name: dict[str, str] = {}
@@ -244,12 +245,12 @@ class ModelInfo(VariableNames):
             return e.name
         return None
 
-    @property
+    @functools.cached_property
     def state_roles(self) -> dict[str, str]:
         """``{state: role}`` (:func:`roles_of`): which state is α, β, p, q, r, V."""
         return roles_of(self.states)
 
-    @property
+    @functools.cached_property
     def output_roles(self) -> dict[str, str]:
         """``{output: role}`` (:func:`roles_of`): which output is α, β, ax, ay, az..."""
         return roles_of(self.outputs)

@@ -166,7 +166,8 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     if tau is None or tau.get("estimate") is None:
         return None
     info = info_from_model(st.model)
-    if info.output_roles.get(c.target_name) not in _FLOW_ANGLES:
+    kind = info.output_roles.get(c.target_name)
+    if kind not in _FLOW_ANGLES:
         return None
     name = airspeed_name(info)
     # the records' airspeed column or the constants file's trim speed (when the model has no
@@ -190,7 +191,7 @@ def equivalent_vane(c, st, params: dict) -> dict | None:
     out = {"x_m": _f(tau["estimate"] * v_bar),
            "std_error_m": None if se is None else _f(se * v_bar),
            "airspeed_mps": _f(v_bar), "airspeed_source": source,
-           "flow_angle": info.output_roles.get(c.target_name)}
+           "flow_angle": kind}
     nose = fc.sensors.get("noseboom")
     if nose is not None:
         out["constants_noseboom_x_m"] = _f(nose[0])

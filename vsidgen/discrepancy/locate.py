@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from .base import variable_role
+from .base import roles_of
 from .pvalues import chi2_log10sf
 
 #: locate significance level (Bonferroni-corrected within a target) for "flagged"
@@ -509,12 +509,7 @@ def state_roles(state_names: Sequence[str],
     reads descriptions: :meth:`.base.ModelInfo.state_roles`), else from the names alone."""
     if roles is not None:
         return {s: roles[s] for s in state_names if s in roles}
-    out = {}
-    for s in state_names:
-        r = variable_role(s)
-        if r is not None and r not in out.values():
-            out[s] = r
-    return out
+    return roles_of(state_names)
 
 
 def state_regressors(state_names: Sequence[str], input_names: Sequence[str],

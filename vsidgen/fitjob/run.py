@@ -200,10 +200,10 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     symbolic = compile_spec(spec)  # records are checked before the module is built and JAX loads
     # unknown names and bounds, before any computation; then the parameter combinations the
     # equations cannot separate with the overrides' fixed and free parameters
-    symmetric = symmetry_warnings(apply_overrides(symbolic, overrides))
     # a column read in another unit than its name says: shown before the fit, not only by check
-    symmetric = data_map_warnings(symbolic) + list(symmetric)
-    for w in symmetric:
+    spec_warnings = data_map_warnings(symbolic) + list(
+        symmetry_warnings(apply_overrides(symbolic, overrides)))
+    for w in spec_warnings:
         print(str(w), file=sys.stderr)
     records = unique_names([load_record(symbolic, p) for p in data])
     vrecords = unique_names([load_record(symbolic, p) for p in validate])
@@ -292,7 +292,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
                         "iterations": int(vresult.iterations),
                         "deterministic_limit": getattr(vresult, "deterministic_limit", None),
                         "newton_decrement": finite_or_none(getattr(vresult, "newton_decrement", None))}),
-        "warnings": [{"code": w.code, "message": w.message, "hint": w.hint} for w in symmetric]
+        "warnings": [{"code": w.code, "message": w.message, "hint": w.hint} for w in spec_warnings]
         + [w.to_json() for r in records + vrecords
            for w in r.warnings] + list(result.warnings)
         + repeated + _validation_warnings(result, vresult, records, vrecords) + [
