@@ -126,3 +126,17 @@ def test_a_velocity_component_is_not_the_airspeed():
     assert roles_of([V("v", "side velocity"), V("p"), V("r")]) == {"p": "p", "r": "r"}
     assert roles_of([V("u"), V("v"), V("w"), V("q")]) == {"q": "q"}
     assert roles_of([V("V"), V("alpha"), V("q")]) == {"V": "V", "alpha": "alpha", "q": "q"}
+
+
+def test_a_trim_speed_constant_named_u_gives_the_vane_in_metres(tmp_path):
+    """A new user's lateral model with the trim speed as a constant `U` (and a β vane output
+    named `b_vane`, described as the sideslip vane): the vane candidate divides by U and its
+    distance is in metres, not seconds."""
+    text = USER_SPEC.replace("  V0: {value: 110.0, unit: m/s}", "  U: {value: 110.0, unit: m/s}")
+    text = text.replace("V0*(", "U*(")
+    spec = tmp_path / "u.yaml"
+    spec.write_text(text)
+    c = next(c for c in propose(model_info(spec, dt=0.04))
+             if c.key == "sensor_position:aa_vane:pr")
+    assert c.parameters[0].unit == "m"
+    assert c.add_terms["observations"]["aa_vane"].endswith("*pr/U")

@@ -782,13 +782,14 @@ class SensorScale(Effect):
 
 
 _ACCEL = ("ax", "ay", "az", "an", "a_x", "a_y", "a_z", "nx", "ny", "nz")
-_SPEED_CONSTANTS = ("v0", "vt0", "vtas0", "vo", "u0", "vtrim", "v_0", "vref", "v", "vt")
+_SPEED_CONSTANTS = ("v0", "vt0", "vtas0", "vo", "u0", "uo", "u_0", "u", "vtrim", "v_0", "vref",
+                    "v", "vt")
 
 
 def airspeed_name(info: ModelInfo) -> str | None:
     """The model's own true airspeed: a state named like V/VT/TAS with a speed unit, else an
     input of that kind (a measured airspeed the model is driven with), else a constant named
-    like V0/VT0/U0/Vtrim (the trim speed of a linear model), else None."""
+    like V0/VT0/U0/U/Vtrim (the trim speed of a linear model), else None."""
     roles = {**roles_of(info.inputs), **info.state_roles}
     for v in info.states + info.inputs:
         if roles.get(v.name) == "V" and (v.unit or "").replace(
