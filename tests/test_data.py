@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+import pathlib
 
 import numpy as np
 import pytest
@@ -15,13 +16,14 @@ from vsidgen.metadata import ChannelMap, DataSpec, ProcessNoiseSpec, Variable
 from vsidgen.model import Model
 
 
-def _model(inputs, outputs, *, time="t_s"):
+def _model(inputs, outputs, *, time="t_s", time_scale=1.0, time_unit=None):
     """inputs/outputs: lists of ChannelMap (channel name = model variable name)."""
     return Model(name="m", drift=None, output=None, states=(),
                  inputs=tuple(Variable(c.name) for c in inputs),
                  outputs=tuple(Variable(c.name) for c in outputs), parameters=(),
                  process_noise=ProcessNoiseSpec(), measurement_noise=(),
-                 data=DataSpec(time=time, inputs=tuple(inputs), outputs=tuple(outputs)))
+                 data=DataSpec(time=time, inputs=tuple(inputs), outputs=tuple(outputs),
+                               time_scale=time_scale, time_unit=time_unit))
 
 
 def _read_columns(path):
@@ -443,3 +445,41 @@ def test_check_blames_the_cell_not_the_spec_for_a_bad_first_input(tmp_path, caps
     assert main(["check", str(root / "specs" / "attas_sp.yaml"), "--data", str(csv)]) == 2
     err = capsys.readouterr().err
     assert "column 'de_rad', sample 0" in err and expected in err and "attas_sp.yaml:" not in err
+
+
+def test_time_column_in_milliseconds(tmp_path):
+    """``time: {column: t_ms, unit: ms}`` reads the stamps in ms; without the unit the same
+    column is read as seconds and the record is flagged (one sample every 100 s)."""
+    rows = _good_rows(dt=100.0)  # 10 Hz written in milliseconds
+    path = _write(tmp_path / "r.csv", HEADER, rows)
+    ins, outs = [ChannelMap("de", "de_rad")], [ChannelMap("alpha", "alpha_rad"),
+                                               ChannelMap("q", "q_radps")]
+    r = load_record(_model(ins, outs, time="time", time_scale=1e-3, time_unit="ms"), path)
+    assert r.dt == pytest.approx(0.1) and r.t[-1] == pytest.approx(0.1 * (N - 1))
+    assert not [w for w in r.warnings if w.code.value == "slow_sampling"]
+    plain = load_record(_model(ins, outs, time="time"), path)
+    assert plain.dt == pytest.approx(100.0)
+    (w,) = [w for w in plain.warnings if w.code.value == "slow_sampling"]
+    assert "100 s" in w.message and "unit: ms" in w.hint and w.channel == "time"
+
+
+def test_time_unit_in_the_spec(tmp_path):
+    """The spec's ``data.time`` mapping: its unit is converted by pint, checked for the
+    dimension of time, and its keys are checked."""
+    from vsidgen.errors import SpecError
+    from vsidgen.spec import compile_spec as load_symbolic
+
+    base = (pathlib.Path(__file__).resolve().parents[1] / "specs" / "attas_sp.yaml").read_text()
+    def spec(time):
+        f = tmp_path / "s.yaml"
+        f.write_text(base.replace("time: t_s", f"time: {time}"))
+        return f
+    sym = load_symbolic(spec("{column: t_ms, unit: ms}"))
+    assert sym.data.time == "t_ms" and sym.data.time_scale == pytest.approx(1e-3)
+    assert load_symbolic(spec("{column: t, unit: min}")).data.time_scale == pytest.approx(60.0)
+    for text, fragment in (("{column: t, unit: m}", "cannot be converted"),
+                           ("{unit: ms}", "needs a `column`"),
+                           ("{column: t, scale: 2}", "unknown key `scale`")):
+        with pytest.raises(SpecError) as info:
+            load_symbolic(spec(text))
+        assert fragment in str(info.value) and "s.yaml:" in str(info.value)

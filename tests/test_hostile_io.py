@@ -412,6 +412,10 @@ def _export(path: pathlib.Path, kind: str) -> pathlib.Path:
     elif kind == "cp1252":          # a legacy code page: a degree sign in a column name
         head = lines[0].replace("alpha_rad", "alpha_rad (\u00b0)")
         path.write_bytes(("\n".join([head] + lines[1:]) + "\n").encode("cp1252"))
+    elif kind == "utf16":           # Excel's "Unicode Text", PowerShell's `>`: UTF-16 with a BOM
+        path.write_bytes(("\n".join(lines) + "\n").encode("utf-16"))
+    elif kind == "utf16be":         # UTF-16 without a byte-order mark
+        path.write_bytes(("\n".join(lines) + "\n").encode("utf-16-be"))
     return path
 
 
@@ -430,6 +434,8 @@ def test_spreadsheet_exports(tmp_path, command):
     expect_refused(semi, "semicolon.csv", "comma-separated")
     legacy = run("cp1252")
     expect_refused(legacy, "cp1252.csv", "not UTF-8 text", "line 1", "CSV UTF-8")
+    for kind in ("utf16", "utf16be"):
+        expect_refused(run(kind), f"{kind}.csv", "UTF-16", "CSV UTF-8")
     if command == "check":
         bom = run("bom")
         assert bom.returncode == 0, bom.stderr[-2000:]

@@ -161,3 +161,7 @@ class DataSpec:
     time: str = "t_s"
     inputs: tuple[ChannelMap, ...] = ()
     outputs: tuple[ChannelMap, ...] = ()
+    #: seconds per unit of the time column (``time: {column: t_ms, unit: ms}``: 0.001)
+    time_scale: float = 1.0
+    #: the time column's declared unit (None: seconds)
+    time_unit: str | None = None

@@ -89,9 +89,26 @@ def detect_format(path: pathlib.Path) -> DataFormat:
                     "Latin-1)", path=path,
                     hint="save it as CSV UTF-8 (Excel: 'CSV UTF-8 (Comma delimited)'; "
                          "iconv -f cp1252 -t utf-8)") from None
+    if head[:2] in (b"\xff\xfe", b"\xfe\xff") or _utf16_without_bom(head):
+        raise DataError("text in UTF-16 (the encoding of Excel's 'Unicode Text' and of "
+                        "PowerShell's redirection), not UTF-8", path=path,
+                        hint="save it as CSV UTF-8 (iconv -f utf-16 -t utf-8, or Excel: "
+                             "'CSV UTF-8 (Comma delimited)')")
     kind = _guess_binary(head)
     raise DataError(f"not a supported data file{kind}", path=path,
                     hint=f"supported formats: {SUPPORTED}")
+
+
+def _utf16_without_bom(head: bytes) -> bool:
+    """Whether bytes read as UTF-16 text without a byte-order mark: every other byte NUL
+    (ASCII text in UTF-16) over the first 64 bytes, and the decoded text printable."""
+    h = head[:64 - (len(head[:64]) % 2)]
+    if len(h) < 8:
+        return False
+    for zeros, chars in ((h[1::2], h[0::2]), (h[0::2], h[1::2])):
+        if all(b == 0 for b in zeros) and all(32 <= b < 127 or b in (9, 10, 13) for b in chars):
+            return True
+    return False
 
 
 def _legacy_text(head: bytes) -> bool:

@@ -438,7 +438,8 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
             f"sample period {fmt_number(dt)} s is outside the accepted range "
             f"{fmt_number(MIN_DT)} s to {fmt_number(MAX_DT)} s",
             path=path, column=column, sample=1,
-            hint="the time column must be in seconds; convert it (or map another column)")
+            hint="declare the time column's unit in the spec (`time: {column: t_ms, unit: ms}`) "
+                 "or map another column")
     # each step against the median step (a gap inflates the mean period, which would blame
     # the first regular step instead of the gap)
     typical = float(np.median(steps))
@@ -602,7 +603,7 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
         raise DataError(f"too few samples: {n} (at least {MIN_SAMPLES} needed)", path=path,
                         hint="is this the right file? records must be contiguous time histories")
 
-    t_raw = cols[spec.time].copy()
+    t_raw = cols[spec.time] * float(getattr(spec, "time_scale", 1.0))
     dt = check_time(t_raw, path=path, column=spec.time)
 
     def channel(nm, cmap, kind):
@@ -644,11 +645,37 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
     t = t_raw - t_raw[0]
     for a in (t, u, y, t_raw):
         a.setflags(write=False)
-    found = plausibility_warnings(model, u, y, path=path) + missing_output_warnings(
-        out_names, out_maps, y, path=path)
+    found = (sampling_warnings(dt, spec, path=path) + plausibility_warnings(model, u, y, path=path)
+             + missing_output_warnings(out_names, out_maps, y, path=path))
     return Record(name=name if name is not None else path.stem, path=path, t=t, dt=dt,
                   u=u, y=y, input_names=in_names, output_names=out_names, t_raw=t_raw,
                   warnings=found)
+
+
+#: sample periods above this many seconds are flagged (flight-test records are sampled at
+#: 1 Hz or faster: the dynamics identified have time constants of seconds)
+SLOW_SAMPLING_DT = 1.0
+
+
+def sampling_warnings(dt: float, spec, *, path=None) -> tuple:
+    """A :class:`DataWarning` when the sample period exceeds :data:`SLOW_SAMPLING_DT`: what a
+    time column in milliseconds read as seconds looks like (a 25-Hz record becomes one sample
+    every 40 s). Not an error: a slow record of slow dynamics is possible."""
+    from ..spec.dataunits import DataWarning, DataWarningCode
+
+    if dt <= SLOW_SAMPLING_DT:
+        return ()
+    unit = getattr(spec, "time_unit", None)
+    if unit:
+        hint = f"the data map declares `{unit}` for `{spec.time}`: check that unit"
+    else:
+        col = spec.time
+        hint = (f"if the time column is in milliseconds, declare it: `time: {{column: {col}, "
+                f"unit: ms}}`")
+    return (DataWarning(DataWarningCode.SLOW_SAMPLING,
+                        f"sample period {dt:.6g} s (time column `{spec.time}`): flight-test "
+                        f"records are sampled at 1 Hz or faster", path=path,
+                        channel=spec.time, hint=hint),)
 
 
 def missing_output_warnings(names, maps, y, *, path=None) -> tuple:

@@ -430,7 +430,8 @@ def simulate_to_csv(model, out_path, **simulate_kwargs) -> SimulationResult:
     maps_out = {c.name: c for c in model.data.outputs}
     from ..metadata import ChannelMap
 
-    columns: dict[str, np.ndarray] = {model.data.time: res.t}
+    columns: dict[str, np.ndarray] = {
+        model.data.time: res.t / float(getattr(model.data, "time_scale", 1.0))}
     for names, maps, values in ((model.input_names, maps_in, res.u),
                                 (model.output_names, maps_out, res.y)):
         for j, nm in enumerate(names):

@@ -43,6 +43,7 @@ class DataWarningCode(enum.Enum):
     IMPLAUSIBLE_RANGE = "implausible_range"
     MISSING_SAMPLES = "missing_samples"
     CONSTANT_OUTSIDE_RECORD = "constant_outside_record"
+    SLOW_SAMPLING = "slow_sampling"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -721,6 +721,18 @@ def _unit_conversion(name: str, what: str, unit: Located[str], spec_unit: str | 
     return data_unit, conv
 
 
+def _time_scale(unit: Located[str]) -> tuple[str, float]:
+    """(unit, seconds per unit) of ``data.time``'s ``unit:`` entry."""
+    from . import dataunits
+
+    try:
+        a, _ = dataunits.conversion(unit.value, "s")
+    except dataunits.UnitConversionError as exc:
+        raise SpecError(f"unit of the time column: {exc}", **unit.loc, text=unit.text,
+                        hint="a unit of time: s, ms, us, min") from None
+    return unit.value, a
+
+
 def _channel(ch: ChannelDecl, what: str = "input", spec_unit: str | None = None) -> ChannelMap:
     name = ch.name.value
     if ch.bare:
@@ -813,7 +825,11 @@ def _data_spec(spec: Spec, input_names, output_names, root_loc,
             if warnings is not None:
                 _warn_column_suffix(warnings, given[nm], what, (units or {}).get((what, nm)))
         result[key] = tuple(out)
-    return DataSpec(data.time, result["inputs"], result["outputs"])
+    time_unit, time_scale = None, 1.0
+    if data.time_unit is not None:
+        time_unit, time_scale = _time_scale(data.time_unit)
+    return DataSpec(data.time, result["inputs"], result["outputs"], time_scale=time_scale,
+                    time_unit=time_unit)
 
 
 def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, states,

@@ -206,6 +206,8 @@ class DataDecl:
     outputs: tuple[ChannelDecl, ...] = ()
     inputs_at: Located[None] | None = None
     outputs_at: Located[None] | None = None
+    #: ``time: {column: t_ms, unit: ms}``: the time column's unit (seconds when absent)
+    time_unit: Located[str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -510,14 +512,26 @@ def _channel(name: str, node: YNode) -> ChannelDecl:
 
 def _data(node: YNode) -> DataDecl:
     fields = keys_check(node, ("time", "inputs", "outputs"), "`data`")
-    time = fields["time"].string("data.time") if "time" in fields else "t_s"
+    time, time_unit = "t_s", None
+    if "time" in fields and fields["time"].kind == "map":
+        tf = keys_check(fields["time"], ("column", "unit"), "`data.time`")
+        if "column" not in tf:
+            raise SpecError("`data.time` needs a `column`", **fields["time"].key_loc,
+                            text=Located.of(fields["time"], None).key_text,
+                            hint="e.g. time: {column: t_ms, unit: ms}")
+        time = tf["column"].string("data.time.column")
+        if "unit" in tf:
+            time_unit = Located.of(tf["unit"], tf["unit"].string("unit of the time column"))
+    elif "time" in fields:
+        time = fields["time"].string("data.time")
     chans = {}
     for key in ("inputs", "outputs"):
         sub = fields[key].expect_map(f"`data.{key}`") if key in fields else {}
         chans[key] = tuple(_channel(nm, ch) for nm, ch in sub.items())
     return DataDecl(Located.of(node, None), time, chans["inputs"], chans["outputs"],
                     Located.of(fields["inputs"], None) if "inputs" in fields else None,
-                    Located.of(fields["outputs"], None) if "outputs" in fields else None)
+                    Located.of(fields["outputs"], None) if "outputs" in fields else None,
+                    time_unit)
 
 
 def parse(raw: RawSpec, *, generator_version: str) -> Spec:
