@@ -1046,3 +1046,29 @@ def test_aerodynamic_candidates_use_aerodynamic_variables_only():
     # a mass, inertia and dynamic pressure measured per sample are not coefficient variables
     info = model_info(users / "otter_sp_mass.yaml", dt=0.01)
     assert {v for v in info.input_names if not aero_variable(info, v)} == {"qbar", "m", "Iyy"}
+
+
+def test_missing_mode_physics_check_reads_its_time_constant():
+    """A missing mode's fitted time constant says what the mode is (ATTAS short period,
+    attas_sp_no_zde on attas_elv1, session 35: a q mode driven by q at its 100-s upper bound
+    — the pitch attitude — and one driven by de at its 4-sample lower bound — a fast filter
+    of the elevator — had both been explained as "a slow dynamic mode")."""
+    from vsidgen.discrepancy.base import get_effect
+
+    eff = get_effect("missing_dynamics")
+    by_key = {c.key: c for c in eff.applies_to(model_info(ATTAS, dt=DT))}
+    q_q, q_de, q_a = (by_key[f"missing_dynamics:q:{v}"] for v in ("q", "de", "alpha"))
+    tau = q_q.parameters[1]
+    assert tau.unit == "s" and tau.lower == pytest.approx(4 * DT)
+    for c in (q_q, q_de):
+        assert "slow one" in c.explanation and "fast one" in c.explanation
+    slow = eff.check_estimates(q_q, {tau.name: (0.99 * tau.upper, 26.0)})
+    assert "upper bound" in slow and "integral of q" in slow and "pitch attitude" in slow
+    assert "bias" in eff.check_estimates(q_a, {q_a.parameters[1].name: (tau.upper, 1.0)})
+    fast = eff.check_estimates(q_de, {q_de.parameters[1].name: (tau.lower, 2e-4)})
+    assert "lower bound (4 sample periods)" in fast and "actuator-lag" in fast
+    fast_state = eff.check_estimates(q_a, {q_a.parameters[1].name: (tau.lower, 2e-4)})
+    assert "unsteady-aerodynamic" in fast_state and "actuator-lag" not in fast_state
+    mid = eff.check_estimates(q_de, {q_de.parameters[1].name: (0.3, 0.05)})
+    assert "7.5 sample periods" in mid and "fast mode" in mid
+    assert eff.check_estimates(q_de, {q_de.parameters[1].name: (3.0, 0.5)}) == ""

@@ -1071,11 +1071,11 @@ class TimeSkew(Effect):
 class MissingDynamics(Effect):
     id = "missing_dynamics"
     title = "missing state dynamics"
-    explanation = ("The {state} equation is driven by a slow dynamic mode the model omits "
-                   "(e.g. the speed/attitude (phugoid) motion absent from a short-period model, "
-                   "or an engine state): its equation error follows {var} filtered through a "
-                   "first-order lag. Added as a new state {mode} with dynamics "
-                   "d{mode}/dt = -{mode}/{tau} + {gain}·{var}.")
+    explanation = ("The {state} equation is driven by a dynamic mode the model omits (a slow "
+                   "one: the speed/attitude (phugoid) motion absent from a short-period model, "
+                   "an engine state; a fast one: an actuator, a sensor filter): its equation "
+                   "error follows {var} filtered through a first-order lag. Added as a new "
+                   "state {mode} with dynamics d{mode}/dt = -{mode}/{tau} + {gain}·{var}.")
     doc = "A first-order mode driven by a state or input, feeding one state equation."
 
     def applies_to(self, info):
@@ -1097,8 +1097,54 @@ class MissingDynamics(Effect):
                                      f"missing mode feeding d{s}/dt"),),
                     add_terms={"drift": {s: m}},
                     info={"state": s, "regressor": f"lp:{v}", "mode_driver": v,
-                          "mode_tau": LOWPASS_TAU, "mode_gain": k}))
+                          "mode_tau": LOWPASS_TAU, "mode_gain": k, "dt": info.dt,
+                          "driver_role": info.state_roles.get(v),
+                          "driver_is_input": v in info.input_names}))
         return out
+
+    def check_estimates(self, c, estimates):
+        """What the fitted time constant says the mode is: at its lower bound (a few
+        integration steps) a fast filter of the driver, not a slow mode — an actuator or
+        sensor lag, which the lag candidates model with their own parameters; at its upper
+        bound a drift slower than the model can place (a slowly varying bias); between them,
+        a mode of that time constant, fast or slow against the sample period."""
+        tau_p = c.parameters[1]
+        tau, _ = estimates.get(tau_p.name, (None, None))
+        if tau is None or not math.isfinite(tau) or tau <= 0:
+            return ""
+        lo, hi = tau_p.lower, tau_p.upper
+        dt = c.info.get("dt")
+        var = c.info.get("mode_driver")
+        if lo is not None and tau <= 1.05 * lo:
+            steps = f" ({tau / dt:.3g} sample periods)" if dt else ""
+            text = (f" Physics check: its time constant {tau_p.name} = {tau:.3g} s is at its "
+                    f"lower bound{steps}: not a slow mode but a fast filtering of {var}")
+            if c.info.get("driver_is_input"):
+                return text + (" — an actuator or a sensor lag of the input, which the "
+                               "actuator-lag and control-delay candidates model with physical "
+                               "parameters; here the gain and time constant are nearly "
+                               "interchangeable (wide standard errors).")
+            return text + (" — an unsteady-aerodynamic or sensor lag; the gain and time "
+                           "constant are nearly interchangeable there (wide standard errors).")
+        if hi is not None and tau >= 0.95 * hi:
+            text = (f" Physics check: its time constant {tau_p.name} = {tau:.3g} s is at its "
+                    f"upper bound: slower than the model can place, so the mode is the running "
+                    f"integral of {var} over the record")
+            angle = {"p": "bank", "q": "pitch attitude", "r": "heading"}.get(
+                c.info.get("driver_role") or "")
+            if angle:
+                return text + (f" — the {angle} change: the {c.info.get('state')} equation "
+                               f"depends on the {angle} (through gravity or the speed "
+                               "(phugoid) motion the model leaves out), not a resolved "
+                               "dynamic mode.")
+            return text + (f": a slowly varying bias of the {c.info.get('state')} equation, "
+                           "or a trim that changes during the record, not a resolved dynamic "
+                           "mode.")
+        if dt and tau < 10.0 * dt:
+            return (f" Physics check: {tau_p.name} = {tau:.3g} s ({tau / dt:.3g} sample periods): "
+                    f"a fast mode — an actuator, a sensor filter or an unsteady-aerodynamic lag "
+                    "rather than the speed or an engine state.")
+        return ""
 
     def score(self, c, ev):
         # the missing-mode signature: low-passed regressor, weighed down against a plain
