@@ -777,6 +777,12 @@ def test_what_would_separate_two_explanations():
                      "definition:Yside")
     assert "angular acceleration" not in sep("coefficient_derivative", "definition:CL",
                                              "sensor_position", "output:az")
+    # nested forms of one effect (a user's model without trim terms, session 35: a trim
+    # term of q against one of both equations) are separated by more data, not a manoeuvre
+    nested = sep("trim_term", "drift:q", "trim_term", "drift:a+q")
+    assert "nested" in nested and "whether a needs it" in nested and "manoeuvre" not in nested
+    assert nested == sep("trim_term", "drift:a+q", "trim_term", "drift:q")
+    assert "nested" not in sep("trim_term", "drift:a", "trim_term", "drift:q")
 
 
 def test_ambiguous_finding_says_what_would_separate_it_everywhere():

@@ -300,6 +300,13 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
                     f"{coef} with the moment equations' rate derivatives shifted, at every "
                     f"airspeed; only the vane's x·(angular acceleration)/V in d{pos_ch}/dt tells "
                     f"them apart")
+    parts, oparts = set(ch.split("+")), set(och.split("+"))
+    if effect == other_effect and not same_channel and (parts < oparts or oparts < parts):
+        small, big = (parts, oparts) if parts < oparts else (oparts, parts)
+        extra = ", ".join(sorted(big - small))
+        return (f"more data of the same kind (a longer record, or further records fitted "
+                f"together): the two forms are nested — the larger one adds the same term to "
+                f"{extra} as well — and this record does not show whether {extra} needs it")
     if effect == other_effect and same_channel:
         return (f"a record with larger excursions of the variables the two {effect} forms "
                 f"use (they agree near the conditions of this record and differ away from "
