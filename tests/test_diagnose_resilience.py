@@ -403,3 +403,13 @@ def test_the_unconverged_lead_refit_is_continued_and_decides_the_round(patched, 
                         screen=False, effects=EFFECTS, workers=1, max_iter=50)
     doc2 = _doc(tmp_path / "o2")
     assert doc2["findings"] == [] and "INCONCLUSIVE" in doc2["conclusion"]
+
+
+def test_conclusion_when_no_round_ran():
+    """--max-rounds 0 examines no candidate: the conclusion must not say that no candidate
+    improved the fit (it did, before session 35)."""
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    text = conclusion_text([], [], alpha=0.01, validated=True, final_spec="s.yaml")
+    assert text.startswith("No candidate effect was examined") and "--max-rounds" in text
+    assert "No significant" not in text and "improved" not in text

@@ -370,11 +370,18 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
         if any(r.get("reference") for r in rounds):
             kept = ("The model's equations are kept as they are, re-estimated at the better "
                     f"optimum described next (final spec: {final_spec})")
-        conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
-                      f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
-                      + (" and on the validation records" if validated else "")
-                      + f". {kept}; the residual mismatch is consistent with "
-                        "the estimated turbulence (process noise) and sensor noise.")
+        if not rounds:
+            # --max-rounds 0 (or a run stopped before its first round): nothing was tested,
+            # so "no candidate improved the fit" would claim a search that did not happen
+            conclusion = (f"No candidate effect was examined: no search round ran (--max-rounds "
+                          f"0, or the run stopped before round 1). {kept}; run with "
+                          "--max-rounds 1 or more to search for the physics it may leave out.")
+        else:
+            conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
+                          f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
+                          + (" and on the validation records" if validated else "")
+                          + f". {kept}; the residual mismatch is consistent with "
+                            "the estimated turbulence (process noise) and sensor noise.")
     for r in rounds:
         ref = r.get("reference")
         if ref:
