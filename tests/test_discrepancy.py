@@ -1078,3 +1078,58 @@ def test_missing_mode_physics_check_reads_its_time_constant():
     mid = eff.check_estimates(q_de, {q_de.parameters[1].name: (0.3, 0.05)})
     assert "7.5 sample periods" in mid and "fast mode" in mid
     assert eff.check_estimates(q_de, {q_de.parameters[1].name: (3.0, 0.5)}) == ""
+
+
+def test_linear_term_named_before_a_nonlinear_form_of_a_new_variable():
+    """Hierarchy principle (session 35, real ATTAS lateral records with the adverse yaw N_δa
+    deleted: a break of the yaw coefficient in δa, 2ΔELBO 2816, had been named before the
+    missing linear derivative, 2747): a nonlinear term of a variable the target does not use
+    yields to that variable's significant linear term, which is named with the nonlinear form
+    as its alternative; a nonlinear term of a variable already used (a stall break of a lift
+    curve) is still named, and so is one whose linear term is not significant."""
+    import types
+
+    from scipy import stats
+
+    from vsidgen.discrepancy.base import Candidate
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.search import Trial, _decide_round
+
+    current = types.SimpleNamespace(elbo=1000.0, val_elbo=None, val_elbo_own_noise=None,
+                                    spec_path="c.yaml", fit=types.SimpleNamespace(converged=True))
+
+    def trial(effect, rest, lam, info, dof=1):
+        cand = Candidate(effect=effect, key=f"{effect}:rdot_model:{rest}",
+                         target="definition:rdot_model", explanation="Text.",
+                         add_terms={"definitions": {"rdot_model": rest}}, info=info)
+        fit = types.SimpleNamespace(converged=True, status="converged", newton_decrement=1e-6)
+        st = types.SimpleNamespace(elbo=current.elbo + lam / 2, vfit=None, val_elbo=None,
+                                   val_elbo_own_noise=None, fit=fit, signals=())
+        return Trial(cand, 1.0, pathlib.Path(f"{rest}.yaml"), st, lam, dof,
+                     float(stats.chi2.sf(lam, dof)), refit=types.SimpleNamespace(
+                         x0_entropy=0.0, val_x0_entropy=0.0, to_json=dict),
+                     statistic_vs_base=lam, converged=True, verdict=RefitVerdict.ORDINARY)
+
+    hinge = trial("coefficient_nonlinear", "hinge:da:0.0094", 2816.0,
+                  {"regressor": "hinge:da:0.0094", "var": "da"}, dof=2)
+    linear = trial("coefficient_derivative", "da", 2747.0, {"regressor": "u:da", "var": "da"})
+    other = trial("coefficient_derivative", "dr", 2790.0, {"regressor": "u:dr", "var": "dr"})
+    dec = _decide_round(1, [hinge, linear, other], current, 50, 0.01, [], [], None)
+    best = dec.best
+    assert best.candidate.key == "coefficient_derivative:rdot_model:da"
+    assert best.candidate.info["hierarchy_over"] == hinge.candidate.key
+    assert "hierarchy principle" in best.candidate.explanation
+    assert hinge.candidate.key in [a.candidate.key for a in best.alternatives]
+    # a product term yields to the linear term of either of its variables
+    prod = trial("coefficient_nonlinear", "prod:alpha*da", 2900.0,
+                 {"regressor": "prod:alpha*da", "var": "alpha·da"})
+    assert _decide_round(1, [prod, linear], current, 50, 0.01, [], [],
+                         None).best.candidate.key == linear.candidate.key
+    # without a significant linear term of that variable the nonlinear form is named
+    weak = trial("coefficient_derivative", "da", 3.0, {"regressor": "u:da", "var": "da"})
+    assert _decide_round(1, [hinge, weak, other], current, 50, 0.01, [], [],
+                         None).best.candidate.key == hinge.candidate.key
+    stall = trial("coefficient_nonlinear", "hinge:alpha:0.2", 2816.0,
+                  {"regressor": "hinge:alpha:0.2", "var": "alpha"}, dof=2)
+    assert _decide_round(1, [stall, linear], current, 50, 0.01, [], [],
+                         None).best.candidate.key == stall.candidate.key

@@ -772,6 +772,52 @@ def same_fitted_model(a: Trial, b: Trial, *, se_fraction: float = SAME_FIT_SE) -
     return True
 
 
+_LINEAR_TERMS = ("coefficient_derivative", "missing_derivative")
+_NONLINEAR_TERMS = ("coefficient_nonlinear", "nonlinear_aero")
+
+
+def _nonlinear_variables(c: Candidate) -> tuple[str, ...]:
+    """The variables of a nonlinear term's regressor: ``sq:alpha`` → (alpha,),
+    ``hinge:de:0.04`` → (de,), ``prod:alpha*de`` → (alpha, de)."""
+    kind, _, rest = str((c.info or {}).get("regressor", "")).partition(":")
+    if not rest:
+        return ()
+    return tuple(rest.split("*")) if kind == "prod" else (rest.split(":", 1)[0],)
+
+
+def linear_first(best: Trial, good: Sequence[Trial]) -> tuple[Trial, dict | None]:
+    """The hierarchy principle of stepwise model building (a variable's linear term before
+    its nonlinear terms): when the best refit of a round is a nonlinear term (a square, a
+    break, a product) of a variable the target does not yet depend on — its linear term is
+    itself a candidate of the round — and that linear term is significant too, the linear
+    term is named; the nonlinear form stays as the finding's alternative and is tested on
+    top of the linear term in the next round, where its own 2ΔELBO measures the
+    nonlinearity. (Real ATTAS lateral records with the adverse yaw N_δa deleted: a break of
+    the yaw coefficient in δa at −0.18 rad, 2ΔELBO 2816, was named before the missing linear
+    derivative, 2747 — a break beyond most of the data, i.e. the linear term with a corner.)
+    A linear term is a candidate only for a variable its target does not use
+    (``coefficient_derivative``, ``missing_derivative``), so an existing linear term — a
+    lift curve with a stall break — leaves the nonlinear form named. Returns the trial to
+    name and, when it changed, ``{"note": sentence for its explanation, "over": key}``."""
+    c = best.candidate
+    if c.effect not in _NONLINEAR_TERMS:
+        return best, None
+    names = set(_nonlinear_variables(c))
+    linear = [t for t in good
+              if t.candidate.effect in _LINEAR_TERMS and t.candidate.target == c.target
+              and (t.candidate.info or {}).get("var") in names]
+    if not linear:
+        return best, None
+    pick = max(linear, key=lambda t: t.comparison)
+    lc = pick.candidate
+    note = (f" Named before the nonlinear form {c.key} (2ΔELBO {best.comparison:.4g} against "
+            f"{pick.comparison:.4g}) by the hierarchy principle: a variable's linear term comes "
+            f"before its nonlinear terms, and {c.target_name} does not yet depend on "
+            f"{lc.info['var']}; the nonlinear form is tested on top of the linear term in the "
+            "next round.")
+    return pick, {"note": note, "over": c.key}
+
+
 def alternatives_of(best: Trial, good: Sequence[Trial], nats: float = AMBIGUITY_NATS) -> tuple:
     """Accepted-quality refits (significant, converged, validated) of the same round that the
     records do not separate from the best: Vuong's test of non-nested models (:mod:`.vuong`,
@@ -2282,7 +2328,13 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # profiled delay's with the Bonferroni factor of its grid; fewer parameters win ties
     best = min(good, key=lambda t: (chi2_logsf(max(t.comparison, 0.0), max(t.dof, 1))
                                     + math.log(_search_size(t)), t.dof))
+    best, hierarchy = linear_first(best, good)
     alternatives = alternatives_of(best, good)
+    if hierarchy:
+        c = best.candidate
+        best = dataclasses.replace(best, candidate=dataclasses.replace(
+            c, explanation=c.explanation + hierarchy["note"],
+            info={**(c.info or {}), "hierarchy_over": hierarchy["over"]}))
     short = stopped_short(best)
     if short is not None:
         from ..estimator import StopReason
