@@ -1120,6 +1120,17 @@ def test_linear_term_named_before_a_nonlinear_form_of_a_new_variable():
     assert best.candidate.info["hierarchy_over"] == hinge.candidate.key
     assert "hierarchy principle" in best.candidate.explanation
     assert hinge.candidate.key in [a.candidate.key for a in best.alternatives]
+    # a linear and a nonlinear term of one variable are forms of one explanation, not
+    # different physics: "form uncertain", separated by larger excursions of the variable
+    from vsidgen.discrepancy.base import same_physics, term_variables
+    from vsidgen.discrepancy.findings import separating_experiment
+
+    assert same_physics(best.candidate, hinge.candidate)
+    assert not same_physics(best.candidate, other.candidate)
+    assert term_variables(hinge.candidate) == ("da",)
+    assert "larger excursions" in separating_experiment(
+        "coefficient_derivative", "definition:rdot_model", "coefficient_nonlinear",
+        "definition:rdot_model")
     # a product term yields to the linear term of either of its variables
     prod = trial("coefficient_nonlinear", "prod:alpha*da", 2900.0,
                  {"regressor": "prod:alpha*da", "var": "alpha·da"})

@@ -684,6 +684,40 @@ class Effect:
 _REGISTRY: dict[str, Effect] = {}
 
 
+#: effects that add a linear term in one variable, and those that add a nonlinear term
+LINEAR_TERM_EFFECTS = ("coefficient_derivative", "missing_derivative")
+NONLINEAR_TERM_EFFECTS = ("coefficient_nonlinear", "nonlinear_aero")
+
+
+def term_variables(c: Candidate) -> tuple[str, ...]:
+    """The variables of a linear or nonlinear term candidate (``info["var"]`` of a linear
+    term; the regressor's of a nonlinear one: ``sq:alpha`` → (alpha,), ``hinge:de:0.04`` →
+    (de,), ``prod:alpha*de`` → (alpha, de)); () for other effects."""
+    info = c.info or {}
+    if c.effect in LINEAR_TERM_EFFECTS:
+        return (info["var"],) if info.get("var") else ()
+    if c.effect not in NONLINEAR_TERM_EFFECTS:
+        return ()
+    kind, _, rest = str(info.get("regressor", "")).partition(":")
+    if not rest:
+        return ()
+    return tuple(rest.split("*")) if kind == "prod" else (rest.split(":", 1)[0],)
+
+
+def same_physics(a: Candidate, b: Candidate) -> bool:
+    """Whether two candidates are forms of one physical explanation: the same effect class,
+    or a linear and a nonlinear term of a common variable in the same target (a missing
+    derivative and a break of the same coefficient in the same input) — a choice of form,
+    not between explanations."""
+    if a.effect == b.effect:
+        return True
+    kinds = {a.effect, b.effect}
+    if a.target != b.target or not (kinds & set(LINEAR_TERM_EFFECTS)
+                                    and kinds & set(NONLINEAR_TERM_EFFECTS)):
+        return False
+    return bool(set(term_variables(a)) & set(term_variables(b)))
+
+
 def register_effect(effect, *, replace: bool = False):
     """Register an :class:`Effect` subclass or instance (usable as a class decorator)."""
     inst = effect() if isinstance(effect, type) else effect

@@ -43,7 +43,7 @@ from ..atomic import write_text_atomic
 from ..estimator.results import StdErrorIssue
 from ..report import new_figure, png_data_uri
 from ..report import dumps, finite_or_none as _f
-from .base import hold_lag
+from .base import LINEAR_TERM_EFFECTS, NONLINEAR_TERM_EFFECTS, hold_lag, same_physics
 
 
 def metrics_summary(st) -> dict:
@@ -307,6 +307,10 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
         return (f"more data of the same kind (a longer record, or further records fitted "
                 f"together): the two forms are nested — the larger one adds the same term to "
                 f"{extra} as well — and this record does not show whether {extra} needs it")
+    if same_channel and pair & set(LINEAR_TERM_EFFECTS) and pair & set(NONLINEAR_TERM_EFFECTS):
+        return (f"a record with larger excursions of the variable the two terms share: a linear "
+                f"term and a nonlinear one (a square, a break) agree near the conditions of this "
+                f"record and differ away from them")
     if effect == other_effect and same_channel:
         return (f"a record with larger excursions of the variables the two {effect} forms "
                 f"use (they agree near the conditions of this record and differ away from "
@@ -729,7 +733,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "locate": locate_part,
                 "delay_profile": (c.info or {}).get("profile_result"),
                 "hold_comparison": (c.info or {}).get("hold_comparison")},
-            "ambiguous": any(a.candidate.effect != c.effect for a in trial.alternatives),
+            "ambiguous": any(not same_physics(c, a.candidate) for a in trial.alternatives),
             "alternatives": [{**a.alternative_json(),
                               "separated_by": separating_experiment(
                                   c.effect, c.target, a.candidate.effect, a.candidate.target)}

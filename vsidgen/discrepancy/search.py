@@ -73,7 +73,7 @@ from ..estimator import WarmStart
 from ..limits import check_input_file
 from ..report import finite_or_none as _f
 from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
-                   load_effects_module, propose, registered_effects, roles_of)
+                   load_effects_module, propose, registered_effects, roles_of, same_physics)
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .pvalues import chi2_logsf
@@ -772,19 +772,6 @@ def same_fitted_model(a: Trial, b: Trial, *, se_fraction: float = SAME_FIT_SE) -
     return True
 
 
-_LINEAR_TERMS = ("coefficient_derivative", "missing_derivative")
-_NONLINEAR_TERMS = ("coefficient_nonlinear", "nonlinear_aero")
-
-
-def _nonlinear_variables(c: Candidate) -> tuple[str, ...]:
-    """The variables of a nonlinear term's regressor: ``sq:alpha`` → (alpha,),
-    ``hinge:de:0.04`` → (de,), ``prod:alpha*de`` → (alpha, de)."""
-    kind, _, rest = str((c.info or {}).get("regressor", "")).partition(":")
-    if not rest:
-        return ()
-    return tuple(rest.split("*")) if kind == "prod" else (rest.split(":", 1)[0],)
-
-
 def linear_first(best: Trial, good: Sequence[Trial]) -> tuple[Trial, dict | None]:
     """The hierarchy principle of stepwise model building (a variable's linear term before
     its nonlinear terms): when the best refit of a round is a nonlinear term (a square, a
@@ -799,12 +786,14 @@ def linear_first(best: Trial, good: Sequence[Trial]) -> tuple[Trial, dict | None
     (``coefficient_derivative``, ``missing_derivative``), so an existing linear term — a
     lift curve with a stall break — leaves the nonlinear form named. Returns the trial to
     name and, when it changed, ``{"note": sentence for its explanation, "over": key}``."""
+    from .base import LINEAR_TERM_EFFECTS, NONLINEAR_TERM_EFFECTS, term_variables
+
     c = best.candidate
-    if c.effect not in _NONLINEAR_TERMS:
+    if c.effect not in NONLINEAR_TERM_EFFECTS:
         return best, None
-    names = set(_nonlinear_variables(c))
+    names = set(term_variables(c))
     linear = [t for t in good
-              if t.candidate.effect in _LINEAR_TERMS and t.candidate.target == c.target
+              if t.candidate.effect in LINEAR_TERM_EFFECTS and t.candidate.target == c.target
               and (t.candidate.info or {}).get("var") in names]
     if not linear:
         return best, None
@@ -1962,7 +1951,9 @@ def _accept(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, info: Mo
     refitted as its own spec first: the next round extends its own spec and model)."""
     run.say(f"round {rnd}: accepted {best.candidate.key} "
             f"(2ΔELBO = {best.statistic:.4g} > {best.threshold:.4g})"
-            + (f"; AMBIGUOUS with {', '.join(t.candidate.key for t in best.alternatives)}"
+            + ((f"; AMBIGUOUS with " if any(not same_physics(best.candidate, t.candidate)
+                                             for t in best.alternatives)
+                else "; form uncertain: ") + ", ".join(t.candidate.key for t in best.alternatives)
                if best.alternatives else ""))
     if best.candidate.key in plan.groups:
         from .gated import adopt
