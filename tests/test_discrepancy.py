@@ -1126,7 +1126,11 @@ def test_linear_term_named_before_a_nonlinear_form_of_a_new_variable():
     from vsidgen.discrepancy.findings import separating_experiment
 
     assert same_physics(best.candidate, hinge.candidate)
-    assert not same_physics(best.candidate, other.candidate)
+    bias = Candidate(effect="sensor_bias", key="sensor_bias:r", target="output:r",
+                     explanation="", add_terms={})
+    assert not same_physics(best.candidate, bias)
+    assert not same_physics(hinge.candidate, trial(  # a linear term of another variable
+        "missing_derivative", "dr", 10.0, {"regressor": "u:dr", "var": "dr"}).candidate)
     assert term_variables(hinge.candidate) == ("da",)
     assert "larger excursions" in separating_experiment(
         "coefficient_derivative", "definition:rdot_model", "coefficient_nonlinear",
