@@ -135,3 +135,36 @@ def test_score_screen_is_exact_per_batch_and_quiet_on_clean_data(tmp_path):
                          generated_dir=tmp_path / "gen", det_std=REFIT_DETERMINISTIC_STD)
     assert alone[one.key].statistic == pytest.approx(tested[one.key].statistic, rel=1e-4,
                                                      abs=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.flight
+def test_real_lateral_records_without_adverse_yaw_name_the_linear_derivative(flight_data_dir,
+                                                                              tmp_path):
+    """ATTAS lateral records with N_δa deleted (benchmarks/real_records/attas_lat_no_nda.yaml):
+    a break of the yaw coefficient in δa fits slightly better than the missing linear
+    derivative, but the hierarchy principle names the linear term (the break its form
+    alternative), at the value the full spec's own fit gives N_δa (session 35)."""
+    from vsidgen.data import load_record
+    from vsidgen.discrepancy.search import run_diagnose
+    from vsidgen.estimator import fit
+    from vsidgen.model import load_model
+
+    est = [flight_data_dir / f"attas_{r}1.csv" for r in ("ail", "rud")]
+    full = load_model(ROOT / "specs" / "attas_lat.yaml", generated_dir=tmp_path / "g")
+    ref = fit(full, [load_record(full, p) for p in est])
+    i = list(ref.parameter_names).index("Nda")
+    nda, nda_se = float(ref.theta[i]), float(ref.std_errors[i])
+    res = run_diagnose(ROOT / "benchmarks" / "real_records" / "attas_lat_no_nda.yaml", est,
+                       out=tmp_path / "d", max_rounds=1, max_candidates=3,
+                       effects=["coefficient_derivative", "coefficient_nonlinear"],
+                       numerics=False, noise_model=False)
+    doc = json.loads((tmp_path / "d" / "findings.json").read_text())
+    (f,) = doc["findings"]
+    assert f["key"] == "coefficient_derivative:rdot_model:da", f["key"]
+    assert "hierarchy principle" in f["explanation"] and f["ambiguous"] is False
+    assert any(a["key"].startswith("coefficient_nonlinear:rdot_model:hinge:da")
+               for a in f["alternatives"])
+    (p,) = [v for v in f["parameters"].values() if not v.get("fixed")]
+    assert abs(p["estimate"] - nda) < 3.0 * max(p["std_error"], nda_se), (p, nda, nda_se)
+    assert res is not None
