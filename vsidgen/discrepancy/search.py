@@ -72,8 +72,9 @@ from ..errors import FitError, SpecError, VsidgenError
 from ..estimator import WarmStart
 from ..limits import check_input_file
 from ..report import finite_or_none as _f
-from .base import (Candidate, DiscrepancyError, Effect, ModelInfo, info_from_model,
-                   load_effects_module, propose, registered_effects, roles_of, same_physics)
+from .base import (LINEAR_TERM_EFFECTS, NONLINEAR_TERM_EFFECTS, Candidate, DiscrepancyError,
+                   Effect, ModelInfo, info_from_model, load_effects_module, propose,
+                   registered_effects, roles_of, same_physics, term_variables)
 from .flightconst import flight_conditions_of
 from .locate import Evidence, LocateRecord, break_points, locate
 from .pvalues import chi2_logsf
@@ -786,8 +787,6 @@ def linear_first(best: Trial, good: Sequence[Trial]) -> tuple[Trial, dict | None
     (``coefficient_derivative``, ``missing_derivative``), so an existing linear term — a
     lift curve with a stall break — leaves the nonlinear form named. Returns the trial to
     name and, when it changed, ``{"note": sentence for its explanation, "over": key}``."""
-    from .base import LINEAR_TERM_EFFECTS, NONLINEAR_TERM_EFFECTS, term_variables
-
     c = best.candidate
     if c.effect not in NONLINEAR_TERM_EFFECTS:
         return best, None
@@ -802,8 +801,8 @@ def linear_first(best: Trial, good: Sequence[Trial]) -> tuple[Trial, dict | None
     note = (f" Named before the nonlinear form {c.key} (2ΔELBO {best.comparison:.4g} against "
             f"{pick.comparison:.4g}) by the hierarchy principle: a variable's linear term comes "
             f"before its nonlinear terms, and {c.target_name} does not yet depend on "
-            f"{lc.info['var']}; the nonlinear form is tested on top of the linear term in the "
-            "next round.")
+            f"{lc.info['var']}; a further round (--max-rounds 2 or more) tests the nonlinear "
+            "form on top of the linear term.")
     return pick, {"note": note, "over": c.key}
 
 
