@@ -196,6 +196,7 @@ HFB_EFFECTS = {
     "alpha_scale": "α vane scale factor error (fraction)",
     "missing_CLde": "lift due to elevator CL_δe (1/rad), absent from the fitted model",
     "lift_stall": "lift-curve slope loss ΔCL = −k·max(α − α_b, 0) above a stall break (k, 1/rad)",
+    "lift_square": "curved lift curve ΔCL = −k·(α − α_trim)² (k, 1/rad²), elevator inputs 1.5× larger",
     "gust": "Dryden vertical gust, scale length 300 m (σ_w, m/s)",
 }
 
@@ -237,7 +238,7 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
     ``X/m = q̄ (S/m)(C_L sin α − C_D cos α) + T cos σ_T / m``,
     ``Z/m = q̄ (S/m)(−C_L cos α − C_D sin α) − T sin σ_T / m``,
     ``M/I_y = q̄ (S c̄/I_y) C_m + (l_T/I_y) T``,
-    ``C_L = C_L0 + C_LV V/V0 + C_Lα α [+ C_Lδe δe − k max(α − α_b, 0)]``,
+    ``C_L = C_L0 + C_LV V/V0 + C_Lα α [+ C_Lδe δe − k max(α − α_b, 0) − k (α − α_0)²]``,
     ``C_D = C_D0 + C_DV V/V0 + C_Dα α``,
     ``C_m = C_m0 + C_mV V/V0 + C_mα α + C_mq q c̄/(2 V0) + C_mδe δe``.
     """
@@ -254,6 +255,9 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
     alpha0, de0, thrust0 = _hfb_trim(aero)
     stall_k = magnitude if effect == "lift_stall" else 0.0
     stall_b = alpha0 + 0.02
+    curve_k = magnitude if effect == "lift_square" else 0.0
+    if effect == "lift_square":
+        de_amp = 1.5 * de_amp           # a curved lift curve shows in large α excursions
     V0 = c["V0"]
     cmd = (m3211(2.0, 1.0, de_amp) + doublet(14.0, 2.0, 1.5 * de_amp)
            + m3211(24.0, 0.7, -0.8 * de_amp))
@@ -278,7 +282,8 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
         al = math.atan2(wa, u)
         qbar = 0.5 * c["RHO"] * V * V
         CL = (aero["CL0"] + aero["CLV"] * V / V0 + aero["CLAL"] * al
-              + aero.get("CLDE", 0.0) * de - stall_k * max(al - stall_b, 0.0))
+              + aero.get("CLDE", 0.0) * de - stall_k * max(al - stall_b, 0.0)
+              - curve_k * (al - alpha0) ** 2)
         CD = aero["CD0"] + aero["CDV"] * V / V0 + aero["CDAL"] * al
         Cm = (aero["CM0"] + aero["CMV"] * V / V0 + aero["CMAL"] * al
               + aero["CMQ"] * q * c["CBARH"] / V0 + aero["CMDE"] * de)
@@ -429,6 +434,8 @@ LAT_EFFECTS = {
     "da_delay": "aileron transport delay (s): the surface moves as the recorded command τ s earlier",
     "dr_lag": "rudder actuator first-order lag (time constant, s)",
     "p_bias": "roll-rate gyro bias (rad/s)",
+    "n_beta_cubic": "directional stability growing with sideslip, ΔN = k·β_a³ (k, 1/s²/rad³), "
+                    "rudder inputs 1.5× larger",
 }
 
 
@@ -449,7 +456,8 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
     ``r = (x, 0, 0)``: ``a_y,P = a_y + x (ṙ + p q)`` (q = 0 in this model), ṙ the exact
     right-hand side; an aileron transport delay moves the surface as ``δa(t − τ)``; a rudder
     actuator lag ``τ δ̇r = δr_cmd − δr`` is a fifth state (the record holds the command); a
-    roll-rate gyro bias adds a constant to the recorded p.
+    roll-rate gyro bias adds a constant to the recorded p; directional stability that grows
+    with sideslip adds ``k β_a³`` to ``ṙ``.
     """
     rng = np.random.default_rng(seed)
     c = LAT
@@ -458,6 +466,9 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
         raise ValueError(f"unknown lateral effect {effect!r}")
     delay = magnitude if effect == "da_delay" else 0.0
     lag = magnitude if effect == "dr_lag" else 0.0
+    cubic = magnitude if effect == "n_beta_cubic" else 0.0
+    if effect == "n_beta_cubic":
+        dr_amp = 1.5 * dr_amp           # a nonlinearity in β shows in large sideslip
     da = doublet(2.0, 1.0, da_amp) + m3211(16.0, 0.6, -0.7 * da_amp)
     dr = m3211(7.0, 0.8, dr_amp) + doublet(23.0, 1.0, -dr_amp)
     n_half = int(round(duration / h)) * 2 + 1
@@ -475,7 +486,8 @@ def simulate_lat(*, effect="none", magnitude=0.0, seed=0, duration=30.0, dt=0.04
         ba = b - vgust / V0
         Y = c["YB"] * ba + c["YP"] * p_ + c["YR"] * r + c["YDR"] * d
         L = c["LB"] * ba + c["LP"] * p_ + c["LR"] * r + c["LDA"] * a + c["LDR"] * d
-        N = c["NB"] * ba + c["NP"] * p_ + c["NR"] * r + c["NDA"] * a + c["NDR"] * d
+        N = (c["NB"] * ba + c["NP"] * p_ + c["NR"] * r + c["NDA"] * a + c["NDR"] * d
+             + cubic * ba ** 3)
         return Y, L, N
 
     def f(t, x, e):
