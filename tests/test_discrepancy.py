@@ -1148,3 +1148,42 @@ def test_linear_term_named_before_a_nonlinear_form_of_a_new_variable():
                   {"regressor": "hinge:alpha:0.2", "var": "alpha"}, dof=2)
     assert _decide_round(1, [stall, linear], current, 50, 0.01, [], [],
                          None).best.candidate.key == stall.candidate.key
+
+
+def test_sideslip_gets_an_odd_cubic_term_in_every_lateral_equation(tmp_path):
+    """A symmetric aircraft's lateral force and moments are odd in β, so the catalogue's
+    sideslip nonlinearity includes D·β³ (the square, even in β, cannot describe stability that
+    grows with |β| on both sides): in every non-kinematic state equation of a user's lateral
+    model and in its side-force definition, with the unit of the equation over rad³, nested at
+    D = 0; the angle of attack gets no cube; locate offers the same regressor."""
+    import numpy as np
+    import sympy
+    from vsidgen.discrepancy.base import get_effect, term_variables
+    from vsidgen.discrepancy.locate import state_regressors
+    from vsidgen.spec import compile_spec
+
+    lat = ROOT / "benchmarks" / "independent" / "specs" / "lat_beta.yaml"
+    info = model_info(lat, dt=0.04)
+    cands = {c.key: c for c in get_effect("nonlinear_aero").applies_to(info)}
+    cubes = sorted(k for k in cands if ":cube:" in k)
+    assert cubes == ["nonlinear_aero:beta:cube:beta", "nonlinear_aero:p:cube:beta",
+                     "nonlinear_aero:r:cube:beta"]          # not φ̇ = p (kinematic)
+    c = cands["nonlinear_aero:r:cube:beta"]
+    assert c.parameters[0].unit == "(rad/s)/s/((rad)^3)"
+    assert term_variables(c) == ("beta",)
+    sym = compile_spec(_write(c, lat, tmp_path, info))
+    base = compile_spec(lat)
+    d = sympy.Symbol(c.parameters[0].name, real=True)
+    b = sympy.Symbol("beta", real=True)
+    new_r = dict(zip([v.name for v in sym.states], sym.drift_expanded()))["r"]
+    old_r = dict(zip([v.name for v in base.states], base.drift_expanded()))["r"]
+    assert sympy.simplify(new_r - old_r - d * b ** 3) == 0
+    coef = {k for k in (c.key for c in get_effect("coefficient_nonlinear").applies_to(info))
+            if ":cube:" in k}
+    assert coef == {"coefficient_nonlinear:Yside:cube:beta"}
+    hfb = model_info(HFB, dt=0.1)
+    assert not [c for c in get_effect("nonlinear_aero").applies_to(hfb) if ":cube:" in c.key]
+    X = np.random.default_rng(0).normal(size=(50, 4))
+    U = np.random.default_rng(1).normal(size=(50, 2))
+    reg = state_regressors(["beta", "p", "r", "phi"], ["da", "dr"], X, U, X, U)
+    assert np.allclose(reg["cube:beta"], X[:, 0] ** 3) and "cube:p" not in reg

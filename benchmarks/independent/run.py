@@ -61,6 +61,9 @@ TRUE_LABELS = {
     ("hfb", "lift_square"): {("coefficient_nonlinear", "definition:CL"),
                              ("nonlinear_aero", "drift:alpha")},
     ("hfb", "gust"): {("unmodelled_wind", None)},
+    # the engine's response is a lag of the recorded thrust (the catalogue's engine lag), or
+    # a first-order mode driven by it
+    ("hfb", "thrust_lag"): {("actuator_lag", "input:thrust"), ("missing_dynamics", None)},
     ("sp", "phugoid"): {("speed_dynamics", None), ("missing_dynamics", None)},
     ("sp", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
     ("lat", "beta_vane"): {("sensor_position", "output:beta")},
@@ -76,13 +79,13 @@ ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
                  "q_bias": "sensor_bias", "alpha_scale": "sensor_scale",
                  "missing_CLde": "coefficient_derivative", "lift_stall": "coefficient_nonlinear",
                  "lift_square": "coefficient_nonlinear", "n_beta_cubic": "nonlinear_aero",
-                 "gust": "unmodelled_wind", "phugoid": "speed_dynamics",
+                 "gust": "unmodelled_wind", "thrust_lag": "actuator_lag", "phugoid": "speed_dynamics",
                  "beta_vane": "sensor_position", "ay_position": "sensor_position",
                  "da_delay": "transport_delay", "dr_lag": "actuator_lag", "p_bias": "sensor_bias"}
 UNIT = {"de_delay": "s", "de_lag": "s", "alpha_vane": "m", "az_position": "m",
         "q_bias": "rad/s", "alpha_scale": "1", "missing_CLde": "1/rad", "lift_stall": "1/rad",
         "lift_square": "1/rad²", "n_beta_cubic": "1/s²/rad³",
-        "gust": "m/s", "phugoid": "× physical", "beta_vane": "m", "ay_position": "m",
+        "gust": "m/s", "thrust_lag": "s", "phugoid": "× physical", "beta_vane": "m", "ay_position": "m",
         "da_delay": "s", "dr_lag": "s", "p_bias": "rad/s", "none": ""}
 
 MAGNITUDES = {
@@ -90,7 +93,7 @@ MAGNITUDES = {
             "alpha_vane": [3.0, 10.0], "az_position": [2.0, 8.0], "q_bias": [0.001, 0.005],
             "alpha_scale": [0.03, 0.1], "missing_CLde": [0.15, 0.5], "lift_stall": [1.0, 4.0],
             "lift_square": [2.0, 8.0],
-            "gust": [0.5, 2.0]},
+            "gust": [0.5, 2.0], "thrust_lag": [0.5, 2.0]},
     "sp": {"none": [0.0], "phugoid": [0.4, 1.0, 5.0], "de_delay": [0.04, 0.12]},
     "lat": {"none": [0.0], "beta_vane": [3.0, 8.0], "ay_position": [1.0, 4.0],
             "da_delay": [0.04, 0.12], "dr_lag": [0.05, 0.15], "p_bias": [0.0005, 0.002],

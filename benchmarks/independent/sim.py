@@ -198,6 +198,8 @@ HFB_EFFECTS = {
     "lift_stall": "lift-curve slope loss ΔCL = −k·max(α − α_b, 0) above a stall break (k, 1/rad)",
     "lift_square": "curved lift curve ΔCL = −k·(α − α_trim)² (k, 1/rad²), elevator inputs 1.5× larger",
     "gust": "Dryden vertical gust, scale length 300 m (σ_w, m/s)",
+    "thrust_lag": "engine response: thrust follows the recorded thrust command (throttle steps "
+                  "of ±15 %) through a first-order lag (time constant, s)",
 }
 
 
@@ -237,7 +239,8 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
     ``V = √(u_a² + w_a²)``, ``α = atan2(w_a, u_a)``, ``q̄ = ρ V²/2``,
     ``X/m = q̄ (S/m)(C_L sin α − C_D cos α) + T cos σ_T / m``,
     ``Z/m = q̄ (S/m)(−C_L cos α − C_D sin α) − T sin σ_T / m``,
-    ``M/I_y = q̄ (S c̄/I_y) C_m + (l_T/I_y) T``,
+    ``M/I_y = q̄ (S c̄/I_y) C_m + (l_T/I_y) T`` (T the trim thrust, or with ``thrust_lag`` an
+    engine state ``τ Ṫ = T_cmd − T`` driven by throttle steps; the record holds ``T_cmd``),
     ``C_L = C_L0 + C_LV V/V0 + C_Lα α [+ C_Lδe δe − k max(α − α_b, 0) − k (α − α_0)²]``,
     ``C_D = C_D0 + C_DV V/V0 + C_Dα α``,
     ``C_m = C_m0 + C_mV V/V0 + C_mα α + C_mq q c̄/(2 V0) + C_mδe δe``.
@@ -252,6 +255,7 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
         delay = magnitude
     elif effect == "de_lag":
         lag = magnitude
+    engine_tau = magnitude if effect == "thrust_lag" else 0.0
     alpha0, de0, thrust0 = _hfb_trim(aero)
     stall_k = magnitude if effect == "lift_stall" else 0.0
     stall_b = alpha0 + 0.02
@@ -265,18 +269,28 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
     def de_cmd(t):
         return de0 + cmd(t)
 
+    # throttle steps (the engine case only; otherwise the thrust is held at trim)
+    throttle = (Multistep((5.0, 11.0, 20.0, 30.0), (0.15, -0.15, 0.1, 0.0), ramp=0.3)
+                if engine_tau > 0 else None)
+
+    def thrust_cmd(t):
+        t = np.asarray(t, dtype=float)
+        return thrust0 * (1.0 + (throttle(t) if throttle is not None else 0.0 * t))
+
     n_half = int(round(duration / h)) * 2 + 1
     wg = dryden_series(rng, n_half, h / 2, gust_sigma_bg, gust_length_bg, V0)
     if effect == "gust":
         wg = wg + dryden_series(rng, n_half, h / 2, magnitude, 300.0, V0)
 
     t_half = np.arange(n_half) * (h / 2)
-    ex = np.column_stack([wg, de_cmd(t_half - delay)])
+    ex = np.column_stack([wg, de_cmd(t_half - delay), thrust_cmd(t_half)])
+    i_eng = 5 if lag > 0 else 4          # index of the engine state (thrust_lag only)
 
     def aero_forces(x, e):
         wgust = e[0]
         u, w, q, th = x[:4]
         de = x[4] if lag > 0 else e[1]
+        thrust = x[i_eng] if engine_tau > 0 else e[2]
         wa = w - wgust
         V = math.hypot(u, wa)
         al = math.atan2(wa, u)
@@ -288,10 +302,10 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
         Cm = (aero["CM0"] + aero["CMV"] * V / V0 + aero["CMAL"] * al
               + aero["CMQ"] * q * c["CBARH"] / V0 + aero["CMDE"] * de)
         fx = qbar * c["SBYM"] * (CL * math.sin(al) - CD * math.cos(al)) \
-            + thrust0 * math.cos(c["SIGMAT"]) / c["RM"]
+            + thrust * math.cos(c["SIGMAT"]) / c["RM"]
         fz = qbar * c["SBYM"] * (-CL * math.cos(al) - CD * math.sin(al)) \
-            - thrust0 * math.sin(c["SIGMAT"]) / c["RM"]
-        qd = c["SCBYIY"] * qbar * Cm + c["FEIYLT"] * thrust0
+            - thrust * math.sin(c["SIGMAT"]) / c["RM"]
+        qd = c["SCBYIY"] * qbar * Cm + c["FEIYLT"] * thrust
         return fx, fz, qd, V, al, wa
 
     def f(t, x, e):
@@ -300,11 +314,15 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
         dx = [fx - q * w - c["G0"] * math.sin(th), fz + q * u + c["G0"] * math.cos(th), qd, q]
         if lag > 0:
             dx.append((e[1] - x[4]) / lag)
+        if engine_tau > 0:
+            dx.append((e[2] - x[i_eng]) / engine_tau)
         return np.array(dx)
 
     x0 = [V0 * math.cos(alpha0), V0 * math.sin(alpha0), 0.0, alpha0]
     if lag > 0:
         x0.append(de0)
+    if engine_tau > 0:
+        x0.append(thrust0)
     xs = rk4(f, x0, duration, h, ex)
     n_rec = int(round(duration / dt)) + 1
     stride = int(round(dt / h))
@@ -337,7 +355,7 @@ def simulate_hfb(*, effect="none", magnitude=0.0, seed=0, duration=40.0, dt=0.05
     clean = dict(v_mps=V, alpha_rad=alpha_m, theta_rad=th, q_radps=q_m, qdot_radps2=qd,
                  ax_mps2=ax, az_mps2=az)
     cols = {"t_s": t, "de_rad": quantise(de_cmd(t), res["de_rad"]),
-            "thrust_n": quantise(np.full(n_rec, thrust0), res["thrust_n"])}
+            "thrust_n": quantise(thrust_cmd(t), res["thrust_n"])}
     for name, y in clean.items():
         cols[name] = quantise(y + sd[name] * rng.standard_normal(n_rec), res[name])
     truth = dict(model="hfb320", effect=effect, magnitude=magnitude, seed=seed,

@@ -13,7 +13,8 @@ id                     what is added
 missing_derivative     :math:`f_s \\mathrel{+}= D\\,v` for a state/input ``v`` absent from :math:`f_s`
 trim_term              :math:`f_s \\mathrel{+}= D` where :math:`f_s` has no free constant
 nonlinear_aero         :math:`D\\,v^2`, :math:`D\\,a v` (a flow angle), :math:`D\\max(v-b,0)`,
-                       :math:`D\\max(b-v,0)` (stall break / control saturation at ``b``)
+                       :math:`D\\max(b-v,0)` (stall break / control saturation at ``b``),
+                       :math:`D\\,β^3` (sideslip: odd, as a symmetric aircraft's moments are)
 unsteady_aero          :math:`D\\,\\dot a` through a downwash-lag state
                        :math:`\\dot a_l = (a - a_l)/τ_l`, :math:`\\dot a ≈ (a-a_l)/τ_l`
 control_delay          first-order Padé delay of input ``u``: :math:`\\dot z = 2(u-z)/τ`,
@@ -244,6 +245,12 @@ def _users_score(c, ev) -> float:
     return max((ev.state_score(s, c.info["regressor"]) for s in c.info["states"]), default=0.0)
 
 
+#: what a cubic sideslip term means: a symmetric aircraft's lateral force and moments are odd
+#: in β (β and −β mirror each other), so their first nonlinearity is cubic, not square
+_CUBE_WHAT = ("a cubic term {p}·{v}³ (odd in sideslip, as the lateral force and moments of a "
+              "symmetric aircraft are: the stability grows or fades with |{v}|)")
+
+
 def _break_term(kind: str, v: str, slope: str, bp: str) -> tuple[str, str]:
     """(term, side) of a change of slope of ``v`` at the break point ``bp``: ``hinge`` above
     it, ``hingelo`` below it."""
@@ -384,11 +391,13 @@ class CoefficientNonlinearity(Effect):
     explanation = ("The coefficient {coef} depends nonlinearly on {var}: {what}. Every equation "
                    "and output that uses {coef} ({users}) is off by the same term (typical of "
                    "flow separation near stall, or of a control losing effectiveness).")
-    doc = "A square or a break in a flow angle or a control added to a coefficient definition (all its users)."
+    doc = ("A square or a break in a flow angle or a control (or the cube of sideslip) added to a "
+           "coefficient definition (all its users).")
 
     def applies_to(self, info):
         out = []
         flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
+        beta = info.flow_angle("beta")
         for d, users, drift_users, unit in _coefficient_definitions(info):
             user_text = ", ".join(u.replace(":", " ") for u in users)
             for v in flow + [u for u in info.input_names if aero_variable(info, u)]:
@@ -398,6 +407,12 @@ class CoefficientNonlinearity(Effect):
                                       _ratio(unit, f"({uv})^2" if uv else None) if unit else None,
                                       var=v, what=f"a quadratic term {p}·{v}²", users=users,
                                       user_text=user_text, drift_users=drift_users))
+                if v == beta:
+                    p = info.fresh(f"D_{d}_{v}3")
+                    out.append(self._cand(d, f"cube:{v}", p, f"{p}*{v}**3",
+                                          _ratio(unit, f"({uv})^3" if uv else None) if unit else None,
+                                          var=v, what=_CUBE_WHAT.format(p=p, v=v), users=users,
+                                          user_text=user_text, drift_users=drift_users))
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{d}_{v}_brk")
                     bp = info.fresh(f"D_{d}_{v}_bp", taken=[p])
@@ -449,12 +464,14 @@ class NonlinearAero(Effect):
     explanation = ("The {state} equation depends nonlinearly on {var}: {what}. The equation error "
                    "grows with {var} in a way no linear term reproduces (typical of flow "
                    "separation near stall, sideslip-dependent moments or control saturation).")
-    doc = "Squares, products, breaks or saturation in angle of attack, sideslip or a control."
+    doc = ("Squares, products, breaks or saturation in angle of attack, sideslip or a control; "
+           "the cube of sideslip.")
 
     def applies_to(self, info):
         out = []
         flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
         nonlin = flow + [u for u in info.input_names if aero_variable(info, u)]
+        beta = info.flow_angle("beta")
         for s in info.state_names:
             if kinematic_state(info, s):    # no aerodynamics in θ̇ = q
                 continue
@@ -464,6 +481,11 @@ class NonlinearAero(Effect):
                 out.append(self._cand(info, s, f"sq:{v}", p, f"{p}*{v}**2",
                                       _ratio(du, f"({info.unit(v)})^2" if info.unit(v) else None),
                                       var=v, what=f"a quadratic term {p}·{v}²"))
+                if v == beta:
+                    p = info.fresh(f"D_{s}_{v}3")
+                    out.append(self._cand(info, s, f"cube:{v}", p, f"{p}*{v}**3",
+                                          _ratio(du, f"({info.unit(v)})^3" if info.unit(v) else None),
+                                          var=v, what=_CUBE_WHAT.format(p=p, v=v)))
                 for kind, b in info.breaks.get(v, ()):
                     p = info.fresh(f"D_{s}_{v}_brk")
                     bp = info.fresh(f"D_{s}_{v}_bp", taken=[p])

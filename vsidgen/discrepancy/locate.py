@@ -518,7 +518,8 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
                      roles: Mapping[str, str] | None = None) -> dict[str, np.ndarray]:
     """Candidate regressors for the equation errors (names are used by the catalogue).
 
-    ``x:<s>``, ``u:<i>``: linear; ``sq:<v>``: square of a flow angle or input;
+    ``x:<s>``, ``u:<i>``: linear; ``sq:<v>``: square of a flow angle or input; ``cube:<β>``:
+    cube of the sideslip angle;
     ``prod:<a>*<b>``: flow angle × other state/input; ``hinge:<v>:<b>``:
     ``max(v − b, 0)`` at the 70th/85th percentile (and ``max(b − v, 0)`` at the
     15th/30th as ``hingelo``); ``udot:<i>``: input rate (time delay / actuator lag);
@@ -543,6 +544,8 @@ def state_regressors(state_names: Sequence[str], input_names: Sequence[str],
         if np.ptp(col) <= 0:
             continue
         reg[f"sq:{v}"] = col ** 2
+        if roles.get(v) == "beta":
+            reg[f"cube:{v}"] = col ** 3      # odd in sideslip (a symmetric aircraft)
         for kind, b in break_points(col):
             reg[f"{kind}:{v}:{b:.6g}"] = (np.maximum(col - b, 0.0) if kind == "hinge"
                                           else np.maximum(b - col, 0.0))
