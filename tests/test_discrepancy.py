@@ -1187,3 +1187,46 @@ def test_sideslip_gets_an_odd_cubic_term_in_every_lateral_equation(tmp_path):
     U = np.random.default_rng(1).normal(size=(50, 2))
     reg = state_regressors(["beta", "p", "r", "phi"], ["da", "dr"], X, U, X, U)
     assert np.allclose(reg["cube:beta"], X[:, 0] ** 3) and "cube:p" not in reg
+
+
+def test_a_body_axis_model_gets_nonlinear_terms_of_its_defined_angle_of_attack(tmp_path):
+    """A user's body-axis model (states u, w, q, θ) defines the angle of attack
+    (``a: atan2(w, u)``) and measures it (``alpha: a``): the definition is recognised as the
+    flow angle from that observation, whatever it is called, and the lift coefficient gets
+    the square and the breaks of it (unit of CL over rad², nested at D = 0); products with the
+    velocities it is made of are not proposed. A model named ``alpha`` without an observation
+    of it is recognised by the name."""
+    import dataclasses
+
+    import sympy
+    from vsidgen.discrepancy.base import get_effect, model_info
+    from vsidgen.spec import compile_spec
+
+    body = ROOT / "benchmarks" / "independent" / "specs" / "hfb_body.yaml"
+    info = model_info(body, dt=0.05)
+    assert info.flow_angle("alpha") is None
+    assert info.defined_flow_angles == {"a": ("alpha", "alpha")}
+    assert info.flow_variable("alpha") == "a" and info.unit("a") == "rad"
+    info = dataclasses.replace(info, breaks={"a": (("hinge", 0.13),)})
+    cands = {c.key: c for c in get_effect("coefficient_nonlinear").applies_to(info)}
+    sq = cands["coefficient_nonlinear:CL:sq:a"]
+    assert sq.parameters[0].unit == "1/((rad)^2)"
+    assert "coefficient_nonlinear:CL:hinge:a:0.13" in cands
+    keys = {c.key for c in get_effect("nonlinear_aero").applies_to(info)}
+    assert "nonlinear_aero:w:sq:a" in keys and "nonlinear_aero:w:prod:a*q" in keys
+    assert not {"nonlinear_aero:w:prod:a*u", "nonlinear_aero:w:prod:a*w"} & keys
+    sym = compile_spec(_write(sq, body, tmp_path, info))
+    d = sympy.Symbol(sq.parameters[0].name, real=True)
+    new_w = dict(zip([v.name for v in sym.states], sym.drift_expanded()))["w"]
+    base = compile_spec(body)
+    old_w = dict(zip([v.name for v in base.states], base.drift_expanded()))["w"]
+    assert new_w != old_w and sympy.simplify(new_w.subs(d, 0) - old_w) == 0
+    # recognised by its name when no output observes it
+    import re
+    text = "\n".join(ln for ln in body.read_text().splitlines()
+                     if not re.match(r"\s*alpha:", ln))
+    p2 = tmp_path / "named.yaml"
+    p2.write_text(re.sub(r"\ba\b", "aoa", text) + "\n")
+    named = model_info(p2, dt=0.05)
+    assert named.defined_flow_angles == {"aoa": ("alpha", None)}
+    assert named.flow_variable("alpha") == "aoa" and named.unit("aoa") is None

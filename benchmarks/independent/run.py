@@ -40,8 +40,11 @@ sys.path.insert(0, str(HERE))
 import sim  # noqa: E402
 
 SPEC = {"hfb": ROOT / "specs" / "hfb320.yaml", "sp": ROOT / "specs" / "attas_sp.yaml",
-        "lat": HERE / "specs" / "lat_beta.yaml"}
-SIMULATE = {"hfb": sim.simulate_hfb, "sp": sim.simulate_sp, "lat": sim.simulate_lat}
+        "lat": HERE / "specs" / "lat_beta.yaml",
+        # a user's body-axis model of the same aircraft (u, w, q, θ; α a definition)
+        "hfbb": HERE / "specs" / "hfb_body.yaml"}
+SIMULATE = {"hfb": sim.simulate_hfb, "sp": sim.simulate_sp, "lat": sim.simulate_lat,
+            "hfbb": sim.simulate_hfb}
 
 #: effect named first that counts as the true effect: (effect id, target) pairs; target None = any
 TRUE_LABELS = {
@@ -72,6 +75,15 @@ TRUE_LABELS = {
     ("lat", "dr_lag"): {("actuator_lag", "input:dr")},
     ("lat", "p_bias"): {("sensor_bias", "output:p")},
     ("lat", "n_beta_cubic"): {("nonlinear_aero", "drift:r")},
+    # the body-axis model: lift reaches u̇, ẇ and both accelerometers through CL
+    ("hfbb", "missing_CLde"): {("coefficient_derivative", "definition:CL"),
+                               ("missing_derivative", "drift:w")},
+    ("hfbb", "lift_stall"): {("coefficient_nonlinear", "definition:CL"),
+                             ("nonlinear_aero", "drift:w")},
+    ("hfbb", "lift_square"): {("coefficient_nonlinear", "definition:CL"),
+                              ("nonlinear_aero", "drift:w")},
+    ("hfbb", "alpha_vane"): {("sensor_position", "output:alpha")},
+    ("hfbb", "de_delay"): {("transport_delay", "input:de"), ("control_delay", "input:de")},
 }
 #: catalogue effect class of each true effect (for --oracle)
 ORACLE_EFFECT = {"de_delay": "transport_delay", "de_lag": "actuator_lag",
@@ -98,6 +110,8 @@ MAGNITUDES = {
     "lat": {"none": [0.0], "beta_vane": [3.0, 8.0], "ay_position": [1.0, 4.0],
             "da_delay": [0.04, 0.12], "dr_lag": [0.05, 0.15], "p_bias": [0.0005, 0.002],
             "n_beta_cubic": [10.0, 40.0]},
+    "hfbb": {"none": [0.0], "missing_CLde": [0.15, 0.5], "lift_stall": [1.0, 4.0],
+             "lift_square": [2.0, 8.0], "alpha_vane": [3.0, 10.0], "de_delay": [0.05]},
 }
 
 

@@ -217,6 +217,8 @@ class ModelInfo(VariableNames):
         for v in self.states + self.inputs + self.outputs:
             if v.name == name:
                 return v.unit
+        if name in self.defined_flow_angles:     # the unit of the output that measures it
+            return self.unit(self.defined_flow_angles[name][1]) if self.defined_flow_angles[name][1] else None
         return None
 
     def radians_per(self, name: str) -> float:
@@ -263,6 +265,55 @@ class ModelInfo(VariableNames):
         """The state that is the angle of attack (kind 'alpha') or sideslip ('beta'),
         recognised by name or description (:func:`variable_role`)."""
         return self.state_with_role(kind)
+
+    @functools.cached_property
+    def defined_flow_angles(self) -> dict[str, tuple[str, str | None]]:
+        """``{definition: (role, output)}``: definitions that are the angle of attack or the
+        sideslip angle of a model whose states are body velocities (``a: atan2(w, u)``).
+
+        A definition is a flow angle when an output observes exactly it and that output's
+        role is ``alpha``/``beta`` (``alpha: a`` with ``alpha`` the vane): the model's own
+        equations say so, whatever the definition is called; else when its name has the role
+        (``alpha: atan2(w, u)``; ``output`` None). A model whose flow angle is a state has
+        none (the state is the flow angle)."""
+        out: dict[str, tuple[str, str | None]] = {}
+        for kind in ("alpha", "beta"):
+            if self.flow_angle(kind) is not None:
+                continue
+            found = None
+            for o, role in self.output_roles.items():
+                if role != kind:
+                    continue
+                text = str(self.observations.get(o, "")).strip()
+                e = self.observations_expanded.get(o)
+                for d in self.definitions:
+                    if d in out:
+                        continue
+                    if text == d or (e is not None and self.definitions_expanded.get(d) == e
+                                     and not isinstance(e, sympy.Symbol)):
+                        found = (d, o)
+                        break
+                if found:
+                    break
+            if found is None:
+                d = next((d for d in self.definitions if d not in out
+                          and variable_role(d) == kind), None)
+                found = (d, None) if d is not None else None
+            if found is not None:
+                out[found[0]] = (kind, found[1])
+        return out
+
+    def flow_variable(self, kind: str) -> str | None:
+        """The angle of attack (``kind`` 'alpha') or sideslip ('beta') as the model writes it:
+        the state (:meth:`flow_angle`) or, in a body-velocity model, the definition
+        (:attr:`defined_flow_angles`); None when the model has neither. Terms that are
+        functions of the angle (squares, breaks, products of the aerodynamic coefficients)
+        use it; candidates that need the angle as a state (unsteady aerodynamics, wind) do
+        not."""
+        s = self.flow_angle(kind)
+        if s is not None:
+            return s
+        return next((d for d, (r, _) in self.defined_flow_angles.items() if r == kind), None)
 
     def rate_states(self) -> tuple[str, ...]:
         """The body angular-rate states (roles p, q, r), in state order."""

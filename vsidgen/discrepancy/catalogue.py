@@ -396,8 +396,8 @@ class CoefficientNonlinearity(Effect):
 
     def applies_to(self, info):
         out = []
-        flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
-        beta = info.flow_angle("beta")
+        flow = [v for v in (info.flow_variable("alpha"), info.flow_variable("beta")) if v]
+        beta = info.flow_variable("beta")
         for d, users, drift_users, unit in _coefficient_definitions(info):
             user_text = ", ".join(u.replace(":", " ") for u in users)
             for v in flow + [u for u in info.input_names if aero_variable(info, u)]:
@@ -469,9 +469,9 @@ class NonlinearAero(Effect):
 
     def applies_to(self, info):
         out = []
-        flow = [v for v in (info.flow_angle("alpha"), info.flow_angle("beta")) if v]
+        flow = [v for v in (info.flow_variable("alpha"), info.flow_variable("beta")) if v]
         nonlin = flow + [u for u in info.input_names if aero_variable(info, u)]
-        beta = info.flow_angle("beta")
+        beta = info.flow_variable("beta")
         for s in info.state_names:
             if kinematic_state(info, s):    # no aerodynamics in θ̇ = q
                 continue
@@ -501,8 +501,11 @@ class NonlinearAero(Effect):
                                                               f"break point of {v} in d{s}/dt",
                                                               initial=float(b)),)))
             for a in flow:
+                # a defined angle (a = atan2(w, u)) is a function of its velocities already
+                own = ({x.name for x in info.definitions_expanded[a].free_symbols}
+                       if a in info.defined_flow_angles else set())
                 for o in info.state_names + info.input_names:
-                    if o == a or not aero_variable(info, o):
+                    if o == a or o in own or not aero_variable(info, o):
                         continue
                     p = info.fresh(f"D_{s}_{a}{o}")
                     out.append(self._cand(info, s, f"prod:{a}*{o}", p, f"{p}*{a}*{o}",

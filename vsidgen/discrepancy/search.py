@@ -521,6 +521,13 @@ def model_info_of(st: FitState) -> ModelInfo:
             breaks[s] = tuple(break_points(X[:, j]))
     for j, u in enumerate(m.input_names):
         breaks[u] = tuple(break_points(U[:, j]))
+    # a flow angle the model defines (a: atan2(w, u)) and an output measures: its break
+    # points from that output at the smoother mean
+    for d, (_, o) in info.defined_flow_angles.items():
+        if o is not None and o in m.output_names:
+            k = list(m.output_names).index(o)
+            Y = np.concatenate([np.asarray(s.y_smooth)[:-1, k] for s in st.signals])
+            breaks[d] = tuple(break_points(Y))
     return dataclasses.replace(info, breaks=breaks, flight=flight_conditions_of(info, st.records))
 
 
