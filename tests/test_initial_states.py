@@ -101,3 +101,34 @@ def test_body_axis_velocities_start_at_the_kinematic_inversion(tmp_path):
     # the zero start is still there on request
     _, [(mu0, _)] = P.initial(FitOptions(init_states="zero"))
     assert np.all(mu0 == 0.0)
+
+
+def test_states_the_outputs_determine_are_not_held_by_the_release_start(tmp_path):
+    """u and w, solved from V and α at every sample but one, count as measured through the
+    outputs (:attr:`Problem.output_solved`): the release start, which holds unmeasured states
+    with process noise deterministic first (they have no data scale of their own), has
+    nothing to hold and is not run; a state no output sees (``lag``) is not solved. Without α
+    the outputs do not determine u and w, and the release start holds them."""
+    import importlib
+    import time
+
+    fit_module = importlib.import_module("vsidgen.estimator.fit")
+
+    spec = tmp_path / "body.yaml"
+    spec.write_text(BODY_AXES)
+    model = load_model(spec, generated_dir=tmp_path / "gen")
+    path, _, _ = _record(tmp_path)
+    rec = load_record(model, path)
+    P = Problem(model, [rec], FitOptions(bucket=False))
+    names = list(model.state_names)
+    assert {names[i] for i in P.output_solved} == {"u", "w"}
+    assert fit_module._release_start(P, FitOptions(max_iter=5), time.perf_counter()) is None
+    # V only: u and w are not determined at any sample
+    no_alpha = (BODY_AXES.replace("  alpha: {unit: rad}\n", "")
+                .replace("  alpha: a\n", "").replace(" alpha: alpha_rad,", ""))
+    assert "alpha" not in no_alpha
+    spec2 = tmp_path / "body_v.yaml"
+    spec2.write_text(no_alpha)
+    model2 = load_model(spec2, generated_dir=tmp_path / "gen2")
+    P2 = Problem(model2, [load_record(model2, path)], FitOptions(bucket=False))
+    assert P2.output_solved == frozenset()

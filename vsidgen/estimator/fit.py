@@ -1503,7 +1503,9 @@ def _drift_scale(P: Problem, idx) -> np.ndarray:
 def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     """The "release" noise start: unmeasured states with process noise, first held deterministic.
 
-    An unmeasured state i with an estimated process-noise std has no data scale of its own,
+    An unmeasured state i with an estimated process-noise std (measured by no output directly,
+    and not determined by the outputs at the start: :attr:`.problem.Problem.output_solved`)
+    has no data scale of its own,
     and its noise can absorb any channel it enters: a sideslip with free (or merely large)
     process noise reproduces the lateral accelerometer exactly while that channel's
     measurement std collapses. Its std is therefore reached by a homotopy from the
@@ -1532,7 +1534,10 @@ def _release_start(P: Problem, options: FitOptions, t0) -> dict | None:
     if P.nm.fixed_G is not None or P.nm.deterministic.any() or P.tm.n_free == 0:
         return None
     pairs = P.direct
-    held = [int(i) for i in P.nm.proc_est_idx if int(i) not in pairs]
+    # a state the outputs determine (u, w of a body-axis model through V and α) has the data
+    # scale of the outputs it is solved from, like a directly measured one: not held
+    held = [int(i) for i in P.nm.proc_est_idx
+            if int(i) not in pairs and int(i) not in P.output_solved]
     if not held:
         return None
     eps0 = _drift_scale(P, held)

@@ -275,7 +275,18 @@ def _inversion_functions(output, free: tuple):
 
 
 def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
-    """State means ``mu`` (N, nx) with the states that no output measures directly but that
+    """State means ``mu`` with the states the outputs determine solved from them
+    (:func:`invert_outputs_solved`, whose first item this is)."""
+    return invert_outputs_solved(model, rec, mu, measured, theta)[0]
+
+
+#: share of a record's samples at which the outputs must determine a state for it to count as
+#: measured through them (:func:`invert_outputs_solved`)
+SOLVED_SHARE = 0.5
+
+
+def invert_outputs_solved(model, rec, mu, measured, theta) -> tuple[np.ndarray, tuple[int, ...]]:
+    """(state means, solved states). State means ``mu`` (N, nx) with the states that no output measures directly but that
     the outputs depend on (at the initial parameters ``theta``) solved from the record's
     outputs, sample by sample: ``min_x Σ_j ((y_kj − h_j(x, u_k; θ))/s_j)²`` over those
     states, the directly measured ones (``measured``: state indices) held at ``mu``, ``s_j``
@@ -289,11 +300,15 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     better than the start, or does not determine those states (the weighted Jacobian there
     is rank deficient: V without α) is interpolated between the samples that do; with none,
     the start is kept.
+
+    The solved states are those the outputs determine (full column rank) at no fewer than
+    :data:`SOLVED_SHARE` of the samples: measured through the outputs, though by none
+    directly (u and w through V and α).
     """
     free = [i for i in range(model.nx) if i not in set(measured)]
     y = np.asarray(rec.y, float)
     if not free or y.shape[0] == 0:
-        return mu
+        return mu, ()
     u = jnp.asarray(np.asarray(rec.u, float))
     th = jnp.asarray(np.asarray(theta, float))
     fi = np.asarray(free)
@@ -313,7 +328,7 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     finite = np.isfinite(h).all(axis=1) & np.isfinite(J).all(axis=(1, 2))
     dep = np.any(np.abs(np.where(finite[:, None, None], J, 0.0)) > 0, axis=(0, 1))
     if not dep.any():
-        return mu
+        return mu, ()
     nd = int(dep.sum())
     obs = np.isfinite(y)
     sd = np.array([np.std(y[obs[:, j], j]) if obs[:, j].sum() > 1 else 1.0
@@ -357,14 +372,15 @@ def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
     determined = (sv.shape[1] == nd) & (sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300))
     use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1) & determined
     if not use.any():
-        return mu
+        return mu, ()
     out_mu = np.array(mu, float)
     k = np.arange(y.shape[0])
     for a, col in zip(np.nonzero(dep)[0], fi[dep]):
         # samples the outputs do not determine (a missing α): interpolated between the
         # determined ones, as a measured state's missing samples (:func:`initial_means`)
         out_mu[:, col] = np.interp(k, k[use], xf[use, a])
-    return out_mu
+    solved = tuple(int(i) for i in fi[dep]) if np.mean(determined) >= SOLVED_SHARE else ()
+    return out_mu, solved
 
 
 def _check_records(model, records):
@@ -687,10 +703,22 @@ class Problem:
         """Per record, the state means of the "measured" start at the initial parameters:
         :func:`initial_means`, then :func:`invert_outputs` (computed once: every noise start
         and the release start's drift scale use it)."""
+        return [mu for mu, _ in self._inverted]
+
+    @functools.cached_property
+    def output_solved(self) -> frozenset[int]:
+        """States that no output measures directly but the outputs determine at the start
+        (in every record; :func:`invert_outputs_solved`): u and w of a body-axis model,
+        through V and α."""
+        sets = [set(solved) for _, solved in self._inverted]
+        return frozenset(set.intersection(*sets)) if sets else frozenset()
+
+    @functools.cached_property
+    def _inverted(self) -> list[tuple[np.ndarray, tuple[int, ...]]]:
         theta = self.theta(self.tm.z0)
         pairs = list(self.direct)
-        return [invert_outputs(self.model, r, initial_means(self.model, r, self.direct, "measured"),
-                               pairs, theta) for r in self.records]
+        return [invert_outputs_solved(self.model, r, initial_means(self.model, r, self.direct, "measured"),
+                                      pairs, theta) for r in self.records]
 
     def floor_active(self, s, gs):
         """Mask over s of noise parameters whose lower bound (floor) is active, and of the held
