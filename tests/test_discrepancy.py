@@ -1230,3 +1230,16 @@ def test_a_body_axis_model_gets_nonlinear_terms_of_its_defined_angle_of_attack(t
     named = model_info(p2, dt=0.05)
     assert named.defined_flow_angles == {"aoa": ("alpha", None)}
     assert named.flow_variable("alpha") == "aoa" and named.unit("aoa") is None
+
+
+def test_a_coefficient_without_a_constant_term_gets_its_unit_from_its_derivatives():
+    """The Twin Otter's yaw coefficient has no constant term (Cn = Cnb·β + Cnp·p̂ + …), so
+    the unit of a derivative added to it used to be unknown (the real-record run without C_n_r
+    reported D_Cn_r without a unit); Cnb [1/rad] times β [rad] makes Cn dimensionless, and the
+    missing yaw-rate derivative is per rad/s."""
+    from vsidgen.discrepancy.base import get_effect
+
+    spec = ROOT / "benchmarks" / "real_records" / "totter_lat_no_cnr.yaml"
+    info = model_info(spec, dt=0.02)
+    cands = {c.key: c for c in get_effect("coefficient_derivative").applies_to(info)}
+    assert cands["coefficient_derivative:Cn:r"].parameters[0].unit == "1/(rad/s)"

@@ -451,10 +451,36 @@ def _coefficient_unit(info: ModelInfo, d: str) -> str | None:
         return None
     import sympy
 
-    for term in sympy.Add.make_args(sympy.expand(e)):
-        if isinstance(term, sympy.Symbol) and term.name in info.definition_parameters.get(d, ()):
+    own = info.definition_parameters.get(d, ())
+    terms = sympy.Add.make_args(sympy.expand(e))
+    for term in terms:
+        if isinstance(term, sympy.Symbol) and term.name in own:
             return info.parameter_units.get(term.name)
+    # no constant term (Cn = Cnb·β + Cnp·p̂ + …): the unit of a derivative times its variable,
+    # where both have one and the variable's is an angle (Cnb [1/rad] · β [rad] → 1)
+    for term in terms:
+        if not isinstance(term, sympy.Mul) or len(term.args) != 2:
+            continue
+        a, b = term.args
+        if not (isinstance(a, sympy.Symbol) and isinstance(b, sympy.Symbol)):
+            continue
+        par, var = (a, b) if a.name in own else (b, a)
+        pu, vu = info.parameter_units.get(par.name), info.unit(var.name)
+        if par.name in own and pu and vu and _unit_cancels(pu, vu):
+            return "1"
     return None
+
+
+def _unit_cancels(per: str, unit: str) -> bool:
+    """Whether ``per`` (a derivative's unit, e.g. ``1/rad``) times ``unit`` (its variable's,
+    ``rad``) is dimensionless."""
+    from ..errors import SpecError
+    from ..spec.units import parse_unit, same
+
+    try:
+        return same(parse_unit(f"({per})*({unit})"), parse_unit("1"))
+    except SpecError:
+        return False
 
 
 @register_effect
