@@ -1243,3 +1243,52 @@ def test_a_coefficient_without_a_constant_term_gets_its_unit_from_its_derivative
     info = model_info(spec, dt=0.02)
     cands = {c.key: c for c in get_effect("coefficient_derivative").applies_to(info)}
     assert cands["coefficient_derivative:Cn:r"].parameters[0].unit == "1/(rad/s)"
+
+
+def test_an_unconverged_refit_above_the_best_decided_one_leaves_the_round_undecided():
+    """An engine lag of 0.5 s (independent simulator, hfb_thrust_lag_0.5_s0): the round was
+    cut by the time limit, the lag's refit had stopped at its iteration limit with an
+    indefinite Hessian at ELBO 19215.2, and a converged transport delay of the thrust at
+    18960.9 was named. The lag's ELBO is a lower bound of its maximum, so the delay is not the
+    best explanation the data support: the round accepts neither, records why, and the
+    conclusion is INCONCLUSIVE naming the lag's refit. A lower unconverged refit, or one
+    below its threshold, does not block the decision."""
+    import types
+
+    from scipy import stats
+
+    from vsidgen.discrepancy.base import Candidate
+    from vsidgen.discrepancy.findings import conclusion_text
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.search import Trial, _decide_round, outranking_unconverged
+    from vsidgen.estimator import StopReason
+
+    current = types.SimpleNamespace(elbo=18543.239, val_elbo=None, val_elbo_own_noise=None,
+                                    spec_path="c.yaml", fit=types.SimpleNamespace(converged=True))
+
+    def trial(key, elbo, converged, reason):
+        cand = Candidate(effect=key.split(":")[0], key=key, target="input:thrust",
+                         explanation="An input effect.", add_terms={})
+        fit = types.SimpleNamespace(converged=converged, stop_reason=reason, status="stopped",
+                                    newton_decrement=1e-5 if converged else float("nan"))
+        st = types.SimpleNamespace(elbo=elbo, vfit=None, val_elbo=None, val_elbo_own_noise=None,
+                                   fit=fit, signals=())
+        lam = 2.0 * (elbo - current.elbo)
+        return Trial(cand, 1.0, pathlib.Path(f"{key}.yaml"), st, lam, 1,
+                     float(stats.chi2.sf(lam, 1)), refit=types.SimpleNamespace(
+                         x0_entropy=0.0, val_x0_entropy=0.0, to_json=dict),
+                     statistic_vs_base=lam, converged=converged, verdict=RefitVerdict.ORDINARY)
+
+    delay = trial("transport_delay:thrust", 18960.915, True, StopReason.NEWTON_DECREMENT)
+    lag = trial("actuator_lag:thrust", 19215.186, False, StopReason.ITERATION_LIMIT)
+    dec = _decide_round(1, [lag, delay], current, 175, 0.01, [], [], None)
+    assert dec.best is None
+    assert dec.record["undecided"] == {"outranked": "transport_delay:thrust",
+                                       "by": ["actuator_lag:thrust"]}
+    text = conclusion_text([], [dec.record], alpha=0.01, validated=False, final_spec="f.yaml")
+    assert text.startswith("INCONCLUSIVE") and "actuator_lag:thrust" in text
+    # an unconverged refit below the decided one does not block it
+    low = trial("actuator_lag:thrust", 18800.0, False, StopReason.ITERATION_LIMIT)
+    assert _decide_round(1, [low, delay], current, 175, 0.01, [], [],
+                         None).best.candidate.key == "transport_delay:thrust"
+    assert outranking_unconverged([low, delay], delay) == []
