@@ -75,13 +75,18 @@ def _record(tmp_path, n=120):
     return path, V, alpha
 
 
-def test_body_axis_velocities_start_at_the_kinematic_inversion(tmp_path):
-    spec = tmp_path / "body.yaml"
-    spec.write_text(BODY_AXES)
-    model = load_model(spec, generated_dir=tmp_path / "gen")
+def _problem(tmp_path, text, name="body"):
+    """(model, Problem on the record of :func:`_record`, V, α) of the spec ``text``."""
+    spec = tmp_path / f"{name}.yaml"
+    spec.write_text(text)
+    model = load_model(spec, generated_dir=tmp_path / f"gen_{name}")
     path, V, alpha = _record(tmp_path)
-    rec = load_record(model, path)
-    P = Problem(model, [rec], FitOptions(bucket=False))
+    return model, Problem(model, [load_record(model, path)], FitOptions(bucket=False)), V, alpha
+
+
+def test_body_axis_velocities_start_at_the_kinematic_inversion(tmp_path):
+    model, P, V, alpha = _problem(tmp_path, BODY_AXES)
+    rec = P.records[0]
     s, [(mu, _)] = P.initial(FitOptions())
     names = list(model.state_names)
     ok = np.isfinite(alpha)
@@ -108,18 +113,13 @@ def test_states_the_outputs_determine_are_not_held_by_the_release_start(tmp_path
     outputs (:attr:`Problem.output_solved`): the release start, which holds unmeasured states
     with process noise deterministic first (they have no data scale of their own), has
     nothing to hold and is not run; a state no output sees (``lag``) is not solved. Without α
-    the outputs do not determine u and w, and the release start holds them."""
+    the outputs do not determine u and w: they are not solved (the release start holds them)."""
     import importlib
     import time
 
     fit_module = importlib.import_module("vsidgen.estimator.fit")
 
-    spec = tmp_path / "body.yaml"
-    spec.write_text(BODY_AXES)
-    model = load_model(spec, generated_dir=tmp_path / "gen")
-    path, _, _ = _record(tmp_path)
-    rec = load_record(model, path)
-    P = Problem(model, [rec], FitOptions(bucket=False))
+    model, P, _, _ = _problem(tmp_path, BODY_AXES)
     names = list(model.state_names)
     assert {names[i] for i in P.output_solved} == {"u", "w"}
     assert fit_module._release_start(P, FitOptions(max_iter=5), time.perf_counter()) is None
@@ -127,8 +127,5 @@ def test_states_the_outputs_determine_are_not_held_by_the_release_start(tmp_path
     no_alpha = (BODY_AXES.replace("  alpha: {unit: rad}\n", "")
                 .replace("  alpha: a\n", "").replace(" alpha: alpha_rad,", ""))
     assert "alpha" not in no_alpha
-    spec2 = tmp_path / "body_v.yaml"
-    spec2.write_text(no_alpha)
-    model2 = load_model(spec2, generated_dir=tmp_path / "gen2")
-    P2 = Problem(model2, [load_record(model2, path)], FitOptions(bucket=False))
+    _, P2, _, _ = _problem(tmp_path, no_alpha, "body_v")
     assert P2.output_solved == frozenset()

@@ -217,9 +217,8 @@ class ModelInfo(VariableNames):
         for v in self.states + self.inputs + self.outputs:
             if v.name == name:
                 return v.unit
-        if name in self.defined_flow_angles:     # the unit of the output that measures it
-            return self.unit(self.defined_flow_angles[name][1]) if self.defined_flow_angles[name][1] else None
-        return None
+        _, output = self.defined_flow_angles.get(name, (None, None))
+        return self.unit(output) if output else None    # the output that measures it
 
     def radians_per(self, name: str) -> float:
         """Radians (or rad/s, rad/s²) per unit of the state, input or output ``name``: 1 for

@@ -456,8 +456,8 @@ def _coefficient_unit(info: ModelInfo, d: str) -> str | None:
     for term in terms:
         if isinstance(term, sympy.Symbol) and term.name in own:
             return info.parameter_units.get(term.name)
-    # no constant term (Cn = Cnb·β + Cnp·p̂ + …): the unit of a derivative times its variable,
-    # where both have one and the variable's is an angle (Cnb [1/rad] · β [rad] → 1)
+    # no constant term (Cn = Cnb·β + Cnp·p̂ + …): dimensionless when a derivative times its
+    # variable is (Cnb [1/rad] · β [rad] → 1)
     for term in terms:
         if not isinstance(term, sympy.Mul) or len(term.args) != 2:
             continue
@@ -498,6 +498,10 @@ class NonlinearAero(Effect):
         flow = [v for v in (info.flow_variable("alpha"), info.flow_variable("beta")) if v]
         nonlin = flow + [u for u in info.input_names if aero_variable(info, u)]
         beta = info.flow_variable("beta")
+        # a defined angle (a = atan2(w, u)) is a function of its velocities already: no
+        # products with them
+        made_of = {a: ({x.name for x in info.definitions_expanded[a].free_symbols}
+                       if a in info.defined_flow_angles else set()) for a in flow}
         for s in info.state_names:
             if kinematic_state(info, s):    # no aerodynamics in θ̇ = q
                 continue
@@ -527,11 +531,8 @@ class NonlinearAero(Effect):
                                                               f"break point of {v} in d{s}/dt",
                                                               initial=float(b)),)))
             for a in flow:
-                # a defined angle (a = atan2(w, u)) is a function of its velocities already
-                own = ({x.name for x in info.definitions_expanded[a].free_symbols}
-                       if a in info.defined_flow_angles else set())
                 for o in info.state_names + info.input_names:
-                    if o == a or o in own or not aero_variable(info, o):
+                    if o == a or o in made_of[a] or not aero_variable(info, o):
                         continue
                     p = info.fresh(f"D_{s}_{a}{o}")
                     out.append(self._cand(info, s, f"prod:{a}*{o}", p, f"{p}*{a}*{o}",

@@ -274,19 +274,14 @@ def _inversion_functions(output, free: tuple):
     return jax.jit(jax.vmap(out, in_axes=(0, 0, 0, None))), jax.jit(both)
 
 
-def invert_outputs(model, rec, mu, measured, theta) -> np.ndarray:
-    """State means ``mu`` with the states the outputs determine solved from them
-    (:func:`invert_outputs_solved`, whose first item this is)."""
-    return invert_outputs_solved(model, rec, mu, measured, theta)[0]
-
-
 #: share of a record's samples at which the outputs must determine a state for it to count as
-#: measured through them (:func:`invert_outputs_solved`)
+#: measured through them (:func:`invert_outputs`)
 SOLVED_SHARE = 0.5
 
 
-def invert_outputs_solved(model, rec, mu, measured, theta) -> tuple[np.ndarray, tuple[int, ...]]:
-    """(state means, solved states). State means ``mu`` (N, nx) with the states that no output measures directly but that
+def invert_outputs(model, rec, mu, measured, theta) -> tuple[np.ndarray, tuple[int, ...]]:
+    """(state means, solved states): state means ``mu`` (N, nx) with the states that no
+    output measures directly but that
     the outputs depend on (at the initial parameters ``theta``) solved from the record's
     outputs, sample by sample: ``min_x Σ_j ((y_kj − h_j(x, u_k; θ))/s_j)²`` over those
     states, the directly measured ones (``measured``: state indices) held at ``mu``, ``s_j``
@@ -708,7 +703,7 @@ class Problem:
     @functools.cached_property
     def output_solved(self) -> frozenset[int]:
         """States that no output measures directly but the outputs determine at the start
-        (in every record; :func:`invert_outputs_solved`): u and w of a body-axis model,
+        (in every record; :func:`invert_outputs`): u and w of a body-axis model,
         through V and α."""
         sets = [set(solved) for _, solved in self._inverted]
         return frozenset(set.intersection(*sets)) if sets else frozenset()
@@ -717,8 +712,8 @@ class Problem:
     def _inverted(self) -> list[tuple[np.ndarray, tuple[int, ...]]]:
         theta = self.theta(self.tm.z0)
         pairs = list(self.direct)
-        return [invert_outputs_solved(self.model, r, initial_means(self.model, r, self.direct, "measured"),
-                                      pairs, theta) for r in self.records]
+        return [invert_outputs(self.model, r, initial_means(self.model, r, self.direct, "measured"),
+                               pairs, theta) for r in self.records]
 
     def floor_active(self, s, gs):
         """Mask over s of noise parameters whose lower bound (floor) is active, and of the held
