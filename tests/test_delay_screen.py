@@ -402,8 +402,12 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
 def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_path):
     """A lag refit started at the screen's time constant (:func:`filter_start`) that ends below
     the nested reference is done again from the nesting point and the better kept. On the
-    no-lag record of the test above, a screen start forged at 1 s (a lag of 20 samples,
-    which fits far worse) must not leave the refit below the current model."""
+    no-lag record of the test above, a screen start forged at 3 s (a lag of 60 samples,
+    which fits far worse) must not leave the refit below the current model. The reference is
+    the nesting point's (the added state's initial-value entropy at the smallest time
+    constant), not that of stage 0 at the forged start, whose entropy is ½ log(1/(1 − a²)) =
+    1.7 nats higher. (With a quasi-deterministic lag std relative to the input's size a start
+    at 1 s now recovers by itself: +0.44, no fallback needed.)"""
     import types
 
     from vsidgen.discrepancy import propose
@@ -411,12 +415,20 @@ def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_p
 
     st, info = _fit_rk4_foh_without_lag(tmp_path)
     cand = next(c for c in propose(info) if c.effect == "actuator_lag")
-    forged = types.SimpleNamespace(step={"tau_s": 1.0}, statistic=30.0)
+    forged = types.SimpleNamespace(step={"tau_s": 3.0}, statistic=30.0)
     started = filter_start(cand, forged)
-    assert started.parameters[0].initial == pytest.approx(1.0)
+    assert started.parameters[0].initial == pytest.approx(3.0)
     out = staged_refit(started, st, info, tmp_path / "lag.yaml", "lin1_rk4_bad_start",
                        generated_dir=tmp_path / "gen", max_iter=200)
     d = 2.0 * (out.state.elbo - out.elbo_ref)
     print("bad screen start:", d, out.notes)
     assert any("refitted from the nesting point" in n for n in out.notes), out.notes
     assert d > -0.1, (d, out.notes)
+    # the reference is the nesting point's: the current model plus the entropy of the added
+    # state's initial value at the smallest time constant (a ≈ 0: ½ log(2πe Q), up to
+    # ½ log(1/(1 − a²)) of the RK4 step's small a), not the forged start's (1.7 nats higher)
+    assert out.elbo_ref < st.elbo + out.x0_entropy - 1.0
+    from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD, quasi_stds
+    q = quasi_stds(out.state.model, list(st.records), REFIT_DETERMINISTIC_STD)[-1] ** 2 * DT
+    assert out.elbo_ref == pytest.approx(st.elbo + 0.5 * math.log(2 * math.pi * math.e * q),
+                                         abs=0.2)

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..estimator import WarmStart
-from .refit import REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
+from .refit import REFIT_DETERMINISTIC_REL, REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +75,7 @@ def diag_options(max_iter, **kw):
         left = max(float(d.left()), 0.0)
         given = kw.get("time_limit")
         kw["time_limit"] = left if given is None else min(float(given), left)
+    kw.setdefault("deterministic_input_scale", REFIT_DETERMINISTIC_REL)
     return FitOptions(max_iter=max_iter, deterministic_std=REFIT_DETERMINISTIC_STD, **kw)
 
 

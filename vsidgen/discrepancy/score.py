@@ -103,6 +103,17 @@ from scipy import stats
 from ..estimator.problem import NEGATIVE_CURVATURE_TOL, SCORE_DAMPING
 from ..report import finite_or_none
 from .pvalues import chi2_logsf
+from .refit import REFIT_DETERMINISTIC_REL
+
+
+def _screen_options(det_std: float):
+    """Options of the problems the score statistics are evaluated on: records unpadded, the
+    quasi-deterministic added states with the refits' std (an input's lag or delay state
+    relative to the input's std, :data:`.refit.REFIT_DETERMINISTIC_REL`)."""
+    from ..estimator import FitOptions
+
+    return FitOptions(deterministic_std=det_std, deterministic_input_scale=REFIT_DETERMINISTIC_REL,
+                      bucket=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,11 +355,11 @@ def screen_batch(cands, current, info, path: pathlib.Path, name: str, *, generat
                  det_std: float) -> dict:
     """Score statistics of the candidates of one batch: {key: ScoreResult} (the batch's own
     model and objective: one compilation)."""
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
 
     m, bnames = _batch_model(cands, current, info, path, name, generated_dir=generated_dir)
     # the model's own integrator, sub-steps and input hold; records unpadded
-    P = Problem(m, list(current.records), FitOptions(deterministic_std=det_std, bucket=False))
+    P = Problem(m, list(current.records), _screen_options(det_std))
     return batch_statistics(cands, current, m, P, bnames, det_std=det_std)
 
 
@@ -437,10 +448,10 @@ def blocks_by_hvp(P, current, s, recs, *, det_std: float):
     import jax
     import jax.numpy as jnp
 
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
 
     P0 = Problem(current.model, list(current.records),
-                 FitOptions(deterministic_std=det_std, bucket=False))
+                 _screen_options(det_std))
     lay, lay0 = P.layout, P0.layout
     if ((lay.nx, lay.nq, lay.n_proc, lay.n_meas, lay.lengths)
             != (lay0.nx, lay0.nq, lay0.n_proc, lay0.n_meas, lay0.lengths)
@@ -738,12 +749,12 @@ def screen_shared(groups, current, info, workdir: pathlib.Path, tag: str, name: 
     of :func:`screen_batch` up to rounding. A batch whose model or shared evaluation fails is
     screened on its own by :func:`screen_group` (which splits it once).
     """
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
     from ..estimator.core import SwitchedObjective
     from ..model.dynamics import transition
 
     records = list(current.records)
-    opts = FitOptions(deterministic_std=det_std, bucket=False)
+    opts = _screen_options(det_std)
     out: dict = {}
     built = []          # (batch tag, candidates, model, names, unpadded problem)
     for i, g in enumerate(groups):
@@ -941,7 +952,7 @@ def screen_input_filters(cands, current, *, det_std: float) -> dict:
     profile and the lag refit start) and every S_k in ``profile``. An input the model
     already delays (transport delay), or a failed evaluation, gets ``statistic None`` and a
     note."""
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
     from .base import Candidate, NewParameter
 
     out: dict = {}
@@ -973,7 +984,7 @@ def screen_input_filters(cands, current, *, det_std: float) -> dict:
                         parameters=(NewParameter(g, "1", initial=0.0),)) for g in bank.gates]
     try:
         P = Problem(bank.model, list(bank.records),
-                    FitOptions(deterministic_std=det_std, bucket=False))
+                    _screen_options(det_std))
         res = batch_statistics(pseudo, current, bank.model, P,
                                {p.key: {p.key: p.key} for p in pseudo}, det_std=det_std)
     except _ERRORS as err:
@@ -1183,7 +1194,7 @@ def screen_modes(cands, current, *, det_std: float) -> dict:
     compilation, and the plain-batch statistics (:func:`batch_statistics`, Hessian-vector
     products), one degree of freedom each; ``step`` converts the gate's one-step estimate to
     ``k``."""
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
     from .base import Candidate, NewParameter
 
     out: dict = {}
@@ -1223,7 +1234,7 @@ def screen_modes(cands, current, *, det_std: float) -> dict:
                         parameters=(NewParameter(g, "1", initial=0.0),)) for g in bank.gates]
     try:
         P = Problem(bank.model, list(bank.records),
-                    FitOptions(deterministic_std=det_std, bucket=False))
+                    _screen_options(det_std))
         res = batch_statistics(pseudo, current, bank.model, P,
                                {p.key: {p.key: p.key} for p in pseudo}, det_std=det_std)
     except _ERRORS as err:
@@ -1350,7 +1361,7 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
     ``step`` holds the start of the refit: ``X_V`` and ``X_α`` (flat at the nesting point, so
     the refit still starts exactly at the current model) — the speed refit started at X_V = X_α
     = 0 stalled far below its optimum on a short-period model of the real HFB-320 record."""
-    from ..estimator import FitOptions, Problem
+    from ..estimator import Problem
     from .base import Candidate, NewParameter
 
     out: dict = {}
@@ -1390,7 +1401,7 @@ def screen_speed(cands, current, *, det_std: float) -> dict:
                                 parameters=tuple(NewParameter(g, "1", initial=0.0) for g in gs)))
     try:
         P = Problem(bank.model, list(bank.records),
-                    FitOptions(deterministic_std=det_std, bucket=False))
+                    _screen_options(det_std))
         res = batch_statistics(pseudo, current, bank.model, P,
                                {p.key: {q.name: q.name for q in p.parameters} for p in pseudo},
                                det_std=det_std)

@@ -308,6 +308,14 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             out.x0_entropy = H0
             out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
                                current.elbo + H0)
+            if profile:
+                # stage 0 ran at the screen's time constant, which is not the nesting point:
+                # the nested reference is the current model with the added states' copies at
+                # the nesting values, whose initial-value entropy ½ log(2πe Q/(1 − a²)) differs
+                # by −½ log(1 − a²) (a lag of 3 s at 20 Hz: 1.7 nats, by which the refit from
+                # the nesting point appeared to end below its reference)
+                out.elbo_ref = current.elbo + stage0_start(
+                    m2, records, base_fit, current.model, _nesting_theta(c, m2, theta2), DET)[3]
             decision0 = r0.decision
             out.warm = "stage0"
         except (FitError, ValueError, ArithmeticError, np.linalg.LinAlgError) as err:
@@ -354,11 +362,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
         # ATTAS roll model the aileron lag held there fitted 878 nats below the current model
         # and stage 2 stayed in that basin, 2ΔELBO -1515): refit from the nesting point as a
         # candidate without a screen start would be, and keep the better
-        names = list(m2.parameter_names)
-        theta_nest = np.asarray(theta2, float).copy()
-        for p in c.parameters:
-            if p.name in names and p.lower is not None:
-                theta_nest[names.index(p.name)] = float(p.lower)
+        theta_nest = _nesting_theta(c, m2, theta2)
         from ..estimator.core import ThetaMap
         tm = ThetaMap(m2.parameters, values=theta_nest)
         z_nest = tm.z0
@@ -385,6 +389,17 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
         out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
     out.state = st
     out.wall_s = time.perf_counter() - t0
+    return out
+
+
+def _nesting_theta(c: Candidate, model, theta) -> np.ndarray:
+    """``theta`` (all parameters of ``model``) with ``c``'s new parameters at their nesting
+    values, the lower ends of their ranges (an input filter's smallest time constant)."""
+    names = list(model.parameter_names)
+    out = np.asarray(theta, float).copy()
+    for p in c.parameters:
+        if p.name in names and p.lower is not None:
+            out[names.index(p.name)] = float(p.lower)
     return out
 
 

@@ -52,7 +52,8 @@ from ..model.dynamics import input_hold as transition_input_hold
 from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
-from .core import NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective, make_cfg, record_data
+from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective,
+                   input_filter_scales, make_cfg, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -565,7 +566,12 @@ class Problem:
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         #: {state index: DirectMeasurement} of the model (:func:`direct_measurements`)
         self.direct = direct_measurements(model)
-        self.nm = NoiseMap(model, self.records, deterministic_std=options.deterministic_std,
+        det = options.deterministic_std
+        if options.deterministic_input_scale is not None:
+            sc = input_filter_scales(model, self.records)
+            det = np.where(sc > 0, float(options.deterministic_input_scale) * sc,
+                           np.broadcast_to(np.asarray(det, float), sc.shape))
+        self.nm = NoiseMap(model, self.records, deterministic_std=det,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=self.direct, relax=relax,
                            hold=hold)
         self.cfg = self._make_cfg()

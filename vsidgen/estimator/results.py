@@ -214,6 +214,11 @@ class FitOptions:
             than ``limit_tol`` standard errors; see docs/estimator.md). "quasi": a fixed
             std ``deterministic_std`` (the diagnose refits' added states use this).
         deterministic_std: std (state unit/√s) of the deterministic states in "quasi" mode.
+        deterministic_input_scale: None (default) or a factor: a deterministic state that
+            carries an input (its unit, a drift depending on it: a lag or delay state,
+            :func:`vsidgen.estimator.core.input_filter_scales`) gets the std
+            ``deterministic_input_scale · std(u)`` per √s instead of ``deterministic_std``,
+            scale-free in the unit the input is recorded in (the diagnose refits set it).
         limit_tol: stopping tolerance of the deterministic limit, in nats for the ELBO
             and in standard errors for the parameters (per stage change).
         decrement_tol: convergence tolerance in nats on half the Newton decrement,
@@ -296,6 +301,7 @@ class FitOptions:
     verbose: bool = False
     deterministic: str = "limit"
     deterministic_std: float = 1e-6
+    deterministic_input_scale: float | None = None
     limit_tol: float = 0.1
     xtol: float = 1e-13
     negative_curvature: bool = True
