@@ -129,3 +129,39 @@ def test_states_the_outputs_determine_are_not_held_by_the_release_start(tmp_path
     assert "alpha" not in no_alpha
     _, P2, _, _ = _problem(tmp_path, no_alpha, "body_v")
     assert P2.output_solved == frozenset()
+
+
+def test_a_gust_beside_the_body_velocity_leaves_u_solved(tmp_path):
+    """A user's gust state W in the air-relative velocity (α = atan2(w − W, u)): the outputs
+    see w − W only, so w and W are not determined, but u still is — it starts at V cos α
+    (the inversion written by hand), not at 0, where the airspeed vanishes and the
+    fit stopped before its first iteration ("gradient is not finite"). w and W keep their
+    start, and only u counts as solved."""
+    gust = (BODY_AXES.replace("name: body_axes", "name: body_gust")
+            .replace("  lag: {unit: rad, description: a state no output sees}\n",
+                     "  lag: {unit: rad, description: a state no output sees}\n"
+                     "  W: {unit: m/s, description: vertical gust}\n")
+            .replace("  Vt: sqrt(u**2 + w**2)\n  a: atan2(w, u)\n",
+                     "  Vt: sqrt(u**2 + (w - W)**2)\n  a: atan2(w - W, u)\n")
+            .replace("  lag: 10*(de - lag)\n", "  lag: 10*(de - lag)\n  W: -W/0.5\n")
+            .replace("process: {states: [u, w, q, theta]}", "process: {states: [u, w, q, theta, W]}"))
+    assert "atan2(w - W, u)" in gust and "  W: -W/0.5" in gust
+    model, P, V, alpha = _problem(tmp_path, gust, "gust")
+    s, [(mu, r)] = P.initial(FitOptions())
+    names = list(model.state_names)
+    ok = np.isfinite(alpha)
+    np.testing.assert_allclose(mu[ok, names.index("u")], (V * np.cos(alpha))[ok], rtol=1e-7)
+    assert np.all(mu[:, names.index("w")] == 0.0) and np.all(mu[:, names.index("W")] == 0.0)
+    assert {names[i] for i in P.output_solved} == {"u"}
+    assert np.isfinite(P.value(s, [(mu, r)]))
+
+
+def test_determined_columns_reads_the_null_space():
+    from vsidgen.estimator.problem import _determined_columns
+
+    J = np.array([[[1.0, 0.0, 0.0], [0.0, 1.0, -1.0]],       # u; w − W
+                  [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])       # u; w (W unseen)
+    d = _determined_columns(J)
+    assert d.tolist() == [[True, False, False], [True, True, False]]
+    full = _determined_columns(np.eye(3)[None])
+    assert full.tolist() == [[True, True, True]]

@@ -364,19 +364,45 @@ def invert_outputs(model, rec, mu, measured, theta) -> tuple[np.ndarray, tuple[i
     # symmetric start would put them at 45°
     _, J = h_and_jacobian(xf)
     J = np.where(np.isfinite(J), J, 0.0)[:, :, dep] * np.sqrt(w)[:, :, None]
-    sv = np.linalg.svd(J, compute_uv=False)          # (N, min(ny, nd)), descending
-    determined = (sv.shape[1] == nd) & (sv[:, -1] > 1e-8 * np.maximum(sv[:, 0], 1e-300))
-    use = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1) & determined
-    if not use.any():
-        return mu, ()
+    determined = _determined_columns(J)               # (N, nd): per sample and state
+    good = np.isfinite(c) & (c < c_start) & np.isfinite(xf).all(axis=1)
     out_mu = np.array(mu, float)
     k = np.arange(y.shape[0])
-    for a, col in zip(np.nonzero(dep)[0], fi[dep]):
-        # samples the outputs do not determine (a missing α): interpolated between the
-        # determined ones, as a measured state's missing samples (:func:`initial_means`)
+    solved = []
+    for j, (a, col) in enumerate(zip(np.nonzero(dep)[0], fi[dep])):
+        # per state: a state the outputs determine (u through V and α) even where others
+        # are not (a gust W beside w: only w − W is seen) is solved there; samples that do
+        # not determine it (a missing α) are interpolated between those that do, as a
+        # measured state's missing samples (:func:`initial_means`); a state determined
+        # nowhere keeps its start
+        use = good & determined[:, j]
+        if not use.any():
+            continue
         out_mu[:, col] = np.interp(k, k[use], xf[use, a])
-    solved = tuple(int(i) for i in fi[dep]) if np.mean(determined) >= SOLVED_SHARE else ()
-    return out_mu, solved
+        if np.mean(determined[:, j]) >= SOLVED_SHARE:
+            solved.append(int(col))
+    if not (good[:, None] & determined).any():
+        return mu, ()
+    return out_mu, tuple(solved)
+
+
+def _determined_columns(J: np.ndarray, rtol: float = 1e-8) -> np.ndarray:
+    """Per sample (rows of ``J``, (N, m, n)) and column: whether the column's variable is
+    determined by the linearised equations, i.e. has no component in the null space of
+    ``J[k]`` (singular values below ``rtol`` times the largest count as zero). With full
+    column rank every variable is; with V = √(u² + w²) alone neither u nor w is; with u, w and
+    a gust W seen only through w − W, u is and w, W are not."""
+    N, m, n = J.shape
+    out = np.zeros((N, n), bool)
+    if N == 0 or n == 0:
+        return out
+    _, sv, Vt = np.linalg.svd(J, full_matrices=True)   # Vt: (N, n, n)
+    s0 = np.maximum(sv[:, :1], 1e-300) if sv.shape[1] else np.ones((N, 1))
+    rank = np.sum(sv > rtol * s0, axis=1) if sv.shape[1] else np.zeros(N, int)
+    for kk in range(N):
+        null = Vt[kk, rank[kk]:, :]                    # rows span the null space
+        out[kk] = ~np.any(np.abs(null) > 1e-6, axis=0) if null.size else True
+    return out
 
 
 def _check_records(model, records):
