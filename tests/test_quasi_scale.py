@@ -100,3 +100,18 @@ def test_refit_problem_std_is_scale_free(tmp_path):
         assert np.asarray(P0.nm.det)[2] == REFIT_DETERMINISTIC_STD
     assert dets[0] == pytest.approx(1000.0 * dets[1], rel=1e-9)
     assert dets[0] > 10.0          # ~0.07 × 700 N, not 1e-3 N
+
+
+def test_a_state_driven_by_a_control_is_not_an_input_filter(tmp_path):
+    """α̇ = Z_α α + Z_δe δe has δe's unit and depends on it, but is not a filter of δe (its
+    drift is not driven by δe − α): it keeps the absolute std; the lag state is tagged."""
+    spec = tmp_path / "sp.yaml"
+    spec.write_text(SPEC.format(tag="sp", unit="N", mt=1e-5)
+                    .replace("  q: {unit: rad/s}\n", "  q: {unit: rad/s}\n  alpha: {unit: rad}\n", 1)
+                    .replace("  theta: q\n", "  theta: q\n  alpha: q - 0.8*alpha - 0.1*de\n"))
+    m = load_model(spec, generated_dir=tmp_path / "gen_sp")
+    assert "alpha" in m.state_names
+    sc = input_filter_scales(m, [_record(1.0)])
+    names = list(m.state_names)
+    assert sc[names.index("alpha")] == 0.0
+    assert sc[names.index("T_lag")] > 0.0

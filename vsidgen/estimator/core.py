@@ -226,9 +226,10 @@ def input_filter_scales(model, records) -> np.ndarray:
     """Per state (nx,), the std of the input the state carries, pooled over ``records``
     (each record about its own mean); 0 for a state that carries none.
 
-    A state *carries* input ``u`` when it has ``u``'s unit and its drift depends on ``u`` (in
-    the model's symbolic form): a lag, a Padé delay or an actuator state of ``u``, whose
-    values are of ``u``'s size. The std of a quasi-deterministic such state's process
+    A state ``z`` *carries* input ``u`` when it has ``u``'s unit and its drift is driven by
+    the difference of the two, ``∂f_z/∂u = −∂f_z/∂z ≠ 0`` (in the model's symbolic form): a
+    lag ``(u − z)/τ``, a Padé delay ``2(u − z)/τ`` or an actuator state of ``u``, whose values
+    are of ``u``'s size. (A flow angle driven by a control, ``α̇ = Z_α α + Z_δe δe``, is not.) The std of a quasi-deterministic such state's process
     noise is then set relative to this scale (``FitOptions.deterministic_input_scale``), so
     that it does not depend on the unit the input is recorded in: an absolute 1e-3 is 7 %
     of an elevator's std in rad per √s but 1e-6 of an engine thrust's in N, which left the
@@ -252,7 +253,8 @@ def input_filter_scales(model, records) -> np.ndarray:
             continue
         free = getattr(drift[i], "free_symbols", set())
         for j, (v, us) in enumerate(zip(model.inputs, u_syms)):
-            if units.get(v.name) != su or us not in free:
+            if units.get(v.name) != su or us not in free \
+                    or not _driven_by_difference(drift[i], us, sym.state_symbols[i]):
                 continue
             cols = [np.asarray(r.u, float)[:, j] for r in records]
             cols = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols
@@ -262,6 +264,17 @@ def input_filter_scales(model, records) -> np.ndarray:
                 if math.isfinite(sd):
                     out[i] = max(out[i], sd)
     return out
+
+
+def _driven_by_difference(f, u, z) -> bool:
+    """``∂f/∂u = −∂f/∂z ≠ 0``: ``f`` depends on ``u`` and ``z`` through ``u − z`` (sympy)."""
+    import sympy
+
+    try:
+        du = sympy.diff(f, u)
+        return du != 0 and sympy.simplify(du + sympy.diff(f, z)) == 0
+    except (TypeError, ValueError, AttributeError):
+        return False
 
 
 class NoiseMap:
