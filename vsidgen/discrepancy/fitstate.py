@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from ..estimator import WarmStart
-from .refit import REFIT_DETERMINISTIC_REL, REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start
+from .refit import (REFIT_DETERMINISTIC_REL, REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds,
+                    parameter_start)
 
 
 @dataclasses.dataclass(frozen=True)

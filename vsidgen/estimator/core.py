@@ -229,8 +229,8 @@ def input_filter_scales(model, records) -> np.ndarray:
     A state ``z`` *carries* input ``u`` when it has ``u``'s unit and its drift is driven by
     the difference of the two, ``∂f_z/∂u = −∂f_z/∂z ≠ 0`` (in the model's symbolic form): a
     lag ``(u − z)/τ``, a Padé delay ``2(u − z)/τ`` or an actuator state of ``u``, whose values
-    are of ``u``'s size. (A flow angle driven by a control, ``α̇ = Z_α α + Z_δe δe``, is not.) The std of a quasi-deterministic such state's process
-    noise is then set relative to this scale (``FitOptions.deterministic_input_scale``), so
+    are of ``u``'s size. (A flow angle driven by a control, ``α̇ = Z_α α + Z_δe δe``, is not.)
+    The std of a quasi-deterministic such state's process noise is then set relative to this scale (``FitOptions.deterministic_input_scale``), so
     that it does not depend on the unit the input is recorded in: an absolute 1e-3 is 7 %
     of an elevator's std in rad per √s but 1e-6 of an engine thrust's in N, which left the
     assumed density of a thrust lag so ill-conditioned that its refit stopped at the
