@@ -65,13 +65,11 @@ REFIT_DETERMINISTIC_REL = 0.07
 def quasi_stds(model, records, det_std) -> np.ndarray:
     """Per state of ``model``: the std (state unit/√s) a quasi-deterministic state has in the
     refits — ``REFIT_DETERMINISTIC_REL × std(u)`` for a state carrying input ``u``,
-    ``det_std`` for any other (as :class:`~vsidgen.estimator.Problem` sets it with
+    ``det_std`` for any other (what :class:`~vsidgen.estimator.Problem` sets with
     ``deterministic_input_scale``)."""
-    from ..estimator.core import input_filter_scales
+    from ..estimator.core import quasi_deterministic_stds
 
-    sc = input_filter_scales(model, records)
-    return np.where(sc > 0, REFIT_DETERMINISTIC_REL * sc,
-                    np.broadcast_to(np.asarray(det_std, float), sc.shape))
+    return quasi_deterministic_stds(model, records, det_std, REFIT_DETERMINISTIC_REL)
 
 
 class RefitVerdict(str, enum.Enum):

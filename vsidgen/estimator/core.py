@@ -34,6 +34,7 @@ from __future__ import annotations
 import collections
 import functools
 import math
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -236,34 +237,65 @@ def input_filter_scales(model, records) -> np.ndarray:
     assumed density of a thrust lag so ill-conditioned that its refit stopped at the
     iteration limit (hfb_thrust_lag_0.5_s0: 800 iterations, 487 s, not converged; scaled,
     converged in 140 s). 0 everywhere for a model without a symbolic form."""
-    nx = len(model.state_names)
-    out = np.zeros(nx)
+    out = np.zeros(len(model.state_names))
+    for i, j in _carried_inputs(model):
+        cols = [np.asarray(r.u, float)[:, j] for r in records]
+        cols = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols
+                if np.isfinite(c).any()]
+        if cols:
+            sd = float(np.sqrt(np.mean(np.concatenate(cols) ** 2)))
+            if math.isfinite(sd):
+                out[i] = max(out[i], sd)
+    return out
+
+
+def quasi_deterministic_stds(model, records, det_std, input_scale: float | None) -> np.ndarray:
+    """Per state, the fixed std of a quasi-deterministic state: ``input_scale · std(u)`` for a
+    state carrying input ``u`` (:func:`input_filter_scales`) when ``input_scale`` is given,
+    ``det_std`` (a scalar or per state) otherwise (``FitOptions.deterministic_input_scale``)."""
+    det = np.broadcast_to(np.asarray(det_std, float), (len(model.state_names),))
+    if input_scale is None:
+        return det.copy()
+    sc = input_filter_scales(model, records)
+    return np.where(sc > 0, float(input_scale) * sc, det)
+
+
+#: (state index, input index) pairs of the states that carry an input, per symbolic model
+#: (:func:`_carried_inputs`; symbolic work done once per model, not per problem)
+_CARRIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _carried_inputs(model) -> tuple[tuple[int, int], ...]:
+    """(state, input) index pairs where the state carries the input (same unit, drift driven
+    by their difference); () for a model without a symbolic form."""
     sym = getattr(model, "symbolic", None)
     if sym is None:
-        return out
+        return ()
+    try:
+        return _CARRIED[sym]
+    except (KeyError, TypeError):
+        pass
     try:
         drift = sym.drift_expanded()
         u_syms = tuple(sym.input_symbols)
     except (AttributeError, TypeError):
-        return out
+        return ()
     units = {v.name: (v.unit or "").replace(" ", "") for v in model.inputs}
+    pairs = []
     for i, st in enumerate(model.states):
         su = (st.unit or "").replace(" ", "")
         if not su or i >= len(drift):
             continue
         free = getattr(drift[i], "free_symbols", set())
         for j, (v, us) in enumerate(zip(model.inputs, u_syms)):
-            if units.get(v.name) != su or us not in free \
-                    or not _driven_by_difference(drift[i], us, sym.state_symbols[i]):
-                continue
-            cols = [np.asarray(r.u, float)[:, j] for r in records]
-            cols = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols
-                    if np.isfinite(c).any()]
-            if cols:
-                sd = float(np.sqrt(np.mean(np.concatenate(cols) ** 2)))
-                if math.isfinite(sd):
-                    out[i] = max(out[i], sd)
-    return out
+            if units.get(v.name) == su and us in free \
+                    and _driven_by_difference(drift[i], us, sym.state_symbols[i]):
+                pairs.append((i, j))
+    try:
+        _CARRIED[sym] = tuple(pairs)
+    except TypeError:              # not weakly referenceable: computed again next time
+        pass
+    return tuple(pairs)
 
 
 def _driven_by_difference(f, u, z) -> bool:

@@ -53,7 +53,7 @@ from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
 from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective,
-                   input_filter_scales, make_cfg, record_data)
+                   make_cfg, quasi_deterministic_stds, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -392,17 +392,13 @@ def _determined_columns(J: np.ndarray, rtol: float = 1e-8) -> np.ndarray:
     ``J[k]`` (singular values below ``rtol`` times the largest count as zero). With full
     column rank every variable is; with V = √(u² + w²) alone neither u nor w is; with u, w and
     a gust W seen only through w − W, u is and w, W are not."""
-    N, m, n = J.shape
-    out = np.zeros((N, n), bool)
+    N, _, n = J.shape
     if N == 0 or n == 0:
-        return out
-    _, sv, Vt = np.linalg.svd(J, full_matrices=True)   # Vt: (N, n, n)
-    s0 = np.maximum(sv[:, :1], 1e-300) if sv.shape[1] else np.ones((N, 1))
-    rank = np.sum(sv > rtol * s0, axis=1) if sv.shape[1] else np.zeros(N, int)
-    for kk in range(N):
-        null = Vt[kk, rank[kk]:, :]                    # rows span the null space
-        out[kk] = ~np.any(np.abs(null) > 1e-6, axis=0) if null.size else True
-    return out
+        return np.zeros((N, n), bool)
+    _, sv, Vt = np.linalg.svd(J, full_matrices=True)   # Vt: (N, n, n), rows by sv
+    rank = np.sum(sv > rtol * np.maximum(sv[:, :1], 1e-300), axis=1)
+    null = np.arange(n)[None, :, None] >= rank[:, None, None]   # rows spanning the null space
+    return ~np.any(null & (np.abs(Vt) > 1e-6), axis=1)
 
 
 def _check_records(model, records):
@@ -592,11 +588,8 @@ class Problem:
         self.tm = ThetaMap(model.parameters, fixed_all=theta_fixed is not None, values=theta_fixed)
         #: {state index: DirectMeasurement} of the model (:func:`direct_measurements`)
         self.direct = direct_measurements(model)
-        det = options.deterministic_std
-        if options.deterministic_input_scale is not None:
-            sc = input_filter_scales(model, self.records)
-            det = np.where(sc > 0, float(options.deterministic_input_scale) * sc,
-                           np.broadcast_to(np.asarray(det, float), sc.shape))
+        det = quasi_deterministic_stds(model, self.records, options.deterministic_std,
+                                       options.deterministic_input_scale)
         self.nm = NoiseMap(model, self.records, deterministic_std=det,
                            fixed_G=fixed_G, fixed_R=fixed_R, state_outputs=self.direct, relax=relax,
                            hold=hold)
