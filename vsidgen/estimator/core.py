@@ -261,8 +261,9 @@ def quasi_deterministic_stds(model, records, det_std, input_scale: float | None)
 
 
 #: (state index, input index) pairs of the states that carry an input, per symbolic model
-#: (:func:`_carried_inputs`; symbolic work done once per model, not per problem)
-_CARRIED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+#: (:func:`_carried_inputs`; symbolic work done once per model, not per problem): id of the
+#: symbolic form → (weak reference to it, pairs); the symbolic form is not hashable
+_CARRIED: dict = {}
 
 
 def _carried_inputs(model) -> tuple[tuple[int, int], ...]:
@@ -271,10 +272,9 @@ def _carried_inputs(model) -> tuple[tuple[int, int], ...]:
     sym = getattr(model, "symbolic", None)
     if sym is None:
         return ()
-    try:
-        return _CARRIED[sym]
-    except (KeyError, TypeError):
-        pass
+    hit = _CARRIED.get(id(sym))
+    if hit is not None and hit[0]() is sym:
+        return hit[1]
     try:
         drift = sym.drift_expanded()
         u_syms = tuple(sym.input_symbols)
@@ -292,7 +292,8 @@ def _carried_inputs(model) -> tuple[tuple[int, int], ...]:
                     and _driven_by_difference(drift[i], us, sym.state_symbols[i]):
                 pairs.append((i, j))
     try:
-        _CARRIED[sym] = tuple(pairs)
+        ref = weakref.ref(sym, lambda _, k=id(sym): _CARRIED.pop(k, None))
+        _CARRIED[id(sym)] = (ref, tuple(pairs))
     except TypeError:              # not weakly referenceable: computed again next time
         pass
     return tuple(pairs)
