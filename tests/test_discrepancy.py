@@ -937,7 +937,7 @@ def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(
         return dataclasses.replace(t, statistic=t.statistic + 500.0)
 
     monkeypatch.setattr(search, "lag_hold", fake_hold)
-    run = types.SimpleNamespace(past_deadline=lambda: False)
+    run = types.SimpleNamespace(past_deadline=lambda: False, alpha=0.01)
     lag = trial("actuator_lag:de", "lag", "de", 19049.83, x0=-6.9)
     delay = trial("transport_delay:de", "delay", "de", 19211.02)
     out = search._lags_with_their_hold(run, [lag, delay], current, 1)
@@ -949,6 +949,9 @@ def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(
     leading = trial("actuator_lag:de", "lag", "de", 19400.0, x0=-6.9)
     assert search._lags_with_their_hold(run, [leading, delay], current, 1) == [leading, delay]
     assert called == []
+    # neither significant (the real HFB-320 record: lag 1.2, Padé delay 1.2): nothing to decide
+    weak = [dataclasses.replace(t, p_value=0.3) for t in (lag, delay)]
+    assert search._lags_with_their_hold(run, weak, current, 1) == weak and called == []
 
 
 def test_a_significant_refit_stopped_at_its_limit_with_a_definite_hessian_is_decided():

@@ -456,7 +456,7 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         obs_txt[v.name] = spec_text(e) or spec_text(obs_exp[i])
     pnames = {p.name for p in sym.parameters}
     pn = sym.process_noise
-    pstates = tuple(pn.states) if pn is not None and pn.states else tuple(v.name for v in states)
+    pstates = tuple(pn.states) if pn is not None else tuple(v.name for v in states)
     return ModelInfo(
         spec_path=pathlib.Path(spec_path), name=sym.name, states=states,
         inputs=_vars(sym.inputs), outputs=outputs,
@@ -645,7 +645,11 @@ class Candidate:
         if adds:
             d["add_terms"] = adds
         noisy = [s.name for s in self.states if s.process_noise]
-        if noisy:
+        if self.states:
+            # always explicit: a spec without a noise section gives every state process
+            # noise, the added ones too (on the real HFB-320 record a lag state with free,
+            # correlated process noise became a coloured-noise channel: 2ΔELBO 151.7 with
+            # its time constant at the lower bound, no lag)
             base_states = list(info.process_states) if info is not None else []
             d["noise"] = {"process": {"states": base_states + noisy}}
         return d

@@ -236,13 +236,22 @@ def stage1_iterations(max_iter: int) -> int:
 
 
 def warm_start_from(m, records, source: FitState) -> WarmStart:
-    """The start of a fit of model ``m`` (same state layout as ``source``'s) on ``records``:
-    ``m``'s parameter initial values, ``source``'s noise and assumed density."""
+    """The start of a fit of model ``m`` on ``records``: ``m``'s parameter initial values,
+    ``source``'s noise and assumed density (the same states, or a superset of ``m``'s: a
+    candidate that added states, its density restricted to ``m``'s states,
+    :func:`.refit.restrict_decision`)."""
+    from .refit import restrict_decision
+
     z, _ = parameter_start(m)
     ps, od, ms = noise_stds(source.fit, source.model)
+    ps = {k: v for k, v in ps.items() if k in m.state_names}
+    od = {k: v for k, v in od.items() if k[0] in m.state_names and k[1] in m.state_names}
     s0 = np.concatenate([z, noise_parameters(m, records, REFIT_DETERMINISTIC_STD, proc_std=ps,
                                              proc_G=od, meas_std=ms)])
-    return WarmStart.from_decision({"s": s0, "records": source.fit.decision["records"]})
+    recs = source.fit.decision["records"]
+    if list(source.model.state_names) != list(m.state_names):
+        recs = restrict_decision(recs, source.model.state_names, m.state_names)
+    return WarmStart.from_decision({"s": s0, "records": recs})
 
 
 def refit_warm(path: pathlib.Path, source: FitState, current: FitState, *, generated_dir,

@@ -206,6 +206,40 @@ def _embed_r(r0, n0, n1, base_idx, new_idx, d_new, c_new):
     return join_density(d1, L1, C1)
 
 
+def restrict_density(r, names_from, names_to) -> np.ndarray:
+    """Assumed-density parameters r of the states ``names_from`` restricted to ``names_to``
+    (a subset): the marginal Σ_m and the lag-one cross covariance cov(x_{k+1}, x_k) = C S_mᵀ
+    of the kept states exactly (their sub-blocks), C' = cov' S_m'^{-T} and
+    Σ_cond' = Σ_m' − C'C'ᵀ (the Schur complement of a sub-block of a positive-definite joint
+    covariance, hence positive definite). The kept states' path is not Markov in general;
+    this is the stationary Markov density with the same marginal and lag-one moments."""
+    from ..estimator import join_density, split_density
+
+    names_from = list(names_from)
+    n = len(names_from)
+    idx = np.asarray([names_from.index(k) for k in names_to], int)
+    d, L, C = split_density(r, n)
+    Sc = L * np.exp(0.5 * d)[None, :]
+    Sm_full = Sc @ Sc.T + C @ C.T
+    cross = C @ np.linalg.cholesky(Sm_full).T
+    Sm = Sm_full[np.ix_(idx, idx)]
+    cr = cross[np.ix_(idx, idx)]
+    Lm = np.linalg.cholesky(Sm)
+    C1 = np.linalg.solve(Lm, cr.T).T                     # cr Lm^{-T}
+    Lc = np.linalg.cholesky(Sm - C1 @ C1.T)
+    dg = np.diag(Lc)
+    return join_density(2.0 * np.log(dg), Lc / dg[None, :], C1)
+
+
+def restrict_decision(decision_records, names_from, names_to) -> list[dict]:
+    """Per-record ``{"mu", "r"}`` of an assumed density over ``names_from`` restricted to
+    the states ``names_to`` (means: their columns; covariances: :func:`restrict_density`)."""
+    names_from = list(names_from)
+    idx = [names_from.index(k) for k in names_to]
+    return [{"mu": np.asarray(d["mu"], float)[:, idx],
+             "r": restrict_density(d["r"], names_from, names_to)} for d in decision_records]
+
+
 def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     """Warm-start decision of the candidate at its nesting point (see module docstring).
 
