@@ -48,9 +48,14 @@ data:
 """
 
 
-def _candidates(tmp_path: pathlib.Path, noise: str, effects=("actuator_lag", "control_delay")):
+def _write(tmp_path: pathlib.Path, noise: str = "") -> pathlib.Path:
     base = tmp_path / "base.yaml"
     base.write_text(SPEC + textwrap.dedent(noise))
+    return base
+
+
+def _candidates(tmp_path: pathlib.Path, noise: str, effects=("actuator_lag", "control_delay")):
+    base = _write(tmp_path, noise)
     info = model_info(base, dt=DT)
     out = []
     for c in propose(info):
@@ -103,3 +108,20 @@ def test_pade_delay_state_is_the_exact_held_step_response(tmp_path):
     theta[names.index(tau_name)] = c.parameters[0].lower
     f = np.asarray(m.drift(np.array([0.0, 0.0, 0.3]), np.array([1.0]), theta), float)
     assert f[0] == pytest.approx(1.0, abs=0.02)        # 1 % of z − u at the bound
+
+
+def test_continuous_pade_delay_bounds(tmp_path):
+    """The continuous Padé form refitted after acceptance (:func:`lag_hold`): ż = 2(u − z)/τ,
+    stable under RK4 for 2h/τ ≤ 2.785 and under Euler for 2h/τ ≤ 2 (its bound: 0.8 and 2
+    steps)."""
+    import dataclasses
+
+    from vsidgen.discrepancy.catalogue import ContinuousControlDelay
+
+    info = model_info(_write(tmp_path), dt=DT)
+    for integrator, steps in (("rk4", 0.8), ("euler", 2.0)):
+        i2 = dataclasses.replace(info, integrator=integrator)
+        (c,) = ContinuousControlDelay().applies_to(i2)
+        assert c.parameters[0].lower == pytest.approx(steps * DT)
+        assert 2.0 * DT / c.parameters[0].lower <= (2.785 if integrator == "rk4" else 2.0)
+        assert c.states[0].drift.replace(" ", "") == f"2*(de-{c.states[0].name})/{c.parameters[0].name}"

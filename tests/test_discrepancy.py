@@ -949,6 +949,12 @@ def test_a_lag_outranked_by_a_delay_of_its_input_gets_its_hold_comparison_first(
     leading = trial("actuator_lag:de", "lag", "de", 19400.0, x0=-6.9)
     assert search._lags_with_their_hold(run, [leading, delay], current, 1) == [leading, delay]
     assert called == []
+    # a Padé delay is a held-step filter like the lag: outranked by the transport delay of its
+    # input, it is refitted in its continuous form before the round decides
+    pade = trial("control_delay:de", "pade", "de", 19049.83, x0=-6.9)
+    search._lags_with_their_hold(run, [pade, delay], current, 1)
+    assert called == ["control_delay:de"]
+    called.clear()
     # neither significant (the real HFB-320 record: lag 1.2, Padé delay 1.2): nothing to decide
     weak = [dataclasses.replace(t, p_value=0.3) for t in (lag, delay)]
     assert search._lags_with_their_hold(run, weak, current, 1) == weak and called == []

@@ -704,6 +704,24 @@ class ControlDelay(_InputDynamics):
         return LAG_MIN_FRACTION * _lag_step(info)
 
 
+class ContinuousControlDelay(ControlDelay):
+    """The first-order Padé delay in its continuous form ``ż = 2(u − z)/τ``, the model seeing
+    ``2z − u``: exact under an accurate integration (RK4 with a first-order hold).
+    :func:`.search.lag_hold` refits an accepted Padé delay in this form, as it does a lag; not
+    in the catalogue (it does not nest the current model: RK4 integrates it stably only for
+    ``2h/τ ≤ 2.785``)."""
+
+    def pieces(self, info, u, z, tau):
+        return {"coupling": f"(2*{z} - {u})", "drift": f"2*({u} - {z})/{tau}",
+                "param_doc": f"time delay of {u}", "state_doc": f"Padé state of the delayed {u}",
+                "explain": {}}
+
+    def lower_bound(self, info) -> float:
+        """Twice the continuous lag's bound (the Padé state is a lag of τ/2): under RK4
+        ``2 · RK4_LAG_MIN_STEPS`` of a step, under Euler two steps."""
+        return 2.0 * ContinuousActuatorLag.lower_bound(self, info)
+
+
 @register_effect
 class TransportDelay(Effect):
     id = "transport_delay"

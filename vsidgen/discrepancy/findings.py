@@ -81,7 +81,7 @@ def _params(c, st) -> dict:
                               "input_hold": delay.get("input_hold")}
     near = {n for f in getattr(st.fit, "std_error_flags", ()) or ()
             if f.issue is StdErrorIssue.AT_BOUND for n in f.parameters}
-    lag = (c.info or {}).get("filter") == "lag"
+    lag = (c.info or {}).get("filter") in ("lag", "pade")
     for k, p in enumerate(c.parameters):
         if p.name not in names:
             continue
@@ -101,6 +101,7 @@ def _params(c, st) -> dict:
             # a lag of an input the model holds over each sample acts on an input already
             # delayed by the hold (half a sample, delay.hold_lag): to first order in s,
             # e^{-sT/2}/(1 + sτ̂) = 1/(1 + s(τ̂ + T/2)), so the physical time constant is τ̂ + T/2
+            # (a Padé delay likewise: e^{-sT/2}·e^{-sτ̂} = e^{-s(τ̂ + T/2)})
             hl = hold_lag(st.model, float(np.median([r.dt for r in st.records])))
             ent.update(estimate=_f(est + hl), spec_value=_f(est), hold_lag=_f(hl),
                        input_hold=getattr(st.model, "input_hold", "zoh") or "zoh")

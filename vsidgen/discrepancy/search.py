@@ -2021,13 +2021,18 @@ def _accept(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, info: Mo
         run.say(f"    {best.candidate.key} as its own spec: ELBO "
                 f"{own.elbo:.6g} (gated fit {best.state.elbo:.6g})")
         best = dataclasses.replace(best, state=own)
-    if ((best.candidate.info or {}).get("filter") == "lag" and best.state is not None
+    if ((best.candidate.info or {}).get("filter") in HOLD_FILTERS and best.state is not None
             and "hold_comparison" not in (best.candidate.info or {})):
         best = lag_hold(run, best, st.current, f"{_round_name(st.current, rnd, 0)}_hold")
     st.accepted.append((best, st.current, st.evidence))
     st.current = best.state
     st.evidence = locate_state(st.current)
     _checkpoint(run, st, StopReason.RUNNING)
+
+
+#: input filters whose candidate is the exact discretisation of a held step and that are
+#: refitted in their continuous form under RK4 with a first-order hold (:func:`lag_hold`)
+HOLD_FILTERS = ("lag", "pade")
 
 
 def _lag_setting_task(c, base, lagged, setting, path, name, generated_dir, max_iter):
@@ -2052,7 +2057,9 @@ def _lag_setting_task(c, base, lagged, setting, path, name, generated_dir, max_i
 
 
 def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
-    """An accepted actuator lag refitted under an accurate discretisation of its input.
+    """An accepted actuator lag (or Padé delay, a lag of τ/2 seen as 2z − u:
+    :class:`.catalogue.ContinuousControlDelay`) refitted under an accurate discretisation of
+    its input.
 
     The numerics stage chose the integrator and input hold for the model *without* the lag,
     and the lag's time constant is only as good as the timing of the input it filters:
@@ -2081,17 +2088,20 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
     chosen setting's own input delay (:func:`.delay.hold_lag`: none for a first-order
     hold)."""
     from ..engine import TaskStatus
-    from .catalogue import ContinuousActuatorLag
+    from .catalogue import ContinuousActuatorLag, ContinuousControlDelay
     from .numerics import NumericsSetting
 
     cur = best.state
     now = NumericsSetting.of(cur.model)
     c = best.candidate
+    pade = (c.info or {}).get("filter") == "pade"
+    form = "(τ/2) ż = u − z, delayed input 2z − u" if pade else "τ ż = u − z"
+    cont = ContinuousControlDelay() if pade else ContinuousActuatorLag()
     alt = NumericsSetting("rk4", now.substeps if now.method == "rk4" else 1, "foh")
     info = dataclasses.replace(info_from_model(
         base.model, dt=float(np.median([r.dt for r in base.records]))),
         integrator="rk4", substeps=alt.substeps)
-    c_alt = next((x for x in ContinuousActuatorLag().applies_to(info) if x.key == c.key), None)
+    c_alt = next((x for x in cont.applies_to(info) if x.key == c.key), None)
     if c_alt is None:
         return best
     if run.past_deadline():
@@ -2112,13 +2122,13 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
     switch = -d <= thr
     held = f"its exact discretisation over a held step with {now.text}"
     if switch:
-        note = (f" Refitted in its continuous form (τ ż = u − z) under {alt.text} (a "
+        note = (f" Refitted in its continuous form ({form}) under {alt.text} (a "
                 "first-order hold: inputs moving between samples), which is used: "
                 f"{held} fits "
                 + (f"better by 2ΔELBO = {-d:.4g}, not significantly (≤ {thr:.4g})." if d < 0
                    else f"worse by 2ΔELBO = {d:.4g}."))
     else:
-        note = (f" Refitted in its continuous form (τ ż = u − z) under {alt.text}; {held} "
+        note = (f" Refitted in its continuous form ({form}) under {alt.text}; {held} "
                 f"fits significantly better (2ΔELBO = {-d:.4g} > {thr:.4g}), so it is kept"
                 + (" (the inputs step at the samples)." if now.inputs == "zoh" else "."))
     comparison = {"current": now.to_json(), "other": alt.to_json(),
@@ -2154,15 +2164,20 @@ def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: Fit
     missing lag; the delay then competes with the first-order hold and the lag without it
     (hfb_de_lag_0.05_s1, an elevator lag of 0.05 s: the first-order hold was worth 2ΔELBO
     464.5 to the delay, which was named, 0.0385 s). Both now decide with the same choice of
-    discretisation; a lag that already wins keeps its acceptance-time refit (:func:`_accept`)."""
+    discretisation; a lag that already wins keeps its acceptance-time refit (:func:`_accept`).
+    A Padé delay is the same kind of candidate (a lag of τ/2 in the held-step discretisation)
+    and gets the same treatment against a transport delay or a lag of its input
+    (sp_de_delay_0.04_s0: held-step Padé 0.0203 s under Euler with a held input, 215.7, beside
+    the transport delay's 0.0405 s, 214.9; truth 0.04 s)."""
     out = list(trials)
     for i, t in enumerate(trials):
         info = t.candidate.info or {}
-        if (info.get("filter") != "lag" or t.state is None or not t.converged
+        if (info.get("filter") not in HOLD_FILTERS or t.state is None or not t.converged
                 or not t.statistic > 0 or "hold_comparison" in info):
             continue
         rivals = [r for r in trials if r is not t and r.state is not None and r.converged
-                  and (r.candidate.info or {}).get("filter") in ("delay", "pade")
+                  and (r.candidate.info or {}).get("filter") in ("delay", "pade", "lag")
+                  and (r.candidate.info or {}).get("filter") != info.get("filter")
                   and (r.candidate.info or {}).get("input") == info.get("input")
                   and r.comparison > t.comparison]
         # only where the choice decides something: the lag or a rival is significant (on
