@@ -22,6 +22,7 @@ import pytest
 from scipy import stats
 
 from test_score_states import DT, fit_lin1, null_mle, rao_statistic
+from vsidgen.discrepancy.catalogue import LAG_MIN_FRACTION
 
 # one worker runs the whole module: its module-scoped fixtures are computed once
 pytestmark = pytest.mark.xdist_group("test_delay_screen")
@@ -326,7 +327,7 @@ def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_
     assert st.fit.converged and st.model.input_hold == "zoh" and info.integrator == "rk4"
     cand = next(c for c in propose(info) if c.effect == "actuator_lag")
     # the candidate is the lag's exact discretisation (nests the current model under RK4 too)
-    assert cand.parameters[0].lower == pytest.approx(0.01 * DT)
+    assert cand.parameters[0].lower == pytest.approx(LAG_MIN_FRACTION * DT)
     assert "exp(" in str(cand.added_terms())
     res = screen([cand], st, info, tmp_path / "screen", "t", generated_dir=tmp_path / "gen",
                  det_std=REFIT_DETERMINISTIC_STD)[cand.key]
@@ -386,7 +387,7 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     st, info = _fit_rk4_foh_without_lag(tmp_path)
     assert st.fit.converged and st.model.input_hold == "foh" and info.integrator == "rk4"
     cand = next(c for c in propose(info) if c.effect == "actuator_lag")
-    assert cand.parameters[0].lower == pytest.approx(0.01 * DT)
+    assert cand.parameters[0].lower == pytest.approx(LAG_MIN_FRACTION * DT)
     out = staged_refit(cand, st, info, tmp_path / "lag.yaml", "lin1_rk4_nolag",
                        generated_dir=tmp_path / "gen", max_iter=200)
     # against the nested reference (the current model with the lag state at its nesting
