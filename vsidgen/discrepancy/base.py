@@ -456,7 +456,7 @@ def _info_from_symbolic(sym, spec_path, dt) -> ModelInfo:
         obs_txt[v.name] = spec_text(e) or spec_text(obs_exp[i])
     pnames = {p.name for p in sym.parameters}
     pn = sym.process_noise
-    pstates = tuple(pn.states) if pn is not None else tuple(v.name for v in states)
+    pstates = tuple(pn.states) if pn is not None and pn.states else tuple(v.name for v in states)
     return ModelInfo(
         spec_path=pathlib.Path(spec_path), name=sym.name, states=states,
         inputs=_vars(sym.inputs), outputs=outputs,
