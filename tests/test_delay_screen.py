@@ -254,7 +254,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     already delays this continuously moving input by half a sample, so the fitted time
     constant is about 0.035 s: below one sample, where the lag's lower bound used to be (the
     refit ended on it). The exact discretisation of an Euler model's lag is stable for any
-    τ > 0, so the bound is a hundredth of a step now; the reported time constant (findings)
+    τ > 0, so the bound is a thousandth of a step now; the reported time constant (findings)
     adds the hold's half sample back and must lie within 3 s.e. of the truth, off any bound."""
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.findings import estimate_text, _params
@@ -378,7 +378,7 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     """On an RK4 model with a first-order hold, of an independent record with no lag (the
     input moving between samples, integrated with 20 sub-steps), the actuator-lag candidate's
     refit must not end below the current model: its lower bound is the current model up to a
-    hundredth of a step. (The continuous form's RK4 bound of 0.4 steps forced a lag of 0.4
+    thousandth of a step. (The continuous form's RK4 bound of 0.4 steps forced a lag of 0.4
     samples on every refit.) And nothing is found: 2ΔELBO stays below χ²₁'s 1 % point."""
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.findings import _params
@@ -398,6 +398,15 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     assert out.state.fit.converged
     assert d > -0.1, d
     assert d < stats.chi2.isf(0.01, 1), d
+    # the projected refit of a candidate that added a state (search.projected_refit): the
+    # current spec fitted from the candidate's estimates, noise and assumed density restricted
+    # to the current states, converges to the current optimum (no better one exists here)
+    from vsidgen.discrepancy.search import rebase
+    proj = rebase(out.state, st, tmp_path / "projected.yaml", "lin1_projected",
+                  generated_dir=tmp_path / "gen", max_iter=200, iterations=400)
+    assert proj.model.state_names == st.model.state_names
+    assert proj.fit.converged
+    assert proj.elbo == pytest.approx(st.elbo, abs=0.05)
 
 
 def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_path):
