@@ -588,6 +588,11 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         lines.append(f"0. noise model (not physics): {noise['recommendation']}: 2ΔELBO = "
                      f"{noise['statistic']:.4g} > {noise['threshold']:.4g}")
         lines.append(f"   {noise['explanation']}")
+    gust = (document.get("noise_gust") or {}).get("adopted")
+    if gust:
+        lines.append(f"0. noise model (not physics): {gust['recommendation']}: 2ΔELBO = "
+                     f"{gust['statistic']:.4g} > {gust['threshold']:.4g}")
+        lines.append(f"   {gust['explanation']}")
     unresolved = (document.get("noise_model") or {}).get("significant_not_adopted")
     if unresolved and not noise:
         lines.append(f"0. noise model UNRESOLVED (not physics): correlated process noise, 2ΔELBO ≥ "
@@ -673,10 +678,24 @@ def noise_model_text(noise_model: dict | None) -> str:
             "the physical search below used it. ")
 
 
+def noise_gust_text(noise_gust: dict | None) -> str:
+    """Sentence on an adopted air-relative gust (:mod:`.gust`) put before the conclusion
+    ("" when none was adopted)."""
+    a = (noise_gust or {}).get("adopted")
+    if not a:
+        return ""
+    what = ", ".join(f"{g['velocity']} − {g['gust_state']}" for g in noise_gust.get("gusts") or [])
+    return (f"NOISE MODEL (not a physical effect): the turbulence enters the air-relative "
+            f"velocity ({what} in the flow-angle and airspeed definitions); "
+            f"{a['recommendation']} (2ΔELBO = {a['statistic']:.4g} > {a['threshold']:.4g}, "
+            f"chi2({a['dof']}) at alpha over the correlation times searched); the physical "
+            "search below used it. ")
+
+
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options, stop: dict | None = None,
                    unfinished_round: dict | None = None, numerics: dict | None = None,
-                   noise_model: dict | None = None) -> dict:
+                   noise_model: dict | None = None, noise_gust: dict | None = None) -> dict:
     """The findings.json mapping (see the module docstring).
 
     ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
@@ -746,18 +765,21 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  base_converged=bool(base.fit.converged),
                                  base_status=base.fit.status,
                                  numerics_adopted=bool((numerics or {}).get("adopted"))
-                                 or bool((noise_model or {}).get("adopted")))
+                                 or bool((noise_model or {}).get("adopted"))
+                                 or bool((noise_gust or {}).get("adopted")))
     stopped = stop_text(stop, unfinished_round, len(findings), alpha=alpha)
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
-    conclusion = stopped + numerics_text(numerics) + noise_model_text(noise_model) + conclusion
+    conclusion = (stopped + numerics_text(numerics) + noise_model_text(noise_model)
+                  + noise_gust_text(noise_gust) + conclusion)
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
-        "numerics": numerics, "noise_model": noise_model, "findings": findings, "final_spec": str(final.spec_path),
+        "numerics": numerics, "noise_model": noise_model, "noise_gust": noise_gust,
+        "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "validation_elbo_own_noise": _f(base.val_elbo_own_noise),
                  "metrics": metrics_summary(base)},
@@ -938,6 +960,16 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                              "significantly.")
                      + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
                                                            for t in nm["trials"]], dof=True))
+    ng = doc.get("noise_gust") or {}
+    if ng.get("trials"):
+        gusts = "; ".join(f"{g['velocity']} − {g['gust_state']} in "
+                          f"{', '.join(g['definitions'])}" for g in ng.get("gusts") or [])
+        parts.append("<h3>Turbulence in the air-relative velocity (tested before physics)</h3>"
+                     f"<p>Gust tried: {e(gusts)}. "
+                     + (f"<b>{e(ng['adopted']['explanation'])}</b>" if ng.get("adopted")
+                        else "Kept: the gust did not improve the fit significantly.")
+                     + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
+                                                           for t in ng["trials"]], dof=True))
     loc = doc.get("locate", {})
     if loc:
         parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "

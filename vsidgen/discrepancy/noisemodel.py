@@ -81,6 +81,7 @@ class NoiseAlternative(enum.Enum):
     """A noise model tested against the current one."""
 
     CORRELATED = "correlated_process_noise"   # structure: full on the same states
+    AIR_GUST = "air_relative_gust"            # a gust state in the flow-angle definitions (.gust)
 
 
 @dataclasses.dataclass(frozen=True)

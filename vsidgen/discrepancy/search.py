@@ -1530,6 +1530,7 @@ class _RunState:
     evidence: Evidence | None = None
     numres: Any = None
     noiseres: Any = None
+    gustres: dict | None = None          # the air-relative gust alternative (.gust.to_json)
     rounds: list[dict] = dataclasses.field(default_factory=list)
     accepted: list[tuple[Trial, FitState, Evidence]] = dataclasses.field(default_factory=list)
     unfinished: dict | None = None
@@ -1602,7 +1603,8 @@ def _document(run: _RunConfig, st: _RunState, stop: StopReason) -> dict:
                                       if st.partial_round else {})},
                              unfinished_round=st.unfinished,
                              numerics=None if st.numres is None else st.numres.to_json(),
-                             noise_model=None if st.noiseres is None else st.noiseres.to_json())
+                             noise_model=None if st.noiseres is None else st.noiseres.to_json(),
+                             noise_gust=st.gustres)
     refit_c = [t["refit"].get("compile_s") for r in st.rounds for t in r.get("trials", ())
                if t.get("refit")]
     doc["compile_s"] = {"this_process": round(compile_seconds() - run.compile0, 2),
@@ -1673,6 +1675,20 @@ def _noise_model_stage(run: _RunConfig, st: _RunState) -> None:
         st.current = st.noiseres.adopted.state
         st.evidence = locate_state(st.current)
     _checkpoint(run, st, StopReason.RUNNING)
+    if run.past_deadline():
+        return
+    from . import gust
+
+    res, plans = gust.run_gust_model(st.current, model_info_of(st.current), run.out,
+                                     alpha=run.alpha, generated_dir=run.gen,
+                                     max_iter=run.max_iter, engine=run.engine,
+                                     deadline=run.deadline, progress=run.progress)
+    if res.trials:
+        st.gustres = gust.to_json(res, plans)
+        if res.adopted is not None:
+            st.current = res.adopted.state
+            st.evidence = locate_state(st.current)
+        _checkpoint(run, st, StopReason.RUNNING)
 
 
 def _say_screen(run: _RunConfig, table: list[dict]) -> None:

@@ -1,0 +1,75 @@
+"""The air-relative gust alternative of the noise-model stage (:mod:`vsidgen.discrepancy.gust`):
+which models it applies to, what it writes, and its test's reference distribution."""
+
+import math
+import pathlib
+import types
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from vsidgen.discrepancy.base import model_info
+from vsidgen.discrepancy.gust import gust_dof, gust_plans, write_gust_spec
+from vsidgen.discrepancy.noisemodel import NoiseAlternative, NoiseModelTrial, decide
+from vsidgen.spec import compile_spec
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+BODY = ROOT / "benchmarks" / "independent" / "specs" / "hfb_body.yaml"
+
+
+def _current(spec, mean):
+    """The parts of a diagnose FitState that the gust plan reads (a fit at ``mean``)."""
+    sym = compile_spec(spec)
+    model = types.SimpleNamespace(
+        name=sym.name, state_names=tuple(v.name for v in sym.states),
+        parameter_names=tuple(p.name for p in sym.parameters), parameters=sym.parameters,
+        process_noise=sym.process_noise)
+    fit = types.SimpleNamespace(smoothers=[types.SimpleNamespace(mu=np.tile(mean, (8, 1)))],
+                                theta=np.zeros(len(model.parameter_names)))
+    return types.SimpleNamespace(spec_path=spec, fit=fit, model=model)
+
+
+def test_body_axis_model_gets_a_gust_in_its_flow_angle_definitions(tmp_path):
+    """A user's body-axis model (α = atan2(w, u), V = sqrt(u² + w²) as definitions): the gust
+    perturbs w, the component α is most sensitive to, in both definitions, and nowhere else
+    (the kinematic drift keeps the inertial w)."""
+    cur = _current(BODY, [104.0, 8.0, 0.0, 0.08])
+    (p,) = gust_plans(cur, model_info(BODY, dt=0.05))
+    assert (p.role, p.velocity, p.unit) == ("alpha", "w", "m/s")
+    assert set(p.definitions) == {"Vt", "a"}
+    assert p.tau_start == pytest.approx(0.05) and p.tau_bounds[0] == pytest.approx(0.025)
+    path = write_gust_spec(cur, [p], tmp_path / "gust.yaml", "hfb_body_gust")
+    sym = compile_spec(path)
+    assert [v.name for v in sym.states] == ["u", "w", "q", "theta", p.gust]
+    assert sym.process_noise.states == ("u", "w", "q", "theta", p.gust)
+    defs = dict(sym.definitions)
+    W, w, u = (next(s for s in defs["a"].free_symbols if s.name == n) for n in (p.gust, "w", "u"))
+    assert defs["a"].equals(__import__("sympy").atan2(w - W, u))
+    drift = dict(zip((v.name for v in sym.states), sym.drift))
+    assert W not in drift["w"].free_symbols and W not in drift["u"].free_symbols
+    # noise std and correlation time (diagonal structure)
+    assert gust_dof(cur, [p]) == 2
+
+
+@pytest.mark.parametrize("spec", ["specs/hfb320.yaml", "specs/attas_lat.yaml",
+                                  "benchmarks/independent/specs/lat_beta.yaml",
+                                  "benchmarks/users/hfb_sp.yaml"])
+def test_no_gust_where_the_flow_angles_are_states(spec):
+    path = ROOT / spec
+    n = len(compile_spec(path).states)
+    assert gust_plans(_current(path, np.ones(n)), model_info(path, dt=0.05)) == []
+
+
+def test_gust_threshold_is_bonferroni_over_its_correlation_times():
+    """The threshold is χ²_k at α/m (m correlation times searched): a gain that passes χ²_k at
+    α alone but not at α/m is not adopted."""
+    k, m, alpha = 2, 24, 0.01
+    lam = float(stats.chi2.isf(alpha, k)) + 1.0
+    assert lam < stats.chi2.isf(alpha / m, k)
+    st = types.SimpleNamespace(elbo=100.0 + lam / 2)
+    t = decide(NoiseModelTrial(NoiseAlternative.AIR_GUST, pathlib.Path("g.yaml"), k, st,
+                               converged=True), 100.0, alpha / m)
+    assert t.threshold == pytest.approx(stats.chi2.isf(alpha / m, k))
+    assert t.verdict.value == "not_significant"
+    assert math.isfinite(t.statistic)
