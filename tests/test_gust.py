@@ -73,3 +73,21 @@ def test_gust_threshold_is_bonferroni_over_its_correlation_times():
     assert t.threshold == pytest.approx(stats.chi2.isf(alpha / m, k))
     assert t.verdict.value == "not_significant"
     assert math.isfinite(t.statistic)
+
+
+def test_adopted_gust_is_reported_as_noise_model_not_physics():
+    """The CLI lines and the conclusion sentence name an adopted gust as a noise-model finding,
+    with its numbers (findings.json ``noise_gust``)."""
+    from vsidgen.discrepancy.findings import noise_gust_text, summary_lines
+
+    ng = {"gusts": [{"velocity": "w", "gust_state": "D_GUST_w", "definitions": {"a": "", "Vt": ""}}],
+          "trials": [{}],
+          "adopted": {"statistic": 361.4, "threshold": 15.2, "dof": 7,
+                      "recommendation": "add the gust state(s) of r0_g01.yaml",
+                      "explanation": "Noise model, not physics: the turbulence enters ..."}}
+    text = noise_gust_text(ng)
+    assert text.startswith("NOISE MODEL (not a physical effect)") and "w − D_GUST_w" in text
+    assert "361.4 > 15.2" in text
+    lines = summary_lines({"noise_gust": ng, "findings": [], "conclusion": "c."}, "findings.json")
+    assert any(l.startswith("0. noise model (not physics): add the gust state") for l in lines)
+    assert noise_gust_text({"trials": [{}], "adopted": None}) == ""

@@ -200,6 +200,13 @@ def classify(case: Case, res: dict) -> dict:
                           "correlated process noise (" + ", ".join(
                               f"ρ {c['rho']:+.2f}" for c in noise.get("correlations") or []
                               if c.get("rho") is not None) + f"; Λ {noise['statistic']:.4g})")
+    gust = (doc.get("noise_gust") or {}).get("adopted")
+    if gust:
+        # the noise-model stage's second alternative (turbulence in the air-relative velocity)
+        g = "air-relative gust (" + ", ".join(
+            x["gust_state"] for x in doc["noise_gust"].get("gusts") or []) + \
+            f"; Λ {gust['statistic']:.4g})"
+        out["noise_model"] = g if out["noise_model"] is None else f"{out['noise_model']}; {g}"
     adopted = (doc.get("numerics") or {}).get("adopted")
     # a modelling-numerics finding is not a physical effect: reported, never counted as one
     out["numerics"] = adopted["setting"]["text"] if adopted else None
