@@ -50,6 +50,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: numerics, noise model and delay profiles", ("discrepancy.numerics",
                                                              "discrepancy.noisemodel",
                                                              "discrepancy.delay")),
+    ("diagnose: air-relative gust", ("discrepancy.gust",)),
     ("diagnose: score test", ("discrepancy.score",)),
     ("diagnose: gated round model, model families", ("discrepancy.gated", "discrepancy.family")),
     ("diagnose: search", ("discrepancy.search",)),

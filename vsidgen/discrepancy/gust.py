@@ -43,7 +43,7 @@ import numpy as np
 from scipy import stats
 
 from .noisemodel import (NoiseAlternative, NoiseModelResult, NoiseModelTrial, NoiseModelVerdict,
-                         _noise_task, correlations, decide)
+                         noise_refit_task, correlations, decide)
 
 #: the flow-angle roles a gust is looked for in (a vertical and a lateral gust)
 GUST_ROLES = ("alpha", "beta")
@@ -217,7 +217,7 @@ def run_gust_model(current, info, out: pathlib.Path, *, alpha: float, generated_
         progress("noise model: refitting with turbulence in the air-relative velocity ("
                  + ", ".join(f"{p.velocity} − {p.gust} in {', '.join(p.definitions)}"
                              for p in plans) + f"; {dof} parameters added)")
-    (o,) = engine.run(_noise_task, [("cold", (current, path, generated_dir, max_iter, "cold"))],
+    (o,) = engine.run(noise_refit_task, [("cold", (current, path, generated_dir, max_iter, "cold"))],
                       deadline=deadline)
     if o.status is not TaskStatus.DONE:
         trial = decide(NoiseModelTrial(NoiseAlternative.AIR_GUST, path, dof,

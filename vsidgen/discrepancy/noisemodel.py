@@ -366,7 +366,7 @@ def _stop_poll(stop_key):
     return poll
 
 
-def _noise_task(current, path, generated_dir, max_iter, start, stop_key=None):
+def noise_refit_task(current, path, generated_dir, max_iter, start, stop_key=None):
     """One start of the alternative's refit (runs on an engine worker); a FitState.
 
     ``warm``: from the current fit's noise and assumed density (off-diagonal factor 0);
@@ -508,7 +508,7 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
             return False
 
         outs = [(st, o) for st, o in zip(STARTS, engine.run(
-            _noise_task, [(st, (current, path, generated_dir, max_iter, st, stop_key))
+            noise_refit_task, [(st, (current, path, generated_dir, max_iter, st, stop_key))
                           for st in STARTS], deadline=deadline, stop_when=decided))
                 if not (o.status is TaskStatus.CANCELLED and o.error == NOT_NEEDED)]
         starts = tuple((st, None if o.status is not TaskStatus.DONE else
@@ -562,4 +562,4 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
 
 __all__ = ["NoiseAlternative", "NoiseModelResult", "NoiseModelTrial", "NoiseModelVerdict",
            "NoiseScore", "correlations", "decide", "independent_shares", "noise_alternatives",
-           "run_noise_model", "score_test"]
+           "noise_refit_task", "run_noise_model", "score_test"]
