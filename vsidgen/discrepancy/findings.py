@@ -11,6 +11,10 @@ findings.json (keys in this order)::
                                                "dof", "correlations", "explanation", ...},
                             "significant_not_adopted": null | {"statistic_lower_bound",
                                                "threshold", "dof", "stop_reason", ...}},
+     "noise_gust": null | {"kind": "noise_gust", "test", "gusts": [{"velocity", "gust_state",
+                                               "correlation_time", "definitions", ...}],
+                           "trials": [...], "adopted": null | {"recommendation", "statistic",
+                                               "threshold", "dof", "explanation", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
