@@ -148,7 +148,8 @@ def make_record(case: Case, work: pathlib.Path) -> pathlib.Path:
 
 
 def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit: float,
-                 max_candidates: int, max_rounds: int, effects=None, workers: int = 1) -> dict:
+                 max_candidates: int, max_rounds: int, effects=None, workers: int = 1,
+                 extra=()) -> dict:
     cmd = [sys.executable, "-m", "vsidgen.cli", "diagnose", str(SPEC[case.model]), str(csv),
            "--out", str(out), "--max-candidates", str(max_candidates),
            "--max-rounds", str(max_rounds), "--workers", str(workers), "--quiet",
@@ -157,6 +158,7 @@ def run_diagnose(case: Case, csv: pathlib.Path, out: pathlib.Path, *, time_limit
            "--time-limit", f"{time_limit:g}"]
     if effects:
         cmd += ["--effects", *effects]
+    cmd += list(extra)
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.time()
     try:
@@ -255,13 +257,14 @@ def run_case(case: Case, args) -> dict:
     csv = make_record(case, work)
     res = run_diagnose(case, csv, work / case.name, time_limit=args.time_limit,
                        max_candidates=args.max_candidates, max_rounds=args.max_rounds,
-                       workers=args.workers)
+                       workers=args.workers, extra=["--gust-noise"] if args.gust_noise else [])
     row = classify(case, res)
     if args.oracle and case.effect != "none" and row["outcome"] != "ok":
         ores = run_diagnose(case, csv, work / (case.name + "_oracle"),
                             time_limit=args.time_limit, max_candidates=args.max_candidates,
                             max_rounds=1, effects=[ORACLE_EFFECT[case.effect]],
-                            workers=args.workers)
+                            workers=args.workers,
+                            extra=["--gust-noise"] if args.gust_noise else [])
         orow = classify(case, ores)
         row["oracle"] = {"named": orow["named"], "statistic": orow.get("statistic"),
                          "threshold": orow.get("threshold"), "estimates": orow.get("estimates"),
@@ -355,6 +358,8 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=1,
                     help="dask workers per diagnose run (default 1: cases run in parallel "
                          "with --jobs, each serially)")
+    ap.add_argument("--gust-noise", action="store_true",
+                    help="pass --gust-noise to diagnose (the air-relative gust alternative)")
     ap.add_argument("--oracle", action="store_true",
                     help="rerun a missed/wrong case restricted to the true effect class")
     ap.add_argument("--work", default=str(ROOT / "benchmarks" / "independent" / "work"),
