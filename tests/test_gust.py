@@ -61,18 +61,21 @@ def test_no_gust_where_the_flow_angles_are_states(spec):
     assert gust_plans(_current(path, np.ones(n)), model_info(path, dt=0.05)) == []
 
 
-def test_gust_threshold_is_bonferroni_over_its_correlation_times():
-    """The threshold is χ²_k at α/m (m correlation times searched): a gain that passes χ²_k at
-    α alone but not at α/m is not adopted."""
-    k, m, alpha = 2, 24, 0.01
+def test_gust_multiplicity_counts_the_correlation_times_in_its_range():
+    """The gust's p-value is multiplied by the number of √2-spaced correlation times between
+    half an integration step and the upper bound: counted here on the grid itself (24 at
+    20 Hz), and the threshold that gives is above χ²_k at α alone."""
+    cur = _current(BODY, [104.0, 8.0, 0.0, 0.08])
+    (p,) = gust_plans(cur, model_info(BODY, dt=0.05))
+    lo, hi = p.tau_bounds
+    grid = [lo * math.sqrt(2.0) ** k for k in range(200) if lo * math.sqrt(2.0) ** k <= hi]
+    assert p.multiplicity == len(grid) == 24
+    k, alpha = gust_dof(cur, [p]), 0.01
     lam = float(stats.chi2.isf(alpha, k)) + 1.0
-    assert lam < stats.chi2.isf(alpha / m, k)
-    st = types.SimpleNamespace(elbo=100.0 + lam / 2)
-    t = decide(NoiseModelTrial(NoiseAlternative.AIR_GUST, pathlib.Path("g.yaml"), k, st,
-                               converged=True), 100.0, alpha / m)
-    assert t.threshold == pytest.approx(stats.chi2.isf(alpha / m, k))
+    t = decide(NoiseModelTrial(NoiseAlternative.AIR_GUST, pathlib.Path("g.yaml"), k,
+                               types.SimpleNamespace(elbo=lam / 2), converged=True),
+               0.0, alpha / p.multiplicity)
     assert t.verdict.value == "not_significant"
-    assert math.isfinite(t.statistic)
 
 
 def test_adopted_gust_is_reported_as_noise_model_not_physics():

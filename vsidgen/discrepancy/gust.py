@@ -190,7 +190,7 @@ def gust_refit_task(current, plans, path: pathlib.Path, name: str, generated_dir
     below the optimum a fit with τ held reaches.)"""
     from ..estimator import WarmStart, fit
     from ..model import load_model
-    from .fitstate import diag_options, evaluated, refit_warm
+    from .fitstate import FitState, diag_options, refit_warm
     from .refit import (REFIT_DETERMINISTIC_STD, noise_parameters, noise_stds, parameter_start,
                         stage0_start)
 
@@ -208,7 +208,8 @@ def gust_refit_task(current, plans, path: pathlib.Path, name: str, generated_dir
                                              proc_G=od, meas_std=ms)])
     r1 = fit(m1, records, options=diag_options(
         2 * max_iter, warm_start=WarmStart.from_decision({"s": s1, "records": dec0["records"]})))
-    st1 = evaluated(leg1, m1, records, r1, current.vrecords, max_iter=max_iter)
+    # the first leg is only the second's start: no evaluation signals, no validation fits
+    st1 = FitState(leg1, m1, tuple(records), r1, ())
     write_gust_spec(current, plans, path, name, start=st1)
     return refit_warm(path, st1, current, generated_dir=generated_dir,
                       iterations=2 * max_iter, max_iter=max_iter)
@@ -292,15 +293,10 @@ def run_gust_model(current, info, out: pathlib.Path, *, alpha: float, generated_
 
 def to_json(result: NoiseModelResult, plans) -> dict:
     """findings.json ``noise_gust``: the trial, the gusts tried and the adopted alternative."""
-    adopted = None
-    if result.adopted is not None:
-        a = result.adopted
-        adopted = {"alternative": a.alternative.value, "spec": str(a.spec_path),
-                   "statistic": float(a.statistic), "threshold": float(a.threshold),
-                   "dof": a.dof, "p_value": float(a.p_value),
-                   "elbo_before": float(result.elbo_current), "elbo_after": float(a.state.elbo),
-                   "recommendation": f"add the gust state(s) of {a.spec_path.name}",
-                   "explanation": explanation(a, plans)}
+    a = result.adopted
+    adopted = None if a is None else result.adopted_json(
+        recommendation=f"add the gust state(s) of {a.spec_path.name}",
+        explanation=explanation(a, plans))
     return {"kind": "noise_gust",
             "test": "2*(ELBO_gust - ELBO_current) against chi2(k), k the added parameters, at "
                     "alpha / m, m the number of sqrt(2)-spaced correlation times in the gust's "

@@ -171,17 +171,22 @@ class NoiseModelResult:
     alpha: float
     adopted: NoiseModelTrial | None = None
 
+    def adopted_json(self, *, recommendation: str, explanation: str) -> dict | None:
+        """The adopted alternative's record in findings.json (None when none was adopted)."""
+        a = self.adopted
+        if a is None:
+            return None
+        return {"alternative": a.alternative.value, "spec": str(a.spec_path),
+                "statistic": float(a.statistic), "threshold": float(a.threshold),
+                "dof": a.dof, "p_value": float(a.p_value),
+                "elbo_before": float(self.elbo_current), "elbo_after": float(a.state.elbo),
+                "correlations": a.to_json()["correlations"],
+                "recommendation": recommendation, "explanation": explanation}
+
     def to_json(self) -> dict:
-        adopted = None
-        if self.adopted is not None:
-            a = self.adopted
-            adopted = {"alternative": a.alternative.value, "spec": str(a.spec_path),
-                       "statistic": float(a.statistic), "threshold": float(a.threshold),
-                       "dof": a.dof, "p_value": float(a.p_value),
-                       "elbo_before": float(self.elbo_current), "elbo_after": float(a.state.elbo),
-                       "correlations": a.to_json()["correlations"],
-                       "recommendation": "use noise: {process: {structure: full}}",
-                       "explanation": explanation(a)}
+        adopted = None if self.adopted is None else self.adopted_json(
+            recommendation="use noise: {process: {structure: full}}",
+            explanation=explanation(self.adopted))
         sig = [t for t in self.trials
                if t.verdict is NoiseModelVerdict.SIGNIFICANT_NOT_CONVERGED]
         unresolved = None

@@ -213,20 +213,17 @@ def restrict_density(r, names_from, names_to) -> np.ndarray:
     Σ_cond' = Σ_m' − C'C'ᵀ (the Schur complement of a sub-block of a positive-definite joint
     covariance, hence positive definite). The kept states' path is not Markov in general;
     this is the stationary Markov density with the same marginal and lag-one moments."""
-    from ..estimator import join_density, split_density
+    from ..estimator import join_density
+    from ..estimator.core import cov_factors_of
 
     names_from = list(names_from)
-    n = len(names_from)
     idx = np.asarray([names_from.index(k) for k in names_to], int)
-    d, L, C = split_density(r, n)
-    Sc = L * np.exp(0.5 * d)[None, :]
-    Sm_full = Sc @ Sc.T + C @ C.T
-    cross = C @ np.linalg.cholesky(Sm_full).T
-    Sm = Sm_full[np.ix_(idx, idx)]
-    cr = cross[np.ix_(idx, idx)]
-    Lm = np.linalg.cholesky(Sm)
-    C1 = np.linalg.solve(Lm, cr.T).T                     # cr Lm^{-T}
-    Lc = np.linalg.cholesky(Sm - C1 @ C1.T)
+    _, C, Sm, _ = (np.asarray(a, float) for a in cov_factors_of(np.asarray(r, float),
+                                                                len(names_from)))
+    marg = (Sm @ Sm.T)[np.ix_(idx, idx)]
+    cross = (C @ Sm.T)[np.ix_(idx, idx)]
+    C1 = np.linalg.solve(np.linalg.cholesky(marg), cross.T).T      # cross · chol(marg)^{-T}
+    Lc = np.linalg.cholesky(marg - C1 @ C1.T)
     dg = np.diag(Lc)
     return join_density(2.0 * np.log(dg), Lc / dg[None, :], C1)
 

@@ -1968,8 +1968,8 @@ def _continue_lead(run: _RunConfig, rnd: int, trials: list[Trial], current: FitS
 def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                      trials: list[Trial], *, lead_only: bool = False
                      ) -> tuple[list[Trial], list[dict], FitState | None] | None:
-    """Projected refits (:func:`projected_refit`) of the nominally significant trials that
-    add no state: a candidate's gain may be a better optimum of the current model itself
+    """Projected refits (:func:`projected_refit`) of the nominally significant trials (converged
+    or not): a candidate's gain may be a better optimum of the current model itself
     (``lead_only``: only the one with the largest 2ΔELBO, in a round cut by the time limit:
     the time kept for its decision is one fit's).
     When one is found it becomes ``st.current`` (re-based on the current spec,
@@ -1980,7 +1980,7 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
 
     current = st.current
     ptasks = []
-    eligible = [t for t in trials if not (t.state is None or not (t.p_value < run.alpha))]
+    eligible = [t for t in trials if t.state is not None and t.p_value < run.alpha]
     if lead_only:
         eligible = sorted(eligible, key=lambda t: -t.statistic)[:1]
     chosen = {id(t) for t in eligible}
