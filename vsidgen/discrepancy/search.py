@@ -387,7 +387,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     out.elbo_stage1, out.converged_stage1 = float(res1.elbo), bool(res1.converged)
     st = evaluated(path, m2, records, res2, current.vrecords, max_iter=max_iter)
     if new_states and st.vfit is not None:
-        out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2)
+        out.val_x0_entropy = x0_entropy(st.vfit, new_states, m2, current.vrecords)
     out.state = st
     out.wall_s = time.perf_counter() - t0
     return out

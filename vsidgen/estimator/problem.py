@@ -52,7 +52,7 @@ from ..model.dynamics import input_hold as transition_input_hold
 from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
-from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective,
+from .core import (_carried_inputs, cov_factors_of, NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective,
                    make_cfg, quasi_deterministic_stds, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
@@ -614,6 +614,7 @@ class Problem:
                 raise FitError(f"held parameter '{name}' is not a free parameter of the model")
             self.held[free.index(name)] = True
         self.theta_idx = self.layout.theta_index
+        self.prior = _input_state_prior(model, self.records, options.input_state_prior)
 
     @functools.cached_property
     def obj(self):
@@ -773,8 +774,12 @@ class Problem:
     def value(self, s, recs) -> float:
         """−ELBO at the decision (s, [(μ_i, r_i)])."""
         sj = jnp.asarray(s)
-        return float(sum(self.obj.value(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
-                         for (m, r), d, L in zip(recs, self.bdata, self.padded)))
+        out = float(sum(self.obj.value(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+                        for (m, r), d, L in zip(recs, self.bdata, self.padded)))
+        if self.prior is not None:
+            out += sum(float(_prior_value(jnp.asarray(m)[0], jnp.asarray(r), *pr))
+                       for (m, r), pr in zip(recs, self.prior))
+        return out
 
     def flat_value(self, v, cfg=None, data=None):
         """−ELBO of a full vector v (:meth:`Layout.unpack`) on the unpadded records, traceable by JAX
@@ -783,7 +788,10 @@ class Problem:
         cfg = self.cfg if cfg is None else cfg
         data = self.data if data is None else data
         s, recs = self.layout.unpack(v)
-        return sum(self.obj._value_impl(m, r, s, d, cfg) for (m, r), d in zip(recs, data))
+        out = sum(self.obj._value_impl(m, r, s, d, cfg) for (m, r), d in zip(recs, data))
+        if self.prior is not None:
+            out = out + sum(_prior_value(m[0], r, *pr) for (m, r), pr in zip(recs, self.prior))
+        return out
 
     def blocks(self, s, recs):
         """Per-record value, gradient and Hessian blocks (f, gmu, gb, D, B, W, Hbb; see
@@ -791,8 +799,12 @@ class Problem:
         ``self.padded[i]`` rows; the padding's gradient, couplings and off-diagonal blocks are
         exactly 0 and its diagonal blocks the identity)."""
         sj = jnp.asarray(s)
-        return [self.obj.blocks(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
+        blks = [self.obj.blocks(self.pad(m, L), jnp.asarray(r), sj, d, self.cfg)
                 for (m, r), d, L in zip(recs, self.bdata, self.padded)]
+        if self.prior is not None:
+            blks = [_with_prior(b, jnp.asarray(m)[0], jnp.asarray(r), pr)
+                    for b, (m, r), pr in zip(blks, recs, self.prior)]
+        return blks
 
     @staticmethod
     def total(blks) -> float:
@@ -894,6 +906,102 @@ class Problem:
             db = np.zeros(0)
         ds, dmu, dr = self.back_substitute(red, db)
         return ds, dmu, dr, S
+
+
+def input_state_prior_scales(model, records, names="all") -> dict[int, tuple[float, list[float]]]:
+    """The initial-value prior of the states that carry an input (``FitOptions.input_state_prior``):
+    ``{state index: (std, [mean per record])}`` with x_0 ~ N(u_0, std²), u_0 the carried input's
+    first finite sample of the record and std its spread about each record's mean, pooled over
+    ``records`` (:func:`~vsidgen.estimator.core.input_filter_scales`). ``names``: "all" (every
+    such state whose input varies), "none", or state names (each must carry a varying input)."""
+    if isinstance(names, str):
+        if names not in ("all", "none"):
+            raise FitError(f"input_state_prior must be 'all', 'none' or state names, not {names!r}")
+        names = None if names == "all" else ()
+    if names is not None and not names:
+        return {}
+    carried = dict(_carried_inputs(model))
+    snames = list(model.state_names)
+    if names is None:
+        chosen = sorted(carried)
+    else:
+        chosen = []
+        for nm in names:
+            if nm not in snames:
+                raise FitError(f"input_state_prior: '{nm}' is not a state of the model")
+            if snames.index(nm) not in carried:
+                raise FitError(f"input_state_prior: state '{nm}' does not carry an input (its drift is "
+                               f"not driven by the difference between it and an input of its unit)")
+            chosen.append(snames.index(nm))
+    out = {}
+    for i in chosen:
+        cols = [np.asarray(r.u, float)[:, carried[i]] for r in records]
+        dev = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols if np.isfinite(c).any()]
+        sd = float(np.sqrt(np.mean(np.concatenate(dev) ** 2))) if dev else 0.0
+        if not (math.isfinite(sd) and sd > 0):
+            if names is None:
+                continue       # "all": a constant input gives no scale; the state keeps the flat prior
+            raise FitError(f"input_state_prior: the input carried by '{snames[i]}' does not vary in the "
+                           f"records (no scale for the prior of its initial value)")
+        means = []
+        for c in cols:
+            fin = np.nonzero(np.isfinite(c))[0]
+            means.append(float(c[fin[0]]) if fin.size else 0.0)
+        out[i] = (sd, means)
+    return out
+
+
+def _input_state_prior(model, records, names):
+    """Per record ``(idx, mean, w, n)`` of :func:`input_state_prior_scales` (w = 1/std²) for the
+    objective; None when no state gets the prior."""
+    sc = input_state_prior_scales(model, records, names)
+    if not sc:
+        return None
+    idx = sorted(sc)
+    w = jnp.asarray([1.0 / sc[i][0] ** 2 for i in idx])
+    return [(jnp.asarray(np.asarray(idx, int)), jnp.asarray([sc[i][1][ri] for i in idx]), w, int(model.nx))
+            for ri in range(len(records))]
+
+
+def initial_prior_term(var, std) -> float:
+    """The initial-value term of one prior state at its nesting point, relative to a model
+    without the state: entropy of q(x_0) plus E_q log N(x_0; m, std²) with q's mean at m,
+    ½ log(2πe var) − ½ log(2π std²) − ½ var/std² (var: q's marginal variance of the state;
+    the flat prior's term is the entropy alone, std → ∞ less the constant)."""
+    var = max(float(var), 1e-300)
+    return 0.5 * math.log(2 * math.pi * math.e * var) - 0.5 * math.log(2 * math.pi * std ** 2) - 0.5 * var / std ** 2
+
+
+def _prior_value(mu0, r, idx, mean, w, n):
+    """−E_q log N(x_0,idx; mean, 1/w) (independent per state): ½ Σ w((μ_0 − m)² + Σ_marg,ii)
+    + ½ Σ log(2π/w); Σ_marg from the assumed density's r (:func:`cov_factors_of`)."""
+    Sm = cov_factors_of(r, n)[2]
+    var = jnp.sum(Sm[idx, :] ** 2, axis=1)
+    return 0.5 * jnp.sum(w * ((mu0[idx] - mean) ** 2 + var)) + 0.5 * jnp.sum(jnp.log(2.0 * math.pi / w))
+
+
+@functools.partial(jax.jit, static_argnums=(5,))
+def _prior_r_derivatives(r, idx, mean, w, mu0, n):
+    """(value, ∇_r, ∇²_r) of :func:`_prior_value` in r (it is separable: μ_0 enters only its mean term)."""
+    def fr(rr):
+        return _prior_value(mu0, rr, idx, mean, w, n)
+    return fr(r), jax.grad(fr)(r), jax.hessian(fr)(r)
+
+
+def _with_prior(blk, mu0, r, prior):
+    """One record's blocks (of −ELBO) with the initial-value prior added: its value, the r part of
+    the border gradient and Hessian, and μ_0's gradient and diagonal block (the prior is separable
+    in μ_0 and r, so there is no μ–border coupling)."""
+    idx, mean, w, n = prior
+    f, gr, Hr = _prior_r_derivatives(r, idx, mean, w, mu0, n)
+    nq = r.shape[0]
+    out = dict(blk)
+    out["f"] = blk["f"] + f
+    out["gb"] = blk["gb"].at[:nq].add(gr)
+    out["Hbb"] = blk["Hbb"].at[:nq, :nq].add(Hr)
+    out["gmu"] = blk["gmu"].at[0, idx].add(w * (mu0[idx] - mean))
+    out["D"] = blk["D"].at[0, idx, idx].add(w)
+    return out
 
 
 def parameter_start(model) -> tuple[np.ndarray, np.ndarray]:

@@ -219,6 +219,15 @@ class FitOptions:
             :func:`vsidgen.estimator.core.input_filter_scales`) gets the std
             ``deterministic_input_scale · std(u)`` per √s instead of ``deterministic_std``,
             scale-free in the unit the input is recorded in (the diagnose refits set it).
+        input_state_prior: states that carry an input (a lag, Padé or actuator state of
+            input u, :func:`vsidgen.estimator.core.input_filter_scales`) whose initial value
+            gets a proper prior, x_0 ~ N(u_0, std(u)²) (u_0 the input's first finite sample,
+            std(u) its spread over the record), instead of the flat prior of the other states.
+            Under a flat prior the initial value of a fast lag is a free impulse on the first
+            step (a kick of 10⁴ deg through a coupling of 10⁻³), which the evidence of the
+            model then counts as a gain; the actuator starts within the command's range. The
+            ELBO gains E_q log N(x_0; u_0, std(u)²) per such state and record. "all" (default):
+            every such state whose input varies; "none": the flat prior; or state names.
         limit_tol: stopping tolerance of the deterministic limit, in nats for the ELBO
             and in standard errors for the parameters (per stage change).
         decrement_tol: convergence tolerance in nats on half the Newton decrement,
@@ -314,6 +323,7 @@ class FitOptions:
     stall_rtol: float = 1e-8
     held_parameters: tuple[str, ...] = ()
     parallel_starts: bool = True
+    input_state_prior: str | tuple[str, ...] = "all"
 
 
 @dataclasses.dataclass(frozen=True)
