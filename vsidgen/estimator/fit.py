@@ -1429,9 +1429,9 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         base = dict(s=o["s"], recs=o["recs"], elbo=elbo, theta=theta, eps=e, out=o)
         ln_step = math.log(1.0 / ratio)
         k = int(round(-d_elbo / ln_step))
-        steady_k = (k >= 1 and abs(d_elbo + k * ln_step) < options.limit_tol * ln_step / math.log(10.0)
-                    and prev_k == (k, ratio))
-        prev_k = (k, ratio)
+        within = k >= 1 and abs(d_elbo + k * ln_step) < options.limit_tol * ln_step / math.log(10.0)
+        steady_k = within and prev_k == (k, ratio)
+        prev_k = (k, ratio) if within else None   # both stages within the tolerance
         # with a target the stopping rule is the target (checked before the next stage)
         if target is None and d_theta < options.limit_tol and (
                 steady_k or (ratio == LIMIT_RATIO and abs(d_elbo) < options.limit_tol)):
