@@ -436,11 +436,13 @@ def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_p
     assert d > -0.1, (d, out.notes)
     # the reference is the nesting point's: the current model plus the entropy of the added
     # state's initial value at the smallest time constant (a ≈ 0: ½ log(2πe Q), up to
-    # ½ log(1/(1 − a²)) of the RK4 step's small a), not the forged start's (1.7 nats higher);
-    # the reported initial-value entropy is the nesting point's too (it re-references the
-    # statistic when the round finds a better optimum of the current model)
+    # ½ log(1/(1 − a²)) of the RK4 step's small a), not the forged start's (1.7 nats higher),
+    # with the lag state's initial-value prior N(u₀, std(u)²) (initial_prior_term); the
+    # reported initial-value term is the nesting point's too (it re-references the statistic
+    # when the round finds a better optimum of the current model)
     assert out.elbo_ref == pytest.approx(st.elbo + out.x0_entropy, abs=1e-6)
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD, quasi_stds
+    from vsidgen.estimator.problem import initial_prior_term, input_state_prior_scales
     q = quasi_stds(out.state.model, list(st.records), REFIT_DETERMINISTIC_STD)[-1] ** 2 * DT
-    assert out.elbo_ref == pytest.approx(st.elbo + 0.5 * math.log(2 * math.pi * math.e * q),
-                                         abs=0.2)
+    (sd, _), = input_state_prior_scales(out.state.model, list(st.records)).values()
+    assert out.elbo_ref == pytest.approx(st.elbo + initial_prior_term(q, sd), abs=0.2)
