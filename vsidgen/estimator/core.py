@@ -238,7 +238,7 @@ def input_filter_scales(model, records) -> np.ndarray:
     iteration limit (hfb_thrust_lag_0.5_s0: 800 iterations, 487 s, not converged; scaled,
     converged in 140 s). 0 everywhere for a model without a symbolic form."""
     out = np.zeros(len(model.state_names))
-    for i, j in _carried_inputs(model):
+    for i, j in carried_inputs(model):
         cols = [np.asarray(r.u, float)[:, j] for r in records]
         cols = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols
                 if np.isfinite(c).any()]
@@ -261,12 +261,12 @@ def quasi_deterministic_stds(model, records, det_std, input_scale: float | None)
 
 
 #: (state index, input index) pairs of the states that carry an input, per symbolic model
-#: (:func:`_carried_inputs`; symbolic work done once per model, not per problem): id of the
+#: (:func:`carried_inputs`; symbolic work done once per model, not per problem): id of the
 #: symbolic form → (weak reference to it, pairs); the symbolic form is not hashable
 _CARRIED: dict = {}
 
 
-def _carried_inputs(model) -> tuple[tuple[int, int], ...]:
+def carried_inputs(model) -> tuple[tuple[int, int], ...]:
     """(state, input) index pairs where the state carries the input (same unit, drift driven
     by their difference); () for a model without a symbolic form."""
     sym = getattr(model, "symbolic", None)

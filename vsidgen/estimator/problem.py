@@ -52,8 +52,8 @@ from ..model.dynamics import input_hold as transition_input_hold
 from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
-from .core import (_carried_inputs, cov_factors_of, NoiseMap, SwitchedObjective, ThetaMap, bucket_length, get_objective,
-                   make_cfg, quasi_deterministic_stds, record_data)
+from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, carried_inputs, cov_factors_of,
+                   get_objective, make_cfg, quasi_deterministic_stds, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -920,7 +920,7 @@ def input_state_prior_scales(model, records, names="all") -> dict[int, tuple[flo
         names = None if names == "all" else ()
     if names is not None and not names:
         return {}
-    carried = dict(_carried_inputs(model))
+    carried = dict(carried_inputs(model))
     snames = list(model.state_names)
     if names is None:
         chosen = sorted(carried)
