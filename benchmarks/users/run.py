@@ -77,6 +77,12 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "attas_sp_deg": (("attas_elv1",), ("attas_elv2",),
                      "short period and vertical accelerometer written in degrees, the "
                      "records' radians converted by the data map"),
+    "attas_pitch_deg": (("attas_elv1",), ("attas_elv2",),
+                        "angle of attack and pitch rate in degrees, own names, no noise "
+                        "section (session 38's diagnose 'lag' of 9e-5 s)"),
+    "tu144_nz_deg": (("tu144_lon_f20_4d",), ("tu144_lon_f20_4f",),
+                     "short period in degrees with a normal acceleration of its own "
+                     "derivatives, without the pitch-rate term"),
 }
 
 
