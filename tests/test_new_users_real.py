@@ -63,3 +63,40 @@ def test_tu144_normal_acceleration_missing_its_pitch_rate_term(flight_data_dir, 
     assert ev["validation_elbo_own_noise_after"] > ev["validation_elbo_own_noise_before"] + 100
     notes = " ".join(f["evidence"]["refit"]["notes"])
     assert "every noise start" in notes
+
+
+def test_multistart_only_where_it_can_change_the_decision():
+    """Only significant trials that failed validation *and* outrank every validated trial are
+    refitted from the noise starts (each is a cold fit from four starts): on a Twin Otter
+    lateral model the aliases of the leading missing derivative (unsteady, mode, scale factor)
+    all failed validation below it and were refitted for nothing."""
+    import types
+
+    from vsidgen.discrepancy.refit import RefitVerdict
+    from vsidgen.discrepancy.search import _multistart_round
+    from vsidgen.engine import TaskOutcome, TaskStatus
+
+    def trial(key, stat, val):
+        st = types.SimpleNamespace(vfit=object(), val_elbo_own_noise=val, val_elbo=val, elbo=0.0)
+        return types.SimpleNamespace(
+            candidate=types.SimpleNamespace(key=key, states=()), state=st,
+            refit=types.SimpleNamespace(val_x0_entropy=0.0, elbo_ref=0.0, notes=[]),
+            p_value=1e-9, verdict=RefitVerdict.ORDINARY, statistic=stat, dof=1)
+
+    submitted = []
+
+    class Engine:
+        def run(self, fn, tasks, deadline=None):
+            submitted.extend(k for k, _ in tasks)
+            return [TaskOutcome(k, TaskStatus.DONE, None) for k, _ in tasks]
+
+    run = types.SimpleNamespace(alpha=0.01, max_iter=50, deadline=None, engine=Engine(),
+                                say=lambda *a: None)
+    st = types.SimpleNamespace(current=types.SimpleNamespace(val_elbo_own_noise=10.0, val_elbo=10.0))
+    trials = [trial("validated", 100.0, 20.0), trial("below", 50.0, 5.0), trial("above", 150.0, 5.0)]
+    out = _multistart_round(run, st, 1, trials)
+    assert submitted == ["above"]
+    assert out == trials                 # no start did better: every trial kept as it was
+    submitted.clear()
+    _multistart_round(run, st, 1, trials[1:])
+    assert submitted == ["below", "above"]   # nothing validated: both may change the decision

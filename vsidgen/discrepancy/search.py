@@ -1994,22 +1994,28 @@ def multistart_refit(t: "Trial", current: FitState, *, max_iter: int) -> FitStat
 
 
 def _multistart_round(run: "_RunConfig", st: "_RunState", rnd: int, trials: list["Trial"]) -> list["Trial"]:
-    """Trials significant at the round's level whose validation did not improve, refitted from
-    every noise start (:func:`multistart_refit`): a rejection by validation must not rest on a
-    local optimum of the candidate's noise. A better optimum replaces the trial's state and
+    """Trials significant at the round's level whose validation did not improve and whose
+    statistic exceeds every validated trial's, refitted from every noise start
+    (:func:`multistart_refit`): a rejection by validation must not rest on a local optimum of
+    the candidate's noise. A better optimum replaces the trial's state and
     statistic (against the same nested reference); the others are kept. Cancelled or failed
     tasks keep the warm refit."""
     from ..engine import TaskStatus
 
     current = st.current
-    eligible = []
+    failed, lead = [], -math.inf
     for i, t in enumerate(trials):
         if (t.state is None or t.refit is None or t.state.vfit is None or not (t.p_value < run.alpha)
                 or t.verdict is not RefitVerdict.ORDINARY):
             continue
         corr = t.refit.val_x0_entropy if t.candidate.states else 0.0
-        if not validation_improved(t.state, current, corr):
-            eligible.append(i)
+        if validation_improved(t.state, current, corr):
+            lead = max(lead, t.statistic)
+        else:
+            failed.append(i)
+    # only where it can change the round's decision: a rejected trial already outranked by a
+    # validated one is not refitted again (each multi-start is a cold fit from four starts)
+    eligible = [i for i in failed if trials[i].statistic > lead]
     if not eligible:
         return trials
     run.say(f"round {rnd}: significant but not validated, refitted from every noise start: "
