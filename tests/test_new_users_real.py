@@ -100,3 +100,31 @@ def test_multistart_only_where_it_can_change_the_decision():
     submitted.clear()
     _multistart_round(run, st, 1, trials[1:])
     assert submitted == ["below", "above"]   # nothing validated: both may change the decision
+
+
+@pytest.mark.slow
+def test_twin_otter_lateral_without_roll_due_to_yaw_rate(flight_data_dir, tmp_path):
+    """A new user's Twin Otter lateral model without L_r (benchmarks/users/otter_lat_nolr.yaml),
+    from its numerics- and noise-adopted form (RK4, correlated process noise, as the CLI
+    defaults adopt on this record). With the refits' quasi-deterministic std of an added
+    input-carrying state at 7 % of the input's spread per √s, a 0.29-s Padé delay of the
+    aileron was named first (2ΔELBO 2399 against L_r's 2122): the delay state's noise was an
+    input-noise channel into p and r (in the deterministic limit the delay fell to 0.004 s
+    beside L_r). At 0.7 % the delay scores 346 and L_r is named."""
+    import textwrap
+
+    spec = tmp_path / "adopted.yaml"
+    spec.write_text(textwrap.dedent(f"""\
+        name: otter_lat_nolr_adopted
+        extends: {ROOT / "benchmarks" / "users" / "otter_lat_nolr.yaml"}
+        integrator: {{method: rk4, substeps: 1, inputs: zoh}}
+        noise: {{process: {{structure: full}}}}
+        """))
+    doc = _diagnose(spec, [flight_data_dir / "totter_lat_f1_014.csv"], tmp_path / "d",
+                    validate=[flight_data_dir / "totter_lat_f1_017.csv"], numerics=False,
+                    noise_model=False, effects=["control_delay", "missing_derivative"],
+                    max_candidates=3)
+    f = doc["findings"][0]
+    assert f["key"] == "missing_derivative:p:r"
+    lr = f["parameters"]["D_p_r"]
+    assert lr["unit"] == "1/s" and lr["estimate"] > 0     # session 39: 1.907 ± 0.022

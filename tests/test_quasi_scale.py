@@ -99,7 +99,7 @@ def test_refit_problem_std_is_scale_free(tmp_path):
                                           deterministic_std=REFIT_DETERMINISTIC_STD))
         assert np.asarray(P0.nm.det)[2] == REFIT_DETERMINISTIC_STD
     assert dets[0] == pytest.approx(1000.0 * dets[1], rel=1e-9)
-    assert dets[0] > 10.0          # ~0.07 × 700 N, not 1e-3 N
+    assert dets[0] > 1.0           # ~0.007 × 700 N, not 1e-3 N
 
 
 def test_a_state_driven_by_a_control_is_not_an_input_filter(tmp_path):

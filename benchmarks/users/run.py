@@ -80,6 +80,8 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "attas_pitch_deg": (("attas_elv1",), ("attas_elv2",),
                         "angle of attack and pitch rate in degrees, own names, no noise "
                         "section (session 38's diagnose 'lag' of 9e-5 s)"),
+    "otter_lat_nolr": (("totter_lat_f1_014",), ("totter_lat_f1_017",),
+                       "lateral in degrees without the roll-due-to-yaw-rate term L_r"),
     "tu144_nz_deg": (("tu144_lon_f20_4d",), ("tu144_lon_f20_4f",),
                      "short period in degrees with a normal acceleration of its own "
                      "derivatives, without the pitch-rate term"),
