@@ -289,7 +289,7 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
     G0 = np.asarray(base_fit.G, float)
     G1 = np.zeros((n1, n1))
     G1[np.ix_(base_idx, base_idx)] = G0
-    for rec, dec in zip(records, base_fit.decision["records"]):
+    for ri, (rec, dec) in enumerate(zip(records, base_fit.decision["records"])):
         mu0 = np.asarray(dec["mu"], float)
         u = np.asarray(rec.u, float)
         dt = float(rec.dt)
@@ -319,13 +319,12 @@ def stage0_start(model1, records, base_fit, base_model, theta1, det_std):
         P = Q / (1.0 - a ** 2)
         for jj, j in enumerate(new_idx):   # the initial-value prior's mean (input_state_prior)
             if j in prior:
-                zs[0, jj] = prior[j][1][len(recs)]
+                zs[0, jj] = prior[j][1][ri]
         d_new = np.log(Q)
         c_new = a * np.sqrt(P)
         r1 = _embed_r(dec["r"], n0, n1, base_idx, new_idx, d_new, c_new)
         recs.append({"mu": mu1, "r": r1})
-        H0 += sum(initial_prior_term(P[jj], prior[j][0]) if j in prior
-                  else 0.5 * math.log(2 * math.pi * math.e * P[jj]) for jj, j in enumerate(new_idx))
+        H0 += sum(initial_prior_term(P[jj], prior.get(j, (None,))[0]) for jj, j in enumerate(new_idx))
     R1 = np.asarray(base_fit.R, float)
     return {"s": np.zeros(0), "records": recs}, G1, R1, H0, notes
 
@@ -342,9 +341,7 @@ def x0_entropy(fit, names_new, model, records) -> float:
     for sm in fit.smoothers:
         P = np.asarray(sm.cov_marg, float)
         for j in idx:
-            v = max(float(P[j, j]), 1e-300)
-            tot += (initial_prior_term(v, prior[j][0]) if j in prior
-                    else 0.5 * math.log(2 * math.pi * math.e * v))
+            tot += initial_prior_term(P[j, j], prior.get(j, (None,))[0])
     return tot
 
 

@@ -53,7 +53,7 @@ from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
 from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, carried_inputs, cov_factors_of,
-                   get_objective, make_cfg, quasi_deterministic_stds, record_data)
+                   get_objective, input_filter_scales, make_cfg, quasi_deterministic_stds, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -933,18 +933,18 @@ def input_state_prior_scales(model, records, names="all") -> dict[int, tuple[flo
                 raise FitError(f"input_state_prior: state '{nm}' does not carry an input (its drift is "
                                f"not driven by the difference between it and an input of its unit)")
             chosen.append(snames.index(nm))
+    spread = input_filter_scales(model, records)
     out = {}
     for i in chosen:
-        cols = [np.asarray(r.u, float)[:, carried[i]] for r in records]
-        dev = [c[np.isfinite(c)] - np.mean(c[np.isfinite(c)]) for c in cols if np.isfinite(c).any()]
-        sd = float(np.sqrt(np.mean(np.concatenate(dev) ** 2))) if dev else 0.0
+        sd = float(spread[i])
         if not (math.isfinite(sd) and sd > 0):
             if names is None:
                 continue       # "all": a constant input gives no scale; the state keeps the flat prior
             raise FitError(f"input_state_prior: the input carried by '{snames[i]}' does not vary in the "
                            f"records (no scale for the prior of its initial value)")
         means = []
-        for c in cols:
+        for r in records:
+            c = np.asarray(r.u, float)[:, carried[i]]
             fin = np.nonzero(np.isfinite(c))[0]
             means.append(float(c[fin[0]]) if fin.size else 0.0)
         out[i] = (sd, means)
@@ -963,13 +963,15 @@ def _input_state_prior(model, records, names):
             for ri in range(len(records))]
 
 
-def initial_prior_term(var, std) -> float:
-    """The initial-value term of one prior state at its nesting point, relative to a model
-    without the state: entropy of q(x_0) plus E_q log N(x_0; m, std²) with q's mean at m,
-    ½ log(2πe var) − ½ log(2π std²) − ½ var/std² (var: q's marginal variance of the state;
-    the flat prior's term is the entropy alone, std → ∞ less the constant)."""
+def initial_prior_term(var, std=None) -> float:
+    """The initial-value term of one added state at its nesting point, relative to a model
+    without the state: the entropy of q(x_0), ½ log(2πe var) (var: q's marginal variance of
+    the state), plus, for a state with the initial-value prior N(m, std²), E_q log N(x_0; m,
+    std²) with q's mean at m: − ½ log(2π std²) − ½ var/std². ``std`` None: the flat prior
+    (the entropy alone)."""
     var = max(float(var), 1e-300)
-    return 0.5 * math.log(2 * math.pi * math.e * var) - 0.5 * math.log(2 * math.pi * std ** 2) - 0.5 * var / std ** 2
+    h = 0.5 * math.log(2 * math.pi * math.e * var)
+    return h if std is None else h - 0.5 * math.log(2 * math.pi * std ** 2) - 0.5 * var / std ** 2
 
 
 def _prior_value(mu0, r, idx, mean, w, n):
