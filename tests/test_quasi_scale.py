@@ -115,3 +115,59 @@ def test_a_state_driven_by_a_control_is_not_an_input_filter(tmp_path):
     names = list(m.state_names)
     assert sc[names.index("alpha")] == 0.0
     assert sc[names.index("T_lag")] > 0.0
+
+
+# -- which state carries an input: ∂f/∂u + ∂f/∂z ≡ 0, decided at random points, checked
+# against sympy.simplify (the reference) on expressions small enough for it
+
+def _carries_by_simplify(f, u, z) -> bool:
+    import sympy
+
+    du = sympy.diff(f, u)
+    return du != 0 and sympy.simplify(du + sympy.diff(f, z)) == 0
+
+
+def _forms():
+    import sympy
+
+    u, z, tau, a, b, V = sympy.symbols("u z tau a b V", real=True)
+    return (u, z), [
+        (u - z) / tau,                                    # lag
+        2 * (u - z) / tau,                                # Padé state
+        sympy.sin(u - z) * V + a,                         # nonlinear in the difference
+        sympy.tanh((u - z) / tau) * a ** 2 - b * V,       # a rate-limited actuator's smooth form
+        sympy.Piecewise((u - z, a > 1), (2 * (u - z), True)),
+        (sympy.exp(u) - sympy.exp(z)) * a,                # depends on both, not on the difference
+        a * z + b * u,                                    # a flow angle driven by a control
+        (u - z) ** 2 / tau + a * z,
+        (u - z) / tau + 1e-12 * u,                        # a difference plus a tiny extra term
+        u * z,
+        a + b,                                            # neither
+    ]
+
+
+@pytest.mark.parametrize("k", range(11))
+def test_carried_input_identity_matches_simplify(k):
+    from vsidgen.estimator.core import _driven_by_difference
+
+    (u, z), forms = _forms()
+    f = forms[k]
+    assert _driven_by_difference(f, u, z) == _carries_by_simplify(f, u, z)
+
+
+def test_carried_input_identity_on_a_gated_screen_drift():
+    """A diagnose screen's gated drift (≈150 gate terms in one equation; ``sympy.simplify`` on
+    it took more than a minute): not a carried input, and the lag form with the same gate
+    terms added on the difference alone still is."""
+    import sympy
+
+    from vsidgen.estimator.core import _driven_by_difference
+
+    u, z, tau, V, q = sympy.symbols("u z tau V q", real=True)
+    gates = sympy.symbols("g0:150", real=True)
+    terms = [g * (V ** (i % 3) * sympy.sin(z) ** (i % 2) * u ** (i % 4) * q ** (i % 5))
+             for i, g in enumerate(gates)]
+    drift = -z / tau + 3 * u + q + sum(terms)
+    assert not _driven_by_difference(drift, u, z)
+    lag = (u - z) / tau + sum(g * (u - z) ** (i % 3 + 1) * V for i, g in enumerate(gates))
+    assert _driven_by_difference(lag, u, z)

@@ -300,14 +300,59 @@ def carried_inputs(model) -> tuple[tuple[int, int], ...]:
 
 
 def _driven_by_difference(f, u, z) -> bool:
-    """``∂f/∂u = −∂f/∂z ≠ 0``: ``f`` depends on ``u`` and ``z`` through ``u − z`` (sympy)."""
+    """``∂f/∂u = −∂f/∂z ≠ 0``: ``f`` depends on ``u`` and ``z`` through ``u − z`` (sympy).
+
+    The identity ``g = ∂f/∂u + ∂f/∂z ≡ 0`` is decided by evaluating ``g`` at random points
+    (:func:`_vanishes_identically`), not by ``sympy.simplify``: on a diagnose screen's gated
+    model (≈150 terms in one drift) ``simplify`` took more than a minute per state."""
     import sympy
 
     try:
         du = sympy.diff(f, u)
-        return du != 0 and sympy.simplify(du + sympy.diff(f, z)) == 0
+        if du == 0:
+            return False
+        g = du + sympy.diff(f, z)
+        return g == 0 or _vanishes_identically(g, du)
     except (TypeError, ValueError, AttributeError):
         return False
+
+
+#: random points at which :func:`_vanishes_identically` evaluates an expression
+IDENTITY_POINTS = 4
+
+
+def _vanishes_identically(g, scale, *, points: int = IDENTITY_POINTS, seed: int = 0) -> bool:
+    """Is the analytic expression ``g`` identically zero? Evaluated at ``points`` random real
+    points (every free symbol uniform in [0.3, 1.7], away from 0 and from the integers where
+    an expression may be singular), with 30 significant digits: an expression that is not
+    identically zero vanishes only on a set of measure zero, so a non-zero value at any
+    point decides False (relative to ``|scale|`` there, ``scale`` an expression of the same
+    size, e.g. the derivative it is compared with), and zero at every point True (the
+    polynomial identity test of Schwartz and Zippel, for analytic functions). Points where
+    ``g`` is not finite and real are drawn again (at most 4·``points`` draws); when no point
+    evaluates, False."""
+    import random
+
+    import sympy
+
+    syms = sorted(g.free_symbols | getattr(scale, "free_symbols", set()), key=str)
+    rng = random.Random(seed)
+    good = 0
+    for _ in range(4 * points):
+        at = {s: sympy.Float(rng.uniform(0.3, 1.7), 30) for s in syms}
+        try:
+            gv = complex(g.xreplace(at).evalf(30))
+            sv = complex(sympy.sympify(scale).xreplace(at).evalf(30))
+        except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+            continue
+        if not (math.isfinite(gv.real) and math.isfinite(sv.real)) or gv.imag or sv.imag:
+            continue
+        if abs(gv.real) > 1e-20 * abs(sv.real) + 1e-280:
+            return False
+        good += 1
+        if good >= points:
+            return True
+    return False
 
 
 class NoiseMap:
