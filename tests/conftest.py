@@ -51,6 +51,10 @@ def pytest_configure(config):
     before the CLI started keeping all (:data:`vsidgen.compilecache.MIN_COMPILE_SECS`):
     whether the small ones pay for their writing in a cold CI cache is not measured. Subprocesses (CLI tests, dask workers) get it
     through ``JAX_COMPILATION_CACHE_DIR``."""
+    # no stored traced programs (vsidgen.compilecache.StoredJit) in the suite's processes: a
+    # program stored by an earlier run would skip a trace that a test counts; the CLI's
+    # subprocesses keep JAX's cache below (tests/test_stored_programs.py enables it itself)
+    os.environ.setdefault("VSIDGEN_CACHE_DIR", "")
     if os.environ.get("VSIDGEN_TEST_JAX_CACHE", "1") == "0" or getattr(config, "cache", None) is None:
         return
     try:

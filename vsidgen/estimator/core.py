@@ -34,6 +34,8 @@ from __future__ import annotations
 import collections
 import functools
 import math
+import pathlib
+import sys
 import weakref
 
 import jax
@@ -889,7 +891,8 @@ def supported_compiler_options(items: tuple) -> dict:
 class Objective:
     """Negative ELBO pieces for one problem (model + options); jitted per record shape."""
 
-    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F):
+    def __init__(self, model, theta_map: ThetaMap, noise_map: NoiseMap, F, *,
+                 store_key: str | None = None):
         self.model = model
         self.tm = theta_map
         self.nm = noise_map
@@ -911,10 +914,39 @@ class Objective:
         self.curv_F, self.curv_h = self._curvature_structure(na, nu)
         self.traces = collections.Counter()  # jit traces per function (each trace is a compilation)
         opts = compiler_options()
-        self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
-        self._value = jax.jit(self._value_impl, compiler_options=opts)
-        self._factor = jax.jit(self._factor_impl, compiler_options=opts)
-        self._back = jax.jit(self._back_impl, compiler_options=opts)
+        key = self._store_key(store_key)
+        if key is None:
+            self._blocks = jax.jit(self._blocks_impl, compiler_options=opts)
+            self._value = jax.jit(self._value_impl, compiler_options=opts)
+            self._factor = jax.jit(self._factor_impl, compiler_options=opts)
+            self._back = jax.jit(self._back_impl, compiler_options=opts)
+        else:       # traced programs kept on disk (vsidgen.compilecache.StoredJit)
+            from ..compilecache import StoredJit
+
+            self._blocks = StoredJit(self._blocks_impl, key=key + "|blocks", compiler_options=opts)
+            self._value = StoredJit(self._value_impl, key=key + "|value", compiler_options=opts)
+            self._factor = StoredJit(self._factor_impl, key=key + "|factor", compiler_options=opts)
+            self._back = StoredJit(self._back_impl, key=key + "|back", compiler_options=opts)
+
+    def _store_key(self, model_key: str | None) -> str | None:
+        """The key of this objective's stored traced programs (:class:`StoredJit`): the
+        model's generated code (``model_key``, :func:`generated_model_key`) and everything
+        else the trace reads — the transition's setting, the maps' structure, the
+        curvature patterns, the assembly settings and the estimator modules' constants —
+        or None (nothing stored) without a model key, for a subclass, or when the
+        persistent cache is off."""
+        from ..compilecache import exported_dir
+
+        if model_key is None or type(self) is not Objective or exported_dir() is None:
+            return None
+        F = self.F
+        parts = (model_key, getattr(F, "key", None), getattr(F, "jac", None) is None,
+                 self.point_jacobians, self.chunk, self.parallel_solve,
+                 self.tm.static_key(), self.nm.static_key(),
+                 None if self.curv_F is None else np.asarray(self.curv_F).tobytes(),
+                 None if self.curv_h is None else np.asarray(self.curv_h).tobytes(),
+                 _module_constants())
+        return repr(parts)
 
     def _curvature_structure(self, na: int, nu: int):
         """(curv_F, curv_h): the Hessian patterns of F and h over a = (x, θ) (:func:`curvature_pairs`)."""
@@ -1476,6 +1508,46 @@ class Objective:
 _OBJECTIVES: dict = {}
 
 
+def generated_model_key(model, F) -> str | None:
+    """Hash of the generated module whose functions ``model`` and its transition ``F`` run,
+    or None when they are not exactly that module's (a model built in Python, a wrapped
+    function): only then does the module's text determine what a trace of them computes."""
+    import hashlib
+
+    mod, path = getattr(model, "module", None), getattr(model, "module_path", None)
+    if mod is None or path is None:
+        return None
+    jac = getattr(model, "jacobians", None)
+    if (getattr(mod, "drift", None) is not model.drift or getattr(mod, "output", None) is not model.output
+            or (jac is not None and getattr(mod, "drift_jac_x", None) is not jac.drift_x)
+            or getattr(F, "fn", None) is None):
+        return None
+    try:
+        return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def _constants_modules():
+    from . import linalg
+    from ..model import dynamics
+    return (sys.modules[__name__], linalg, dynamics)
+
+
+def _module_constants() -> str:
+    """The upper-case module constants of the estimator's trace-time modules (settings a
+    user or a test may change at run time), as text: part of a stored program's key."""
+    out = []
+    for mod in _constants_modules():
+        for name in sorted(vars(mod)):
+            if name.isupper() and not name.startswith("_"):
+                v = getattr(mod, name)
+                if isinstance(v, (bool, int, float, str, tuple, type(None), dict)):
+                    out.append(f"{mod.__name__}.{name}={v!r}")
+    return ";".join(out)
+
+
 def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra):
     """Objective with compiled functions shared between problems of the same structure.
 
@@ -1483,18 +1555,20 @@ def get_objective(model, theta_map: ThetaMap, noise_map: NoiseMap, F, key_extra)
     jit argument (``cfg``), so refitting the same model (other records, other
     fixed values) reuses the compiled code. Keyed on the model's functions,
     dimensions, integrator, the static index structure of the maps and the compiler
-    options.
+    options (and the folder of stored traced programs, :class:`vsidgen.compilecache.StoredJit`).
     """
+    from ..compilecache import exported_dir
+
     key = (model.drift, model.output, POINT_JACOBIANS, use_parallel_solve(), assembly_chunk(),
            tuple(sorted((compiler_options() or {}).items())),
            model.nx, model.nu, model.ny, model.np, key_extra,
            getattr(F, "key", None),
-           theta_map.static_key(), noise_map.static_key())
+           theta_map.static_key(), noise_map.static_key(), str(exported_dir()))
     obj = _OBJECTIVES.pop(key, None)     # least recently used first: a hit moves to the end
     if obj is None:
         if len(_OBJECTIVES) >= 16:
             _OBJECTIVES.pop(next(iter(_OBJECTIVES)))
-        obj = Objective(model, theta_map, noise_map, F)
+        obj = Objective(model, theta_map, noise_map, F, store_key=generated_model_key(model, F))
     _OBJECTIVES[key] = obj
     return obj
 
