@@ -957,6 +957,7 @@ def _finish(P: Problem, out, *, mode: str, options: FitOptions) -> FitResult:
         parameter_names=model.parameter_names, theta=theta, std_errors=std_errors, correlation=corr,
         free_mask=P.tm.free_mask.copy(), process_std=process_std, measurement_std=measurement_std,
         measurement_floor=measurement_floor, G=G, R=np.diag(sig ** 2), elbo=-f, converged=out["converged"],
+        G_objective=np.array(P.nm.G(jnp.asarray(w)), float),
         status=out["status"], iterations=out["iterations"], wall_time_s=time.perf_counter() - out["t0"],
         smoothers=tuple(smoothers), warnings=tuple(warnings), std_errors_reliable=bool(reliable),
         history=out["history"],

@@ -407,6 +407,11 @@ class FitResult:
     deterministic_states: tuple[str, ...] = ()
     std_error_flags: tuple[StdErrorFlag, ...] = ()
     deterministic_limit: dict | None = None   # continuation record of the deterministic limit (see FitOptions)
+    #: the process-noise factor the ELBO was computed with: ``G`` with the rows of the states
+    #: without process noise at the std the objective gave them (a quasi-deterministic
+    #: state's fixed std, the last stage of the deterministic limit); ``G`` reports them as 0.
+    #: A statistic compared with the ELBO (a one-step predictive likelihood) uses this one.
+    G_objective: np.ndarray | None = None
 
     @property
     def estimates(self) -> dict:
