@@ -753,6 +753,11 @@ def test_what_would_separate_two_explanations():
     lag = sep("actuator_lag", "input:de", "transport_delay", "input:de")
     assert "faster de input" in lag and "delay" in lag
     assert lag == sep("control_delay", "input:de", "actuator_lag", "input:de")
+    # a Padé delay and a shifted input are one delay: no lag wording ("attenuates", 90°)
+    two_delays = sep("control_delay", "input:de", "transport_delay", "input:de")
+    assert "same time delay of de" in two_delays and "attenuates" not in two_delays
+    assert "180°" in two_delays and two_delays == sep("transport_delay", "input:de",
+                                                      "control_delay", "input:de")
     assert "trim" in sep("sensor_bias", "output:q", "sensor_scale", "output:q")
     assert "airspeed channel" in sep("speed_dynamics", "drift:alpha", "missing_dynamics",
                                      "drift:alpha")
@@ -1301,3 +1306,33 @@ def test_an_unconverged_refit_above_the_best_decided_one_leaves_the_round_undeci
     assert _decide_round(1, [low, delay], current, 175, 0.01, [], [],
                          None).best.candidate.key == "transport_delay:thrust"
     assert outranking_unconverged([low, delay], delay) == []
+
+
+def test_two_forms_of_one_input_delay_are_one_physics():
+    """A Padé delay state and a shifted input of the same input are one time delay (the
+    sp_de_delay cases: control_delay 0.0426 s named, transport_delay 0.0405 s beside it was
+    reported AMBIGUOUS, with the lag-against-delay wording); of two inputs, or against a
+    lag, they stay different explanations."""
+    from vsidgen.discrepancy.base import Candidate, same_physics
+    from vsidgen.discrepancy.findings import complementary_findings
+
+    def cand(effect, u):
+        return Candidate(effect=effect, key=f"{effect}:{u}", target=f"input:{u}",
+                         explanation="", add_terms={})
+
+    assert same_physics(cand("control_delay", "de"), cand("transport_delay", "de"))
+    assert same_physics(cand("transport_delay", "de"), cand("control_delay", "de"))
+    assert not same_physics(cand("control_delay", "de"), cand("transport_delay", "thrust"))
+    assert not same_physics(cand("control_delay", "de"), cand("actuator_lag", "de"))
+    # findings.json recomputes "ambiguous" from the alternatives' own flag (not the class)
+    f = {"rank": 1, "key": "control_delay:de", "effect": "control_delay", "target": "input:de",
+         "added_terms": {}, "ambiguous": True,
+         "alternatives": [{"key": "transport_delay:de", "effect": "transport_delay",
+                           "target": "input:de", "same_physics": True},
+                          {"key": "sensor_bias:q", "effect": "sensor_bias",
+                           "target": "output:q", "same_physics": False}]}
+    g = {"rank": 2, "key": "sensor_bias:q", "effect": "sensor_bias", "target": "output:q",
+         "added_terms": {}, "alternatives": []}
+    complementary_findings([f, g])
+    assert [a["key"] for a in f["alternatives"]] == ["transport_delay:de"]
+    assert f["ambiguous"] is False

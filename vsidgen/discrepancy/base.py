@@ -758,14 +758,23 @@ def term_variables(c: Candidate) -> tuple[str, ...]:
     return tuple(rest.split("*")) if kind == "prod" else (rest.split(":", 1)[0],)
 
 
+#: effect classes that are forms of one physical effect on the same target: a time delay of an
+#: input as a first-order Padé state or as the input shifted by τ (the same τ, the same
+#: physics; at the bandwidths of a flight record the two predict alike)
+SAME_EFFECT_FORMS = (frozenset({"control_delay", "transport_delay"}),)
+
+
 def same_physics(a: Candidate, b: Candidate) -> bool:
     """Whether two candidates are forms of one physical explanation: the same effect class,
-    or a linear and a nonlinear term of a common variable in the same target (a missing
-    derivative and a break of the same coefficient in the same input) — a choice of form,
-    not between explanations."""
+    two forms of one effect on the same target (:data:`SAME_EFFECT_FORMS`: an input delay as
+    a Padé state or as a shifted input), or a linear and a nonlinear term of a common
+    variable in the same target (a missing derivative and a break of the same coefficient in
+    the same input) — a choice of form, not between explanations."""
     if a.effect == b.effect:
         return True
     kinds = {a.effect, b.effect}
+    if a.target == b.target and any(kinds <= forms for forms in SAME_EFFECT_FORMS):
+        return True
     if a.target != b.target or not (kinds & set(LINEAR_TERM_EFFECTS)
                                     and kinds & set(NONLINEAR_TERM_EFFECTS)):
         return False

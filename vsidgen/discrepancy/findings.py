@@ -270,6 +270,12 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
         return (f"a manoeuvre whose angular acceleration and {ch} rate differ in shape (a "
                 f"short sharp pulse next to a slow doublet): a sensor position error follows "
                 f"the angular rates and accelerations, a time skew follows d{ch}/dt")
+    if pair == {"control_delay", "transport_delay"} and same_channel:
+        return (f"nothing at these bandwidths: both are the same time delay of {ch}, as a "
+                f"first-order Padé state and as the input shifted by τ — a much faster {ch} "
+                f"input would show the Padé form's phase saturating at 180° where a pure "
+                f"delay's keeps growing in proportion to the frequency (both keep the "
+                f"amplitude)")
     if len(pair) == 2 and pair <= set(_INPUT_FILTERS) and same_channel:
         return (f"a faster {ch} input (a sharp step or a doublet of shorter period): a "
                 f"first-order lag attenuates fast inputs and its phase saturates at 90°, a "
@@ -759,6 +765,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "hold_comparison": (c.info or {}).get("hold_comparison")},
             "ambiguous": any(not same_physics(c, a.candidate) for a in trial.alternatives),
             "alternatives": [{**a.alternative_json(),
+                              "same_physics": same_physics(c, a.candidate),
                               "separated_by": separating_experiment(
                                   c.effect, c.target, a.candidate.effect, a.candidate.target)}
                              for a in trial.alternatives],
@@ -836,7 +843,8 @@ def complementary_findings(findings: list) -> list:
                                "accepted_in_round": later[a["key"]],
                                "statistic_as_alternative": a.get("statistic"),
                                "vuong": a.get("vuong")} for a in comp]
-        f["ambiguous"] = any(a["effect"] != f["effect"] for a in f["alternatives"])
+        f["ambiguous"] = any(not a.get("same_physics", a["effect"] == f["effect"])
+                             for a in f["alternatives"])
     return findings
 
 
