@@ -153,10 +153,17 @@ class RefitOutcome:
     notes: list = dataclasses.field(default_factory=list)
     wall_s: float = 0.0
     compile_s: float | None = None    # JAX trace + lower + XLA compile time spent in the refit
+    #: 2ΔELBO of the candidate over its nested reference in the deterministic limit of the
+    #: added states minus the same at their quasi-deterministic std (``limit_statistic``; None:
+    #: not taken). ``elbo_ref`` and ``x0_entropy`` include −½ of it: the reference is raised by
+    #: the gain the fixed noise of the added states gave the candidate (module docstring).
+    limit_correction: float | None = None
+    limit_detail: dict | None = None
 
     def to_json(self) -> dict:
         f = _f
         return {"elbo_ref": f(self.elbo_ref), "elbo_stage0": f(self.elbo_stage0),
+                "limit_correction": f(self.limit_correction), "limit": self.limit_detail,
                 "elbo_stage1": f(self.elbo_stage1), "converged_stage0": self.converged_stage0,
                 "converged_stage1": self.converged_stage1, "x0_entropy": f(self.x0_entropy),
                 "val_x0_entropy": f(self.val_x0_entropy), "warm_start": self.warm,

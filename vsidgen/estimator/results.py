@@ -340,6 +340,10 @@ class WarmStart:
 
     shared: np.ndarray
     records: tuple[tuple[np.ndarray, np.ndarray], ...]
+    #: for a fit in the deterministic limit: ``{"std": {state: std}}``, the process-noise std
+    #: of the deterministic states this decision belongs to (a quasi-deterministic fit's fixed
+    #: std); the continuation starts there instead of at the data scale. None: the data scale.
+    deterministic_limit: dict | None = None
 
     @classmethod
     def from_decision(cls, decision: dict) -> WarmStart:
