@@ -549,7 +549,24 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> pathlib.Path:
     return pathlib.Path(path)
 
 
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> pathlib.Path:
+    """Write ``data`` to ``path`` atomically: a temporary file beside it, then
+    :func:`os.replace` (as :func:`atomic_text_file`; parent folders created)."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
 __all__ = ["MANIFEST", "DirState", "OutputPlan", "WriteMode", "add_to_manifest",
            "atomic_directory", "atomic_text_file", "check_output_file", "listing", "plan_output_dir",
            "print_recovered", "read_manifest", "recover", "results_in_place",
-           "write_text_atomic"]
+           "write_bytes_atomic", "write_text_atomic"]

@@ -15,7 +15,6 @@ import hashlib
 import os
 import pathlib
 import sys
-import tempfile
 import threading
 
 
@@ -134,6 +133,8 @@ class StoredJit:
         import jax
         from jax import export
 
+        from .atomic import write_bytes_atomic
+
         path = self._path(treedef, sig)
         exp = None
         try:
@@ -146,26 +147,11 @@ class StoredJit:
         if exp is None:
             exp = export.export(self._jit)(*args)
             try:
-                self._write(path, exp.serialize())
+                write_bytes_atomic(path, exp.serialize())
                 self.stored += 1
             except Exception:  # noqa: BLE001 - a read-only cache: run it anyway
                 pass
         return jax.jit(exp.call, compiler_options=self._opts)
-
-    @staticmethod
-    def _write(path: pathlib.Path, data: bytes) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(data)
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
 
     def __call__(self, *args):
         import jax
