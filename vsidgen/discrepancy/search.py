@@ -297,7 +297,7 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     decision0 = base_fit.decision
     warm = base_fit.decision is not None
     out.elbo_ref = current.elbo
-    r0_state = None     # (θ, noise, result) of the stage-0 smoothing when it is the reference
+    r0_state = None     # (θ, noise, result, decision) of the nesting point's smoothing
     if new_states and warm:
         # ---- stage 0: candidate at its nesting point, only q fitted
         try:
@@ -309,7 +309,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
             out.x0_entropy = H0
             out.elbo_ref = max(float(r0.elbo) if math.isfinite(r0.elbo) else -math.inf,
                                current.elbo + H0)
-            if r0.converged and out.elbo_ref == float(r0.elbo):
+            if r0.converged:     # the limit correction's pair (a difference at one noise:
+                # valid whichever of r0 and current + H0 is the quasi statistic's reference)
                 r0_state = (theta2, {"G": G1, "R": R1}, r0, None)
             if profile:
                 # stage 0 ran at the screen's time constant, which is not the nesting point:
@@ -404,8 +405,8 @@ def staged_refit(c: Candidate, current: FitState, info: ModelInfo, path: pathlib
     return out
 
 
-#: take the statistic of a candidate that adds a state carrying an input (a lag, a Padé
-#: delay, an actuator) in the deterministic limit of its added states (:func:`limit_correction`)
+#: take the statistic of a candidate that adds states without process noise (a lag, a Padé
+#: delay, an actuator, a mode) in the deterministic limit of those states (:func:`limit_correction`)
 REFIT_LIMIT_STATISTIC = True
 
 
@@ -414,12 +415,13 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
     """Correct a refit's statistic to the deterministic limit of the states it adds.
 
     The refits hold the added states quasi-deterministic: a small fixed process noise
-    (:data:`.refit.REFIT_DETERMINISTIC_REL` of the carried input's spread per √s) keeps the
-    objective smooth, but for a state that carries an input it is also an input-noise
-    channel, and the candidate's ELBO gains what that channel explains (a Padé "aileron
-    delay" on a new user's Twin Otter lateral model gained 2399 at 7 % and 346 at 0.7 %; in
-    the limit the delay falls to 0.004 s). The model the diagnosis writes has no such noise,
-    so the statistic that decides is the limit of
+    (:data:`.refit.REFIT_DETERMINISTIC_REL` of the carried input's spread per √s for a lag or
+    delay state, :data:`.refit.REFIT_DETERMINISTIC_STD` for any other) keeps the objective
+    smooth, but it is also a noise channel — into the input for a lag or delay state (a Padé
+    "aileron delay" on a new user's Twin Otter lateral model gained 2399 at 7 % and 346 at
+    0.7 %), a coloured process noise through a mode's coupling for a mode state — and the
+    candidate's ELBO gains what that channel explains. The model the diagnosis writes has no
+    such noise, so the statistic that decides is the limit of
 
         λ(ε) = 2 (ELBO_candidate(ε) − ELBO_reference(ε))
 
@@ -432,16 +434,17 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
     stage). ``out.limit_correction`` = λ(ε_final) − λ(quasi) is added to the statistic by
     raising ``out.elbo_ref`` (and ``out.x0_entropy``, which the comparison across a round's
     candidates uses) by −½ of it; the candidate's fit itself stays the quasi-deterministic
-    one (its validation and report). Only for candidates with an added state that carries an
-    input, and only when both limits converge (else a note, and the quasi statistic).
+    one (its validation and report). For every candidate whose added states have no process
+    noise of their own (lags, delays, actuators, modes, speed dynamics; not a wind state,
+    which is noise-driven), when every stage of both continuations converged (else a note,
+    and the quasi statistic). A continuation that ran its stages out before the ELBO settled
+    (``reached`` False) gives the statistic at its smallest std, both ELBOs at that std: closer
+    to the limit than the quasi-deterministic one (a note says so).
     """
     from ..estimator import WarmStart, fit, smooth
-    from ..estimator.core import carried_inputs
     from .refit import REFIT_DETERMINISTIC_STD, quasi_stds
 
-    added = {m2.state_names.index(n) for n in new_states}
-    if not any(i in added for i, _ in carried_inputs(m2)) or res2.decision is None \
-            or not res2.deterministic_states:
+    if res2.decision is None or not any(n in res2.deterministic_states for n in new_states):
         return
     theta0, noise0, r0, dec0 = r0_state
     q = quasi_stds(m2, records, REFIT_DETERMINISTIC_STD)
@@ -460,7 +463,7 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
             max_iter, deterministic="limit",
             warm_start=dataclasses.replace(ws, deterministic_limit=start)))
         lim = resL.deterministic_limit
-        if not (resL.converged and lim and lim.get("reached")):
+        if not (resL.converged and lim and len(lim.get("stages") or ()) > 1):
             out.notes.append("the statistic in the deterministic limit was not taken: the "
                              f"candidate's limit did not converge ({resL.status.splitlines()[0]})")
             return
@@ -487,8 +490,13 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
                         "wall_s": round(time.perf_counter() - t0, 2)}
     out.elbo_ref -= 0.5 * corr
     out.x0_entropy -= 0.5 * corr
+    reached = bool(lim.get("reached"))
+    out.limit_detail["reached"] = reached
     out.notes.append(f"statistic in the deterministic limit of the added states: "
-                     f"{lam_l:.4g} (at their quasi-deterministic std: {lam_q:.4g})")
+                     f"{lam_l:.4g} (at their quasi-deterministic std: {lam_q:.4g})"
+                     + ("" if reached else
+                        f"; the limit was not reached in {len(lim.get('stages') or ()) - 1} "
+                        "stage(s): the statistic at the smallest std, both at that std"))
     _say(progress, f"    {out.notes[-1]}")
 
 
