@@ -56,7 +56,9 @@ def test_a_corrupt_file_is_exported_again_and_tracers_use_the_plain_jit(tmp_path
     again = StoredJit(_f, key="f", directory=tmp_path)
     np.testing.assert_allclose(again(x, c)["y"], np.sin(np.asarray(x)) * 2.0 + 3.0)
     assert (again.stored, again.loaded) == (1, 0)
-    assert StoredJit(_f, key="f", directory=tmp_path)(x, c) is not None    # valid again
+    valid = StoredJit(_f, key="f", directory=tmp_path)
+    valid(x, c)
+    assert (valid.stored, valid.loaded) == (0, 1)               # the rewritten file loads
     # inside a transformation the arguments are tracers: the plain jit (differentiable)
     g = jax.grad(lambda a: again(x, {"a": a, "b": c["b"]})["y"].sum())(jnp.float64(2.0))
     assert float(g) == pytest.approx(float(np.sin(np.asarray(x)).sum()), rel=1e-12)

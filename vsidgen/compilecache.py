@@ -107,7 +107,6 @@ class StoredJit:
     def __init__(self, fn, *, key: str, compiler_options=None, directory: pathlib.Path | None = None):
         import jax
 
-        self._fn = fn
         self._jit = jax.jit(fn, compiler_options=compiler_options)
         self._opts = compiler_options
         self._dir = directory if directory is not None else exported_dir()
@@ -136,13 +135,10 @@ class StoredJit:
         from .atomic import write_bytes_atomic
 
         path = self._path(treedef, sig)
-        exp = None
         try:
             exp = export.deserialize(bytearray(path.read_bytes()))
             self.loaded += 1
-        except FileNotFoundError:
-            pass
-        except Exception:  # noqa: BLE001 - a corrupt or foreign file: export it again
+        except Exception:  # noqa: BLE001 - missing, corrupt or foreign: export it (again)
             exp = None
         if exp is None:
             exp = export.export(self._jit)(*args)

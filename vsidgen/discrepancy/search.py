@@ -439,9 +439,9 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
     note, and the quasi statistic). Not for modes and the other added states: on the
     body-axis null record (hfbb_none_0_s0) their limits took 15–172 s each and changed no
     decision (a q mode 37.8 → 38.2 with its limit not reached, a thrust mode 14.0 → 2.2, both
-    on the same side of their thresholds), which doubled the round. A continuation that ran its stages out before the ELBO settled
-    (``reached`` False) gives the statistic at its smallest std, both ELBOs at that std: closer
-    to the limit than the quasi-deterministic one (a note says so).
+    on the same side of their thresholds). A continuation that ran its stages out before the
+    ELBO settled (``reached`` False) gives the statistic at its smallest std, both ELBOs at
+    that std: closer to the limit than the quasi-deterministic one (a note says so).
     """
     from ..estimator import WarmStart, fit, smooth
     from ..estimator.core import carried_inputs

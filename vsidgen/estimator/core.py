@@ -337,14 +337,15 @@ def _vanishes_identically(g, scale, *, points: int = IDENTITY_POINTS, seed: int 
 
     import sympy
 
-    syms = sorted(g.free_symbols | getattr(scale, "free_symbols", set()), key=str)
+    scale = sympy.sympify(scale)
+    syms = sorted(g.free_symbols | scale.free_symbols, key=str)
     rng = random.Random(seed)
     good = 0
     for _ in range(4 * points):
         at = {s: sympy.Float(rng.uniform(0.3, 1.7), 30) for s in syms}
         try:
             gv = complex(g.xreplace(at).evalf(30))
-            sv = complex(sympy.sympify(scale).xreplace(at).evalf(30))
+            sv = complex(scale.xreplace(at).evalf(30))
         except (TypeError, ValueError, ZeroDivisionError, OverflowError):
             continue
         if not (math.isfinite(gv.real) and math.isfinite(sv.real)) or gv.imag or sv.imag:
