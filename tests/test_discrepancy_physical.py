@@ -114,6 +114,39 @@ def test_a_lag_at_the_end_of_its_labels_range_is_not_accepted_as_that_label():
         assert trial_verdict(c, st, 3022.0) is RefitVerdict.BEYOND_RANGE
         st.fit.theta[1] = 0.3 * upper
         assert trial_verdict(c, st, 3022.0) is RefitVerdict.ORDINARY
+        # an interior estimate whose 95 % interval reaches the label's end is beyond it too
+        st.fit.theta[1] = 0.97 * upper
+        st.fit.std_errors = np.array([0.1, 0.03 * upper])
+        assert trial_verdict(c, st, 3022.0) is RefitVerdict.BEYOND_RANGE
+        st.fit.std_errors = np.array([0.1, 0.01 * upper])
+        assert trial_verdict(c, st, 3022.0) is RefitVerdict.ORDINARY
+
+
+def test_an_estimate_within_its_interval_of_the_labels_end_is_beyond_range():
+    """The 95 % rule (upper − θ̂ < 1.96 s.e.): a new user's ATTAS roll model accepted a
+    left-aileron Padé delay of 0.970 ± 0.030 s under a 1-s label; an unknown s.e. leaves
+    only the relative rule; a delay profile whose best grid value is its last is at the end."""
+    from vsidgen.discrepancy.delay import delay_grid
+    from vsidgen.discrepancy.refit import RANGE_Z, RefitVerdict, refit_verdict
+
+    assert refit_verdict(20.0, {"D": 0.970}, {}, {"D": 1.0}, {"D": 0.030}) \
+        is RefitVerdict.BEYOND_RANGE
+    assert refit_verdict(20.0, {"D": 0.970}, {}, {"D": 1.0}, {"D": 0.015}) \
+        is RefitVerdict.ORDINARY
+    assert refit_verdict(20.0, {"D": 0.970}, {}, {"D": 1.0}, {"D": float("nan")}) \
+        is RefitVerdict.ORDINARY
+    # the boundary is the quantile itself
+    se = 0.03 / RANGE_Z
+    assert refit_verdict(20.0, {"D": 0.97}, {}, {"D": 1.0}, {"D": se * 1.001}) \
+        is RefitVerdict.BEYOND_RANGE
+    assert refit_verdict(20.0, {"D": 0.97}, {}, {"D": 1.0}, {"D": se * 0.999}) \
+        is RefitVerdict.ORDINARY
+    # a non-positive statistic is an optimiser failure first
+    assert refit_verdict(-5.0, {"D": 0.99}, {}, {"D": 1.0}, {"D": 0.03}) \
+        is RefitVerdict.BELOW_NESTING_POINT
+    g = delay_grid(0.05)
+    assert refit_verdict(20.0, {"D": g[-1]}, {}, {"D": g[-1]}, {"D": float("nan")}) \
+        is RefitVerdict.BEYOND_RANGE
 
 
 def test_time_skew_is_causal_and_its_explanation_has_no_unfilled_number():

@@ -460,7 +460,7 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     beyond = [t for t in tried if t.get("verdict") == "beyond_range"]
     if beyond:
         conclusion += (" Not accepted because a time constant ended at the upper end of the "
-                       "range its label allows (the data want a slower process than the label "
+                       "range its label allows, or within 1.96 standard errors of it (the data want a slower process than the label "
                        "names: a missing mode, trim terms or the speed dynamics, not an actuator "
                        "or a delay): "
                        + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})"

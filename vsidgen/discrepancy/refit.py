@@ -98,7 +98,10 @@ class RefitVerdict(str, enum.Enum):
     range its label allows (an actuator lag of 5 s, a control delay of 1 s): the data want a
     slower process than the label names — on a new user's Tu-144 model without trim terms an
     "elevator lag" ended at 5.0 s, a low-passed elevator standing in for the missing constants
-    and slow dynamics — so it is not accepted under that label either.
+    and slow dynamics — so it is not accepted under that label either. So is an estimate whose
+    95 % interval reaches that end (``upper − θ̂ < 1.96 s.e.``, the estimator's ``AT_BOUND``
+    rule): on a new user's ATTAS roll model without lateral coupling a left-aileron "delay"
+    of 0.970 ± 0.030 s (bound 1 s) stood in for the missing coupling.
     """
 
     ORDINARY = "ordinary"
@@ -114,15 +117,21 @@ BELOW_TOL = 0.1
 #: a time constant within this fraction of its label's upper limit is at the limit
 RANGE_TOL = 1e-3
 
+#: two-sided 95 % normal quantile: an estimate closer than this many standard errors to its
+#: label's upper limit cannot be told from it (as ``estimator.fit``'s ``AT_BOUND`` flag)
+RANGE_Z = 1.959963984540054
+
 
 def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: dict[str, int],
-                  label_upper: dict[str, float] | None = None) -> RefitVerdict:
+                  label_upper: dict[str, float] | None = None,
+                  std_errors: dict[str, float] | None = None) -> RefitVerdict:
     """Verdict of a refit from its statistic ``Λ = 2(ELBO − ELBO_ref)`` and its estimates.
 
     ``causal_sign`` maps parameters whose sign is physical (a time skew: +1, late) to the
     admissible sign; an estimate of the other sign is non-causal. ``label_upper`` maps time
     constants to the largest value their label allows (the candidate's upper bound); an
-    estimate within :data:`RANGE_TOL` of it (relative) is beyond the label's range.
+    estimate within :data:`RANGE_TOL` of it (relative), or within :data:`RANGE_Z` of its
+    standard error (``std_errors``, when finite), is beyond the label's range.
     """
     if math.isfinite(statistic) and statistic < -BELOW_TOL:
         return RefitVerdict.BELOW_NESTING_POINT
@@ -132,7 +141,11 @@ def refit_verdict(statistic: float, estimates: dict[str, float], causal_sign: di
             return RefitVerdict.NON_CAUSAL
     for name, hi in (label_upper or {}).items():
         v = estimates.get(name)
-        if v is not None and math.isfinite(v) and v >= hi * (1.0 - RANGE_TOL):
+        if v is None or not math.isfinite(v):
+            continue
+        se = (std_errors or {}).get(name)
+        if v >= hi * (1.0 - RANGE_TOL) or (se is not None and math.isfinite(se)
+                                          and hi - v < RANGE_Z * se):
             return RefitVerdict.BEYOND_RANGE
     return RefitVerdict.ORDINARY
 

@@ -738,10 +738,12 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
 def trial_verdict(c: Candidate, st: FitState, statistic: float):
     """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates)."""
     names = list(st.model.parameter_names)
-    est = {p.name: float(st.fit.theta[names.index(p.name)]) for p in c.parameters
-           if p.name in names}
+    idx = {p.name: names.index(p.name) for p in c.parameters if p.name in names}
+    est = {n: float(st.fit.theta[i]) for n, i in idx.items()}
+    se = getattr(st.fit, "std_errors", None)
+    ses = {} if se is None else {n: float(se[i]) for n, i in idx.items()}
     return refit_verdict(statistic, est, dict(c.info.get("causal_sign") or {}),
-                         dict(c.info.get("label_upper") or {}))
+                         dict(c.info.get("label_upper") or {}), ses)
 
 
 def stopped_short(t: Trial) -> float | None:
@@ -1496,7 +1498,9 @@ def delay_trial(c, score, current, path, name, *, engine, generated_dir, max_ite
                       wall_s=prof.wall_s)
     return Trial(c2, score, path, st, lam, 1, delay_p_value(lam, len(prof.grid)), refit=ro,
                  statistic_vs_base=lam, converged=refit_converged(st.fit), screen=screen,
-                 verdict=refit_verdict(lam, {}, {}))
+                 verdict=refit_verdict(lam, {ent["name"]: prof.estimate}, {},
+                                       {ent["name"]: prof.grid[-1]},
+                                       {ent["name"]: prof.std_error}))
 
 
 def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candidates: int = 8,
