@@ -94,3 +94,99 @@ def test_adopted_gust_is_reported_as_noise_model_not_physics():
     lines = summary_lines({"noise_gust": ng, "findings": [], "conclusion": "c."}, "findings.json")
     assert any(l.startswith("0. noise model (not physics): add the gust state") for l in lines)
     assert noise_gust_text({"trials": [{}], "adopted": None}) == ""
+
+
+@__import__("dataclasses").dataclass(frozen=True)
+class _Cand:
+    key: str
+    explanation: str
+
+
+def _check_setup(monkeypatch, *, adopted: bool, lam_with: float | None, converged=True):
+    """A run state whose round lead (Λ 26.1 > 19.2, a pitch mode) is checked against a
+    mocked gust alternative and a mocked refit on the gust model."""
+    from vsidgen.discrepancy import gust, search
+    from vsidgen.discrepancy.noisemodel import NoiseModelResult
+    from vsidgen.discrepancy.refit import RefitVerdict
+
+    g = types.SimpleNamespace(elbo=16415.6, val_elbo=None, model=None, name="gust")
+    cur = types.SimpleNamespace(elbo=16234.9, name="current")
+    gtrial = types.SimpleNamespace(state=g, spec_path=pathlib.Path("r0_g01.yaml"))
+    res = NoiseModelResult("diagonal", ("u", "w", "q", "theta"), cur.elbo,
+                           (object(),), 0.01, gtrial if adopted else None)
+    monkeypatch.setattr(gust, "run_gust_model", lambda *a, **k: (res, ["plan"]))
+    monkeypatch.setattr(gust, "to_json", lambda r, plans: {
+        "trials": [{"statistic": 361.4 if adopted else 3.0, "threshold": 24.5}],
+        "adopted": {"statistic": 361.4, "threshold": 24.5, "dof": 2,
+                    "recommendation": "add the gust state(s) of r0_g01.yaml",
+                    "explanation": "Noise model, not physics"} if adopted else None,
+        "gusts": [{"velocity": "w", "gust_state": "D_GUST_w", "definitions": {"a": ""}}]})
+    monkeypatch.setattr(search, "model_info_of", lambda st: None)
+    monkeypatch.setattr(search, "locate_state", lambda st: ("evidence of", st.name))
+    monkeypatch.setattr(search, "_checkpoint", lambda *a, **k: None)
+    cand = _Cand("missing_dynamics:q:q", "A mode.")
+    best = search.Trial(cand, 3.0, pathlib.Path("r1_01.yaml"), object(), 26.1, 3, 1e-4,
+                        threshold=19.2, significant=True, converged=True,
+                        verdict=RefitVerdict.ORDINARY)
+    refits = []
+
+    def refit_on(run, b, gg, rnd):
+        refits.append((b.candidate.key, gg.name))
+        if lam_with is None:
+            return None
+        return search.Trial(_Cand(cand.key, "A mode."), 3.0, pathlib.Path("r1_gust.yaml"),
+                            types.SimpleNamespace(vfit=None, fit=types.SimpleNamespace(
+                                stop_reason=None)), lam_with, 3, 1e-3,
+                            converged=converged, verdict=RefitVerdict.ORDINARY)
+
+    monkeypatch.setattr(search, "_refit_on", refit_on)
+    run = types.SimpleNamespace(alpha=0.01, gen=None, max_iter=200, engine=None, out=None,
+                                deadline=None, progress=None, past_deadline=lambda: False,
+                                say=lambda m: None)
+    st = search._RunState(current=cur, rounds=[{"round": 1, "trials": []}])
+    return search, run, st, best, g, refits
+
+
+@pytest.mark.parametrize("lam_with, converged, outcome", [
+    (7.0, True, "explained_by_gust"), (25.0, False, "explained_by_gust"),
+    (None, True, "explained_by_gust"), (40.0, True, "significant_with_gust")])
+def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_with, converged,
+                                                               outcome):
+    """The gust check (:func:`vsidgen.discrepancy.search._gust_check`): with the gust
+    significant it is adopted as the current model and the lead is refitted on it; the lead is
+    kept only when it is still above the round's threshold there (converged), and the
+    conclusion sentence says which, with the numbers."""
+    from vsidgen.discrepancy.findings import noise_gust_text
+
+    search, run, st, best, g, refits = _check_setup(monkeypatch, adopted=True,
+                                                    lam_with=lam_with, converged=converged)
+    out = search._gust_check(run, st, 1, best)
+    assert st.current is g and st.evidence == ("evidence of", "gust")
+    assert refits == [("missing_dynamics:q:q", "gust")]
+    ch = st.gustres["checked"]
+    assert ch["outcome"] == outcome and ch["statistic_without_gust"] == 26.1
+    text = noise_gust_text(st.gustres)
+    assert text.startswith("NOISE MODEL (not a physical effect)")
+    if outcome == "explained_by_gust":
+        assert out is None and st.rounds[-1]["gust_check"]["outcome"] == outcome
+        assert "NOT ACCEPTED, explained by the turbulence: missing_dynamics:q:q" in text
+        assert "26.1 > 19.2" in text
+        if lam_with is not None and converged:
+            assert f"2ΔELBO = {lam_with:.4g} ≤ 19.2" in text
+    else:
+        trial, own = out
+        assert own and trial.statistic == 40.0 and trial.threshold == 19.2 and trial.significant
+        assert "40 > 19.2 (without the gust 26.1)" in trial.candidate.explanation
+        assert "stays significant with the gust (2ΔELBO = 40 > 19.2" in text
+
+
+def test_a_gust_that_is_not_significant_leaves_the_lead_as_it_is(monkeypatch):
+    from vsidgen.discrepancy.findings import noise_gust_text
+
+    search, run, st, best, g, refits = _check_setup(monkeypatch, adopted=False, lam_with=7.0)
+    cur = st.current
+    trial, own = search._gust_check(run, st, 1, best)
+    assert trial is best and not own and st.current is cur and refits == []
+    assert st.gustres["checked"]["outcome"] == "gust_not_significant"
+    text = noise_gust_text(st.gustres)
+    assert "rival explanation of missing_dynamics:q:q" in text and "3 ≤ 24.5" in text

@@ -14,7 +14,11 @@ findings.json (keys in this order)::
      "noise_gust": null | {"kind": "noise_gust", "test", "gusts": [{"velocity", "gust_state",
                                                "correlation_time", "definitions", ...}],
                            "trials": [...], "adopted": null | {"recommendation", "statistic",
-                                               "threshold", "dof", "explanation", ...}},
+                                               "threshold", "dof", "explanation", ...},
+                           "checked": absent | {"round", "key", "statistic_without_gust",
+                                               "threshold", "statistic_with_gust", "outcome":
+                                               "gust_not_significant" | "significant_with_gust"
+                                               | "explained_by_gust", ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -688,18 +692,49 @@ def noise_model_text(noise_model: dict | None) -> str:
             "the physical search below used it. ")
 
 
+def gust_check_text(noise_gust: dict | None) -> str:
+    """Sentence on the air-relative gust tested as a rival of a round's lead
+    (``noise_gust.checked``, :func:`.search._gust_check`); "" when it was not."""
+    ch = (noise_gust or {}).get("checked")
+    if not ch:
+        return ""
+    key, thr = ch["key"], ch.get("threshold")
+    without = ch.get("statistic_without_gust")
+    lam = ch.get("statistic_with_gust")
+    lam_s = "not refitted (time limit)" if lam is None else f"2ΔELBO = {lam:.4g}"
+    if ch.get("outcome") == "gust_not_significant":
+        trial = (noise_gust.get("trials") or [{}])[0]
+        st = trial.get("statistic")
+        return (f"Turbulence in the air-relative velocity was tested as a rival explanation of "
+                f"{key} and did not improve the fit significantly"
+                + (f" (2ΔELBO = {st:.4g} ≤ {trial.get('threshold'):.4g})"
+                   if isinstance(st, (int, float)) and isinstance(trial.get("threshold"),
+                                                                  (int, float)) else "")
+                + ". ")
+    if ch.get("outcome") == "significant_with_gust":
+        return (f"{key} stays significant with the gust ({lam_s} > {thr:.4g}; without it "
+                f"{without:.4g}). ")
+    return (f"NOT ACCEPTED, explained by the turbulence: {key} was significant with white "
+            f"process noise (2ΔELBO = {without:.4g} > {thr:.4g}) but not with the gust "
+            f"({lam_s}" + (f" ≤ {thr:.4g}" if lam is not None and lam <= thr else "")
+            + (", not converged" if ch.get("converged_with_gust") is False else "")
+            + (", validation ELBO lower" if ch.get("validation_ok_with_gust") is False else "")
+            + "): the mismatch it absorbed is the turbulence the model's velocity state "
+              "receives as a differentiated gust, not physics. ")
+
+
 def noise_gust_text(noise_gust: dict | None) -> str:
     """Sentence on an adopted air-relative gust (:mod:`.gust`) put before the conclusion
-    ("" when none was adopted)."""
+    ("" when none was adopted), and on the lead it was tested against."""
     a = (noise_gust or {}).get("adopted")
     if not a:
-        return ""
+        return gust_check_text(noise_gust)
     what = ", ".join(f"{g['velocity']} − {g['gust_state']}" for g in noise_gust.get("gusts") or [])
     return (f"NOISE MODEL (not a physical effect): the turbulence enters the air-relative "
             f"velocity ({what} in the flow-angle and airspeed definitions); "
             f"{a['recommendation']} (2ΔELBO = {a['statistic']:.4g} > {a['threshold']:.4g}, "
             f"chi2({a['dof']}) at alpha over the correlation times searched); the physical "
-            "search below used it. ")
+            "search below used it. " + gust_check_text(noise_gust))
 
 
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
@@ -976,10 +1011,13 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
     if ng.get("trials"):
         gusts = "; ".join(f"{g['velocity']} − {g['gust_state']} in "
                           f"{', '.join(g['definitions'])}" for g in ng.get("gusts") or [])
-        parts.append("<h3>Turbulence in the air-relative velocity (tested before physics)</h3>"
+        when = ("tested as a rival of the round's lead" if ng.get("checked")
+                else "tested before physics")
+        parts.append(f"<h3>Turbulence in the air-relative velocity ({when})</h3>"
                      f"<p>Gust tried: {e(gusts)}. "
                      + (f"<b>{e(ng['adopted']['explanation'])}</b>" if ng.get("adopted")
                         else "Kept: the gust did not improve the fit significantly.")
+                     + (f" {e(gust_check_text(ng))}" if ng.get("checked") else "")
                      + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
                                                            for t in ng["trials"]], dof=True))
     loc = doc.get("locate", {})
