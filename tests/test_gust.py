@@ -137,7 +137,9 @@ def _check_setup(monkeypatch, *, adopted: bool, lam_with: float | None, converge
         return search.Trial(_Cand(cand.key, "A mode."), 3.0, pathlib.Path("r1_gust.yaml"),
                             types.SimpleNamespace(vfit=None, fit=types.SimpleNamespace(
                                 stop_reason=None)), lam_with, 3, 1e-3,
-                            converged=converged, verdict=RefitVerdict.ORDINARY)
+                            converged=converged,
+                            verdict=RefitVerdict.BELOW_NESTING_POINT if lam_with < -0.1
+                            else RefitVerdict.ORDINARY)
 
     monkeypatch.setattr(search, "_refit_on", refit_on)
     run = types.SimpleNamespace(alpha=0.01, gen=None, max_iter=200, engine=None, out=None,
@@ -149,7 +151,8 @@ def _check_setup(monkeypatch, *, adopted: bool, lam_with: float | None, converge
 
 @pytest.mark.parametrize("lam_with, converged, outcome", [
     (7.0, True, "explained_by_gust"), (25.0, False, "explained_by_gust"),
-    (None, True, "explained_by_gust"), (40.0, True, "significant_with_gust")])
+    (None, True, "explained_by_gust"), (-2.17, True, "explained_by_gust"),
+    (40.0, True, "significant_with_gust")])
 def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_with, converged,
                                                                outcome):
     """The gust check (:func:`vsidgen.discrepancy.search._gust_check`): with the gust
@@ -169,9 +172,14 @@ def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_
     assert text.startswith("NOISE MODEL (not a physical effect)")
     if outcome == "explained_by_gust":
         assert out is None and st.rounds[-1]["gust_check"]["outcome"] == outcome
-        assert "NOT ACCEPTED, explained by the turbulence: missing_dynamics:q:q" in text
+        assert "NOT ACCEPTED" in text and "missing_dynamics:q:q was significant" in text
         assert "26.1 > 19.2" in text
-        if lam_with is not None and converged:
+        if lam_with is not None and lam_with < 0:
+            # a refit below its nesting point is flagged as an optimizer failure, not a test
+            assert "did not rise above its nesting point (2ΔELBO = -2.17: an optimizer " \
+                   "failure, flagged, not a test result)" in text and "≤" not in text
+            assert st.gustres["checked"]["verdict_with_gust"] == "below_nesting_point"
+        elif lam_with is not None and converged:
             assert f"2ΔELBO = {lam_with:.4g} ≤ 19.2" in text
     else:
         trial, own = out

@@ -396,9 +396,12 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                           f"0, or the run stopped before round 1). {kept}; run with "
                           "--max-rounds 1 or more to search for the physics it may leave out.")
         else:
+            gusted = any(r.get("gust_check") for r in rounds)
             conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                           f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
                           + (" and on the validation records" if validated else "")
+                          + (" once the turbulence in the air-relative velocity is modelled"
+                             if gusted else "")
                           + f". {kept}; the residual mismatch is consistent with "
                             "the estimated turbulence (process noise) and sensor noise.")
     for r in rounds:
@@ -714,6 +717,11 @@ def gust_check_text(noise_gust: dict | None) -> str:
     if ch.get("outcome") == "significant_with_gust":
         return (f"{key} stays significant with the gust ({lam_s} > {thr:.4g}; without it "
                 f"{without:.4g}). ")
+    if ch.get("verdict_with_gust") == "below_nesting_point":
+        return (f"NOT ACCEPTED: {key} was significant with white process noise (2ΔELBO = "
+                f"{without:.4g} > {thr:.4g}); refitted on the gust model, it did not rise above "
+                f"its nesting point ({lam_s}: an optimizer failure, flagged, not a test "
+                "result): with the turbulence modelled the data give no evidence for it. ")
     return (f"NOT ACCEPTED, explained by the turbulence: {key} was significant with white "
             f"process noise (2ΔELBO = {without:.4g} > {thr:.4g}) but not with the gust "
             f"({lam_s}" + (f" ≤ {thr:.4g}" if lam is not None and lam <= thr else "")
@@ -733,8 +741,11 @@ def noise_gust_text(noise_gust: dict | None) -> str:
     return (f"NOISE MODEL (not a physical effect): the turbulence enters the air-relative "
             f"velocity ({what} in the flow-angle and airspeed definitions); "
             f"{a['recommendation']} (2ΔELBO = {a['statistic']:.4g} > {a['threshold']:.4g}, "
-            f"chi2({a['dof']}) at alpha over the correlation times searched); the physical "
-            "search below used it. " + gust_check_text(noise_gust))
+            f"chi2({a['dof']}) at alpha over the correlation times searched); "
+            + (f"adopted when round {noise_gust['checked']['round']}'s lead was tested "
+               "against it, and used from then on. " if noise_gust.get("checked")
+               else "the physical search below used it. ")
+            + gust_check_text(noise_gust))
 
 
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,

@@ -2317,6 +2317,8 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
         vok = validation_improved(t2.state, g, corr)
     check.update({"statistic_with_gust": None if t2 is None else _f(t2.statistic),
                   "converged_with_gust": None if t2 is None else bool(t2.converged),
+                  "verdict_with_gust": None if t2 is None or t2.verdict is None
+                  else t2.verdict.value,
                   "validation_ok_with_gust": vok,
                   "spec_with_gust": None if t2 is None else str(t2.spec_path),
                   "error_with_gust": None if t2 is None else t2.error})
@@ -2363,7 +2365,7 @@ def _refit_on(run: _RunConfig, best: Trial, g: FitState, rnd: int) -> Trial | No
             return None
         c = filter_start(again[0], best.screen)
     path = run.out / "candidates" / f"r{rnd}_gust_{safe_name(c.key)}.yaml"
-    name = f"{_round_name(g, rnd, 'g')}"
+    name = _round_name(g, rnd, "g")
     if (c.info or {}).get("profile") == "delay":
         return delay_trial(c, best.score, g, path, name, engine=run.engine,
                            generated_dir=run.gen, max_iter=run.max_iter,
