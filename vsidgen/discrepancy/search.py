@@ -2327,7 +2327,6 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
         check["outcome"] = "significant_with_gust"
         run.say(f"round {rnd}: {best.candidate.key} tested with the air-relative gust adopted: "
                 f"2ΔELBO {lam2} > {best.threshold:.4g} (was {best.statistic:.4g}): kept")
-        c = best.candidate
         note = (f" Tested with turbulence in the air-relative velocity adopted as the noise "
                 f"model (a rival explanation on a body-axis model): 2ΔELBO = {t2.statistic:.4g}"
                 f" > {best.threshold:.4g} (without the gust {best.statistic:.4g}).")
@@ -2340,7 +2339,7 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
     check["outcome"] = "explained_by_gust"
     run.say(f"round {rnd}: {best.candidate.key} (2ΔELBO {best.statistic:.4g} > "
             f"{best.threshold:.4g}) refitted with the air-relative gust adopted: {lam2}"
-            + (f" (not converged)" if t2 is not None and not t2.converged else "")
+            + (" (not converged)" if t2 is not None and not t2.converged else "")
             + ": explained by the turbulence, not accepted")
     if st.rounds and st.rounds[-1].get("round") == rnd:
         st.rounds[-1]["gust_check"] = dict(check)
