@@ -198,3 +198,23 @@ def test_a_gust_that_is_not_significant_leaves_the_lead_as_it_is(monkeypatch):
     assert st.gustres["checked"]["outcome"] == "gust_not_significant"
     text = noise_gust_text(st.gustres)
     assert "rival explanation of missing_dynamics:q:q" in text and "3 ≤ 24.5" in text
+
+
+def test_the_conclusion_names_significant_candidates_the_gust_model_did_not_retest():
+    """A run that ends on the round whose lead the gust explained says which of that round's
+    other significant candidates were never refitted on the gust model, and how to test them."""
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    check = {"round": 1, "key": "missing_dynamics:q:q", "outcome": "explained_by_gust"}
+    trials = [{"key": "missing_dynamics:q:q", "significant": True},
+              {"key": "coefficient_derivative:CL:q", "significant": True},
+              {"key": "time_skew:alpha", "significant": False}]
+    rounds = [{"round": 1, "trials": trials, "gust_check": check, "n_candidates": 40}]
+    text = conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    assert "once the turbulence in the air-relative velocity is modelled" in text
+    assert "not re-tested on the adopted gust model" in text
+    assert "coefficient_derivative:CL:q" in text and "time_skew:alpha" not in text
+    assert "--max-rounds 2" in text
+    # a later round searched on the gust model: nothing to add
+    rounds.append({"round": 2, "trials": [], "n_candidates": 40})
+    assert "not re-tested" not in conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")

@@ -404,6 +404,18 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                              if gusted else "")
                           + f". {kept}; the residual mismatch is consistent with "
                             "the estimated turbulence (process noise) and sensor noise.")
+    ch = (rounds[-1].get("gust_check") or {}) if rounds else {}
+    if ch.get("outcome") == "explained_by_gust":
+        # the run ended on the round whose lead the gust explained: its other significant
+        # candidates were decided with white process noise and never refitted on the gust model
+        others = [t["key"] for t in rounds[-1].get("trials") or []
+                  if t.get("significant") and t.get("key") != ch.get("key")]
+        if others:
+            conclusion += (f" Also significant in round {ch.get('round')} with white process "
+                           "noise and not re-tested on the adopted gust model (the run ended "
+                           "with that round): " + ", ".join(others) + f"; rerun with "
+                           f"--max-rounds {int(ch.get('round') or 1) + 1} or more (or a longer "
+                           "--time-limit) to test them with the turbulence modelled.")
     for r in rounds:
         ref = r.get("reference")
         if ref:
