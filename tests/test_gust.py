@@ -218,3 +218,17 @@ def test_the_conclusion_names_significant_candidates_the_gust_model_did_not_rete
     # a later round searched on the gust model: nothing to add
     rounds.append({"round": 2, "trials": [], "n_candidates": 40})
     assert "not re-tested" not in conclusion_text([], rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+
+
+def test_a_lead_accepted_without_time_for_the_gust_check_says_so(monkeypatch):
+    """Past the time limit the check is not run; on a model it applies to, the accepted
+    effect's explanation says it was not tested against the gust (and how to test it)."""
+    from vsidgen.discrepancy import gust, search
+
+    search_, run, st, best, g, refits = _check_setup(monkeypatch, adopted=True, lam_with=7.0)
+    monkeypatch.setattr(gust, "applicable_plans", lambda cur, info: ["plan"])
+    out = search._gust_not_checked(st, best)
+    assert "Not tested against turbulence in the air-relative velocity" in out.candidate.explanation
+    assert "--time-limit" in out.candidate.explanation and refits == []
+    monkeypatch.setattr(gust, "applicable_plans", lambda cur, info: [])
+    assert search._gust_not_checked(st, best) is best

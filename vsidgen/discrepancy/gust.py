@@ -239,6 +239,17 @@ def explanation(trial: NoiseModelTrial, plans) -> str:
             f"state(s) as in {trial.spec_path.name}; the physical search continues with it.")
 
 
+def applicable_plans(current, info) -> list[GustPlan]:
+    """:func:`gust_plans` of ``current`` where the alternative can be tested: a converged fit
+    whose process noise is estimated (else no plan)."""
+    from .fitstate import refit_converged
+
+    pn = current.model.process_noise
+    if pn is None or not pn.estimate or not refit_converged(current.fit):
+        return []
+    return gust_plans(current, info)
+
+
 def run_gust_model(current, info, out: pathlib.Path, *, alpha: float, generated_dir,
                    max_iter: int, engine, deadline=None, progress=None):
     """Refit ``current`` with the gusts of :func:`gust_plans` and decide (module docstring).
@@ -252,8 +263,8 @@ def run_gust_model(current, info, out: pathlib.Path, *, alpha: float, generated_
     pn = model.process_noise
     states = tuple(pn.states or model.state_names) if pn is not None else ()
     structure = pn.structure if pn is not None else "diagonal"
-    plans = gust_plans(current, info) if refit_converged(current.fit) else []
-    if not plans or pn is None or not pn.estimate:
+    plans = applicable_plans(current, info)
+    if not plans:
         return NoiseModelResult(structure, states, current.elbo, (), alpha), plans
     t0 = time.perf_counter()
     path = pathlib.Path(out) / "candidates" / "r0_g01_noise_air_relative_gust.yaml"
@@ -310,5 +321,5 @@ def to_json(result: NoiseModelResult, plans) -> dict:
             "trials": [t.to_json() for t in result.trials], "adopted": adopted}
 
 
-__all__ = ["GustPlan", "explanation", "gust_dof", "gust_plans", "gust_refit_task", "run_gust_model", "to_json",
+__all__ = ["GustPlan", "applicable_plans", "explanation", "gust_dof", "gust_plans", "gust_refit_task", "run_gust_model", "to_json",
            "write_gust_spec"]
