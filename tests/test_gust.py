@@ -142,6 +142,7 @@ def _check_setup(monkeypatch, *, adopted: bool, lam_with: float | None, converge
                             else RefitVerdict.ORDINARY)
 
     monkeypatch.setattr(search, "_refit_on", refit_on)
+    monkeypatch.setattr(search, "_continue_lead", lambda run, rnd, trials, cur, n, dl: trials)
     run = types.SimpleNamespace(alpha=0.01, gen=None, max_iter=200, engine=None, out=None,
                                 deadline=None, progress=None, past_deadline=lambda: False,
                                 say=lambda m: None)
@@ -150,7 +151,8 @@ def _check_setup(monkeypatch, *, adopted: bool, lam_with: float | None, converge
 
 
 @pytest.mark.parametrize("lam_with, converged, outcome", [
-    (7.0, True, "explained_by_gust"), (25.0, False, "explained_by_gust"),
+    (7.0, True, "explained_by_gust"), (25.0, False, "undecided_with_gust"),
+    (12.0, False, "explained_by_gust"),
     (None, True, "explained_by_gust"), (-2.17, True, "explained_by_gust"),
     (40.0, True, "significant_with_gust")])
 def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_with, converged,
@@ -170,9 +172,13 @@ def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_
     assert ch["outcome"] == outcome and ch["statistic_without_gust"] == 26.1
     text = noise_gust_text(st.gustres)
     assert text.startswith("NOISE MODEL (not a physical effect)")
-    if outcome == "explained_by_gust":
+    if outcome == "undecided_with_gust":
+        assert out is None and "UNDECIDED" in text
+    elif outcome == "explained_by_gust":
         assert out is None and st.rounds[-1]["gust_check"]["outcome"] == outcome
         assert "NOT ACCEPTED" in text and "missing_dynamics:q:q was significant" in text
+        if lam_with is not None and not converged:
+            assert "stayed at 2ΔELBO = 12 ≤ 19.2 without converging" in text
         assert "26.1 > 19.2" in text
         if lam_with is not None and lam_with < 0:
             # a refit below its nesting point is flagged as an optimizer failure, not a test
@@ -232,3 +238,48 @@ def test_a_lead_accepted_without_time_for_the_gust_check_says_so(monkeypatch):
     assert "--time-limit" in out.candidate.explanation and refits == []
     monkeypatch.setattr(gust, "applicable_plans", lambda cur, info: [])
     assert search._gust_not_checked(st, best) is best
+
+
+def test_a_lead_still_climbing_on_the_gust_model_is_undecided_not_explained(monkeypatch):
+    """A refit on the gust model above the threshold that neither converged nor stopped at a
+    kink or a limit with a positive-definite Hessian (continued once, still climbing) is
+    undecided: not accepted, not called explained by the turbulence, and the conclusion is
+    INCONCLUSIVE (hfbb_lift_stall_1_s0: a stall break 442.5 > 19.2 on the gust model, not
+    converged, had been reported as explained)."""
+    from vsidgen.discrepancy.findings import conclusion_text, noise_gust_text
+
+    search, run, st, best, g, refits = _check_setup(monkeypatch, adopted=True, lam_with=442.5,
+                                                    converged=False)
+    continued = []
+    monkeypatch.setattr(search, "_continue_lead",
+                        lambda run, rnd, trials, cur, n, dl: continued.append(cur) or trials)
+    assert search._gust_check(run, st, 1, best) is None
+    assert continued == [g]
+    ch = st.gustres["checked"]
+    assert ch["outcome"] == "undecided_with_gust"
+    text = noise_gust_text(st.gustres)
+    assert "UNDECIDED" in text and "explained by the turbulence:" not in text
+    assert "≥ 442.5" in text
+    c = conclusion_text([], st.rounds, alpha=0.01, validated=False, final_spec="x.yaml")
+    assert c.startswith("INCONCLUSIVE") and "once the turbulence" not in c
+
+
+def test_a_lead_at_a_kink_on_the_gust_model_is_kept(monkeypatch):
+    """A hinge refit that stops at a kink (no further progress) is decided on its Λ, a lower
+    bound, as in the round itself."""
+    from vsidgen.discrepancy import search as s
+    from vsidgen.estimator import StopReason
+
+    search, run, st, best, g, refits = _check_setup(monkeypatch, adopted=True, lam_with=442.5,
+                                                    converged=False)
+    orig = s._refit_on
+
+    def at_kink(*a, **k):
+        t = orig(*a, **k)
+        t.state.fit.stop_reason = StopReason.NO_PROGRESS
+        return t
+
+    monkeypatch.setattr(s, "_refit_on", at_kink)
+    trial, own = search._gust_check(run, st, 1, best)
+    assert own and trial.statistic == 442.5
+    assert st.gustres["checked"]["outcome"] == "significant_with_gust"

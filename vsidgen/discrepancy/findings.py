@@ -18,7 +18,8 @@ findings.json (keys in this order)::
                            "checked": absent | {"round", "key", "statistic_without_gust",
                                                "threshold", "statistic_with_gust", "outcome":
                                                "gust_not_significant" | "significant_with_gust"
-                                               | "explained_by_gust", ...}},
+                                               | "explained_by_gust" | "undecided_with_gust",
+                                               ...}},
      "findings": [                      # ranked: order of acceptance (most significant first)
         {"rank": 1, "effect": "missing_derivative", "title": "...",
          "explanation": "plain words", "target": "drift:q",
@@ -396,7 +397,8 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                           f"0, or the run stopped before round 1). {kept}; run with "
                           "--max-rounds 1 or more to search for the physics it may leave out.")
         else:
-            gusted = any(r.get("gust_check") for r in rounds)
+            gusted = any((r.get("gust_check") or {}).get("outcome") == "explained_by_gust"
+                         for r in rounds)
             conclusion = (f"No significant {what} found: no candidate effect improved the ELBO "
                           f"significantly (family-wise alpha = {alpha} per round, Holm-corrected)"
                           + (" and on the validation records" if validated else "")
@@ -404,6 +406,14 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                              if gusted else "")
                           + f". {kept}; the residual mismatch is consistent with "
                             "the estimated turbulence (process noise) and sensor noise.")
+            undecided = [r for r in rounds
+                         if (r.get("gust_check") or {}).get("outcome") == "undecided_with_gust"]
+            if undecided:
+                ch0 = undecided[-1]["gust_check"]
+                conclusion = (f"INCONCLUSIVE: no effect was accepted, but round "
+                              f"{ch0.get('round')}'s lead, {ch0.get('key')}, refitted on the "
+                              "adopted gust model raised the ELBO beyond its threshold without "
+                              "converging (above), so it can be neither accepted nor ruled out.")
     ch = (rounds[-1].get("gust_check") or {}) if rounds else {}
     if ch.get("outcome") == "explained_by_gust":
         # the run ended on the round whose lead the gust explained: its other significant
@@ -729,11 +739,23 @@ def gust_check_text(noise_gust: dict | None) -> str:
     if ch.get("outcome") == "significant_with_gust":
         return (f"{key} stays significant with the gust ({lam_s} > {thr:.4g}; without it "
                 f"{without:.4g}). ")
+    if ch.get("outcome") == "undecided_with_gust":
+        return (f"NOT ACCEPTED, UNDECIDED: {key} was significant with white process noise "
+                f"(2ΔELBO = {without:.4g} > {thr:.4g}); refitted on the gust model it raised "
+                f"the ELBO beyond the threshold (2ΔELBO ≥ {lam:.4g}) without converging, so it "
+                "is neither accepted nor explained by the turbulence; rerun with a larger "
+                f"--max-iter (e.g. 500), restricted to it with --effects. ")
     if ch.get("verdict_with_gust") == "below_nesting_point":
         return (f"NOT ACCEPTED: {key} was significant with white process noise (2ΔELBO = "
                 f"{without:.4g} > {thr:.4g}); refitted on the gust model, it did not rise above "
                 f"its nesting point ({lam_s}: an optimizer failure, flagged, not a test "
                 "result): with the turbulence modelled the data give no evidence for it. ")
+    if lam is None or ch.get("converged_with_gust") is False:
+        return (f"NOT ACCEPTED: {key} was significant with white process noise (2ΔELBO = "
+                f"{without:.4g} > {thr:.4g}); on the gust model its refit "
+                + ("was not made (time limit)" if lam is None else
+                   f"stayed at {lam_s} ≤ {thr:.4g} without converging")
+                + ": with the turbulence modelled it is not shown. ")
     return (f"NOT ACCEPTED, explained by the turbulence: {key} was significant with white "
             f"process noise (2ΔELBO = {without:.4g} > {thr:.4g}) but not with the gust "
             f"({lam_s}" + (f" ≤ {thr:.4g}" if lam is not None and lam <= thr else "")

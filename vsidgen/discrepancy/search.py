@@ -2307,8 +2307,14 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
     g = res.adopted.state
     st.current, st.evidence = g, locate_state(g)
     t2 = None if run.past_deadline() else _refit_on(run, best, g, rnd)
-    ok = (t2 is not None and t2.state is not None
-          and (t2.converged or stopped_short(t2) is not None)
+    if (t2 is not None and t2.state is not None and not _decidable(t2)
+            and t2.verdict is RefitVerdict.ORDINARY and t2.statistic > best.threshold
+            and not run.past_deadline()):
+        # above the threshold but still climbing: continued once, as a round's lead is
+        t2 = _continue_lead(run, rnd, [t2], g, 1, run.deadline)[0]
+    climbing = (t2 is not None and t2.state is not None and not _decidable(t2)
+                and t2.verdict is RefitVerdict.ORDINARY and t2.statistic > best.threshold)
+    ok = (t2 is not None and t2.state is not None and _decidable(t2)
           and t2.verdict is RefitVerdict.ORDINARY
           and t2.statistic > best.threshold)
     vok = None
@@ -2336,6 +2342,17 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
             alternatives=best.alternatives)
         _checkpoint(run, st, StopReason.RUNNING)
         return t2, True
+    if climbing:
+        # Λ is a lower bound above the threshold, but the refit has no optimum: neither
+        # accepted nor explained by the gust (the run says which refit to continue)
+        check["outcome"] = "undecided_with_gust"
+        run.say(f"round {rnd}: {best.candidate.key} refitted with the air-relative gust "
+                f"adopted: 2ΔELBO ≥ {lam2} > {best.threshold:.4g} without converging: "
+                "undecided, not accepted")
+        if st.rounds and st.rounds[-1].get("round") == rnd:
+            st.rounds[-1]["gust_check"] = dict(check)
+        _checkpoint(run, st, StopReason.RUNNING)
+        return None
     check["outcome"] = "explained_by_gust"
     run.say(f"round {rnd}: {best.candidate.key} (2ΔELBO {best.statistic:.4g} > "
             f"{best.threshold:.4g}) refitted with the air-relative gust adopted: {lam2}"
@@ -2345,6 +2362,12 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
         st.rounds[-1]["gust_check"] = dict(check)
     _checkpoint(run, st, StopReason.RUNNING)
     return None
+
+
+def _decidable(t: Trial) -> bool:
+    """A refit the round decides on (as :func:`_decide_round`): converged, or stopped at its
+    limit with a positive-definite Hessian, or at a kink (its Λ a lower bound)."""
+    return bool(t.converged or stopped_short(t) is not None or stopped_at_kink(t))
 
 
 def _gust_not_checked(st: _RunState, best: Trial) -> Trial:
