@@ -192,6 +192,7 @@ def test_a_lead_the_air_relative_gust_explains_is_not_accepted(monkeypatch, lam_
         assert own and trial.statistic == 40.0 and trial.threshold == 19.2 and trial.significant
         assert "40 > 19.2 (without the gust 26.1)" in trial.candidate.explanation
         assert "stays significant with the gust (2ΔELBO = 40 > 19.2" in text
+        assert st.rounds[-1]["gust_check"]["outcome"] == outcome
 
 
 def test_a_gust_that_is_not_significant_leaves_the_lead_as_it_is(monkeypatch):
@@ -202,6 +203,7 @@ def test_a_gust_that_is_not_significant_leaves_the_lead_as_it_is(monkeypatch):
     trial, own = search._gust_check(run, st, 1, best)
     assert trial is best and not own and st.current is cur and refits == []
     assert st.gustres["checked"]["outcome"] == "gust_not_significant"
+    assert st.rounds[-1]["gust_check"]["outcome"] == "gust_not_significant"
     text = noise_gust_text(st.gustres)
     assert "rival explanation of missing_dynamics:q:q" in text and "3 ≤ 24.5" in text
 

@@ -489,9 +489,9 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     beyond = [t for t in tried if t.get("verdict") == "beyond_range"]
     if beyond:
         conclusion += (" Not accepted because a time constant ended at the upper end of the "
-                       "range its label allows, or within 1.96 standard errors of it (the data want a slower process than the label "
-                       "names: a missing mode, trim terms or the speed dynamics, not an actuator "
-                       "or a delay): "
+                       "range its label allows, or within 1.96 standard errors of it (the data "
+                       "want a slower process than the label names: a missing mode, trim terms "
+                       "or the speed dynamics, not an actuator or a delay): "
                        + ", ".join(f"{t['key']} (2ΔELBO = {t['statistic']:.4g})"
                                    for t in beyond) + ".")
     if val_rej:
@@ -756,10 +756,13 @@ def gust_check_text(noise_gust: dict | None) -> str:
                 + ("was not made (time limit)" if lam is None else
                    f"stayed at {lam_s} ≤ {thr:.4g} without converging")
                 + ": with the turbulence modelled it is not shown. ")
+    # converged, at or above its nesting point: below the threshold, or above it with a
+    # verdict that refuses it under its label, or with a lower validation ELBO
+    verdict = ch.get("verdict_with_gust")
     return (f"NOT ACCEPTED, explained by the turbulence: {key} was significant with white "
             f"process noise (2ΔELBO = {without:.4g} > {thr:.4g}) but not with the gust "
-            f"({lam_s}" + (f" ≤ {thr:.4g}" if lam is not None and lam <= thr else "")
-            + (", not converged" if ch.get("converged_with_gust") is False else "")
+            f"({lam_s}" + (f" ≤ {thr:.4g}" if lam <= thr else "")
+            + (f", verdict {verdict}" if verdict not in (None, "ordinary") else "")
             + (", validation ELBO lower" if ch.get("validation_ok_with_gust") is False else "")
             + "): the mismatch it absorbed is the turbulence the model's velocity state "
               "receives as a differentiated gust, not physics. ")

@@ -2300,23 +2300,30 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
              "statistic_without_gust": _f(best.statistic), "threshold": _f(best.threshold)}
     doc["checked"] = check
     st.gustres = doc
-    if res.adopted is None:
-        check["outcome"] = "gust_not_significant"
+
+    def record(outcome: str) -> None:
+        """The outcome in findings.json's noise_gust and in the round's record; a checkpoint."""
+        check["outcome"] = outcome
+        if st.rounds and st.rounds[-1].get("round") == rnd:
+            st.rounds[-1]["gust_check"] = dict(check)
         _checkpoint(run, st, StopReason.RUNNING)
+
+    if res.adopted is None:
+        record("gust_not_significant")
         return best, False
     g = res.adopted.state
     st.current, st.evidence = g, locate_state(g)
     t2 = None if run.past_deadline() else _refit_on(run, best, g, rnd)
-    if (t2 is not None and t2.state is not None and not _decidable(t2)
-            and t2.verdict is RefitVerdict.ORDINARY and t2.statistic > best.threshold
-            and not run.past_deadline()):
+
+    def above(t) -> bool:
+        return (t is not None and t.state is not None and t.verdict is RefitVerdict.ORDINARY
+                and t.statistic > best.threshold)
+
+    if above(t2) and not _decidable(t2) and not run.past_deadline():
         # above the threshold but still climbing: continued once, as a round's lead is
         t2 = _continue_lead(run, rnd, [t2], g, 1, run.deadline)[0]
-    climbing = (t2 is not None and t2.state is not None and not _decidable(t2)
-                and t2.verdict is RefitVerdict.ORDINARY and t2.statistic > best.threshold)
-    ok = (t2 is not None and t2.state is not None and _decidable(t2)
-          and t2.verdict is RefitVerdict.ORDINARY
-          and t2.statistic > best.threshold)
+    ok = above(t2) and _decidable(t2)
+    climbing = above(t2) and not ok
     vok = None
     if ok and t2.state.vfit is not None and g.val_elbo is not None:
         corr = t2.refit.val_x0_entropy if t2.refit is not None else 0.0
@@ -2330,7 +2337,6 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
                   "error_with_gust": None if t2 is None else t2.error})
     lam2 = "not refitted (time limit)" if t2 is None else f"{t2.statistic:.4g}"
     if ok and vok is not False:
-        check["outcome"] = "significant_with_gust"
         run.say(f"round {rnd}: {best.candidate.key} tested with the air-relative gust adopted: "
                 f"2ΔELBO {lam2} > {best.threshold:.4g} (was {best.statistic:.4g}): kept")
         note = (f" Tested with turbulence in the air-relative velocity adopted as the noise "
@@ -2340,27 +2346,21 @@ def _gust_check(run: _RunConfig, st: _RunState, rnd: int, best: Trial):
             t2.candidate, explanation=t2.candidate.explanation + note),
             threshold=best.threshold, significant=True, validation_ok=vok,
             alternatives=best.alternatives)
-        _checkpoint(run, st, StopReason.RUNNING)
+        record("significant_with_gust")
         return t2, True
     if climbing:
         # Λ is a lower bound above the threshold, but the refit has no optimum: neither
         # accepted nor explained by the gust (the run says which refit to continue)
-        check["outcome"] = "undecided_with_gust"
         run.say(f"round {rnd}: {best.candidate.key} refitted with the air-relative gust "
                 f"adopted: 2ΔELBO ≥ {lam2} > {best.threshold:.4g} without converging: "
                 "undecided, not accepted")
-        if st.rounds and st.rounds[-1].get("round") == rnd:
-            st.rounds[-1]["gust_check"] = dict(check)
-        _checkpoint(run, st, StopReason.RUNNING)
+        record("undecided_with_gust")
         return None
-    check["outcome"] = "explained_by_gust"
     run.say(f"round {rnd}: {best.candidate.key} (2ΔELBO {best.statistic:.4g} > "
             f"{best.threshold:.4g}) refitted with the air-relative gust adopted: {lam2}"
             + (" (not converged)" if t2 is not None and not t2.converged else "")
-            + ": explained by the turbulence, not accepted")
-    if st.rounds and st.rounds[-1].get("round") == rnd:
-        st.rounds[-1]["gust_check"] = dict(check)
-    _checkpoint(run, st, StopReason.RUNNING)
+            + ": not significant there, not accepted")
+    record("explained_by_gust")
     return None
 
 
@@ -2784,9 +2784,7 @@ def _decide_round(rnd, trials, current, n_examined, alpha, table, projected,
     # (stopped_at_kink): its Λ is then a lower bound and its p an upper bound; so do the
     # candidates examined (screened) but not refitted
     n_family = max(n_examined, len(trials))
-    decisions = holm([t.p_value if (t.converged or stopped_short(t) is not None
-                                    or stopped_at_kink(t))
-                      and t.verdict is RefitVerdict.ORDINARY
+    decisions = holm([t.p_value if _decidable(t) and t.verdict is RefitVerdict.ORDINARY
                       else 1.0 for t in trials]
                      + [1.0] * (n_family - len(trials)), alpha)[:len(trials)]
     final_trials = []
