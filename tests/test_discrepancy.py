@@ -223,7 +223,97 @@ def test_missing_derivative_only_for_absent_terms():
     assert not [c for c in propose(info) if c.effect == "missing_derivative"]
     info = model_info(HFB, dt=0.1)
     keys = {c.key for c in propose(info) if c.effect == "missing_derivative"}
-    assert "missing_derivative:theta:de" in keys and "missing_derivative:q:q" not in keys
+    assert keys == {"missing_derivative:V:de", "missing_derivative:V:q",
+                    "missing_derivative:alpha:de", "missing_derivative:q:theta"}
+    # θ̇ = q is exact geometry: no control derivative or velocity term, no mode in it
+    assert not [k for k in keys if k.startswith("missing_derivative:theta:")]
+    assert not [c for c in propose(info)
+                if c.effect == "missing_dynamics" and c.info["state"] == "theta"]
+
+
+_LATERAL = """\
+name: newcomer_lateral
+states:
+  v: {{unit: m/s}}
+  p: {{unit: rad/s}}
+  r: {{unit: rad/s}}
+  phi: {{unit: {phi_unit}}}
+inputs:
+  da: {{unit: rad}}
+  dr: {{unit: rad}}
+outputs:
+  p: {{unit: rad/s}}
+  phi: {{unit: {phi_unit}}}
+constants:
+  U: {{value: 129.0, unit: m/s}}
+  g: {{value: 9.81, unit: m/s^2}}
+parameters:
+  Yv: {{unit: 1/s}}
+  Lp: {{unit: 1/s}}
+  Lda: {{unit: 1/s^2}}
+  Nr: {{unit: 1/s}}
+  Ndr: {{unit: 1/s^2}}
+drift:
+  v: {v_drift}
+  p: Lp*p + Lda*da
+  r: Nr*r + Ndr*dr
+  phi: {phi_drift}
+observations:
+  p: p
+  phi: phi
+data:
+  time: t
+  inputs: {{da: da, dr: dr}}
+  outputs: {{p: p, phi: phi}}
+"""
+
+
+@pytest.mark.parametrize("phi_unit,phi_drift,expected", [
+    ("rad", "p", {"missing_derivative:phi:r"}),
+    ("deg", "(180/pi)*p", {"missing_derivative:phi:r"}),
+    # the Euler kinematics written out (θ a constant here): still pure geometry
+    ("rad", "p + tan(0.05)*(r*cos(phi))", set()),
+])
+def test_attitude_equation_gets_kinematic_couplings_only(tmp_path, phi_unit, phi_drift,
+                                                         expected):
+    """φ̇ = p (a bank equation without the Euler term) can miss a coupling with another
+    rate (tanθ₀·r), never a control derivative, a velocity term or a dynamic mode."""
+    from vsidgen.discrepancy.catalogue import kinematic_rates
+    spec = tmp_path / "lat.yaml"
+    spec.write_text(_LATERAL.format(phi_unit=phi_unit, phi_drift=phi_drift,
+                                    v_drift="Yv*v - U*r + g*phi"))
+    info = model_info(spec, dt=0.04)
+    assert kinematic_rates(info, "phi") == {"p", "r"}
+    assert kinematic_rates(info, "v") is None and kinematic_rates(info, "p") is None
+    cands = propose(info)
+    on_phi = {c.key for c in cands if c.info.get("state") == "phi"
+              and c.effect in ("missing_derivative", "missing_dynamics")}
+    assert on_phi == expected
+    # the dynamic equations keep the whole family
+    keys = {c.key for c in cands}
+    assert {"missing_derivative:r:p", "missing_derivative:p:dr", "missing_derivative:v:da",
+            "missing_dynamics:r:da"} <= keys
+
+
+def test_equation_without_parameters_but_gravity_keeps_every_candidate(tmp_path):
+    """A sideslip-velocity equation written without side force is not geometry: at zero
+    rates it keeps g·φ, so the side-force derivatives stay candidates; and without units
+    nothing is restricted."""
+    from vsidgen.discrepancy.catalogue import kinematic_rates
+    spec = tmp_path / "lat.yaml"
+    spec.write_text(_LATERAL.format(phi_unit="rad", phi_drift="p",
+                                    v_drift="-U*r + g*phi"))
+    info = model_info(spec, dt=0.04)
+    assert kinematic_rates(info, "v") is None
+    keys = {c.key for c in propose(info)}
+    assert {"missing_derivative:v:v", "missing_derivative:v:dr",
+            "missing_dynamics:v:dr"} <= keys
+    bare = tmp_path / "bare.yaml"
+    bare.write_text(_LATERAL.format(phi_unit="rad", phi_drift="p", v_drift="Yv*v - U*r + g*phi")
+                    .replace("  phi: {unit: rad}\n", "  phi: {}\n"))
+    info = model_info(bare, dt=0.04)
+    assert kinematic_rates(info, "phi") is None
+    assert "missing_derivative:phi:da" in {c.key for c in propose(info)}
 
 
 # ---------------------------------------------------------------------------

@@ -55,6 +55,42 @@ def kinematic_state(info: ModelInfo, state: str) -> bool:
     return not ({s.name for s in e.free_symbols} & set(info.parameters))
 
 
+def kinematic_rates(info: ModelInfo, state: str) -> frozenset[str] | None:
+    """The rates an attitude or position equation is made of, or None when ``state`` is not
+    one.
+
+    A state is pure kinematics when its equation names no parameter
+    (:func:`kinematic_state`) and vanishes when every state and input with the dimension
+    of its rate is zero: ``φ̇ = p + tanθ (q sinφ + r cosφ)`` (p, q, r in rad/s),
+    ``θ̇ = q``, ``ḣ = V sin γ`` (V in m/s). Such an equation is exact geometry: what it
+    can leave out is a coupling with another rate of the same dimension, with a
+    dimensionless coefficient (``φ̇ = p + tanθ₀·r`` when a bank equation omits the Euler
+    term) — never a control derivative, a velocity or an attitude term, or a dynamic mode,
+    which act on the rates' own equations. A sideslip equation written without side force
+    (``β̇ = p sinα₀ − r cosα₀ + (g/V) φ``) keeps ``(g/V) φ`` at zero rates, so it is not
+    pure kinematics and keeps every candidate. Units that are missing or do not parse give
+    None (no restriction)."""
+    if not kinematic_state(info, state):
+        return None
+    from ..errors import SpecError
+    from ..spec.units import parse_unit, same
+    if not info.unit(state):
+        return None
+    try:
+        rate = parse_unit(_drift_unit(info, state))
+        dims = {v: info.unit(v) for v in info.state_names + info.input_names}
+        rates = frozenset(v for v, u in dims.items()
+                          if u and same(parse_unit(u), rate))
+    except SpecError:
+        return None
+    e = info.drift_expanded.get(state)
+    if not rates or e is None:
+        return None
+    import sympy
+    at_rest = e.xreplace({s: sympy.S.Zero for s in e.free_symbols if s.name in rates})
+    return rates if sympy.simplify(at_rest) == 0 else None
+
+
 def aero_variable(info: ModelInfo, v: str) -> bool:
     """Whether an aerodynamic coefficient (or an aerodynamic term of a state equation) can
     depend on ``v``: the air-relative motion and the controls — flow angles, control
@@ -138,13 +174,15 @@ class MissingDerivative(Effect):
                    "between the smoothed derivative of {state} and the model drift follows {var}. "
                    "Physically this is a stability or control derivative the model left out "
                    "(d {state}/dt += {param}·{var}).")
-    doc = "A linear term in a state or input absent from a state equation."
+    doc = ("A linear term in a state or input absent from a state equation (in an attitude or "
+           "position equation only a rate of the same dimension: a kinematic coupling).")
 
     def applies_to(self, info):
         out = []
         for s in info.state_names:
+            rates = kinematic_rates(info, s)    # an attitude/position: couplings only
             for v in info.state_names + info.input_names:
-                if info.depends(s, v):
+                if info.depends(s, v) or (rates is not None and v not in rates):
                     continue
                 p = info.fresh(f"D_{s}_{v}")
                 kind = "x" if v in info.state_names else "u"
@@ -1169,12 +1207,15 @@ class MissingDynamics(Effect):
                    "an engine state; a fast one: an actuator, a sensor filter): its equation "
                    "error follows {var} filtered through a first-order lag. Added as a new "
                    "state {mode} with dynamics d{mode}/dt = -{mode}/{tau} + {gain}·{var}.")
-    doc = "A first-order mode driven by a state or input, feeding one state equation."
+    doc = ("A first-order mode driven by a state or input, feeding one state equation (not an "
+           "attitude or position equation, which is exact geometry).")
 
     def applies_to(self, info):
         from .locate import LOWPASS_TAU
         out = []
         for s in info.state_names:
+            if kinematic_rates(info, s) is not None:
+                continue    # no mode acts on an attitude or position rate (exact geometry)
             for v in info.state_names + info.input_names:
                 m = info.fresh(f"D_MODE_{s}")
                 tau = info.fresh(f"D_TAU_MODE_{s}", taken=[m])
