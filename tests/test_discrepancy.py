@@ -658,6 +658,26 @@ def test_locate_partial_correlation_finds_collinear_alphadot_term():
     assert ranked[0][1].key == "unsteady_aero:q:alpha"
 
 
+def test_conclusion_names_a_decided_unconverged_refit_once():
+    """A refit the round decided on although it stopped short of convergence (significant)
+    and that the validation records refused is listed as over-fitting only — not again as
+    'did not converge', and it does not make the run INCONCLUSIVE (a new user's ATTAS yaw
+    model listed `nonlinear_aero:D_MODE_r:…` under both)."""
+    from vsidgen.discrepancy.findings import conclusion_text
+
+    short = {"key": "nonlinear_aero:r:hinge:dr:0.009", "statistic": 78.3, "threshold": 17.6,
+             "converged": False, "significant": True, "validation_ok": False,
+             "status": "stopped: iteration limit"}
+    other = {"key": "time_skew:r", "statistic": 3.0, "threshold": 17.6, "converged": False}
+    text = conclusion_text([], [{"round": 1, "trials": [short, other]}], alpha=0.01,
+                           validated=True, final_spec="x.yaml")
+    assert not text.startswith("INCONCLUSIVE")
+    over, _, rest = text.partition("did not improve (over-fitting): ")
+    assert rest and short["key"] in rest.split(". ")[0]
+    unconverged = text.partition("did not converge (inconclusive for these candidates): ")[2]
+    assert "time_skew:r" in unconverged and short["key"] not in unconverged
+
+
 def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():
     """An unconverged refit far above its threshold is neither accepted nor ruled out: the
     conclusion must say INCONCLUSIVE (it used to say the mismatch was turbulence)."""

@@ -448,10 +448,13 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     named = {(f.get("rank"), f["key"]) for f in findings}
     tried = [t for t in tried if (t.get("round"), t["key"]) not in named]
     # a refit refused under its label (a time constant beyond the label's range) is named as
-    # such, not again as unconverged
+    # such, and one decided as significant (stopped short of convergence with a
+    # positive-definite Hessian, or at a kink) but refused by the validation records as
+    # over-fitting: neither again as unconverged
     unconv = [t["key"] for t in tried if t.get("converged") is False
-              and t.get("verdict") != "beyond_range"]
-    strong = [t for t in tried if t.get("converged") is False
+              and t.get("verdict") != "beyond_range"
+              and not (t.get("significant") and t.get("validation_ok") is False)]
+    strong = [t for t in tried if t["key"] in set(unconv)
               and isinstance(t.get("statistic"), (int, float))
               and isinstance(t.get("threshold"), (int, float))
               and t["statistic"] > t["threshold"]]
