@@ -295,6 +295,15 @@ def test_attitude_equation_gets_kinematic_couplings_only(tmp_path, phi_unit, phi
             "missing_dynamics:r:da"} <= keys
 
 
+def test_new_users_yaw_model_gets_no_rudder_mode_in_its_bank_equation():
+    """benchmarks/users/attas_yaw_v.yaml (φ̇ = p): diagnose had accepted a missing mode in φ̇
+    driven by the rudder (session 42); the bank equation now gets the Euler coupling only."""
+    info = model_info(ROOT / "benchmarks" / "users" / "attas_yaw_v.yaml", dt=0.04)
+    on_phi = {c.key for c in propose(info) if c.info.get("state") == "phi"}
+    assert on_phi == {"missing_derivative:phi:r"}
+    assert "missing_derivative:r:p" in {c.key for c in propose(info)}   # the omitted N_p
+
+
 def test_equation_without_parameters_but_gravity_keeps_every_candidate(tmp_path):
     """A sideslip-velocity equation written without side force is not geometry: at zero
     rates it keeps g·φ, so the side-force derivatives stay candidates; and without units

@@ -85,6 +85,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "tu144_nz_deg": (("tu144_lon_f20_4d",), ("tu144_lon_f20_4f",),
                      "short period in degrees with a normal acceleration of its own "
                      "derivatives, without the pitch-rate term"),
+    "attas_yaw_v": (("attas_rud1",), ("attas_rud2",),
+                    "lateral with a side-velocity state, beta a definition, phi' = p, "
+                    "without N_p"),
 }
 
 
