@@ -304,6 +304,47 @@ def test_new_users_yaw_model_gets_no_rudder_mode_in_its_bank_equation():
     assert "missing_derivative:r:p" in {c.key for c in propose(info)}   # the omitted N_p
 
 
+def test_filter_states_added_by_earlier_rounds_get_no_equation_terms(tmp_path):
+    """A mode round 1 added (ṁ = −m/τ + K r feeding ṙ) is a filter, not an aerodynamic
+    equation: round 2 must not offer breaks, modes or derivatives *in its equation* (the
+    yaw user model's round 2 refitted `nonlinear_aero:D_MODE_r:hingelo:dr`, 78.3); the mode
+    stays a variable of the other equations. The speed state of the phugoid candidate is
+    physical and keeps them."""
+    import types
+
+    from vsidgen.discrepancy.base import NewState
+    from vsidgen.discrepancy.search import _filter_states, _RunState
+
+    text = _LATERAL.format(phi_unit="rad", phi_drift="p", v_drift="Yv*v - U*r + g*phi")
+    text = (text.replace("  phi: {unit: rad}\ninputs:", "  phi: {unit: rad}\n"
+                         "  D_MODE_r: {unit: (rad/s)/s}\ninputs:")
+            .replace("  Ndr: {unit: 1/s^2}\n", "  Ndr: {unit: 1/s^2}\n  K: {unit: 1/s^2}\n"
+                     "  TAU: {unit: s}\n")
+            .replace("  r: Nr*r + Ndr*dr\n", "  r: Nr*r + Ndr*dr + D_MODE_r\n"
+                     "  D_MODE_r: -D_MODE_r/TAU + K*r\n"))
+    spec = tmp_path / "mode.yaml"
+    spec.write_text(text)
+    plain = model_info(spec, dt=0.04)
+    on_mode = {c.key for c in propose(plain) if c.target == "drift:D_MODE_r"}
+    assert on_mode        # without the mark the mode's equation is extended like any other
+    mode = types.SimpleNamespace(candidate=types.SimpleNamespace(states=(
+        NewState("D_MODE_r", "-D_MODE_r/TAU + K*r"),)))
+    speed = types.SimpleNamespace(candidate=types.SimpleNamespace(states=(
+        NewState("p", "…", physical=True),)))
+    st = _RunState(current=types.SimpleNamespace(model=types.SimpleNamespace(
+        state_names=plain.state_names)))
+    st.accepted = [(speed, None, None), (mode, None, None)]
+    assert _filter_states(st) == {"D_MODE_r"}
+    st.gustres = {"adopted": {"x": 1}, "gusts": [{"gust_state": "D_GUST_v"}]}
+    assert _filter_states(st) == {"D_MODE_r"}      # a gust state not in the model is ignored
+    info = dataclasses.replace(plain, filter_states=_filter_states(st))
+    cands = propose(info)
+    assert not [c.key for c in cands if c.target == "drift:D_MODE_r"]
+    assert "missing_derivative:p:D_MODE_r" in {c.key for c in cands}
+    assert {c.key for c in cands if c.target != "drift:D_MODE_r"} == \
+        {c.key for c in propose(plain) if c.target != "drift:D_MODE_r"}
+
+
 def test_equation_without_parameters_but_gravity_keeps_every_candidate(tmp_path):
     """A sideslip-velocity equation written without side force is not geometry: at zero
     rates it keeps g·φ, so the side-force derivatives stay candidates; and without units

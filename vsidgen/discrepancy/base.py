@@ -207,6 +207,16 @@ class ModelInfo(VariableNames):
     parameter_units: Mapping[str, str | None] = dataclasses.field(default_factory=dict)
     #: unit of each spec constant (``constants:``), None where the spec gives none
     constant_units: Mapping[str, str | None] = dataclasses.field(default_factory=dict)
+    #: states an earlier diagnose round added as a filter (a lag, a delay, a missing mode,
+    #: a gust: :attr:`NewState.physical` False): their equations are not extended by the
+    #: catalogue (:meth:`equation_states`); they stay variables of the other equations
+    filter_states: frozenset[str] = frozenset()
+
+    def equation_states(self) -> tuple[str, ...]:
+        """The states whose equations the catalogue may extend: all but
+        :attr:`filter_states` (a round-2 "break in the rudder" inside the equation of the
+        yaw-rate mode round 1 added is not aerodynamics)."""
+        return tuple(s for s in self.state_names if s not in self.filter_states)
 
     @property
     def names(self) -> frozenset[str]:
@@ -542,6 +552,11 @@ class NewState:
     unit: str | None = None
     description: str = ""
     process_noise: bool = False   # receives process noise (a wind/gust state does)
+    #: a state of the aircraft with a force or moment equation of its own (the speed of the
+    #: phugoid), whose equation later rounds may extend like the spec's; False for a filter
+    #: (an actuator lag, a Padé delay, a missing mode, a gust), whose equation is the
+    #: candidate's own form (:attr:`ModelInfo.filter_states`)
+    physical: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -179,7 +179,7 @@ class MissingDerivative(Effect):
 
     def applies_to(self, info):
         out = []
-        for s in info.state_names:
+        for s in info.equation_states():
             rates = kinematic_rates(info, s)    # an attitude/position: couplings only
             for v in info.state_names + info.input_names:
                 if info.depends(s, v) or (rates is not None and v not in rates):
@@ -239,7 +239,7 @@ class TrimTerm(Effect):
 
     def applies_to(self, info):
         out = []
-        states = [s for s in info.state_names
+        states = [s for s in info.equation_states()
                   if not kinematic_state(info, s) and not has_constant_term(info, s)]
         for s in states:
             p = info.fresh(f"D_TRIM_{s}")
@@ -544,7 +544,7 @@ class NonlinearAero(Effect):
         # products with them
         made_of = {a: ({x.name for x in info.definitions_expanded[a].free_symbols}
                        if a in info.defined_flow_angles else set()) for a in flow}
-        for s in info.state_names:
+        for s in info.equation_states():
             if kinematic_state(info, s):    # no aerodynamics in θ̇ = q
                 continue
             du = _drift_unit(info, s)
@@ -615,7 +615,7 @@ class UnsteadyAero(Effect):
                 continue
             tau = downwash_tau(info.dt)
             lag = info.fresh(f"D_{a}_lag")
-            for s in info.state_names:
+            for s in info.equation_states():
                 if s == a or kinematic_state(info, s):   # no downwash in θ̇ = q
                     continue
                 p = info.fresh(f"D_{s}_{a}dot", taken=[lag])
@@ -1213,7 +1213,7 @@ class MissingDynamics(Effect):
     def applies_to(self, info):
         from .locate import LOWPASS_TAU
         out = []
-        for s in info.state_names:
+        for s in info.equation_states():
             if kinematic_rates(info, s) is not None:
                 continue    # no mode acts on an attitude or position rate (exact geometry)
             for v in info.state_names + info.input_names:
@@ -1404,13 +1404,15 @@ class SpeedDynamics(Effect):
             gamma = ang
             angle_state = NewState(ang, f"{_times(kq / ka, q)} - ({info.drift[a]}) - {zv}*{dv}", au,
                                    "flight-path-angle perturbation (θ − α without the "
-                                   "air-mass part of α)")
+                                   "air-mass part of α)", physical=True)
         else:
             gamma = f"({ang} - {a})"
             angle_state = NewState(ang, _times(kq / ka, q), au, "pitch-attitude perturbation (its start "
-                                                    "absorbs the trim of the speed equation)")
+                                                    "absorbs the trim of the speed equation)",
+                                   physical=True)
         states = (NewState(dv, f"{xv}*{dv} + {xa}*{a} - {g * ka!r}*{gamma}", "m/s",
-                           "airspeed perturbation from trim (phugoid)"), angle_state)
+                           "airspeed perturbation from trim (phugoid)", physical=True),
+                  angle_state)
         return Candidate(
             effect=self.id, key=f"{self.id}:{a}:{q}" + ("" if closure == "air" else ":attitude"),
             target=f"drift:{a}",

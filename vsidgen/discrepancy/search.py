@@ -2604,10 +2604,20 @@ def _lags_with_their_hold(run: _RunConfig, trials: Sequence[Trial], current: Fit
     return out
 
 
+def _filter_states(st: _RunState) -> frozenset[str]:
+    """The filter states earlier rounds added to the current model (:attr:`NewState.physical`
+    False: lags, Padé delays, missing modes) and the gust states of an adopted air-relative
+    gust model: the catalogue does not extend their equations (:attr:`ModelInfo.filter_states`)."""
+    names = {ns.name for t, _, _ in st.accepted for ns in t.candidate.states if not ns.physical}
+    if st.gustres and st.gustres.get("adopted") is not None:
+        names |= {g["gust_state"] for g in st.gustres.get("gusts") or ()}
+    return frozenset(names) & frozenset(st.current.model.state_names)
+
+
 def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
     """One round: screen and select → refits → projected refits → decide → accept."""
     current = st.current
-    info = model_info_of(current)
+    info = dataclasses.replace(model_info_of(current), filter_states=_filter_states(st))
     ranked, n_examined, table = select_candidates(
         info, st.evidence, run.catalogue, current, max_candidates=run.max_candidates,
         min_score=run.min_score, screen=run.screen, alpha=run.alpha,
