@@ -726,6 +726,12 @@ def test_conclusion_names_a_decided_unconverged_refit_once():
     assert rest and short["key"] in rest.split(". ")[0]
     unconverged = text.partition("did not converge (inconclusive for these candidates): ")[2]
     assert "time_skew:r" in unconverged and short["key"] not in unconverged
+    # the same candidate unconverged and undecided in a later round is named for that round
+    later = dict(short, significant=False, validation_ok=None, statistic=9.0)
+    text = conclusion_text([], [{"round": 1, "trials": [short]}, {"round": 2, "trials": [later]}],
+                           alpha=0.01, validated=True, final_spec="x.yaml")
+    unconverged = text.partition("did not converge (inconclusive for these candidates): ")[2]
+    assert short["key"] in unconverged and "rounds" not in unconverged
 
 
 def test_conclusion_does_not_blame_turbulence_for_an_unconverged_strong_refit():

@@ -451,10 +451,12 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
     # such, and one decided as significant (stopped short of convergence with a
     # positive-definite Hessian, or at a kink) but refused by the validation records as
     # over-fitting: neither again as unconverged
-    unconv = [t["key"] for t in tried if t.get("converged") is False
-              and t.get("verdict") != "beyond_range"
-              and not (t.get("significant") and t.get("validation_ok") is False)]
-    strong = [t for t in tried if t["key"] in set(unconv)
+    def unconverged(t) -> bool:
+        return (t.get("converged") is False and t.get("verdict") != "beyond_range"
+                and not (t.get("significant") and t.get("validation_ok") is False))
+
+    unconv = [t["key"] for t in tried if unconverged(t)]
+    strong = [t for t in tried if unconverged(t)
               and isinstance(t.get("statistic"), (int, float))
               and isinstance(t.get("threshold"), (int, float))
               and t["statistic"] > t["threshold"]]
@@ -503,7 +505,7 @@ def conclusion_text(findings: list, rounds: list, *, alpha: float, validated: bo
                        "(over-fitting): " + ", ".join(val_rej) + ".")
     if unconv:
         unconv = _keys_by_round([t for t in tried if t["key"] in set(unconv)
-                                 and t.get("converged") is False])
+                                 and unconverged(t)])
         conclusion += (" Not accepted because the refit did not converge (inconclusive for these "
                        "candidates): " + ", ".join(unconv) + ".")
     if not base_converged:
