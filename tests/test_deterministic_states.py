@@ -244,3 +244,23 @@ def test_validation_smoothing_ends_at_the_estimations_noise_and_names_its_stages
     assert str(prog.phases[2]).startswith("validation smoothing: deterministic limit, stage 2")
     assert "noise start" not in " ".join(map(str, prog.phases))
     assert all("phase" in h for h in res.history if h)
+
+
+def test_milder_stage_ends_the_limit_when_its_full_stage_equivalent_is_small():
+    """The stopping rule of the deterministic-limit continuation, scaled to a full stage.
+
+    Numbers from a new user's HFB-320 coefficient model (θ̇ = q deterministic), whose full
+    stage at std 8.7e-7 did not converge: converged stages at std 8.7e-6, 2.76e-6 (ρ 0.316),
+    1.55e-6 (ρ 0.562) with ELBOs 12995.1802, 12995.0228, 12995.0109 — L₀ + cε² with
+    L₀ ≈ 12995.005. The first milder step (−0.157 nats) is a full-stage change of 0.173 > 0.1;
+    the second (−0.0119) one of 0.017 < 0.1: the limit is reached there.
+    """
+    from vsidgen.estimator.fit import limit_stage_small
+
+    assert limit_stage_small(-0.05, 0.01, 0.1, 0.1)            # a full stage: unchanged rule
+    assert not limit_stage_small(-0.15, 0.01, 0.1, 0.1)
+    assert not limit_stage_small(-0.05, 0.2, 0.1, 0.1)         # parameters still moving
+    assert not limit_stage_small(12995.0228 - 12995.1802, 1e-4, 0.1 ** 0.5, 0.1)
+    assert limit_stage_small(12995.0109 - 12995.0228, 1e-4, 0.1 ** 0.25, 0.1)
+    # a mild stage's small change is not enough by itself: 0.03 nats at ρ = 0.866 is 0.11
+    assert not limit_stage_small(-0.03, 1e-4, 0.1 ** 0.0625, 0.1)

@@ -1295,6 +1295,19 @@ def _from_relaxed(P0: Problem, P: Problem, s0) -> np.ndarray:
     return np.concatenate([np.asarray(s0[:nt], float), w0[keep], w0[ne0:]])
 
 
+def limit_stage_small(d_elbo: float, d_theta: float, ratio: float, tol: float) -> bool:
+    """Whether a converged continuation stage of factor ``ratio`` (ε ← ratio·ε) ends the
+    deterministic limit: its ELBO change ``d_elbo`` (nats) and largest parameter change
+    ``d_theta`` (standard errors), scaled to a full (1/10) stage, are both below ``tol``.
+
+    In the O(ε²) regime a stage of factor ρ changes them by c ε²(1 − ρ²) and a full stage
+    from the same point by c ε²(1 − 1/100), so a milder stage's changes are multiplied by
+    (1 − 1/100)/(1 − ρ²); for a full stage the test is |Δ ELBO| < tol and Δθ < tol s.e.
+    """
+    to_full = (1.0 - LIMIT_RATIO ** 2) / (1.0 - ratio ** 2)
+    return abs(d_elbo) * to_full < tol and d_theta * to_full < tol
+
+
 def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, target=None,
                          start_name: str | None = None, smoothing: bool = False) -> dict:
     """Fit (or smooth) in the limit of vanishing process noise on the deterministic states.
@@ -1313,7 +1326,10 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
     factor (√ of the last), and the factor returns to 1/10 after a success. The limit is
     taken as reached when a full (1/10) stage changes the ELBO by less than ``limit_tol``
     nats and every free parameter by less than ``limit_tol`` of its standard error: in the
-    O(ε²) regime the remaining distance to the limit is then about 1 % of that change.
+    O(ε²) regime the remaining distance to the limit is then about 1 % of that change. A
+    milder stage (factor ρ) counts its changes as the full stage from the same point would
+    have made them in that regime, × (1 − 1/100)/(1 − ρ²): near the precision of float64,
+    where a full stage no longer converges, milder ones still end the continuation.
 
     A contracting deterministic subsystem (every state of an output-error fit of a stable
     model) has a posterior spread that decays along the record, which the time-invariant
@@ -1434,8 +1450,9 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         steady_k = within and prev_k == (k, ratio)
         prev_k = (k, ratio) if within else None   # both stages within the tolerance
         # with a target the stopping rule is the target (checked before the next stage)
-        if target is None and d_theta < options.limit_tol and (
-                steady_k or (ratio == LIMIT_RATIO and abs(d_elbo) < options.limit_tol)):
+        if target is None and (
+                (steady_k and d_theta < options.limit_tol)
+                or limit_stage_small(d_elbo, d_theta, ratio, options.limit_tol)):
             reached = True
             collapsed = k if steady_k else 0
             break
