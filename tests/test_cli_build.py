@@ -259,3 +259,40 @@ def test_python_m_vsidgen_is_the_command_line():
     bad = subprocess.run([sys.executable, "-m", "vsidgen", "check", str(SPECS / "missing.yaml")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def test_build_never_replaces_another_specs_module_or_a_foreign_file(tmp_path, capsys):
+    """A user's spec named like a shipped one, built from the repository's folder, wrote
+    ./generated/<name>.py over the repository's module (session 43, a new user's HFB-320 spec
+    named `hfb320`). A module generated from another spec, or a file vsidgen did not write,
+    is left as it is (exit 2, the spec's `name:` line and a hint); this spec's own module is
+    rebuilt as before."""
+    repo = tmp_path / "repo"
+    (repo / "specs").mkdir(parents=True)
+    text = (SPECS / "base.yaml").read_text(encoding="utf-8")
+    (repo / "specs" / "base.yaml").write_text(text, encoding="utf-8")
+    gen = repo / "generated"
+    assert main(["build", str(repo / "specs" / "base.yaml"), "--out", str(gen)]) == 0
+    shipped = (gen / "base.py").read_bytes()
+    mine = tmp_path / "mine" / "base.yaml"
+    mine.parent.mkdir()
+    mine.write_text(text.replace("V0", "V1"), encoding="utf-8")
+    capsys.readouterr()
+    assert main(["build", str(mine), "--out", str(gen)]) == 2
+    err = capsys.readouterr().err
+    assert "generated from another spec ('specs/base.yaml')" in err and "another `name:`" in err
+    assert (gen / "base.py").read_bytes() == shipped
+    assert main(["build", str(mine), "--out", str(gen), "--force"]) == 2   # force rebuilds, never clobbers
+    assert (gen / "base.py").read_bytes() == shipped
+    # a file of the user's own with the model's name
+    own = tmp_path / "own"
+    own.mkdir()
+    (own / "base.py").write_text("x = 1\n", encoding="utf-8")
+    assert main(["build", str(mine), "--out", str(own)]) == 2
+    assert "not a module vsidgen generated" in capsys.readouterr().err
+    assert (own / "base.py").read_text(encoding="utf-8") == "x = 1\n"
+    # the spec's own module, changed spec: rebuilt
+    (repo / "specs" / "base.yaml").write_text(text.replace("description: small", "description: a small"),
+                                             encoding="utf-8")
+    assert main(["build", str(repo / "specs" / "base.yaml"), "--out", str(gen)]) == 0
+    assert "wrote:" in capsys.readouterr().out
