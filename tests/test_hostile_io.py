@@ -469,3 +469,48 @@ def test_numpy_savetxt_header_is_read_and_comment_lines_are_refused(tmp_path):
         expect_refused(proc, "meta.csv", "line 2 is a comment", "'# flight 12,",
                        "delete the comment or metadata lines")
     assert not (tmp_path / "out").exists()
+
+
+def test_huge_integers_and_deep_nesting_in_json_inputs_are_refused_cleanly(user_dir):
+    """A 400-digit integer (OverflowError where it became a float), a 5001-digit one (Python's
+    int-string limit) and 100000 nested arrays (RecursionError) in a file given with
+    --init-from or --reference: a message and exit 2, never an internal error (session 43)."""
+    from report_fixture import write_results_dir
+
+    u = user_dir / "user"
+    write_results_dir(user_dir / "res", n_samples=40, validation=False, n_outputs=1)
+    big = "1" + "0" * 400
+    (u / "init.json").write_text('{"parameters": {"Z0": {"estimate": %s}}}' % big)
+    _case(user_dir, ["fit", "user/attas_sp.yaml", "user/flight.csv", "--out", "o",
+                     "--init-from", "user/init.json"], "Z0", "not a finite number")
+    for name, body, text in (("r400", '{"parameters": {"Z0": {"estimate": %s}}}' % big, None),
+                             ("r5001", '{"parameters": {"Z0": {"estimate": 1%s}}}' % ("0" * 5000), None),
+                             ("deep", '{"a": ' + "[" * 100000 + "]" * 100000 + "}", "nested too deeply")):
+        (u / f"{name}.json").write_text(body)
+        proc = run_cli(["report", "res", "--reference", f"user/{name}.json", "--out", f"rep_{name}"],
+                       user_dir)
+        assert proc.returncode in (0, 2), (name, proc.returncode, proc.stderr[-2000:])
+        assert "Traceback" not in proc.stderr and "internal error" not in proc.stderr, proc.stderr
+        if text:
+            expect_refused(proc, text)
+    res = user_dir / "res" / "results.json"
+    res.write_text(res.read_text().replace('"elbo": ', '"elbo": %s, "elbo_was": ' % big, 1))
+    proc = run_cli(["report", "res", "--out", "rep_big"], user_dir)
+    assert proc.returncode in (0, 2) and "internal error" not in proc.stderr, proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("where", ["file_as_generated", "out_is_file", "dev_null"])
+def test_an_output_path_blocked_by_a_file_is_refused_cleanly(user_dir, where):
+    """A file where vsidgen creates a folder (./generated, --out) or a device as --out:
+    exit 2 naming the path, not an internal error (FileExistsError, session 43)."""
+    u = user_dir / "user"
+    if where == "file_as_generated":
+        (u / "generated").write_text("mine\n")
+        proc = run_cli(["build", "attas_sp.yaml"], u)
+        expect_refused(proc, "generated", "not a folder")
+        assert (u / "generated").read_text() == "mine\n"
+    elif where == "out_is_file":
+        expect_refused(run_cli(["build", "attas_sp.yaml", "-o", "notes.txt"], u), "notes.txt")
+        assert (u / "notes.txt").read_text() == "my notes\n"
+    else:
+        expect_refused(run_cli(["build", "attas_sp.yaml", "-o", "/dev/null"], u), "/dev/null")

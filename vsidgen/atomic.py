@@ -134,7 +134,9 @@ def read_manifest(directory: str | os.PathLike) -> dict | None:
     try:
         if path.is_symlink() or not path.is_file() or path.stat().st_size > 1 << 20:
             return None
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        from .limits import parse_json
+
+        doc = parse_json(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValueError):
         return None
     if not (isinstance(doc, dict) and doc.get("format") == MANIFEST_FORMAT

@@ -654,6 +654,15 @@ def main(argv=None) -> int:
 
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # the file system refused: a file where a folder is written, a
+        # device or /proc path, no permission, disk full — the user's environment, not a bug
+        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+        why = ("exists and is not a folder" if isinstance(exc, (FileExistsError, NotADirectoryError))
+               else exc.strerror or str(exc))
+        print(f"error: cannot write or read {where or 'a file'}: {why}\n"
+              "  hint: choose an output folder you can write to, where no file stands in the way "
+              "of the folders vsidgen creates (--out, ./generated)", file=sys.stderr)
+        return 2
     except Exception as exc:  # a bug in vsidgen, not in the user's input
         import os
         import traceback

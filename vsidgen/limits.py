@@ -123,3 +123,25 @@ def check_input_file(path: str | os.PathLike, *, what: str = "file", kind: str =
 
 __all__ = ["DATA_LIMIT_ENV", "DEFAULT_DATA_LIMIT", "DEFAULT_JSON_LIMIT", "JSON_LIMIT_ENV",
            "check_input_file", "data_limit", "human_bytes", "json_limit"]
+
+
+def _json_int(text: str):
+    """A JSON integer: an int up to 18 digits, else a float (inf beyond its range), so that
+    a 400-digit number is an ordinary out-of-range value for the reader's checks, not an
+    OverflowError where it is converted (nor Python's 4300-digit int limit)."""
+    return int(text) if len(text) <= 18 else float(text)
+
+
+def parse_json(text: str):
+    """``json.loads`` for files users hand to vsidgen (results.json, references, manifests).
+
+    Integers too long for a float become ±inf or floats (:func:`_json_int`); a document
+    nested beyond the interpreter's recursion limit raises ``ValueError`` like any other
+    invalid JSON (``json.JSONDecodeError`` is a ``ValueError`` too).
+    """
+    import json
+
+    try:
+        return json.loads(text, parse_int=_json_int)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..atomic import write_text_atomic
 from ..errors import VsidgenError
-from ..limits import check_input_file
+from ..limits import check_input_file, parse_json
 from .resultsdir import contained_file, read_results
 
 __all__ = ["new_figure", "parse_reference", "png_data_uri", "write_report", "SIGNAL_STYLE",
@@ -132,11 +132,11 @@ def parse_reference(reference) -> tuple[dict[str, dict], str, pathlib.Path | Non
                                "(expected PATH or PATH:method)")
     check_input_file(path, what="reference file", kind="json", data_error=False)
     try:
-        ref = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        ref = parse_json(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        where = (f" at {err.lineno}:{err.colno}" if isinstance(err, json.JSONDecodeError) else "")
         raise VsidgenError(f"{path}: error: cannot read reference JSON: "
-                           f"{type(err).__name__} at {getattr(err, 'lineno', '?')}:"
-                           f"{getattr(err, 'colno', '?')}") from None
+                           f"{getattr(err, 'msg', None) or err}{where}") from None
     if not isinstance(ref, dict):
         raise VsidgenError(f"{path}: error: reference file must hold a JSON object")
     methods = [k for k, v in ref.items() if isinstance(v, dict) and isinstance(v.get("parameters"), dict)]

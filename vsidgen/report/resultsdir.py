@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import VsidgenError
-from ..limits import check_input_file
+from ..limits import check_input_file, parse_json
 
 
 def finite_or_none(v: Any) -> float | None:
@@ -90,7 +90,7 @@ def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
                            "directory of `vsidgen fit`?")
     path = contained_file(results_dir, "results.json", what="results file")
     try:
-        res = json.loads(path.read_text(encoding="utf-8"))
+        res = parse_json(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
         raise VsidgenError(f"{path}: error: cannot read results file: {err}") from None
     except RecursionError:
@@ -99,6 +99,8 @@ def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
     except json.JSONDecodeError as err:
         raise VsidgenError(f"{path}:{err.lineno}:{err.colno}: error: results.json is not valid "
                            f"JSON: {err.msg}") from None
+    except ValueError as err:   # nested too deeply (parse_json)
+        raise VsidgenError(f"{path}: error: results.json is not one vsidgen wrote: {err}") from None
     if not isinstance(res, dict):
         raise VsidgenError(f"{path}: error: results.json must hold a JSON object")
     for key, typ in (("spec", dict), ("model", dict), ("parameters", dict), ("records", dict)):

@@ -75,7 +75,7 @@ def _name_value(item: str, option: str) -> tuple[str, float]:
 def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit`` (``option``
     names the command-line option that gave ``path`` in error messages)."""
-    from ..limits import check_input_file
+    from ..limits import check_input_file, parse_json
 
     path = pathlib.Path(path)
     if not path.exists() and not path.is_symlink():
@@ -87,7 +87,7 @@ def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     except VsidgenError as err:
         raise VsidgenError(f"{option} {err}") from None
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        doc = parse_json(path.read_text(encoding="utf-8"))
         params = doc["parameters"]
         out = {str(k): float(v["estimate"]) for k, v in params.items()}
     except FileNotFoundError:
