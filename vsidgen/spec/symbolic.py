@@ -40,6 +40,11 @@ GENERATOR_VERSION = __version__
 #: shipped specs need at most 77; building a 12000-node one took 11 s on a loaded 2-core machine)
 MAX_EXPANDED_SIZE = 10_000
 
+#: deepest nesting of one drift/observation equation with its definitions substituted (the
+#: shipped and users' specs reach 10; sympy's differentiation and printing recurse once or
+#: more per level, and a chain of 110-140 nested definitions ended in a RecursionError)
+MAX_EXPANDED_DEPTH = 40
+
 __all__ = ["GENERATOR_VERSION", "SymbolicModel", "Variable", "Constant", "Parameter",
            "ProcessNoiseSpec", "MeasurementNoiseSpec", "ChannelMap", "DataSpec",
            "compile_spec", "compile_typed", "valid_name", "GENERATED_MODULE_NAMES"]
@@ -570,6 +575,22 @@ def tree_size(expr, memo: dict) -> int:
     return memo[expr]
 
 
+def tree_depth(expr, memo: dict) -> int:
+    """Levels of ``expr``'s tree (a leaf: 1), counted on its DAG without recursion
+    (``memo`` maps sub-expressions to their depths and may be shared between calls)."""
+    stack = [(expr, False)]
+    while stack:
+        node, done = stack.pop()
+        if node in memo:
+            continue
+        if done or not node.args:
+            memo[node] = 1 + max((memo[a] for a in node.args), default=0)
+            continue
+        stack.append((node, True))
+        stack.extend((a, False) for a in node.args if a not in memo)
+    return memo[expr]
+
+
 def _check_constant_singularities(decl, definitions, drift, observations, sections) -> None:
     """Refuse an expression that the constants' values alone make infinite or undefined
     (``1/K`` with ``K: {value: 0}``): it cannot be evaluated at any state, and it used to
@@ -611,9 +632,20 @@ def _check_expanded_size(definitions, def_at, drift, states, observations, outpu
     (or equation) that crosses the bound.
     """
     memo: dict[sympy.Basic, int] = {}
+    deep: dict[sympy.Basic, int] = {}
     for nm, e in definitions:
         size = tree_size(e, memo)
         memo[_sym(nm)] = size
+        depth = tree_depth(e, deep)
+        deep[_sym(nm)] = depth
+        if depth > MAX_EXPANDED_DEPTH:
+            at = def_at[nm].name
+            raise SpecError(f"definition `{nm}` is nested {depth} levels deep when the "
+                            f"definitions it uses are substituted (at most {MAX_EXPANDED_DEPTH})",
+                            **at.key_loc, text=at.key_text,
+                            hint="a long chain of definitions each wrapping the previous one "
+                                 "(d2 = sin(d1), d3 = sin(d2), ...): write the model with fewer "
+                                 "levels; the generated Jacobians differentiate the expanded form")
         if size > MAX_EXPANDED_SIZE:
             at = def_at[nm].name
             raise SpecError(f"definition `{nm}` expands to {size} expression nodes when the "
@@ -626,6 +658,14 @@ def _check_expanded_size(definitions, def_at, drift, states, observations, outpu
                                       ("observations", outputs, observations)):
         for v, e in zip(variables, exprs):
             size = tree_size(e, memo)
+            depth = tree_depth(e, deep)
+            if depth > MAX_EXPANDED_DEPTH:
+                at = sections[section][v.name].expression
+                raise SpecError(f"{section} equation of `{v.name}` is nested {depth} levels deep "
+                                f"when definitions are substituted (at most {MAX_EXPANDED_DEPTH})",
+                                **at.loc, text=at.text,
+                                hint="use fewer chained definitions; the generated Jacobians "
+                                     "differentiate the expanded form")
             if size > MAX_EXPANDED_SIZE:
                 at = sections[section][v.name].expression
                 raise SpecError(f"{section} equation of `{v.name}` expands to {size} expression "
