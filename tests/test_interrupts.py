@@ -89,3 +89,30 @@ def test_a_library_removes_its_own_callback_after_the_guard():
     finally:
         gc.callbacks[:] = [cb for cb in gc.callbacks
                            if getattr(cb, "vsidgen_guarded", cb) is not library_callback]
+
+
+def test_ctrl_c_while_the_command_line_loads_exits_130_without_traceback(tmp_path):
+    """A Ctrl-C in the first second of ``vsidgen fit`` (sympy, numpy, jax loading; the
+    argument parser being built) printed a KeyboardInterrupt traceback and Python's
+    exit by signal (session 43); it ends as one later does: "interrupted", status 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+            "from vsidgen._entry import main; sys.stderr.write('ready\\n'); sys.stderr.flush(); "
+            "sys.exit(main())")
+    # the interrupt arrives after the entry module is imported (the console script's first
+    # line): before that Python itself and `import vsidgen` (~15 ms) run unprotected
+    for delay in (0.0, 0.2, 0.5, 0.9):
+        p = subprocess.Popen([sys.executable, "-c", code, "fit", str(root / "specs" / "attas_sp.yaml"),
+                              str(root / "data" / "attas_sp_synthetic.csv"), "--out", str(tmp_path / "o")],
+                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        assert p.stderr.readline() == "ready\n"
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 130 and "Traceback" not in err, (delay, p.returncode, err[-2000:])
+        assert "interrupted" in err

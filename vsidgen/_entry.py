@@ -1,0 +1,21 @@
+"""The ``vsidgen`` console script: the command line of :func:`vsidgen.cli.main`, imported
+inside the handler of Ctrl-C, so that an interrupt while sympy and numpy load (the first
+half second) ends like one later: "interrupted", exit status 130, no traceback."""
+
+from __future__ import annotations
+
+import sys
+
+
+def main(argv=None) -> int:
+    try:
+        from .cli import main as cli_main
+
+        return cli_main(argv)   # handles an interrupt during the command itself
+    except KeyboardInterrupt:   # ... this one, while modules load and arguments are parsed
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
