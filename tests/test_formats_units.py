@@ -321,3 +321,13 @@ def test_fit_shows_and_records_a_column_read_in_another_unit(tmp_path, capsys, m
     assert "column `alpha_rad` of output `alpha` is named in `rad`" in err
     res = json.loads((out / "results.json").read_text())
     assert [w["code"] for w in res["warnings"]].count("column_unit_suffix") == 1
+
+
+def test_a_conversion_factor_that_underflows_or_overflows_is_refused():
+    """`deg*deg*...` (400 factors) / deg is dimensionless like rad, and (π/180)^399 underflowed
+    to 0: every sample read as 0 without a word (session 43). Refused with the factor."""
+    from vsidgen.spec import dataunits
+
+    with pytest.raises(dataunits.UnitConversionError, match="not a usable factor"):
+        dataunits.conversion("*".join(["deg"] * 400) + "/deg", "rad")
+    assert dataunits.conversion("deg", "rad")[0] == pytest.approx(math.pi / 180)

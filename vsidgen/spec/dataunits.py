@@ -117,6 +117,11 @@ def conversion(data_unit: str, spec_unit: str) -> tuple[float, float]:
             f"`{spec_unit}` ({dimensionality(spec_unit)})")
     b = float(ureg.Quantity(0.0, src).to(dst).magnitude)
     a = float(ureg.Quantity(1.0, src).to(dst).magnitude) - b
+    if not (math.isfinite(a) and math.isfinite(b) and 1e-100 < abs(a) < 1e100):
+        # e.g. `deg*deg*...` (400 factors) / deg: (π/180)^399 underflows to 0, and every
+        # sample would have been read as 0 without a word
+        raise UnitConversionError(
+            f"converting `{data_unit}` to `{spec_unit}` multiplies by {a:g}: not a usable factor")
     return a, b
 
 
