@@ -331,3 +331,17 @@ def test_a_conversion_factor_that_underflows_or_overflows_is_refused():
     with pytest.raises(dataunits.UnitConversionError, match="not a usable factor"):
         dataunits.conversion("*".join(["deg"] * 400) + "/deg", "rad")
     assert dataunits.conversion("deg", "rad")[0] == pytest.approx(math.pi / 180)
+
+
+def test_a_scale_that_converts_the_dimension_is_no_wrong_column(tmp_path):
+    """`nz: {column: az_mps2, scale: -0.10197162}` (−1/g: a load factor read from an
+    acceleration, the documented pattern) drew "a wrong column?" with no way to silence it
+    (session 43); a bare sign flip converts nothing and still does."""
+    for scale, expected in (("-0.10197162", 0), ("-1", 1)):
+        path = tmp_path / f"nz{len(scale)}.yaml"
+        path.write_text(f"extends: {SPEC}\nname: nzscale\ndata:\n  time: t_s\n"
+                        "  inputs: {de: de_rad}\n"
+                        f"  outputs:\n    alpha: {{column: az_mps2, scale: {scale}}}\n    q: q_radps\n")
+        sym = compile_spec(path)
+        got = [w for w in sym.warnings if w.code == "column_other_dimension"]
+        assert len(got) == expected, (scale, [w.message for w in sym.warnings])

@@ -812,7 +812,11 @@ def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -
     if ch.column is None or ch.unit is not None:
         return
     name, col = ch.name.value, ch.column.value
-    other = dataunits.suffix_other_dimension(col, spec_unit)
+    # a scale of magnitude other than 1 may carry a unit of its own: `nz: {column: az_mps2,
+    # scale: -0.10197162}` (−1/g) reads a load factor from an acceleration, as documented;
+    # a bare sign flip (scale −1) converts nothing and is still checked
+    other = (dataunits.suffix_other_dimension(col, spec_unit)
+             if abs(abs(ch.scale) - 1.0) <= 1e-12 else None)
     if other is not None:
         _warn(warnings, f"column `{col}` of {what} `{name}` is named in `{other}` "
               f"({dataunits.dimensionality(other)}), but `{name}` is in `{spec_unit}` "
