@@ -483,3 +483,14 @@ def test_time_unit_in_the_spec(tmp_path):
         with pytest.raises(SpecError) as info:
             load_symbolic(spec(text))
         assert fragment in str(info.value) and "s.yaml:" in str(info.value)
+
+
+def test_a_missing_time_column_names_the_time_like_columns(tmp_path):
+    """`data: {time: time}` on a file whose time is `t_s`: the hint names `t_s` as the
+    time-like column and lists the columns (session 43: no hint at all)."""
+    from vsidgen.data.records import time_hint
+
+    hint = time_hint("time", ["t_s", "de_rad", "alpha_rad"])
+    assert "time-like columns: t_s" in hint and "columns in the file: t_s, de_rad, alpha_rad" in hint
+    assert time_hint("t_s", ["t_S", "x"]).startswith("did you mean")
+    assert "time-like" not in time_hint("time", ["de_rad", "alpha_rad"])

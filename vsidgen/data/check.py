@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from .records import (cell_hint, cell_value, hash_header, load_record, refuse_other_delimiter,
+from .records import (cell_hint, time_hint, cell_value, hash_header, load_record, refuse_other_delimiter,
                       refuse_units_row)
 from ..errors import DataError, Location, SpecError, SpecWarning
 from ..spec.expr import did_you_mean
@@ -113,7 +113,7 @@ def check_first_sample(symbolic: SymbolicModel, csv_path, *, evaluate: bool = Tr
     warnings: list[SpecWarning] = []
     if symbolic.data.time not in row:
         raise DataError(f"time column `{symbolic.data.time}` is not in the file", path=csv_path,
-                        column=symbolic.data.time, hint=did_you_mean(symbolic.data.time, columns))
+                        column=symbolic.data.time, hint=time_hint(symbolic.data.time, columns))
     values: dict = dict(symbolic.constant_values())
     for p in symbolic.parameters:
         values[p.symbol] = p.initial

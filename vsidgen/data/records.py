@@ -360,10 +360,24 @@ def refuse_other_delimiter(header: list[str], path) -> None:
                                         "and a decimal point (not semicolons or tabs)")
 
 
-def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None) -> str:
+_TIME_LIKE = re.compile(r"(?i)^(t|time|zeit|tempo)(\b|_|$)|time|_s$|\(s\)$|\[s\]$")
+
+
+def time_hint(name: str, header: list[str]) -> str:
+    """Hint for a time column ``name`` the file lacks: a close spelling, else the columns
+    whose names look like a time (``t``, ``t_s``, ``time``, ``... (s)``), then all columns."""
+    return _suggest(name, header, time=True)
+
+
+def _suggest(name: str, header: list[str], taken: Mapping[str, str] | None = None, *,
+             time: bool = False) -> str:
     hint = column_hint(name, header, taken)
     if hint and hint.startswith("did you mean"):
         return hint
+    if time:
+        like = [h for h in header if _TIME_LIKE.search(h)]
+        if like:
+            hint = (hint + "; " if hint else "") + "time-like columns: " + ", ".join(like[:5])
     shown = ", ".join(header[:60]) + (f", ... ({len(header)} in all)" if len(header) > 60 else "")
     return (hint + "; " if hint else "") + f"columns in the file: {shown}"
 
@@ -572,7 +586,7 @@ def _read_csv_columns(path: pathlib.Path, needed: list[str], time_column: str,
             what = (f"time column '{c}'" if c == time_column
                     else f"column '{c}' (for {taken[c]})" if c in taken else f"column '{c}'")
             raise DataError(f"{what} is not in the file", path=path, column=c,
-                            hint=_suggest(c, header, taken))
+                            hint=_suggest(c, header, taken, time=c == time_column))
         if header.count(c) > 1:
             raise DataError(f"column '{c}' appears {header.count(c)} times in the header",
                             path=path, column=c, hint="rename the duplicated columns")
