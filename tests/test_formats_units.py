@@ -345,3 +345,23 @@ def test_a_scale_that_converts_the_dimension_is_no_wrong_column(tmp_path):
         sym = compile_spec(path)
         got = [w for w in sym.warnings if w.code == "column_other_dimension"]
         assert len(got) == expected, (scale, [w.message for w in sym.warnings])
+
+
+@pytest.mark.parametrize("expr, warned", [("(alpha_rad + alpha2_rad)/2", True),
+                                          ("alpha_rad*57.29578", False),
+                                          ("(alpha_rad + alpha2_rad)*28.64789", False),
+                                          ("sin(alpha_rad)", False)])
+def test_an_expression_of_columns_in_another_unit_scale_warns(tmp_path, expr, warned):
+    """An `expr` entry reading only `*_rad` columns into an input declared in deg, converting
+    nothing, was read unconverted without a word (session 43; the same slip with `column:`
+    warns). A coefficient equal to the conversion factor (57.3, or 28.6 on each of two
+    columns) converts; a nonlinear expression is left alone."""
+    path = tmp_path / "e.yaml"
+    path.write_text(f"extends: {SPEC}\nname: exprdeg\noutputs:\n  alpha: {{unit: deg}}\n"
+                    "data:\n  time: t_s\n  inputs: {de: de_rad}\n"
+                    f"  outputs:\n    alpha: {{expr: \"{expr}\"}}\n    q: q_radps\n")
+    sym = compile_spec(path)
+    got = [w for w in sym.warnings if w.code == "column_unit_suffix" and "expression of" in w.message]
+    assert bool(got) is warned, [w.message for w in sym.warnings]
+    if warned:
+        assert "add `unit: rad`" in got[0].hint and got[0].line == 9

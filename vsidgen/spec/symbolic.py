@@ -838,6 +838,45 @@ def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -
                f"unit: {named}}}` (or `unit: {spec_unit}` if the name misleads)")
 
 
+def _warn_expr_suffix(warnings: list, ch: ChannelDecl, cm: ChannelMap, what: str, spec_unit) -> None:
+    """:func:`_warn_column_suffix` for an ``expr`` entry: every column it reads is named in one
+    unit of the spec unit's dimension but another scale (``da: {expr: "(da_r_rad - da_l_rad)/2"}``
+    for an aileron in deg), the expression is linear in them with no coefficient (nor sum of
+    coefficients' magnitudes) equal to that conversion's factor within 2 % (``alpha_rad*57.2958``
+    converts), and the entry declares no unit, scale or offset: its values are read unconverted."""
+    from . import dataunits
+
+    if (ch.expr is None or ch.unit is not None or ch.scale != 1.0 or ch.offset != 0.0
+            or cm.expr is None or not spec_unit):
+        return
+    cols = cm.source_columns()
+    named = {dataunits.suffix_mismatch(c, spec_unit) for c in cols}
+    if len(named) != 1 or None in named:
+        return
+    named = named.pop()
+    try:
+        a, _ = dataunits.conversion(named, spec_unit)
+    except ValueError:
+        return
+    syms = sorted(cm.expr.free_symbols, key=str)
+    zero = {sym: 0 for sym in syms}
+    coefs = []
+    for sym in syms:
+        c = sympy.diff(cm.expr, sym)
+        if c.free_symbols or not c.is_number:
+            return                                   # not linear in its columns
+        coefs.append(abs(float(c)))
+    if not coefs or cm.expr.xreplace(zero) != 0:
+        return
+    if any(abs(c / abs(a) - 1.0) < 0.02 for c in coefs + [sum(coefs)]):
+        return                                       # the expression converts
+    _warn(warnings, f"expression of {what} `{ch.name.value}` reads columns named in `{named}`, but "
+          f"`{ch.name.value}` is in `{spec_unit}` and the data map converts nothing: its values "
+          f"are read as `{spec_unit}`", ch.expr, key=False, code="column_unit_suffix",
+          hint=f"declare the columns' unit, converted on reading: add `unit: {named}` to the "
+               f"entry of `{ch.name.value}` (or `unit: {spec_unit}` if the names mislead)")
+
+
 def _data_spec(spec: Spec, input_names, output_names, root_loc,
                units: Mapping[tuple[str, str], str | None] | None = None,
                warnings: list | None = None) -> DataSpec:
@@ -868,6 +907,7 @@ def _data_spec(spec: Spec, input_names, output_names, root_loc,
             out.append(_channel(given[nm], what, (units or {}).get((what, nm))))
             if warnings is not None:
                 _warn_column_suffix(warnings, given[nm], what, (units or {}).get((what, nm)))
+                _warn_expr_suffix(warnings, given[nm], out[-1], what, (units or {}).get((what, nm)))
         result[key] = tuple(out)
     time_unit, time_scale = None, 1.0
     if data.time_unit is not None:
