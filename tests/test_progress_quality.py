@@ -102,3 +102,17 @@ def test_status_line_names_the_next_engine_refit_not_a_profiled_delay():
     assert plan.next_refitted(keys) == "actuator_lag:dr"
     assert plan.next_refitted(keys[::2]) == "actuator_lag:da"
     assert plan.next_refitted(keys[:1]) is None
+
+
+def test_diagnose_time_left_is_bounded_by_the_time_limit():
+    """A 900-s run said "about 657 s left", then "about 1061 s left" (session 43): the
+    average refit times the refits left, past the time limit. The limit now bounds it."""
+    import time
+
+    p = DiagnoseProgress(io.StringIO(), live=False)
+    assert "ends the round in 300 s" in p.refitting(1, 1, 4, "a", limit_left=300.0)
+    time.sleep(0.02)
+    text = p.refitting(1, 2, 4, "b", limit_left=1e-3)
+    assert "ends the round in 0 s" in text and "s left in this round" not in text
+    time.sleep(0.02)
+    assert "s left in this round" in p.refitting(1, 3, 4, "c", limit_left=1e6)

@@ -134,8 +134,10 @@ class DiagnoseProgress:
             self.stream.write(message + "\n")
             self.stream.flush()
 
-    def refitting(self, rnd: int, index: int, total: int, key: str) -> str:
-        """Note the start of refit ``index`` (1-based) of ``total``; returns the status text."""
+    def refitting(self, rnd: int, index: int, total: int, key: str, *,
+                  limit_left: float | None = None) -> str:
+        """Note the start of refit ``index`` (1-based) of ``total``; returns the status text.
+        ``limit_left``: seconds to the round's time limit, which bounds the estimate."""
         now = time.perf_counter()
         if self._round != rnd:
             self._round, self._t_round, self._done = rnd, now, []
@@ -145,6 +147,9 @@ class DiagnoseProgress:
         left = total - index + 1
         eta = (f"about {sum(self._done) / len(self._done) * left:.0f} s left in this round"
                if self._done else "time left: after the first refit")
+        if limit_left is not None and (not self._done or
+                                       sum(self._done) / len(self._done) * left > limit_left):
+            eta = f"the time limit ends the round in {max(limit_left, 0.0):.0f} s"
         text = f"round {rnd}: refitting {key} ({index}/{total}; {eta})"
         if self._status is not None:
             self._status.update(text)

@@ -1807,6 +1807,21 @@ def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
     _checkpoint(run, st, StopReason.RUNNING)
 
 
+def _limit_left(deadline) -> dict:
+    """``{"limit_left": seconds}`` to a round's refit deadline for the progress line (empty
+    without one)."""
+    return {} if deadline is None else {"limit_left": float(deadline.left())}
+
+
+def _undecided_json(t: "Trial") -> dict:
+    """A refit of a round not decided yet, as the unfinished round lists it: its test has no
+    Holm threshold before the round ends, so ``significant`` is null (undecided), not false."""
+    d = t.to_json()
+    if d.get("threshold") is None:
+        d["significant"] = None
+    return d
+
+
 def _held_reference(run: _RunConfig, spec, base: FitState) -> FitState:
     """The base fit every refit is compared with, at the refits' process noise.
 
@@ -2036,13 +2051,14 @@ def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     if oc.status is not TaskStatus.CANCELLED:
         un = st.unfinished
         un["pending"].remove(c.key)
-        un["refitted"].append(t.to_json())
+        un["refitted"].append(_undecided_json(t))
         _checkpoint(run, st, StopReason.RUNNING, report=False)
         status = getattr(run.progress, "refitting", None)
         nxt = plan.next_refitted(un["pending"])
         if status is not None and nxt is not None:
             n_done = len(un["refitted"])
-            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), nxt))
+            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), nxt,
+                           **_limit_left(plan.deadline)))
 
 
 def round_refit_deadline(deadline: float | None, reserve_s: float) -> float | None:
@@ -2068,7 +2084,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     status = getattr(run.progress, "refitting", None)  # live status line with time left
     nxt = plan.next_refitted(st.unfinished["pending"])
     if status is not None and plan.tasks and nxt is not None:
-        run.say(status(rnd, 1, plan.n_refits, nxt))
+        run.say(status(rnd, 1, plan.n_refits, nxt, **_limit_left(plan.deadline)))
     on_done = functools.partial(_refit_done, run, st, rnd, plan, current)
     remaining = sorted(plan.tasks, key=lambda task: plan.task_rank(task[0]))
     outcomes, profiles, cut = [], [], []
@@ -2103,7 +2119,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
             cut.append(c.key)
             continue
         st.unfinished["pending"].remove(c.key)
-        st.unfinished["refitted"].append(t.to_json())
+        st.unfinished["refitted"].append(_undecided_json(t))
         if t.state is not None:
             from .findings import estimate_text
 
@@ -2698,6 +2714,9 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
     before = st.current
     checked = _projected_round(run, st, rnd, plan, trials, lead_only=bool(cut))
     if checked is None:
+        if cut:
+            run.say(f"round {rnd}: no time left to check the lead's refit (projected refit): "
+                    "the round is left undecided after all (an unfinished round accepts nothing)")
         return _RoundEnd.TIME_LIMIT
     trials, projected, better = checked
     trials = _lags_with_their_hold(run, trials, st.current, rnd)
