@@ -116,3 +116,16 @@ def test_diagnose_time_left_is_bounded_by_the_time_limit():
     assert "ends the round in 0 s" in text and "s left in this round" not in text
     time.sleep(0.02)
     assert "s left in this round" in p.refitting(1, 3, 4, "c", limit_left=1e6)
+
+
+def test_an_unfinished_rounds_refit_is_undecided_not_insignificant():
+    """findings.json listed a refit of an unfinished round with 2ΔELBO 39.2, p 3.7e-10 as
+    `significant: false` next to `threshold: null` (session 43): undecided is null."""
+    import types
+
+    from vsidgen.discrepancy.search import _undecided_json
+
+    t = types.SimpleNamespace(to_json=lambda: {"key": "a", "threshold": None, "significant": False})
+    assert _undecided_json(t)["significant"] is None
+    t = types.SimpleNamespace(to_json=lambda: {"key": "a", "threshold": 7.9, "significant": True})
+    assert _undecided_json(t)["significant"] is True
