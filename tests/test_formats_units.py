@@ -365,3 +365,21 @@ def test_an_expression_of_columns_in_another_unit_scale_warns(tmp_path, expr, wa
     assert bool(got) is warned, [w.message for w in sym.warnings]
     if warned:
         assert "add `unit: rad`" in got[0].hint and got[0].line == 9
+
+
+def test_a_bias_in_the_units_of_its_equation_is_not_warned_as_noncoherent(tmp_path):
+    """A model written in degrees: a bias `c1` in deg/s² added (through a definition) to the
+    drift of a rate in deg/s is in the unit it is declared in; the warning told the user to
+    declare it in rad/s² (session 43). Added to an equation in rad/s it is still warned."""
+    def spec(rate_unit):
+        return (f"name: degbias\nstates:\n  p: {{unit: {rate_unit}}}\ninputs:\n  da: {{unit: deg}}\n"
+                "outputs:\n  p: {unit: deg/s}\nparameters:\n  Lp: {unit: 1/s}\n  Lda: {unit: 1/s^2}\n"
+                "  c1: {unit: deg/s^2}\ndefinitions:\n  pd: Lp*p + Lda*da + c1\ndrift:\n  p: pd\n"
+                "observations:\n  p: p\ndata:\n  time: t_s\n  inputs: {da: da_deg}\n"
+                "  outputs: {p: p_degps}\n")
+    for rate_unit, warned in (("deg/s", False), ("rad/s", True)):
+        path = tmp_path / f"b{warned}.yaml"
+        path.write_text(spec(rate_unit))
+        sym = compile_spec(path)
+        got = [w for w in sym.warnings if w.code == "noncoherent_unit" and "`c1`" in w.message]
+        assert bool(got) is warned, (rate_unit, [w.message for w in sym.warnings])

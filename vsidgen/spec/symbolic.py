@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
+import math
 import re
 from collections.abc import Mapping
 from typing import Any
@@ -221,6 +222,8 @@ def _warn_coherence(warnings: list, spec: Spec) -> None:
             if factor == 1.0:
                 continue
             if what == "parameter":
+                if _written_in_own_units(spec, d.name.value, factor):
+                    continue
                 msg = (f"parameter `{d.name.value}` is declared in `{d.unit.value}`, but the "
                        "equations use the numbers as they stand: where they meet quantities in "
                        f"coherent units (SI, rad) the estimate is in `{unit}`, and its initial "
@@ -234,6 +237,43 @@ def _warn_coherence(warnings: list, spec: Spec) -> None:
                 hint = (f"declare `unit: {unit}`; a data column in `{d.unit.value}` is converted "
                         f"by the data map: `{{column: NAME, unit: {d.unit.value}}}`")
             _warn(warnings, msg, d.name, code="noncoherent_unit", hint=hint)
+
+
+def _written_in_own_units(spec: Spec, name: str, factor: float) -> bool:
+    """Whether parameter ``name`` (its unit ``factor`` times its coherent one) enters only
+    equations whose left-hand side is in a unit of the same factor, directly or through the
+    definitions they use: a bias ``c1`` in deg/s² added to ṗ of a roll rate declared in
+    deg/s, in a model written in degrees throughout, is in the unit it is declared in (the
+    warning said `rad/s^2`, wrongly; session 43). The check reads which names the equations
+    use, not their algebra: a parameter that multiplies a state (a derivative in m/(s·deg)
+    times a rate in deg/s) still gets the warning, as does one in an add_terms entry or in
+    no equation."""
+    def uses(text: str, target: str) -> bool:
+        return re.search(rf"(?<![\w.]){re.escape(target)}(?![\w])", text) is not None
+
+    if any(uses(a.term.expression.value, name) for a in spec.add_terms):
+        return False
+    defs = {e.name.value: e.expression.value for e in spec.definitions}
+    # definitions that use the parameter, directly or through other definitions
+    carrying = {d for d, t in defs.items() if uses(t, name)}
+    grew = True
+    while grew:
+        more = {d for d, t in defs.items() if d not in carrying and any(uses(t, c) for c in carrying)}
+        carrying |= more
+        grew = bool(more)
+    st_unit = {v.name.value: v.unit for v in spec.states}
+    out_unit = {v.name.value: v.unit for v in spec.outputs}
+    used = False
+    for eqs, units in ((spec.drift, st_unit), (spec.observations, out_unit)):
+        for e in eqs:
+            t = e.expression.value
+            if not (uses(t, name) or any(uses(t, c) for c in carrying)):
+                continue
+            used = True
+            f, _ = _coherent(units.get(e.name.value))
+            if not math.isclose(f, factor, rel_tol=1e-9):
+                return False
+    return used
 
 
 def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
