@@ -383,3 +383,25 @@ def test_a_bias_in_the_units_of_its_equation_is_not_warned_as_noncoherent(tmp_pa
         sym = compile_spec(path)
         got = [w for w in sym.warnings if w.code == "noncoherent_unit" and "`c1`" in w.message]
         assert bool(got) is warned, (rate_unit, [w.message for w in sym.warnings])
+
+
+def test_newcomers_unit_slips_get_the_right_hint(tmp_path):
+    """Session 43, a new user's slips: `rad/s2` was answered "did you mean `s`?"; a data-map
+    `unit: deg` on a column named `*_rad` was accepted silently; pint's exception class
+    name leaked into the unknown-unit message."""
+    from vsidgen.spec import dataunits
+
+    text = SPEC.read_text().replace("M0:  {unit: rad/s^2", "M0:  {unit: rad/s2")
+    bad = tmp_path / "s2.yaml"
+    bad.write_text(text)
+    with pytest.raises(SpecError) as err:
+        compile_spec(bad)
+    assert "did you mean `s^2`?" in str(err.value)
+    path = tmp_path / "u.yaml"
+    path.write_text(f"extends: {SPEC}\nname: unitslip\ndata:\n  time: t_s\n  inputs: {{de: de_rad}}\n"
+                    "  outputs:\n    alpha: {column: alpha_rad, unit: deg}\n    q: q_radps\n")
+    got = [w for w in compile_spec(path).warnings if w.code == "column_unit_suffix"]
+    assert len(got) == 1 and "declares it in `deg`" in got[0].message and "`unit: rad`" in got[0].hint
+    with pytest.raises(dataunits.UnitConversionError) as err:
+        dataunits.conversion("furlong_per_fortnight", "m/s")
+    assert "Error" not in str(err.value)

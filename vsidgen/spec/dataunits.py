@@ -89,7 +89,8 @@ def _quantity_unit(text: str):
     try:
         return ureg.Unit(_normalise(text))
     except Exception as exc:  # pint raises UndefinedUnitError, DefinitionSyntaxError, ...
-        raise UnitConversionError(f"unknown unit `{text}` ({type(exc).__name__})") from None
+        why = "" if type(exc).__name__ == "UndefinedUnitError" else " (not a unit expression)"
+        raise UnitConversionError(f"unknown unit `{text}`{why}") from None
 
 
 def check_unit(text: str) -> None:

@@ -485,6 +485,10 @@ def _name(ctx: _Ctx, node: ast.Name):
                 + (", e.g. m/s^2 for accelerations" if name == "g" else
                    ", e.g. m/s for speeds" if name in ("kt", "knot", "mph") else
                    ", e.g. N for forces or kg for masses"))
+    if ctx.units:
+        m = re.fullmatch(r"([A-Za-z]+)(\d+)", name)
+        if m and m.group(1) in ctx.namespace:   # `m/s2`: a power written without ^
+            hint = f"did you mean `{m.group(1)}^{m.group(2)}`? (powers are written with ^)"
     if not ctx.units and name == "e":
         hint = "for Euler's number write `exp(x)` (not `e**x`); " + (hint or
                 "else declare `e` under states, inputs, constants, parameters or definitions")

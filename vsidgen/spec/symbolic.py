@@ -849,7 +849,17 @@ def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -
     ``scale`` 1, ``offset`` 0): the values would be read as if in the spec's unit."""
     from . import dataunits
 
-    if ch.column is None or ch.unit is not None:
+    if ch.column is None:
+        return
+    if ch.unit is not None:
+        # `alpha: {column: alpha_rad, unit: deg}`: the declared unit contradicts the name
+        named = dataunits.suffix_mismatch(ch.column.value, ch.unit.value)
+        if named is not None:
+            _warn(warnings, f"column `{ch.column.value}` of {what} `{ch.name.value}` is named in "
+                  f"`{named}`, but the data map declares it in `{ch.unit.value}`: its values are "
+                  f"converted from `{ch.unit.value}`", ch.unit, key=False, code="column_unit_suffix",
+                  hint=f"declare `unit: {named}` if the name is right (or rename the column if it "
+                       "misleads)")
         return
     name, col = ch.name.value, ch.column.value
     # a scale of magnitude other than 1 may carry a unit of its own: `nz: {column: az_mps2,
