@@ -413,7 +413,8 @@ def _add_fit(sub):
     p.add_argument("--optimizer", choices=("structured-newton", "trust-constr"),
                    default="structured-newton",
                    help="structured Newton (default) or the paper's scipy trust-constr")
-    p.add_argument("--max-iter", type=int, default=200)
+    p.add_argument("--max-iter", type=int, default=200,
+                   help="optimizer iterations per noise start (each start is a fit of its own; a stage of the deterministic limit of states without process noise gets max(30, MAX_ITER/4)) (default 200)")
     p.add_argument("--init-states", choices=("measured", "zero"), default="measured",
                    help="initial state-path mean: measured states where possible, or zero")
     p.add_argument("--noise-start", choices=("auto", "release", "data", "data-meas", "unit"), default="auto",

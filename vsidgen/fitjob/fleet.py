@@ -190,7 +190,8 @@ def add_fleet_parser(subparsers):
     add_engine_arguments(p, what="record fits")
     p.add_argument("--integrator", choices=("euler", "rk4"), default=None)
     p.add_argument("--substeps", type=int, default=None)
-    p.add_argument("--max-iter", type=int, default=200)
+    p.add_argument("--max-iter", type=int, default=200,
+                   help="optimizer iterations per noise start (each start is a fit of its own; a stage of the deterministic limit of states without process noise gets max(30, MAX_ITER/4)) (default 200)")
     p.add_argument("--report", action="store_true", help="also write a report per record")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.add_argument("--overwrite", action="store_true",
