@@ -91,11 +91,37 @@ def _cmd_check(args) -> int:
     if data is not None:
         data_warnings = check_record(symbolic, data, start=_fit_start(args.spec, symbolic))
         _print_warnings(data_warnings)
+        _print_ranges(symbolic, data)
     n = len(symbolic.warnings) + len(symmetric) + len(data_warnings)
     print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
           f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
           f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")
     return 0
+
+
+def _print_ranges(symbolic, data) -> None:
+    """The range of every input and output as the fit reads it (after the data map's unit
+    conversion, scale and offset), in the spec's units, with the column it comes from: a
+    column read in the wrong unit shows here as a range 57 times too large or small."""
+    import numpy as np
+
+    from .data import load_record
+
+    rec = load_record(symbolic, data)
+    maps = {("input", c.name): c for c in symbolic.data.inputs}
+    maps.update({("output", c.name): c for c in symbolic.data.outputs})
+    print(f"ranges as read ({rec.n} samples, in the spec's units):")
+    for kind, variables, arr in (("input", symbolic.inputs, rec.u), ("output", symbolic.outputs, rec.y)):
+        for j, v in enumerate(variables):
+            col = np.asarray(arr[:, j], float)
+            fin = col[np.isfinite(col)]
+            cm = maps.get((kind, v.name))
+            src = "" if cm is None else (f"`{cm.column}`" if cm.column else f"expr of {', '.join(cm.columns)}")
+            conv = "" if cm is None or not getattr(cm, "unit", None) else f", converted from {cm.unit}"
+            scale = "" if cm is None or (cm.scale == 1.0 and cm.offset == 0.0) else \
+                f", × {cm.scale:g} + {cm.offset:g}"
+            rng = f"{fin.min():.6g} .. {fin.max():.6g}" if fin.size else "no finite value"
+            print(f"  {kind} {v.name}: {rng} {v.unit or ''} ({src}{conv}{scale})")
 
 
 def _fit_start(spec, symbolic):
