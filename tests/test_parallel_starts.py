@@ -120,3 +120,37 @@ def test_the_highest_unconverged_start_above_every_optimum_is_continued():
     assert pick(_out(10, lim), _out(30, lim)) == 1
     # a stop without progress is not continued
     assert pick(_out(100, "NO_PROGRESS"), _out(50, conv)) is None
+
+
+def test_a_start_that_ends_before_it_leads_still_reaches_the_progress_line():
+    """Concurrent noise starts: only the lead reports, in the serial order. A start that ended
+    while an earlier one still ran never became the lead, so piped output had no summary line
+    for it (session 43: `unit` missing after `data`, `data-meas`). It is replayed, in order."""
+    import threading
+
+    from vsidgen.estimator.fit import _LeadProgress
+
+    seen = []
+
+    class Rec:
+        def __call__(self, it, elbo, grad, elapsed):
+            seen.append(("it", it, elbo))
+
+        def phase(self, ph):
+            seen.append(("phase", str(ph)))
+
+    lp = _LeadProgress(Rec(), 3, threading.Event())
+    views = [lp.view(i) for i in range(3)]
+    for i, v in enumerate(views):
+        v.phase(f"start {i}")
+    views[0](1, 10.0, 1.0, 0.1)
+    views[2](1, 30.0, 1.0, 0.1)      # start 2 runs (and ends) while 0 and 1 are still running
+    views[2](5, 32.0, 0.1, 0.2)
+    lp.finished(2)
+    views[1](3, 21.0, 0.5, 0.3)      # not the lead yet: not shown
+    lp.finished(0)
+    views[1](4, 22.0, 0.1, 0.4)
+    lp.finished(1)
+    assert seen == [("phase", "start 0"), ("it", 1, 10.0),
+                    ("phase", "start 1"), ("it", 4, 22.0),
+                    ("phase", "start 2"), ("it", 5, 32.0)]

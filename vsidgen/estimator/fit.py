@@ -1107,26 +1107,43 @@ class _LeadProgress:
         self.lock = threading.Lock()
         self.done: set[int] = set()
         self.phases: dict[int, FitPhase] = {}
+        self.last: dict[int, tuple] = {}    # each start's latest iteration report
         self.first_it: int | None = None    # start 0's first iteration
 
     def lead(self) -> int:
         return next((i for i in range(self.n) if i not in self.done), self.n)
 
     def finished(self, i: int) -> None:
+        """Start ``i`` ended. When it was the lead, the starts after it that ended while they
+        waited are shown now, in order (their phase and their last iteration: a start that
+        finished before it became the lead would otherwise never reach the user, and its
+        summary line was missing from piped output), then the new lead's phase."""
         with self.lock:
             was_lead = self.lead() == i
             self.done.add(i)
-            ph = self.phases.get(self.lead()) if was_lead else None
+            replay = []
+            if was_lead:
+                j = i + 1
+                while j < self.n and j in self.done:
+                    replay.append((self.phases.get(j), self.last.get(j)))
+                    j += 1
+                replay.append((self.phases.get(j), None) if j < self.n else (None, None))
         if i == 0:
             self.gate.set()
-        if ph is not None and self.progress is not None:
-            announce(self.progress, ph)
+        if self.progress is None:
+            return
+        for ph, last in replay:
+            if ph is not None:
+                announce(self.progress, ph)
+            if last is not None:
+                self.progress(*last)
 
     def view(self, i: int):
         owner = self
 
         class _View:
             def __call__(self, it, elbo, grad, elapsed):
+                owner.last[i] = (it, elbo, grad, elapsed)
                 if i == 0:
                     if owner.first_it is None:
                         owner.first_it = it
