@@ -327,3 +327,19 @@ def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
     err = capsys.readouterr().err
     assert code == 2 and "results.json" in err and "internal error" not in err
     assert not (tmp_path / "r.html").exists()
+
+
+def test_an_overlong_equation_is_shown_as_source_not_typeset():
+    """A hostile results.json with five 20000-character equations made `vsidgen report` run
+    for minutes in matplotlib's mathtext parser (session 43): beyond the per-equation and
+    per-report bounds the LaTeX source is shown instead."""
+    from vsidgen.report.html import MAX_TYPESET_CHARS, _equations
+
+    groups = _equations({"definitions": {f"d{i}": "a" * 20000 for i in range(3)},
+                         "drift": {"x": "-x"}})
+    defs, drift = groups
+    assert all(e["img"] is None and "too long to typeset" in e["error"] for e in defs["eqs"])
+    assert drift["eqs"][0]["img"] is not None
+    many = _equations({"drift": {f"x{i}": "x + " * (MAX_TYPESET_CHARS // 5) + "1" for i in range(40)}})
+    imgs = [e["img"] is not None for e in many[0]["eqs"]]
+    assert any(imgs) and not all(imgs)          # the report's budget ends typesetting

@@ -438,10 +438,26 @@ def _mathtext_svg(tex: str) -> str:
     return "data:image/svg+xml;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
-def _equation(lhs: str, rhs: str) -> dict:
-    """Typeset ``lhs = rhs`` with mathtext (SVG data URI); fall back to LaTeX source."""
+#: longest equation (LaTeX characters) typeset with mathtext, and the most characters
+#: typeset in one report: matplotlib's parser took ~25 s for a 20000-character equation (a
+#: hostile results.json made `vsidgen report` run for minutes); longer ones are shown as
+#: their LaTeX source. The shipped models' longest equation has a few hundred characters.
+MAX_TYPESET_CHARS = 4000
+MAX_TYPESET_TOTAL = 60000
+
+
+def _equation(lhs: str, rhs: str, *, budget: list | None = None) -> dict:
+    """Typeset ``lhs = rhs`` with mathtext (SVG data URI); fall back to LaTeX source.
+    ``budget``: a one-element list with the characters left to typeset in this report."""
     tex = rhs if "=" in rhs else f"{lhs} = {rhs}"
     item = {"tex": tex, "img": None, "error": None}
+    left = budget[0] if budget is not None else MAX_TYPESET_TOTAL
+    if len(tex) > MAX_TYPESET_CHARS or len(tex) > left:
+        item["error"] = (f"too long to typeset ({len(tex)} characters; at most {MAX_TYPESET_CHARS} "
+                         f"per equation and {MAX_TYPESET_TOTAL} per report): shown as LaTeX source")
+        return item
+    if budget is not None:
+        budget[0] -= len(tex)
     for candidate in (f"{lhs} = {_readable_tex(rhs)}" if "=" not in rhs else tex, tex):
         try:
             item["img"] = _mathtext_svg(candidate)
@@ -456,6 +472,7 @@ def _equations(latex: Mapping | None) -> list[dict]:
     if not isinstance(latex, Mapping):
         return []
     groups = []
+    budget = [MAX_TYPESET_TOTAL]
     for key, title, lhs in (("definitions", "Definitions", lambda n: _latex_name(n)),
                             ("drift", "State equations (drift)",
                              lambda n: f"\\dot{{{_latex_name(n)}}}"),
@@ -465,7 +482,7 @@ def _equations(latex: Mapping | None) -> list[dict]:
         eqs = latex.get(key)
         if isinstance(eqs, Mapping) and eqs:
             groups.append({"title": title, "eqs": [
-                {"name": n, **_equation(lhs(n), str(e))} for n, e in eqs.items()]})
+                {"name": n, **_equation(lhs(n), str(e), budget=budget)} for n, e in eqs.items()]})
     return groups
 
 
