@@ -183,3 +183,15 @@ def test_a_non_finite_start_says_where_and_why(tmp_path, capsys):
                  "--fix", "MQ=1e200"])
     err = capsys.readouterr().err
     assert code == 2 and "MQ = 1e+200" in err and "overflow" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("estimate", ["true", '"1e3"', "null", "[1]"])
+def test_init_from_refuses_estimates_that_are_not_numbers(tmp_path, estimate):
+    """`true` and "1e3" were read as 1.0 and 1000 (float() takes both; session 43)."""
+    from vsidgen.errors import VsidgenError
+    from vsidgen.spec.overrides import read_estimates
+
+    path = tmp_path / "r.json"
+    path.write_text('{"parameters": {"Z0": {"estimate": %s}}}' % estimate)
+    with pytest.raises(VsidgenError, match="Z0|not a vsidgen results.json"):
+        read_estimates(path)

@@ -89,7 +89,13 @@ def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     try:
         doc = parse_json(path.read_text(encoding="utf-8"))
         params = doc["parameters"]
-        out = {str(k): float(v["estimate"]) for k, v in params.items()}
+        out = {}
+        for k, v in params.items():
+            est = v["estimate"]
+            if isinstance(est, bool) or not isinstance(est, (int, float)):
+                # `true` or "1e3" is not an estimate vsidgen wrote (float() would take both)
+                raise TypeError(f"the estimate of `{k}` is {json.dumps(est)[:40]}, not a number")
+            out[str(k)] = float(est)
     except FileNotFoundError:
         raise VsidgenError(f"{option} {path}: file not found") from None
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError, AttributeError,
