@@ -18,18 +18,35 @@ files are read with :func:`scipy.io.loadmat`, version 7.3 files (HDF5) with
 transposed back). Anything that is neither CSV text nor a MAT file is
 rejected with a :class:`~vsidgen.errors.DataError` listing the supported
 formats (never a decoding error).
+
+Only the variables the data map needs are read (all of them only to list
+close names when a reference is not found). A MAT file is compressed, so its
+size says little about what reading it costs: the variables read from one
+file may hold at most :func:`vsidgen.limits.data_limit` bytes uncompressed
+(``$VSIDGEN_MAX_DATA_BYTES``, 2 GiB by default, the limit on a CSV record),
+counted before anything is read -- from the declared shape and type of a v7.3
+dataset, from the decompressed length of a compressed v7 variable -- and
+structs and cells are read at most :data:`MAX_MAT_NESTING` levels deep, at
+most :data:`MAX_MAT_OBJECTS` arrays in all, never following a reference into
+a cell or struct that contains it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
+import math
+import os
 import pathlib
 import re
+import struct
+import zlib
 from collections.abc import Sequence
 
 import numpy as np
 
 from ..errors import DataError
+from ..limits import DATA_LIMIT_ENV, data_limit, human_bytes
 
 SUPPORTED = ("CSV (comma-separated text with one header row of column names), "
              "MATLAB .mat v4/v5/v7 (scipy.io.loadmat) and v7.3 (HDF5, h5py)")
@@ -129,13 +146,179 @@ def _guess_binary(head: bytes) -> str:
     return " (binary content)"
 
 
+# --------------------------------------------------------------------------- read limits
+
+#: deepest nesting of cells and structs read from a MAT file (SIDPAC/FVSysID files: 1-3)
+MAX_MAT_NESTING = 32
+#: most MATLAB arrays (variables, cell elements, struct fields) read from one MAT file
+MAX_MAT_OBJECTS = 100_000
+
+
+class _ReadBudget:
+    """What reading one MAT file may still cost: bytes of array data, uncompressed
+    (:func:`~vsidgen.limits.data_limit`), and MATLAB arrays (:data:`MAX_MAT_OBJECTS`)."""
+
+    def __init__(self, path):
+        self.path = path
+        self.limit = data_limit()
+        self.left = self.limit
+        self.objects = 0
+
+    def take(self, shown: str, nbytes: int, what: str, *, exact: bool = True) -> None:
+        """Count ``nbytes`` of variable ``shown`` (``what``: its declared shape and class)
+        before it is read; DataError if it would exceed the limit. ``exact``: False when
+        ``nbytes`` is only known to be at least that much (decompression stopped)."""
+        if nbytes > self.left:
+            if nbytes > self.limit:
+                room = f"more than the limit of {human_bytes(self.limit)}"
+            else:
+                room = (f"more than the {human_bytes(self.left)} left of the limit of "
+                        f"{human_bytes(self.limit)}")
+            size = human_bytes(nbytes) if exact else f"more than {human_bytes(self.left)}"
+            raise DataError(
+                f"variable '{shown}' ({what}) is {size} uncompressed, {room} on the data read "
+                f"from one file", path=self.path,
+                hint=f"vsidgen reads at most {DATA_LIMIT_ENV} bytes of uncompressed variables "
+                     f"from a MAT file (the limit on a CSV record); set it (e.g. "
+                     f"{DATA_LIMIT_ENV}=32G) to read a larger record")
+        self.left -= nbytes
+
+    def count(self, shown: str) -> None:
+        self.objects += 1
+        if self.objects > MAX_MAT_OBJECTS:
+            raise DataError(f"more than {MAX_MAT_OBJECTS} MATLAB arrays (cell elements, struct "
+                            f"fields) to read, at '{shown}'", path=self.path,
+                            hint="store the channels as numeric vectors or matrix columns")
+
+
+def _too_many_variables(path) -> DataError:
+    return DataError(f"more than {MAX_MAT_OBJECTS} variables in the file", path=path,
+                     hint="store the channels as numeric vectors or matrix columns")
+
+
+def _shape_text(shape) -> str:
+    return "x".join(str(int(n)) for n in shape) if len(shape) else "1x1"
+
+
 # --------------------------------------------------------------------------- MAT v4-v7
 
-def _load_v5(path: pathlib.Path) -> dict:
+_MI_MATRIX, _MI_COMPRESSED = 14, 15
+#: MATLAB array classes of a MAT v5 array flags element (mxCHAR_CLASS = 4, ...)
+_MX_CLASSES = {1: "cell", 2: "struct", 3: "object", 4: "char", 5: "sparse", 6: "double",
+               7: "single", 8: "int8", 9: "uint8", 10: "int16", 11: "uint16", 12: "int32",
+               13: "uint32", 14: "int64", 15: "uint64"}
+
+
+@dataclasses.dataclass
+class _V5Entry:
+    """One top-level variable of a MAT v5/v7 file: where its element is, and its header."""
+
+    name: str
+    offset: int        # of the element's data (after its 8-byte tag)
+    nbytes: int        # of the element as stored (compressed for miCOMPRESSED)
+    compressed: bool
+    what: str          # declared shape and class, e.g. "1x300000000 double"
+
+
+def _v5_header(body: bytes, order: str) -> tuple[str, str] | None:
+    """(name, "shape class") from the start of a miMATRIX element's content."""
+    off = 0
+    parts = []
+    for _ in range(3):  # array flags, dimensions, name
+        if off + 8 > len(body):
+            return None
+        mdtype, n = struct.unpack_from(order + "II", body, off)
+        if mdtype >> 16:  # small data element: 2-byte length, 2-byte type, 4 bytes of data
+            n, start, off = mdtype >> 16, off + 4, off + 8
+            if n > 4:
+                return None
+        else:
+            start, off = off + 8, off + 8 + (n + 7) // 8 * 8
+        if start + n > len(body):
+            return None
+        parts.append(body[start:start + n])
+    flags, dims, name = parts
+    if len(flags) < 4:
+        return None
+    cls = _MX_CLASSES.get(struct.unpack_from(order + "I", flags)[0] & 0xFF, "unknown")
+    shape = struct.unpack(order + f"{len(dims) // 4}i", dims[:len(dims) // 4 * 4])
+    return name.decode("latin1") or "__function_workspace__", f"{_shape_text(shape)} {cls}"
+
+
+def _inflate(fh, offset: int, nbytes: int, *, cap: int, keep: int = 0) -> tuple[int, bytes]:
+    """(length, first ``keep`` bytes) of the zlib stream stored at ``offset`` in ``nbytes``
+    bytes, decompressed piecewise; the length counting stops once above ``cap``."""
+    d = zlib.decompressobj()
+    fh.seek(offset)
+    left, total, head = nbytes, 0, b""
+    while left > 0 and not d.eof:
+        buf = fh.read(min(left, 1 << 16))
+        if not buf:
+            break
+        left -= len(buf)
+        while buf and not d.eof:
+            out = d.decompress(buf, 1 << 20)
+            if len(head) < keep:
+                head += out[:keep - len(head)]
+            total += len(out)
+            if total > cap and len(head) >= keep:
+                return total, head
+            buf = d.unconsumed_tail
+    return total, head
+
+
+def _v5_index(path: pathlib.Path) -> dict[str, _V5Entry] | None:
+    """The top-level variables of a MAT v5/v7 file by name (the first of a repeated name, as
+    :func:`scipy.io.loadmat` reads with ``variable_names``); None when the file is not v5
+    (v4 stores every variable uncompressed, so its size bounds what reading it costs;
+    anything else :func:`scipy.io.loadmat` refuses)."""
+    try:
+        size = os.stat(path).st_size
+        with open(path, "rb") as fh:
+            head = fh.read(128)
+            if len(head) < 128 or 0 in head[:4]:
+                return None  # v4 (scipy: a zero in the first four bytes), or too short
+            order = "<" if head[126:128] == b"IM" else ">"
+            major = head[125] if head[126:127] == b"I" else head[124]
+            if major != 1:
+                return None
+            out: dict[str, _V5Entry] = {}
+            pos = 128
+            while pos < size:
+                fh.seek(pos)
+                tag = fh.read(8)
+                if len(tag) < 8:
+                    break  # scipy reports the truncated file
+                mdtype, nbytes = struct.unpack(order + "II", tag)
+                if mdtype >> 16 or nbytes == 0:
+                    break  # not a variable: scipy reports the corrupt file
+                if mdtype == _MI_COMPRESSED:
+                    try:
+                        _, body = _inflate(fh, pos + 8, nbytes, cap=0, keep=8 + 512)
+                    except zlib.error:
+                        body = b""
+                    header = _v5_header(body[8:], order)
+                elif mdtype == _MI_MATRIX:
+                    header = _v5_header(fh.read(min(nbytes, 512)), order)
+                else:
+                    header = None
+                if header is not None and header[0] not in out:
+                    if len(out) >= MAX_MAT_OBJECTS:
+                        raise _too_many_variables(path)
+                    stored = min(nbytes, max(size - pos - 8, 0))  # a truncated file has less
+                    out[header[0]] = _V5Entry(header[0], pos + 8, stored,
+                                              mdtype == _MI_COMPRESSED, header[1])
+                pos += 8 + nbytes
+            return out
+    except OSError as exc:
+        raise DataError(f"cannot read file: {exc.strerror or exc}", path=path) from None
+
+
+def _loadmat(path: pathlib.Path, names: list[str] | None) -> dict:
     import scipy.io
 
     try:
-        raw = scipy.io.loadmat(str(path), simplify_cells=True)
+        raw = scipy.io.loadmat(str(path), simplify_cells=True, variable_names=names)
     except NotImplementedError:  # scipy's answer to v7.3 files it cannot read
         raise DataError("MAT v7.3 file not readable", path=path,
                         hint=f"supported formats: {SUPPORTED}") from None
@@ -145,41 +328,179 @@ def _load_v5(path: pathlib.Path) -> dict:
     return {k: v for k, v in raw.items() if not k.startswith("__")}
 
 
+class _V5Vars(dict):
+    """Variables of a MAT v4-v7 file, read when first used (each checked against the read
+    budget before it is decompressed)."""
+
+    def __init__(self, path: pathlib.Path):
+        super().__init__()
+        self._path = path
+        self._budget = _ReadBudget(path)
+        self._index = _v5_index(path)
+        if self._index is None:  # v4 (bounded by the file size) or not a MAT file at all
+            dict.update(self, _loadmat(path, None))
+            self._names = list(dict.keys(self))
+        else:
+            self._names = [k for k in self._index if not k.startswith("__")]
+
+    def keys(self):
+        return list(self._names)
+
+    def __contains__(self, key):
+        return key in self._names
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def _reserve(self, key) -> None:
+        entry = self._index[key]
+        if entry.compressed:
+            with open(self._path, "rb") as fh:
+                try:
+                    size, _ = _inflate(fh, entry.offset, entry.nbytes, cap=self._budget.left)
+                except zlib.error as exc:
+                    raise DataError(f"variable '{key}': corrupt compressed data ({exc})",
+                                    path=self._path) from None
+        else:
+            size = entry.nbytes
+        self._budget.count(key)
+        self._budget.take(key, size, entry.what, exact=size <= self._budget.left)
+
+    def prefetch(self, keys) -> None:
+        """Read the variables ``keys`` that are within the budget in one pass over the file."""
+        if self._index is None:
+            return
+        todo = []
+        for key in keys:
+            if key in self._names and not dict.__contains__(self, key):
+                try:
+                    self._reserve(key)
+                except DataError:
+                    continue
+                todo.append(key)
+        if todo:
+            dict.update(self, _loadmat(self._path, todo))
+
+    def __getitem__(self, key):
+        if not dict.__contains__(self, key):
+            if key not in self._names:
+                raise KeyError(key)
+            self._reserve(key)
+            raw = _loadmat(self._path, [key])
+            if key not in raw:
+                raise DataError(f"variable '{key}' could not be read", path=self._path,
+                                hint=f"supported formats: {SUPPORTED}")
+            dict.__setitem__(self, key, raw[key])
+        return dict.__getitem__(self, key)
+
+    def items(self):
+        return [(k, self[k]) for k in self._names]
+
+
 # --------------------------------------------------------------------------- MAT v7.3
 
-def _h5_value(f, obj):
-    """A MATLAB object of a v7.3 file as Python: ndarray, str, list (cell) or dict (struct)."""
-    import h5py
+class _H5Reader:
+    """Converts MATLAB objects of a v7.3 (HDF5) file to Python: ndarray, str, list (cell)
+    or dict (struct), within a :class:`_ReadBudget`, at most :data:`MAX_MAT_NESTING`
+    levels deep and never into a cell or struct that contains the object (a reference
+    or link cycle)."""
 
-    if isinstance(obj, h5py.Group):
-        return {k: _h5_value(f, obj[k]) for k in obj.keys() if not k.startswith("#")}
-    cls = obj.attrs.get("MATLAB_class", b"")
-    cls = cls.decode() if isinstance(cls, bytes) else str(cls)
-    if obj.attrs.get("MATLAB_empty", 0):
-        return np.zeros(0)
-    data = obj[()]
-    if cls == "char":
-        arr = np.asarray(data, dtype=np.uint16)
-        if arr.ndim == 2 and arr.shape[0] > 1 and arr.shape[1] > 1:
-            return ["".join(map(chr, row)).rstrip() for row in arr.T]  # char matrix: one per row
-        return "".join(map(chr, arr.ravel()))
-    if cls == "cell" or (isinstance(data, np.ndarray) and data.dtype.kind == "O"):
-        return [_h5_value(f, f[ref]) for ref in np.asarray(data).T.ravel()]
-    arr = np.asarray(data)
-    if arr.dtype.names and {"real", "imag"} <= set(arr.dtype.names):
-        arr = arr["real"]
-    if arr.ndim >= 2:
-        arr = arr.T  # MATLAB is column-major
-    return np.squeeze(arr) if arr.ndim == 2 and 1 in arr.shape else arr
+    def __init__(self, f, path):
+        self.f = f
+        self.path = path
+        self.budget = _ReadBudget(path)
+
+    def variable(self, name: str):
+        return self._value(self.f, name, name, 0, [])
+
+    def _value(self, parent, key, shown: str, depth: int, active: list):
+        import h5py
+
+        if depth > MAX_MAT_NESTING:
+            raise DataError(f"variable '{shown.split('.')[0].split('{')[0]}' nests cells or "
+                            f"structs more than {MAX_MAT_NESTING} levels deep (at '{shown}')",
+                            path=self.path,
+                            hint="store the channels as numeric vectors or matrix columns")
+        if isinstance(key, h5py.Reference):
+            if not key:
+                raise DataError(f"'{shown}' is a null reference", path=self.path)
+            obj = parent[key]
+        else:
+            link = parent.get(key, getlink=True)
+            if isinstance(link, h5py.ExternalLink):
+                raise DataError(f"'{shown}' is a link to another file ({link.filename})",
+                                path=self.path,
+                                hint="vsidgen reads only the data stored in the file itself")
+            obj = parent[key]
+        if any(obj.id == other for other in active):
+            raise DataError(f"'{shown}' refers to a cell or struct that contains it (a "
+                            f"reference cycle in variable "
+                            f"'{shown.split('.')[0].split('{')[0]}')", path=self.path,
+                            hint="the file is damaged or was not written by MATLAB")
+        self.budget.count(shown)
+        active.append(obj.id)
+        try:
+            return self._convert(obj, shown, depth, active)
+        finally:
+            active.pop()
+
+    def _convert(self, obj, shown: str, depth: int, active: list):
+        import h5py
+
+        if isinstance(obj, h5py.Group):
+            return {k: self._value(obj, k, f"{shown}.{k}", depth + 1, active)
+                    for k in obj if not k.startswith("#")}
+        cls = obj.attrs.get("MATLAB_class", b"")
+        cls = cls.decode(errors="replace") if isinstance(cls, bytes) else str(cls)
+        if obj.attrs.get("MATLAB_empty", 0):
+            return np.zeros(0)
+        shape = obj.shape or ()
+        n = math.prod(shape) if obj.shape is not None else 0
+        self.budget.take(shown, n * obj.dtype.itemsize,
+                         f"{_shape_text(shape[::-1])} {cls or obj.dtype}")
+        data = obj[()]
+        if cls == "char":
+            arr = np.asarray(data).astype("<u2", copy=False)
+            if arr.ndim == 2 and arr.shape[0] > 1 and arr.shape[1] > 1:
+                return [_utf16(row).rstrip() for row in arr.T]  # char matrix: one per row
+            return _utf16(arr.ravel())
+        if cls == "cell" or (isinstance(data, np.ndarray) and data.dtype.kind == "O"):
+            out = []
+            for i, ref in enumerate(np.asarray(data).T.ravel()):
+                if isinstance(ref, h5py.Reference):
+                    out.append(self._value(self.f, ref, f"{shown}{{{i + 1}}}", depth + 1,
+                                           active))
+                else:
+                    out.append(ref.decode(errors="replace") if isinstance(ref, bytes) else ref)
+            return out
+        arr = np.asarray(data)
+        if arr.dtype.names and {"real", "imag"} <= set(arr.dtype.names):
+            arr = arr["real"]
+        if arr.ndim >= 2:
+            arr = arr.T  # MATLAB is column-major
+        return np.squeeze(arr) if arr.ndim == 2 and 1 in arr.shape else arr
+
+
+def _utf16(units: np.ndarray) -> str:
+    """MATLAB char data (UTF-16 code units) as text."""
+    return np.ascontiguousarray(units, dtype="<u2").tobytes().decode("utf-16-le",
+                                                                    errors="surrogatepass")
 
 
 class _H5Vars(dict):
     """Top-level variables of a v7.3 file, converted lazily (only those the data map names)."""
 
-    def __init__(self, f):
+    def __init__(self, f, path=None):
         super().__init__()
         self._f = f
-        self._names = [k for k in f.keys() if not k.startswith("#")]
+        self._path = path
+        self._reader = _H5Reader(f, path)
+        self._names = []
+        for k in f:
+            if not k.startswith("#"):
+                if len(self._names) >= MAX_MAT_OBJECTS:
+                    raise _too_many_variables(path)
+                self._names.append(k)
 
     def keys(self):
         return list(self._names)
@@ -192,7 +513,13 @@ class _H5Vars(dict):
 
     def __getitem__(self, key):
         if not dict.__contains__(self, key):
-            dict.__setitem__(self, key, _h5_value(self._f, self._f[key]))
+            try:
+                value = self._reader.variable(key)
+            except (OSError, ValueError, KeyError, TypeError) as exc:  # h5py on a damaged file
+                raise DataError(f"variable '{key}' cannot be read ({type(exc).__name__}: "
+                                f"{exc})", path=self._path,
+                                hint="the file is damaged or was not written by MATLAB") from None
+            dict.__setitem__(self, key, value)
         return dict.__getitem__(self, key)
 
     def items(self):
@@ -248,11 +575,20 @@ def _names_of(variables) -> list[str]:
         else:
             out.append(prefix)
 
+    prefetch = getattr(variables, "prefetch", None)
+    if prefetch is not None:
+        prefetch(variables.keys())
+    readable = {}
     for k in variables.keys():
-        add(k, variables[k], 0)
-    for k in variables.keys():
-        if k.endswith("_names") and k[:-6] in variables and _is_names(variables[k]):
-            out += [str(n).strip() for n in variables[k]]
+        try:
+            readable[k] = variables[k]
+        except DataError:  # too large, damaged: named, not read
+            out.append(k)
+            continue
+        add(k, readable[k], 0)
+    for k, v in readable.items():
+        if k.endswith("_names") and k[:-6] in variables and _is_names(v):
+            out += [str(n).strip() for n in v]
     return out
 
 
@@ -333,11 +669,11 @@ def read_mat_columns(path: pathlib.Path, refs: Sequence[str], fmt: DataFormat, *
             raise DataError(f"not a readable MAT v7.3 (HDF5) file ({exc})", path=path,
                             hint=f"supported formats: {SUPPORTED}") from None
         with f:
-            variables = _H5Vars(f)
+            variables = _H5Vars(f, path)
             named = _named_columns(variables)
             cols = {r: _resolve(variables, r, path, named, taken) for r in refs}
     else:
-        variables = _load_v5(path)
+        variables = _V5Vars(path)
         named = _named_columns(variables)
         cols = {r: _resolve(variables, r, path, named, taken) for r in refs}
     lengths = {r: c.shape[0] for r, c in cols.items()}
@@ -350,4 +686,5 @@ def read_mat_columns(path: pathlib.Path, refs: Sequence[str], fmt: DataFormat, *
     return cols
 
 
-__all__ = ["DataFormat", "SUPPORTED", "detect_format", "read_mat_columns"]
+__all__ = ["DataFormat", "MAX_MAT_NESTING", "MAX_MAT_OBJECTS", "SUPPORTED", "detect_format",
+           "read_mat_columns"]

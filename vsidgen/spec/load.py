@@ -51,6 +51,9 @@ MAX_SPEC_BYTES = 1 << 20
 MAX_YAML_NODES = 100_000
 #: file name endings an ``extends`` target must have
 SPEC_SUFFIXES = (".yaml", ".yml")
+#: most specs in one ``extends`` chain (the spec named on the command line counts as one);
+#: the shipped specs use one or two levels
+MAX_EXTENDS_DEPTH = 32
 
 _ENTRY_WORD = {
     "drift": "equation for state", "observations": "equation for output",
@@ -61,6 +64,37 @@ _ENTRY_WORD = {
 
 #: a decimal number with an exponent, as YAML 1.2 reads it (``1e-3``, ``-2.5E+4``, ``.5e1``)
 _EXP_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+
+
+class SourceText(str):
+    """The text of one spec file, split into lines once.
+
+    Every :class:`YNode` of a file shares one ``SourceText``; error messages and
+    :class:`~vsidgen.spec.typed.Located` show a node's source line, and splitting the
+    whole file for each of its (up to :data:`MAX_YAML_NODES`) nodes made reading a spec
+    quadratic in its size. :meth:`splitlines` (without ``keepends``) returns the cached
+    lines as a tuple (read-only, as it is shared); :meth:`line` is one 1-based line.
+    """
+
+    def splitlines(self, keepends: bool = False):  # type: ignore[override]
+        if keepends:
+            return str.splitlines(self, True)
+        lines = self.__dict__.get("_lines")
+        if lines is None:
+            lines = self.__dict__["_lines"] = tuple(str.splitlines(self))
+        return lines
+
+    def line(self, number: int | None) -> str:
+        """Line ``number`` (1-based) stripped of surrounding blanks; "" when out of range."""
+        lines = self.splitlines()
+        if number is not None and 1 <= number <= len(lines):
+            return lines[number - 1].strip()
+        return ""
+
+
+def source_text(src: str) -> SourceText:
+    """``src`` as a :class:`SourceText` (itself when it already is one)."""
+    return src if isinstance(src, SourceText) else SourceText(src)
 
 
 @dataclasses.dataclass(eq=False)
@@ -98,10 +132,11 @@ class YNode:
         return {"path": self.path, "line": self.line, "column": self.column}
 
     def source_line(self) -> str:
-        lines = self.src.splitlines()
-        if 1 <= self.line <= len(lines):
-            return lines[self.line - 1].strip()
-        return ""
+        return _line_text(self.src, self.line)
+
+    def line_text(self, line: int | None) -> str:
+        """Line ``line`` (1-based) of this node's file, stripped; "" when out of range."""
+        return _line_text(self.src, line)
 
     def locate(self, offset: int) -> tuple[int, int | None]:
         """File (line, column) of character ``offset`` of :attr:`text` (best effort)."""
@@ -132,11 +167,12 @@ class YNode:
                 before = text[:offset]
                 index = before.count("\n")
                 col_in = len(before) - (before.rfind("\n") + 1)
-                file_lines = self.src.splitlines()
+                file_lines = source_text(self.src).splitlines()
                 ln = self.line + 1 + index
-                content = [fl for fl in file_lines[self.line:] if fl.strip()]
-                if 1 <= ln <= len(file_lines) and content:
-                    indent = len(content[0]) - len(content[0].lstrip())  # block indentation
+                first = next((file_lines[i] for i in range(self.line, len(file_lines))
+                              if file_lines[i].strip()), None)
+                if 1 <= ln <= len(file_lines) and first is not None:
+                    indent = len(first) - len(first.lstrip())  # block indentation
                     return ln, indent + 1 + col_in
                 return ln, None
         except Exception:  # pragma: no cover - locating must never fail
@@ -238,10 +274,7 @@ def keys_check(node: YNode, allowed, what: str) -> dict:
 
 
 def _line_text(src: str, line: int | None) -> str:
-    lines = src.splitlines()
-    if line is not None and 1 <= line <= len(lines):
-        return lines[line - 1].strip()
-    return ""
+    return source_text(src).line(line)
 
 
 # ---------------------------------------------------------------------------
@@ -376,7 +409,7 @@ def read_spec_text(path, *, where: dict | None = None) -> str:
 def load_yaml(path) -> YNode:
     """Read one YAML file into a :class:`YNode` tree (SpecError on any problem)."""
     path = pathlib.Path(path)
-    src = read_spec_text(path)
+    src = SourceText(read_spec_text(path))
     if "\x00" in src:
         raise SpecError("spec file contains a NUL character", path=path,
                         line=src[:src.index("\x00")].count("\n") + 1)
@@ -542,27 +575,51 @@ def _extends_target(ext: YNode, path: pathlib.Path) -> pathlib.Path:
     return ppath
 
 
-def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
-    """Load a spec and everything it ``extends``, merged (see module docstring)."""
+def load_spec(path) -> RawSpec:
+    """Load a spec and everything it ``extends``, merged (see module docstring).
+
+    The ``extends`` chain is followed iteratively, child to parent, and refused with a
+    SpecError at the ``extends`` line that closes a cycle or that would make the chain
+    longer than :data:`MAX_EXTENDS_DEPTH` specs; the specs are then merged from the
+    chain's root down to the file named here.
+    """
     path = pathlib.Path(path)
-    resolved = path.resolve()
-    if resolved in _stack:
-        chain = " -> ".join(p.name for p in _stack + (resolved,))
-        raise SpecError(f"`extends` cycle: {chain}", path=path,
-                        hint="a spec cannot extend itself, directly or indirectly")
-    root = load_yaml(path)
-    top = keys_check(root, TOP_LEVEL_KEYS, "the spec (top level)")
-    parent: RawSpec | None = None
-    ext = top.get("extends")
-    if ext is not None:
-        ppath = _extends_target(ext, path)
-        try:
-            parent = load_spec(ppath, _stack=_stack + (resolved,))
-        except SpecError as err:
-            if err.message.startswith("`extends` cycle") and err.line is None:
-                raise SpecError(err.message, **ext.loc, text=ext.source_line(),
-                                hint=err.hint) from None
-            raise
+    chain: list[tuple[pathlib.Path, YNode, dict]] = []  # (path, root, top), child first
+    seen: list[pathlib.Path] = []
+    current = path
+    while True:
+        seen.append(current.resolve())
+        root = load_yaml(current)
+        top = keys_check(root, TOP_LEVEL_KEYS, "the spec (top level)")
+        chain.append((current, root, top))
+        ext = top.get("extends")
+        if ext is None:
+            break
+        ppath = _extends_target(ext, current)
+        resolved = ppath.resolve()
+        if resolved in seen:
+            names = " -> ".join(p.name for p in seen + [resolved])
+            raise SpecError(f"`extends` cycle: {names}", **ext.loc, text=ext.source_line(),
+                            hint="a spec cannot extend itself, directly or indirectly")
+        if len(chain) >= MAX_EXTENDS_DEPTH:
+            shown = [p.name for p, _, _ in chain[:2]] + ["..."] + \
+                [p.name for p, _, _ in chain[-2:]] + [ppath.name]
+            raise SpecError(f"`extends` chain is longer than {MAX_EXTENDS_DEPTH} specs: "
+                            + " -> ".join(shown), **ext.loc, text=ext.source_line(),
+                            hint=f"a spec can build on at most {MAX_EXTENDS_DEPTH - 1} others "
+                                 f"through `extends`; merge some of the intermediate specs "
+                                 f"into one file")
+        current = ppath
+
+    raw: RawSpec | None = None
+    for current, root, top in reversed(chain):
+        raw = _merge_spec(raw, current, root, top)
+    assert raw is not None
+    return raw
+
+
+def _merge_spec(parent: RawSpec | None, path: pathlib.Path, root: YNode, top: dict) -> RawSpec:
+    """The spec of ``path`` (``root``, its top-level mapping ``top``) merged onto ``parent``."""
     add_terms = _collect_add_terms(root)
     if parent is None:
         return RawSpec(path, dict(top), add_terms, (path,))
@@ -583,4 +640,5 @@ def load_spec(path, *, _stack: tuple[pathlib.Path, ...] = ()) -> RawSpec:
 
 
 __all__ = ["YNode", "RawSpec", "AddTerm", "load_yaml", "load_spec", "keys_check",
-           "read_spec_text", "TOP_LEVEL_KEYS", "MAX_SPEC_BYTES", "MAX_YAML_NODES", "SPEC_SUFFIXES"]
+           "read_spec_text", "SourceText", "source_text", "TOP_LEVEL_KEYS", "MAX_SPEC_BYTES",
+           "MAX_YAML_NODES", "MAX_EXTENDS_DEPTH", "SPEC_SUFFIXES"]
