@@ -55,7 +55,7 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("diagnose: gated round model, model families", ("discrepancy.gated", "discrepancy.family")),
     ("diagnose: search", ("discrepancy.search",)),
     ("diagnose: package", ("discrepancy",)),
-    ("command line", ("cli", "__main__")),
+    ("command line", ("cli", "_entry", "__main__")),
 )
 
 
@@ -66,7 +66,7 @@ def _full(name: str) -> str:
 STAGE_OF = {_full(m): i for i, (_, mods) in enumerate(STAGES) for m in mods}
 
 #: the flat modules of the package besides the foundation (and ``vsidgen/__init__.py``)
-FLAT = ("cli", "__main__")
+FLAT = ("cli", "_entry", "__main__")
 
 
 def _module_name(path: pathlib.Path, package: pathlib.Path) -> str:

@@ -132,16 +132,24 @@ def _json_int(text: str):
     return int(text) if len(text) <= 18 else float(text)
 
 
-def parse_json(text: str):
+def _json_int_strict(text: str):
+    """A JSON integer of a file vsidgen wrote: it writes none longer than 18 digits."""
+    if len(text) > 18:
+        raise ValueError(f"an integer of {len(text)} digits")
+    return int(text)
+
+
+def parse_json(text: str, *, strict_ints: bool = False):
     """``json.loads`` for files users hand to vsidgen (results.json, references, manifests).
 
-    Integers too long for a float become ±inf or floats (:func:`_json_int`); a document
+    Integers too long for a float become ±inf or floats (:func:`_json_int`), or, with
+    ``strict_ints`` (a file vsidgen wrote, which holds none), raise ``ValueError``; a document
     nested beyond the interpreter's recursion limit raises ``ValueError`` like any other
     invalid JSON (``json.JSONDecodeError`` is a ``ValueError`` too).
     """
     import json
 
     try:
-        return json.loads(text, parse_int=_json_int)
+        return json.loads(text, parse_int=_json_int_strict if strict_ints else _json_int)
     except RecursionError:
         raise ValueError("JSON nested too deeply") from None

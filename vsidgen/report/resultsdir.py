@@ -90,7 +90,7 @@ def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
                            "directory of `vsidgen fit`?")
     path = contained_file(results_dir, "results.json", what="results file")
     try:
-        res = parse_json(path.read_text(encoding="utf-8"))
+        res = parse_json(path.read_text(encoding="utf-8"), strict_ints=True)
     except (OSError, UnicodeDecodeError) as err:
         raise VsidgenError(f"{path}: error: cannot read results file: {err}") from None
     except RecursionError:
