@@ -88,6 +88,14 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "attas_yaw_v": (("attas_rud1",), ("attas_rud2",),
                     "lateral with a side-velocity state, beta a definition, phi' = p, "
                     "without N_p"),
+    "hfb_cz_nondim": (("hfb320_1_10",), (),
+                      "coefficient form with mass, area and density as fixed parameters, "
+                      "measured V as input, theta' = q without process noise, n_z output"),
+    "attas_latdeg": (("attas_ail1", "attas_rud1"), ("attas_ail2", "attas_rud2"),
+                     "lateral in degrees with A/B-matrix names, measured beta as input"),
+    "twotter_lat_longnames": (("totter_lat_f1_014",), ("totter_lat_f1_017",),
+                              "lateral with long descriptive names, bounds and a fixed "
+                              "parameter"),
 }
 
 
