@@ -129,3 +129,18 @@ def test_an_unfinished_rounds_refit_is_undecided_not_insignificant():
     assert _undecided_json(t)["significant"] is None
     t = types.SimpleNamespace(to_json=lambda: {"key": "a", "threshold": 7.9, "significant": True})
     assert _undecided_json(t)["significant"] is True
+
+
+def test_the_rounds_deadline_instant_gives_the_time_left():
+    """The round's refit deadline is a time.monotonic() instant (round_refit_deadline); the
+    progress line's bound read it as an object with .left() and ended a diagnose run with
+    an internal error (caught in session 43 before it landed in a release)."""
+    import time
+
+    from vsidgen.discrepancy.search import _limit_left, round_refit_deadline
+
+    assert _limit_left(None) == {}
+    got = _limit_left(round_refit_deadline(time.monotonic() + 100.0, 10.0))["limit_left"]
+    assert 85.0 < got <= 90.0
+    p = DiagnoseProgress(io.StringIO(), live=False)
+    assert "ends the round in" in p.refitting(1, 1, 2, "a", **_limit_left(time.monotonic() + 50.0))

@@ -1807,10 +1807,13 @@ def _fit_base(run: _RunConfig, st: _RunState, spec) -> None:
     _checkpoint(run, st, StopReason.RUNNING)
 
 
-def _limit_left(deadline) -> dict:
-    """``{"limit_left": seconds}`` to a round's refit deadline for the progress line (empty
-    without one)."""
-    return {} if deadline is None else {"limit_left": float(deadline.left())}
+def _limit_left(deadline: float | None) -> dict:
+    """``{"limit_left": seconds}`` to a round's refit deadline (a ``time.monotonic()``
+    instant, :func:`round_refit_deadline`) for the progress line; empty without one."""
+    if deadline is None:
+        return {}
+    left = deadline.left() if hasattr(deadline, "left") else float(deadline) - time.monotonic()
+    return {"limit_left": float(left)}
 
 
 def _undecided_json(t: "Trial") -> dict:
