@@ -328,7 +328,20 @@ def _loadmat(path: pathlib.Path, names: list[str] | None) -> dict:
     return {k: v for k, v in raw.items() if not k.startswith("__")}
 
 
-class _V5Vars(dict):
+class _NamedVariables(dict):
+    """A MAT file's variables read on demand: ``_names`` lists them, the dict holds those read."""
+
+    def keys(self):
+        return list(self._names)
+
+    def __contains__(self, key):
+        return key in self._names
+
+    def __iter__(self):
+        return iter(self._names)
+
+
+class _V5Vars(_NamedVariables):
     """Variables of a MAT v4-v7 file, read when first used (each checked against the read
     budget before it is decompressed)."""
 
@@ -342,15 +355,6 @@ class _V5Vars(dict):
             self._names = list(dict.keys(self))
         else:
             self._names = [k for k in self._index if not k.startswith("__")]
-
-    def keys(self):
-        return list(self._names)
-
-    def __contains__(self, key):
-        return key in self._names
-
-    def __iter__(self):
-        return iter(self._names)
 
     def _reserve(self, key) -> None:
         entry = self._index[key]
@@ -487,7 +491,7 @@ def _utf16(units: np.ndarray) -> str:
                                                                     errors="surrogatepass")
 
 
-class _H5Vars(dict):
+class _H5Vars(_NamedVariables):
     """Top-level variables of a v7.3 file, converted lazily (only those the data map names)."""
 
     def __init__(self, f, path=None):
@@ -501,15 +505,6 @@ class _H5Vars(dict):
                 if len(self._names) >= MAX_MAT_OBJECTS:
                     raise _too_many_variables(path)
                 self._names.append(k)
-
-    def keys(self):
-        return list(self._names)
-
-    def __contains__(self, key):
-        return key in self._names
-
-    def __iter__(self):
-        return iter(self._names)
 
     def __getitem__(self, key):
         if not dict.__contains__(self, key):

@@ -599,36 +599,31 @@ def expanded_sizes(definitions) -> dict[sympy.Symbol, int]:
     return {k: v for k, v in sizes.items() if isinstance(k, sympy.Symbol)}
 
 
-def tree_size(expr, memo: dict) -> int:
-    """Nodes of ``expr``'s tree, counted on its DAG (``memo`` maps sub-expressions to their
-    sizes and may be shared between calls), so that the cost stays linear in the DAG."""
+def _dag_fold(expr, memo: dict, combine) -> int:
+    """``combine(children's values)`` folded over ``expr``'s DAG without recursion (``memo``
+    maps sub-expressions to their values and may be shared between calls)."""
     stack = [(expr, False)]
     while stack:
         node, done = stack.pop()
         if node in memo:
             continue
         if done or not node.args:
-            memo[node] = 1 + sum(memo[a] for a in node.args)
+            memo[node] = combine([memo[a] for a in node.args])
             continue
         stack.append((node, True))
         stack.extend((a, False) for a in node.args if a not in memo)
     return memo[expr]
+
+
+def tree_size(expr, memo: dict) -> int:
+    """Nodes of ``expr``'s tree, counted on its DAG (``memo`` may be shared between calls),
+    so that the cost stays linear in the DAG."""
+    return _dag_fold(expr, memo, lambda kids: 1 + sum(kids))
 
 
 def tree_depth(expr, memo: dict) -> int:
-    """Levels of ``expr``'s tree (a leaf: 1), counted on its DAG without recursion
-    (``memo`` maps sub-expressions to their depths and may be shared between calls)."""
-    stack = [(expr, False)]
-    while stack:
-        node, done = stack.pop()
-        if node in memo:
-            continue
-        if done or not node.args:
-            memo[node] = 1 + max((memo[a] for a in node.args), default=0)
-            continue
-        stack.append((node, True))
-        stack.extend((a, False) for a in node.args if a not in memo)
-    return memo[expr]
+    """Levels of ``expr``'s tree (a leaf: 1), counted on its DAG without recursion."""
+    return _dag_fold(expr, memo, lambda kids: 1 + max(kids, default=0))
 
 
 def _check_constant_singularities(decl, definitions, drift, observations, sections) -> None:
