@@ -405,3 +405,69 @@ def test_newcomers_unit_slips_get_the_right_hint(tmp_path):
     with pytest.raises(dataunits.UnitConversionError) as err:
         dataunits.conversion("furlong_per_fortnight", "m/s")
     assert "Error" not in str(err.value)
+
+
+def test_scale_of_agrees_with_evaluating_in_both_unit_systems():
+    """`units.scale_of(e)` claims e(x_coherent) = s·e(x_declared) for every value: checked by
+    evaluating each expression at random points in both systems (the reference shares no
+    code with the walker). Where it says None, no single factor relates the two."""
+    import math as _m
+    import random
+
+    import sympy
+    from vsidgen.spec import units
+
+    p, q, a, y, c, k, V = sympy.symbols("p q a y c k V")
+    declared = {p: "deg/s", q: "rad/s", a: "deg", y: "m/(s*deg)", c: "deg/s^2", k: "1/deg",
+                V: "m/s"}
+    scales = {s: units.coherent(u)[0] for s, u in declared.items()}
+    cases = [y*p + V/10, y*p + 3, p/a, sympy.sin(a), sympy.sin(a*sympy.pi/180), k*a + 1,
+             p + q, p + c*y/y*2, sympy.Abs(p) * a, sympy.Max(p, 2*p), sympy.atan2(p, q),
+             sympy.atan2(p, 2*p), sympy.sign(p - 3) * V, (y*p)**2 + V**2/100, sympy.sqrt(a)]
+    rng = random.Random(0)
+    for e in cases:
+        s = units.scale_of(e, scales)
+        ratios = []
+        for _ in range(5):
+            decl = {sym: rng.uniform(0.2, 2.0) for sym in declared}
+            coh = {sym: v * scales[sym] for sym, v in decl.items()}
+            d, h = float(e.xreplace(decl)), float(e.xreplace(coh))
+            ratios.append(h / d if d != 0 else _m.nan)
+        constant = all(_m.isclose(r, ratios[0], rel_tol=1e-9) for r in ratios)
+        if s is None:
+            assert not constant or e.has(sympy.Max, sympy.atan2, sympy.sign), (e, ratios)
+        else:
+            assert constant and _m.isclose(ratios[0], s, rel_tol=1e-9), (e, s, ratios)
+
+
+def test_a_model_written_in_degrees_is_not_warned_but_sin_of_degrees_is(tmp_path):
+    """Session 44: a derivative in m/(s·deg) times a rate in deg/s was warned as non-coherent
+    (the check read names, not the algebra); the whole of a lateral model consistent in
+    degrees got 14 warnings. Now only what is wrong as written is warned: sin() of a bank
+    angle in deg, and a rate in rad/s added to one in deg/s."""
+    def spec(bank_term, rate_unit):
+        return ("name: degmodel\nconstants:\n  g: {value: 9.80665, unit: m/s^2}\n"
+                "  V: {value: 70, unit: m/s}\nstates:\n  beta: {unit: deg}\n"
+                f"  p: {{unit: {rate_unit}}}\n  r: {{unit: deg/s}}\n  phi: {{unit: deg}}\n"
+                "inputs:\n  da: {unit: deg}\noutputs:\n  ay: {unit: m/s^2}\n  p: {unit: deg/s}\n"
+                "  phi: {unit: deg}\nparameters:\n  Yb: {unit: 1/s}\n  Lp: {unit: 1/s}\n"
+                "  Lda: {unit: 1/s^2}\n  Nr: {unit: 1/s}\n  y_p: {unit: m/(s*deg)}\n"
+                "  y_b: {unit: m/(s^2*deg)}\ndrift:\n"
+                f"  beta: Yb*beta - r + {bank_term}\n  p: Lp*p + Lda*da\n  r: Nr*r\n  phi: p\n"
+                "observations:\n  ay: y_p*p + y_b*beta\n  p: p\n  phi: phi\n"
+                "data:\n  time: t_s\n  inputs: {da: {column: da_rad, unit: rad}}\n"
+                "  outputs:\n    ay: ay_mps2\n    p: {column: p_radps, unit: rad/s}\n"
+                "    phi: {column: phi_rad, unit: rad}\n")
+
+    def warned(name, bank_term, rate_unit="deg/s"):
+        path = tmp_path / f"m{abs(hash((name, bank_term, rate_unit)))}.yaml"
+        path.write_text(spec(bank_term, rate_unit))
+        return {w.message.split("`")[1] for w in compile_spec(path).warnings
+                if w.code == "noncoherent_unit"}
+
+    assert warned("ok", "g/V*phi") == set()
+    assert {"phi"} <= warned("sin", "g/V*sin(phi)*57.29578")
+    assert "y_p" not in warned("sin", "g/V*sin(phi)*57.29578")
+    got = warned("rad", "g/V*phi", "rad/s")
+    # p in rad/s: its drift adds Lda·da in deg/s², ay adds y_p·p (per deg) to y_b·β, φ̇ = p
+    assert {"da", "y_p", "y_b", "phi"} <= got and "r" not in got and "Yb" not in got

@@ -201,12 +201,13 @@ def _coherent(unit: Located[str] | None) -> tuple[float, str | None]:
         raise unit.relocate(err) from None
 
 
-def _warn_coherence(warnings: list, spec: Spec) -> None:
+def _warn_coherence(warnings: list, spec: Spec, right: set[tuple[str, str]]) -> None:
     """Warnings for units that are not coherent SI (rad for angles): every number is used as
     it stands, which is right only where each equation it enters is written in those units
     (3 deg inside cos() is 3 rad; a span in ft beside a speed in m/s is not metres). A
     conversion factor between a unit and its coherent counterpart (`deg/rad`, `ft/m`) is
-    written to convert, and is not warned about."""
+    written to convert, and is not warned about; nor is a variable or parameter in ``right``
+    (:func:`_right_as_written`: every equation it enters is consistent in declared units)."""
     for c in spec.constants:
         factor, unit = _coherent(c.unit)
         if factor != 1.0 and not _units.is_conversion_factor(c.unit.value):
@@ -219,11 +220,9 @@ def _warn_coherence(warnings: list, spec: Spec) -> None:
                         (spec.outputs, "output"), (spec.parameters, "parameter")):
         for d in decls:
             factor, unit = _coherent(d.unit)
-            if factor == 1.0:
+            if factor == 1.0 or (what, d.name.value) in right:
                 continue
             if what == "parameter":
-                if _written_in_own_units(spec, d.name.value, factor):
-                    continue
                 msg = (f"parameter `{d.name.value}` is declared in `{d.unit.value}`, but the "
                        "equations use the numbers as they stand: where they meet quantities in "
                        f"coherent units (SI, rad) the estimate is in `{unit}`, and its initial "
@@ -239,41 +238,50 @@ def _warn_coherence(warnings: list, spec: Spec) -> None:
             _warn(warnings, msg, d.name, code="noncoherent_unit", hint=hint)
 
 
-def _written_in_own_units(spec: Spec, name: str, factor: float) -> bool:
-    """Whether parameter ``name`` (its unit ``factor`` times its coherent one) enters only
-    equations whose left-hand side is in a unit of the same factor, directly or through the
-    definitions they use: a bias ``c1`` in deg/s² added to ṗ of a roll rate declared in
-    deg/s, in a model written in degrees throughout, is in the unit it is declared in (the
-    warning said `rad/s^2`, wrongly; session 43). The check reads which names the equations
-    use, not their algebra: a parameter that multiplies a state (a derivative in m/(s·deg)
-    times a rate in deg/s) still gets the warning, as does one in an add_terms entry or in
-    no equation."""
-    def uses(text: str, target: str) -> bool:
-        return re.search(rf"(?<![\w.]){re.escape(target)}(?![\w])", text) is not None
+def _right_as_written(decl: "_Declared", definitions, drift, observations) -> set[tuple[str, str]]:
+    """(kind, name) of the declarations in a non-coherent unit whose numbers are right as they stand: every
+    equation that uses them, directly or through definitions, is consistent in the declared
+    units — :func:`units.scale_of` gives the equation a factor to coherent units and it
+    equals its left-hand side's (a drift's is its state's, per second). A model written in
+    degrees throughout (q in deg/s, a bias in deg/s², a side-force derivative in m/(s·deg)
+    times a rate in deg/s) is; sin() of a state in deg, or an α in rad beside a derivative
+    per deg, is not, and neither is an equation with a symbol without a unit (unknown).
+    The check follows the algebra, not which names appear (sessions 43–44)."""
+    def factor(unit) -> float | None:
+        return None if unit is None else _units.coherent(unit)[0]
 
-    if any(uses(a.term.expression.value, name) for a in spec.add_terms):
-        return False
-    defs = {e.name.value: e.expression.value for e in spec.definitions}
-    # definitions that use the parameter, directly or through other definitions
-    carrying = {d for d, t in defs.items() if uses(t, name)}
-    grew = True
-    while grew:
-        more = {d for d, t in defs.items() if d not in carrying and any(uses(t, c) for c in carrying)}
-        carrying |= more
-        grew = bool(more)
-    st_unit = {v.name.value: v.unit for v in spec.states}
-    out_unit = {v.name.value: v.unit for v in spec.outputs}
-    used = False
-    for eqs, units in ((spec.drift, st_unit), (spec.observations, out_unit)):
-        for e in eqs:
-            t = e.expression.value
-            if not (uses(t, name) or any(uses(t, c) for c in carrying)):
-                continue
-            used = True
-            f, _ = _coherent(units.get(e.name.value))
-            if not math.isclose(f, factor, rel_tol=1e-9):
-                return False
-    return used
+    scales: dict[sympy.Symbol, float | None] = {}
+    for v in decl.states + decl.inputs:
+        scales[v.symbol] = factor(v.unit)
+    for c in decl.constants:
+        scales[c.symbol] = factor(c.unit)
+    for q in decl.parameters:
+        scales[q.symbol] = factor(q.unit)
+    reach: dict[sympy.Symbol, frozenset] = {}
+    for nm, expr in definitions:
+        scales[_sym(nm)] = _units.scale_of(expr, scales)
+        reach[_sym(nm)] = frozenset().union(*(reach.get(x, {x}) for x in expr.free_symbols))
+    used: set[sympy.Symbol] = set()
+    wrong: set[sympy.Symbol] = set()
+    for lhs, exprs in ((decl.states, drift), (decl.outputs, observations)):
+        for v, expr in zip(lhs, exprs):
+            names = frozenset().union(*(reach.get(x, {x}) for x in expr.free_symbols))
+            if lhs is decl.states:      # the state's own unit is the left-hand side's
+                names |= {v.symbol}
+            used |= names
+            got, want = _units.scale_of(expr, scales), factor(v.unit)
+            if got is None or want is None or not math.isclose(got, want, rel_tol=1e-9):
+                wrong |= names
+    kinds = {v.symbol: "state" for v in decl.states}
+    kinds.update({v.symbol: "input" for v in decl.inputs})
+    kinds.update({q.symbol: "parameter" for q in decl.parameters})
+    right = {(kinds[s], s.name) for s in used - wrong if s in kinds}
+    # an output is right when its own observation is
+    for o, expr in zip(decl.outputs, observations):
+        got, want = _units.scale_of(expr, scales), factor(o.unit)
+        if got is not None and want is not None and math.isclose(got, want, rel_tol=1e-9):
+            right.add(("output", o.name))
+    return right
 
 
 def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
@@ -564,7 +572,7 @@ def compile_typed(spec: Spec) -> SymbolicModel:
                          decl.outputs, eqs.sections)
     _check_constant_singularities(decl, definitions, drift, observations, eqs.sections)
     _warn_unused(warnings, spec, definitions, deps, drift + observations)
-    _warn_coherence(warnings, spec)
+    _warn_coherence(warnings, spec, _right_as_written(decl, definitions, drift, observations))
 
     output_names = [o.name for o in decl.outputs]
     process, measurement = _noise(spec, [v.name for v in decl.states], output_names)

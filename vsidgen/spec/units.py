@@ -84,6 +84,70 @@ def coherent(text, *, path=None, line=None, column=None) -> tuple[float, str]:
     return factor, shown
 
 
+def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None]) -> float | None:
+    """The factor from ``expr``'s value, computed with every number in its declared unit, to
+    its value in coherent units (SI, rad): ``s`` in ``s·x = x_coherent``. ``scales`` gives
+    each symbol's factor (:func:`coherent`; None: no unit). None when it is unknown (a
+    symbol without a unit, a table) or when the numbers as they stand are wrong somewhere
+    in ``expr``: terms of a sum with different factors (``M_q·q`` with q in deg/s beside
+    ``M_α·α`` with α in rad), a function of an argument not in coherent units (sin of
+    degrees). An equation is right in its declared units exactly where this factor is
+    defined and equals its left-hand side's: a derivative in m/(s·deg) times a rate in
+    deg/s is a term in m/s² (factor 1), as its equation needs."""
+    def agree(args) -> float | None:
+        found = None
+        for a in args:
+            f = scale_of(a, scales)
+            if f is None:
+                return None
+            if a.is_Number:
+                continue        # a bare number takes the unit of its sum (V - 100)
+            if found is None:
+                found = f
+            elif not math.isclose(f, found, rel_tol=1e-9):
+                return None
+        return 1.0 if found is None else found
+
+    if expr.is_Number or expr in (sympy.pi, sympy.E):
+        return 1.0
+    if expr.is_Symbol:
+        return scales.get(expr)
+    if isinstance(expr, (sympy.Add, sympy.Min, sympy.Max)):
+        return agree(expr.args)
+    if isinstance(expr, sympy.Abs):
+        return scale_of(expr.args[0], scales)
+    if isinstance(expr, sympy.Mul):
+        out = 1.0
+        for factor in expr.args:
+            f = scale_of(factor, scales)
+            if f is None:
+                return None
+            out *= f
+        return out
+    if isinstance(expr, sympy.Pow):
+        base, exp = expr.args
+        fb = scale_of(base, scales)
+        if fb is None:
+            return None
+        if exp.is_Number:
+            try:
+                return float(fb ** float(exp))
+            except (OverflowError, ZeroDivisionError, ValueError):
+                return None
+        fe = scale_of(exp, scales)
+        return 1.0 if fe is not None and math.isclose(fb, 1.0) and math.isclose(fe, 1.0) else None
+    if isinstance(expr, _TRANSCENDENTAL):
+        f = scale_of(expr.args[0], scales)
+        return 1.0 if f is not None and math.isclose(f, 1.0) else None
+    if isinstance(expr, sympy.atan2):
+        return None if agree(expr.args) is None else 1.0
+    if isinstance(expr, (sympy.sign, sympy.Heaviside)):
+        # the sign of a quantity does not depend on its unit; its argument must be a sum
+        # that agrees
+        return None if scale_of(expr.args[0], scales) is None else 1.0
+    return None
+
+
 def parse_unit(text, *, path=None, line=None, column=None) -> Dimension:
     """Parse a unit string into a dimension (``"1"`` and ``""``-free numbers are dimensionless)."""
     if isinstance(text, (int, float)) and not isinstance(text, bool):
