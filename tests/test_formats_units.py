@@ -329,6 +329,8 @@ def test_a_conversion_factor_that_underflows_or_overflows_is_refused():
     from vsidgen.spec import dataunits
 
     with pytest.raises(dataunits.UnitConversionError, match="not a usable factor"):
+        dataunits.conversion("*".join(["deg**9"] * 7) + "/deg", "rad")
+    with pytest.raises(dataunits.UnitConversionError, match="longer than"):
         dataunits.conversion("*".join(["deg"] * 400) + "/deg", "rad")
     assert dataunits.conversion("deg", "rad")[0] == pytest.approx(math.pi / 180)
 
@@ -471,3 +473,38 @@ def test_a_model_written_in_degrees_is_not_warned_but_sin_of_degrees_is(tmp_path
     got = warned("rad", "g/V*phi", "rad/s")
     # p in rad/s: its drift adds Lda·da in deg/s², ay adds y_p·p (per deg) to y_b·β, φ̇ = p
     assert {"da", "y_p", "y_b", "phi"} <= got and "r" not in got and "Yb" not in got
+
+
+@pytest.mark.parametrize("unit", ["9**9**9", "m**99", "m^2^3", "s**(9**9)", "x" * 200])
+def test_a_unit_pint_would_evaluate_forever_is_refused_at_once(tmp_path, unit):
+    """pint evaluates `9**9**9` literally: a unit in a data map hung `check`, and a column
+    header `junk [9**9**9]` hung `check --data` and `fit` of every spec with constants
+    (session 44, red team). Refused before pint sees it (the header's unit is then not a
+    unit, and the column a plain column)."""
+    import time
+
+    from vsidgen.spec import dataunits
+
+    t0 = time.perf_counter()
+    with pytest.raises(dataunits.UnitConversionError):
+        dataunits.check_unit(unit)
+    assert dataunits.column_suffix_unit(f"junk [{unit}]") is None
+    assert time.perf_counter() - t0 < 5.0
+    path = tmp_path / "u.yaml"
+    path.write_text(f"extends: {SPEC}\nname: unitbomb\ndata:\n  time: t_s\n"
+                    f"  inputs: {{de: {{column: de_rad, unit: \"{unit}\"}}}}\n")
+    with pytest.raises(SpecError) as err:
+        compile_spec(path)
+    assert ":5:" in str(err.value) or "line 5" in str(err.value), str(err.value)
+
+
+def test_constant_columns_of_a_wide_header_take_linear_time():
+    """`constant_columns` counted every column in the header for every column (quadratic: a
+    40 000-column record took 104 s to check). The answer is unchanged."""
+    import types
+
+    from vsidgen.spec import dataunits
+
+    header = ["t", "v_mps", "mass_kg", "mass_kg", "V"] + [f"c{i}" for i in range(50000)]
+    consts = [types.SimpleNamespace(name=n) for n in ("V", "MASS", "rho")]
+    assert dataunits.constant_columns(consts, header, taken=["t"]) == {"V": ["v_mps", "V"]}

@@ -405,3 +405,20 @@ def test_roots_of_squared_dimensions_simplify(tmp_path):
     m = compile_spec(p)
     units = [w.message for w in m.warnings if w.code == "units"]
     assert len(units) == 1 and "observation of `R`" in units[0] and "length**(1/3)/time**(4/3)" in units[0], units
+
+
+@pytest.mark.parametrize("written, said", [("9" * 400, "finite number"),
+                                           ("1:30", "not a plain decimal"),
+                                           ("010", "not a plain decimal"),
+                                           ("0x1F", "not a plain decimal")],
+                         ids=["400 digits", "base 60", "octal", "hex"])
+def test_numbers_yaml_11_reads_oddly_are_refused_at_their_line(tmp_path, written, said):
+    """A 400-digit integer as an initial value ended in `internal error: OverflowError`
+    (exit 3); YAML 1.1 reads `1:30` as 90, `010` as 8 and `0x1F` as 31 without a word
+    (session 44, red team). Each is refused at its line with a hint."""
+    err = error(tmp_path, replace("CD0: {initial: 0.1, bounds: [0, 1]}",
+                                  f"CD0: {{initial: {written}, bounds: [0, 1]}}"))
+    assert said in str(err) and ":12:" in str(err), str(err)
+    ok = compile_spec(write(tmp_path, replace("CD0: {initial: 0.1, bounds: [0, 1]}",
+                                              "CD0: {initial: 1_000.5, bounds: [-1e4, 1E+4]}")))
+    assert ok.parameters[0].initial == 1000.5

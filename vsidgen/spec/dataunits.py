@@ -23,6 +23,7 @@ degrees but read as radians.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import enum
 import functools
@@ -83,9 +84,33 @@ def _normalise(text: str) -> str:
     return _G_TOKEN.sub("standard_gravity", s)
 
 
+#: longest unit text handed to pint (``kg*m^2/s^2`` is 10 characters)
+MAX_UNIT_CHARS = 80
+#: a power in a unit: one digit (``m^3``, ``s^-2``, ``s^0.5``), never a power of a power
+_POWER = re.compile(r"\*\*\s*(\(\s*)?[-+]?\d(\.\d{1,3})?(?![\d.])(\s*\))?")
+
+
+def _screen(text: str, normalised: str) -> None:
+    """Refuse unit texts pint would evaluate at any cost before parsing them: pint computes
+    ``9**9**9`` literally (a unit in a data map or a column header hung `check` and `fit`;
+    session 44). A unit is short and its powers are small numbers."""
+    if len(normalised) > MAX_UNIT_CHARS:
+        raise UnitConversionError(f"unknown unit `{text[:40]}…`: longer than {MAX_UNIT_CHARS} "
+                                  "characters")
+    rest = normalised
+    for m in _POWER.finditer(normalised):
+        if normalised[m.end():].lstrip().startswith("**"):
+            break
+        rest = rest.replace(m.group(0), " ", 1)
+    if "**" in rest:
+        raise UnitConversionError(f"unknown unit `{text}` (a power must be a number from -9 to 9, "
+                                  "as in `m/s^2`)")
+
+
 @functools.lru_cache(maxsize=256)
 def _quantity_unit(text: str):
     ureg = _registry()
+    _screen(text, _normalise(text))
     try:
         return ureg.Unit(_normalise(text))
     except Exception as exc:  # pint raises UndefinedUnitError, DefinitionSyntaxError, ...
@@ -116,8 +141,11 @@ def conversion(data_unit: str, spec_unit: str) -> tuple[float, float]:
         raise UnitConversionError(
             f"`{data_unit}` ({dimensionality(data_unit)}) cannot be converted to "
             f"`{spec_unit}` ({dimensionality(spec_unit)})")
-    b = float(ureg.Quantity(0.0, src).to(dst).magnitude)
-    a = float(ureg.Quantity(1.0, src).to(dst).magnitude) - b
+    try:
+        b = float(ureg.Quantity(0.0, src).to(dst).magnitude)
+        a = float(ureg.Quantity(1.0, src).to(dst).magnitude) - b
+    except (OverflowError, ZeroDivisionError, ValueError, ArithmeticError):
+        a = b = math.inf
     if not (math.isfinite(a) and math.isfinite(b) and 1e-100 < abs(a) < 1e100):
         # e.g. `deg*deg*...` (400 factors) / deg: (π/180)^399 underflows to 0, and every
         # sample would have been read as 0 without a word
@@ -277,7 +305,9 @@ def constant_columns(constants, header, *, taken=()) -> dict[str, list[str]]:
     without its unit (:func:`column_stem`) equals the constant's name, case aside (``V`` and
     ``v_mps``, ``mass`` and ``MASS_KG``). Columns in ``taken`` (the time, the mapped channels)
     and columns that appear more than once are left out. {constant name: [columns]}."""
-    once = {h for h in header if header.count(h) == 1 and h not in set(taken)}
+    counts = collections.Counter(header)     # (header.count per column was quadratic)
+    taken = set(taken)
+    once = {h for h, n in counts.items() if n == 1 and h not in taken}
     out: dict[str, list[str]] = {}
     for c in constants:
         cols = [h for h in header if h in once and column_stem(h).lower() == c.name.lower()]

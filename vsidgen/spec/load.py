@@ -64,6 +64,11 @@ _ENTRY_WORD = {
 
 #: a decimal number with an exponent, as YAML 1.2 reads it (``1e-3``, ``-2.5E+4``, ``.5e1``)
 _EXP_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+#: a number as a reader writes it: decimal digits (underscores between them), a point, an
+#: exponent; not YAML 1.1's base-60 (`1:30`), octal (`010`), hex or binary forms
+_DECIMAL = re.compile(r"[+-]?(?:0|[1-9][\d_]*|(?:0|[1-9][\d_]*)?\.\d[\d_]*|(?:0|[1-9][\d_]*)\.)"
+                      r"(?:[eE][+-]?\d+)?|[+-]?0\d*\.\d*(?:[eE][+-]?\d+)?")
+_INF_NAN = {".inf", "+.inf", "-.inf", ".nan"}
 
 
 class SourceText(str):
@@ -209,7 +214,16 @@ class YNode:
             raise SpecError(f"{what} must be a number, got {self.describe()}", **self.loc,
                             text=self.source_line(),
                             hint="write a plain number such as 0.5 or 1e-3")
-        f = float(v)
+        raw = (self.text or "").strip() if self.kind == "scalar" else ""
+        if raw and not _DECIMAL.fullmatch(raw) and raw.lower() not in _INF_NAN:
+            # YAML 1.1 reads `1:30` as 90 (base 60), `010` as 8 (octal), `0x1F` as 31
+            raise SpecError(f"{what} `{raw}` is not a plain decimal number (YAML 1.1 would read "
+                            f"it as {v!r})", **self.loc, text=self.source_line(),
+                            hint="write a plain decimal number such as 90, 0.5 or 1e-3")
+        try:
+            f = float(v)
+        except OverflowError:
+            f = float("inf")
         if f != f or f in (float("inf"), float("-inf")):
             raise SpecError(f"{what} must be a finite number", **self.loc, text=self.source_line())
         return f
