@@ -247,3 +247,54 @@ def test_diagnose_section_escapes_every_inserted_value():
                      "threshold": 1.0, "alpha": evil, "n_candidates": evil}}]}
     html = report_section(doc)
     assert "<img" not in html and "onerror=alert(1)&gt;" in html
+
+
+def test_a_link_given_as_an_output_file_is_refused_and_left_alone(tmp_path):
+    """`report --out /dev/stdout --overwrite` replaced the system's /dev/stdout link with the
+    report, and `simulate -o link.csv` replaced a link with a 0600 file: the rename replaces
+    the link itself (session 44, red team). Links are refused, by the output check and by
+    the atomic writers themselves; the link and what it points to are unchanged."""
+    target = tmp_path / "real.csv"
+    target.write_text("mine\n")
+    link = tmp_path / "link.csv"
+    link.symlink_to(target)
+    with pytest.raises(VsidgenError, match="symbolic link"):
+        atomic.check_output_file(link)
+    for write in (lambda: atomic.write_text_atomic(link, "new"),
+                  lambda: atomic.write_bytes_atomic(link, b"new")):
+        with pytest.raises(VsidgenError, match="symbolic link"):
+            write()
+    assert link.is_symlink() and target.read_text() == "mine\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv", "real.csv"]
+    with pytest.raises(VsidgenError, match="link to a file"):
+        plan_output_dir(link)
+
+
+def test_a_second_run_into_the_same_directory_is_refused_while_the_first_writes(tmp_path):
+    """Two fits into one `-o` at once both said "results in DIR" and the first one's results
+    were gone (session 44). The first holds a lock until its results are written; the
+    second is refused before computing, naming the first's process; once the first ends
+    (here: killed, as a crash), the directory can be written again and no lock is left."""
+    import subprocess
+    import sys
+    import time
+
+    d = tmp_path / "res"
+    code = ("import sys, time; from vsidgen.atomic import plan_output_dir; "
+            f"plan_output_dir({str(d)!r}); print('held', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(VsidgenError, match=f"another vsidgen run \\(process {holder.pid}\\)"):
+            plan_output_dir(d)
+    finally:
+        holder.kill()
+        holder.wait()
+    _run(d, {"results.json": "1"})
+    assert _tree(d)["results.json"] == "1"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+    # in one process, a second plan of the same directory is its own (the API called twice)
+    plan_output_dir(d)
+    plan_output_dir(d)
+    atomic.release(d)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]

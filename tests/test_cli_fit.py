@@ -218,3 +218,18 @@ def test_the_estimation_record_given_again_for_validation_or_twice_is_warned(tmp
     both = unique_names([est, load_record(sym, DATA)])
     got = repeated_record_warnings(both, [])
     assert [w["code"] for w in got] == ["estimation_record_repeated"] and "sqrt(2)" in got[0]["message"]
+
+
+def test_records_with_one_file_name_in_two_folders_keep_both_names(tmp_path):
+    """`fit d1/rec.csv --validate d2/rec.csv` wrote both records' signals to one
+    `signals_rec.csv`, and results.json named both `rec` (session 44, red team): names are
+    made unique across estimation and validation records."""
+    from vsidgen.data import load_records
+    from vsidgen.spec import compile_spec
+
+    for sub, src in (("d1", DATA), ("d2", VAL)):
+        (tmp_path / sub).mkdir()
+        shutil.copy(src, tmp_path / sub / "rec.csv")
+    est, val = load_records(compile_spec(SPEC), [tmp_path / "d1" / "rec.csv"],
+                            [tmp_path / "d2" / "rec.csv"])
+    assert [r.name for r in est] == ["rec"] and [r.name for r in val] == ["rec_1"]

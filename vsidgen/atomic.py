@@ -28,6 +28,7 @@ vsidgen wrote there. The rules (``docs/security.md``, "Results directories"):
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import enum
@@ -305,6 +306,8 @@ def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathL
     path = pathlib.Path(path)
     if str(path) in ("", "."):
         raise VsidgenError(f"{option} '{path}': not a file name")
+    if path.is_symlink():
+        raise VsidgenError(_link_refusal(path, option))
     if os.path.lexists(path):
         if path.is_dir():
             raise VsidgenError(f"{path}: error: {option} is a directory; give a file name")
@@ -321,6 +324,21 @@ def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathL
                                    f"({r}); write the output to another file")
     _check_parent_writable(path, option)
     return path
+
+
+def _link_refusal(path: pathlib.Path, option: str = "") -> str:
+    """The message refusing to write over a symbolic link: the file would be renamed over
+    the link itself (``report --out /dev/stdout`` replaced the system's link with the report;
+    session 44), never written into what it points to."""
+    try:
+        target = os.readlink(path)
+    except OSError:
+        target = "?"
+    what = f"{option} " if option else ""
+    return (f"{path}: error: {what}is a symbolic link (to {target}); vsidgen writes a new file "
+            "and renames it into place, which would replace the link, not write into what it "
+            "points to\n  hint: give a path that is not a link (the file it points to, or a "
+            "new name)")
 
 
 def _check_parent_writable(path: pathlib.Path, option: str) -> pathlib.Path:
@@ -351,12 +369,28 @@ def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
         raise VsidgenError(f"{option} '{target}': give a directory name (not '.' or '..'); "
                            "the results directory is replaced as a whole")
     if target.is_symlink():
-        raise VsidgenError(f"{target}: error: {option} is a symbolic link; give the directory "
-                           "it points to (vsidgen does not replace links)")
+        if target.is_dir():
+            raise VsidgenError(f"{target}: error: {option} is a symbolic link; give the "
+                               "directory it points to (vsidgen does not replace links)")
+        raise VsidgenError(f"{target}: error: {option} is a symbolic link to a file, not a "
+                           "results directory; give a new directory name (vsidgen does not "
+                           "replace links)")
     if os.path.lexists(target) and not target.is_dir():
         raise VsidgenError(f"{target}: error: {option} exists and is not a directory; "
                            "choose another directory")
     parent = _check_parent_writable(target, option)
+    _claim(target, option)
+    try:
+        return _plan_claimed(target, parent, overwrite=overwrite, reads=reads, option=option,
+                             recover_leftovers=recover_leftovers)
+    except BaseException:
+        release(target)
+        raise
+
+
+def _plan_claimed(target: pathlib.Path, parent: pathlib.Path, *, overwrite: bool, reads,
+                  option: str, recover_leftovers: bool) -> OutputPlan:
+    """:func:`plan_output_dir` once the directory is this process's to write."""
     recovered = recover(target) if (recover_leftovers and parent.is_dir()) else ()
     reads_r = _resolved(reads)
     if not target.exists():
@@ -398,6 +432,74 @@ def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
     return OutputPlan(target, state, WriteMode.IN_PLACE, previous=frozenset(ours),
                       kept=frozenset(others), mode_bits=mode_bits, recovered=recovered,
                       reads=reads_r)
+
+
+#: output directories this process writes: their lock files' descriptors
+_LOCKS: dict[str, int] = {}
+
+
+def _lock_path(target: pathlib.Path) -> pathlib.Path:
+    return target.parent / f".{target.name}.lock"
+
+
+def _claim(target: pathlib.Path, option: str) -> None:
+    """Hold an exclusive lock on ``target`` (``flock`` of ``.NAME.lock`` beside it, removed
+    when released) until the results are written or the process ends: two runs into one ``--out`` both reported
+    success and the first one's results were gone (session 44). The kernel releases the
+    lock of a process that dies, so a crash leaves no stale lock. Where the folder above
+    ``target`` does not exist yet, or the system has no ``flock``, nothing is locked."""
+    try:
+        import fcntl
+    except ImportError:          # pragma: no cover - not POSIX
+        return
+    key = os.path.abspath(target)
+    if key in _LOCKS or not target.parent.is_dir():
+        return
+    path = _lock_path(target)
+    for _ in range(5):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        except OSError:
+            return               # a read-only folder is refused by the checks that follow
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.read(fd, 32).decode("ascii", "replace").strip() or "?"
+            except OSError:
+                holder = "?"
+            os.close(fd)
+            raise VsidgenError(f"{target}: error: another vsidgen run (process {holder}) is "
+                               f"writing {option} {target}\n  hint: wait for it to end, or write "
+                               "to another directory") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path, follow_symlinks=False).st_ino
+        except OSError:
+            same = False
+        if same:                 # not a file its holder removed between our open and lock
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            _LOCKS[key] = fd
+            return
+        os.close(fd)
+
+
+@atexit.register
+def _release_all() -> None:
+    """At exit, the locks of runs that ended before writing (a refused spec) are removed."""
+    for key in list(_LOCKS):
+        release(key)
+
+
+def release(target: str | os.PathLike) -> None:
+    """Release this process's lock on an output directory (:func:`_claim`), if it holds one."""
+    key = os.path.abspath(target)
+    fd = _LOCKS.pop(key, None)
+    if fd is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(_lock_path(pathlib.Path(key)))     # removed while still held
+        with contextlib.suppress(OSError):
+            os.close(fd)
 
 
 def print_recovered(plan: OutputPlan, stream=None) -> None:
@@ -496,6 +598,7 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
                 shutil.rmtree(tmp, ignore_errors=True)
     finally:
         _ACTIVE.discard(str(tmp))
+        release(target)
 
 
 @contextlib.contextmanager
@@ -517,9 +620,12 @@ def results_in_place(plan: OutputPlan, *, command: str,
         _remove_entry(target / rel)
     write_text_atomic(target / MANIFEST, _manifest_text((), command=command, complete=False,
                                                         kept=kept, owns=owns))
-    yield target
-    files = listing(target) - kept - {MANIFEST}
-    write_text_atomic(target / MANIFEST, _manifest_text(files, command=command, kept=kept))
+    try:
+        yield target
+        files = listing(target) - kept - {MANIFEST}
+        write_text_atomic(target / MANIFEST, _manifest_text(files, command=command, kept=kept))
+    finally:
+        release(target)
 
 
 @contextlib.contextmanager
@@ -532,6 +638,8 @@ def atomic_text_file(path: str | os.PathLike) -> Iterator[TextIO]:
     temporary file is removed and ``path`` is left as it was.
     """
     path = pathlib.Path(path)
+    if path.is_symlink():
+        raise VsidgenError(_link_refusal(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
@@ -555,6 +663,8 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> pathlib.Path:
     """Write ``data`` to ``path`` atomically: a temporary file beside it, then
     :func:`os.replace` (as :func:`atomic_text_file`; parent folders created)."""
     path = pathlib.Path(path)
+    if path.is_symlink():
+        raise VsidgenError(_link_refusal(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
@@ -570,5 +680,5 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> pathlib.Path:
 
 __all__ = ["MANIFEST", "DirState", "OutputPlan", "WriteMode", "add_to_manifest",
            "atomic_directory", "atomic_text_file", "check_output_file", "listing", "plan_output_dir",
-           "print_recovered", "read_manifest", "recover", "results_in_place",
+           "print_recovered", "read_manifest", "recover", "release", "results_in_place",
            "write_bytes_atomic", "write_text_atomic"]

@@ -10,9 +10,11 @@ Modules::
 Public API (what later stages use)::
 
     load_record(model, path) -> Record
+    load_records(model, data, validate) -> (records, validation records), names unique
     resolution, unique_names, delay_input, write_csv
 """
 
-from .records import Record, delay_input, load_record, resolution, unique_names, write_csv
+from .records import (Record, delay_input, load_record, load_records, resolution, unique_names,
+                      write_csv)
 
-__all__ = ["Record", "delay_input", "load_record", "resolution", "unique_names", "write_csv"]
+__all__ = ["Record", "delay_input", "load_record", "load_records", "resolution", "unique_names", "write_csv"]

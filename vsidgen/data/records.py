@@ -810,6 +810,14 @@ def unique_names(records: Sequence[Record]) -> list[Record]:
     return out
 
 
+def load_records(model, data: Sequence, validate: Sequence = ()) -> tuple[list[Record], list[Record]]:
+    """(estimation, validation) records of the files ``data`` and ``validate``, their names
+    unique across both lists (:func:`unique_names`): `fit d1/rec.csv --validate d2/rec.csv`
+    wrote both records' signals to one ``signals_rec.csv`` (session 44)."""
+    both = unique_names([load_record(model, p) for p in [*data, *validate]])
+    return both[:len(data)], both[len(data):]
+
+
 def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     """Write equal-length columns to a CSV file atomically, at full precision.
 
@@ -836,4 +844,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "hash_header", "load_record", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "hash_header", "load_record", "load_records", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]

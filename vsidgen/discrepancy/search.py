@@ -216,13 +216,12 @@ def _say(progress, msg):
 def fit_spec(spec_path, data, *, validate=(), generated_dir=None, max_iter=200,
              warm_theta: dict | None = None) -> FitState:
     """Load, fit, evaluate (and validate) one spec on the given record files."""
-    from ..data import load_record, unique_names
+    from ..data import load_records
     from ..estimator import fit
     from ..model import load_model
 
     model = load_model(spec_path, generated_dir=generated_dir)
-    records = tuple(unique_names([load_record(model, p) for p in data]))
-    vrecords = tuple(unique_names([load_record(model, p) for p in validate]))
+    records, vrecords = map(tuple, load_records(model, data, validate))
     # the user's model: its own states without process noise are fitted in the exact limit
     res = fit(model, list(records), options=diag_options(max_iter, deterministic="limit"))
     return evaluated(spec_path, model, records, res, vrecords, max_iter=max_iter)
@@ -1601,7 +1600,9 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
     engine = Engine(workers=workers, scheduler=scheduler)
     for p in list(data) + list(validate):
         check_input_file(p, what="data file")
-    plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data, *validate])
+    init_from = getattr(overrides, "init_from", None)
+    plan = plan_output_dir(out, overwrite=overwrite,
+                           reads=[spec, *data, *validate, *([init_from] if init_from else [])])
     print_recovered(plan)
     from ..data import load_record
     from ..spec import compile_spec

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import __version__
 from ..codegen import display_path
-from ..data import Record, load_record, unique_names, write_csv
+from ..data import Record, load_records, write_csv
 from ..errors import VsidgenError
 from ..model import Model, load_model
 from ..spec.overrides import Overrides, apply_overrides
@@ -190,8 +190,11 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     if reference is not None:
         from ..report import parse_reference
         ref_path = parse_reference(reference)[2]
+    # --init-from's results.json was read already, but a results directory that holds it is
+    # not replaced (as --reference's): a command never writes over a file it reads
     plan = plan_output_dir(out, overwrite=overwrite,
-                           reads=[spec, *data, *validate, *([ref_path] if ref_path else [])])
+                           reads=[spec, *data, *validate, *([ref_path] if ref_path else []),
+                                  *([overrides.init_from] if overrides.init_from else [])])
     print_recovered(plan)
     from ..spec import compile_spec
     from ..spec.identifiability import symmetry_warnings
@@ -205,8 +208,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         symmetry_warnings(apply_overrides(symbolic, overrides)))
     for w in spec_warnings:
         print(str(w), file=sys.stderr)
-    records = unique_names([load_record(symbolic, p) for p in data])
-    vrecords = unique_names([load_record(symbolic, p) for p in validate])
+    records, vrecords = load_records(symbolic, data, validate)     # names unique across both
     repeated = repeated_record_warnings(records, vrecords)
     from ..errors import FitError
     from ..estimator import FitOptions, fit, smooth, validate_own_noise
