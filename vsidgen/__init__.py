@@ -6,11 +6,13 @@ Pipeline (one subpackage per stage, data flowing one way; docs/architecture.md):
     build(spec_paths) -> [BuildResult]           # generated/<name>.py (JAX, symbolic Jacobians)
     load_model(path) -> Model                    # generated functions + metadata
     load_record(model, csv) -> Record            # flight record through the spec's data map
+    Record.from_arrays(model, t, u, y)           # a record from arrays in the spec's units
     fit(model, records, *, options) -> FitResult # variational ML (ELBO), process + measurement noise
     smooth(model, records, theta, noise)         # validation: θ fixed, smoothing only
     validate_own_noise(model, records, theta)    # validation: θ fixed, the records' own noise
     evaluate(model, record, theta, *, mu, G, R) -> Signals   # the four evaluation signals
     run_fit(spec, data, *, out, ...) -> FitJob   # the whole `vsidgen fit` job
+    Overrides(fix=..., free=..., init=...)       # --fix/--free/--init of run_fit
     write_report(results_dir) -> Path            # self-contained HTML report
     run_diagnose(spec, data, *, out, ...)        # discrepancy discovery
     simulate(model, *, theta, t, u, x0, ...)     # synthetic records
@@ -28,7 +30,7 @@ _LAZY = {
     "Model": "model", "load_model": "model",
     "Record": "data", "load_record": "data",
     "fit": "estimator", "smooth": "estimator", "validate_own_noise": "estimator",
-    "FitOptions": "estimator", "FitResult": "estimator",
+    "FitOptions": "estimator", "FitResult": "estimator", "Overrides": "spec.overrides",
     "evaluate": "evaluation", "Signals": "evaluation",
     "simulate": "data.simulate",
     "run_fit": "fitjob",

@@ -54,6 +54,7 @@ import csv
 import dataclasses
 import io
 import math
+import os
 import pathlib
 import re
 import warnings
@@ -110,6 +111,46 @@ class Record:
     output_names: tuple[str, ...]
     t_raw: np.ndarray
     warnings: tuple = ()
+
+    @classmethod
+    def from_arrays(cls, model, t, u, y, *, name: str = "record") -> "Record":
+        """A record from arrays already in the spec's units (no data map applied): ``t``
+        (N,) seconds on a uniform grid (the rules of :func:`check_time`), ``u`` (N, nu)
+        finite inputs, ``y`` (N, ny) outputs with NaN for missing samples, channels in the
+        order of ``model.input_names`` and ``model.output_names``.
+
+        Raises:
+            DataError: a shape that does not match the model, a non-finite input, a time
+                grid that is not uniform.
+        """
+        t_raw = np.asarray(t, dtype=np.float64).reshape(-1)
+        n = t_raw.shape[0]
+        u = np.asarray(u, dtype=np.float64).reshape(n, -1) if np.size(u) else np.zeros((n, 0))
+        y = np.asarray(y, dtype=np.float64)
+        y = y.reshape(n, -1) if y.ndim == 1 else y
+        nu, ny = len(model.input_names), len(model.output_names)
+        if n < MIN_SAMPLES:
+            raise DataError(f"{n} samples; at least {MIN_SAMPLES} are needed", column="t")
+        if u.shape != (n, nu) or y.shape != (n, ny):
+            raise DataError(f"u has shape {u.shape} and y {y.shape}; the model needs ({n}, {nu}) "
+                            f"inputs {tuple(model.input_names)} and ({n}, {ny}) outputs "
+                            f"{tuple(model.output_names)}", column="u" if u.shape != (n, nu) else "y")
+        bad = ~np.isfinite(u)
+        if bad.any():
+            k, j = (int(v[0]) for v in np.nonzero(bad))
+            raise DataError(f"input `{model.input_names[j]}` is {fmt_number(u[k, j])}",
+                            column=model.input_names[j], sample=k,
+                            hint="inputs must be finite at every sample")
+        for what, names, arr in (("input", model.input_names, u), ("output", model.output_names, y)):
+            big = np.isinf(arr) | (np.abs(np.nan_to_num(arr)) > MAX_ABS_VALUE)
+            if big.any():
+                k, j = (int(v[0]) for v in np.nonzero(big))
+                raise DataError(f"{what} `{names[j]}` is {fmt_number(arr[k, j])}", column=names[j],
+                                sample=k, hint=f"values must be finite and below {MAX_ABS_VALUE:g} "
+                                "in magnitude (NaN marks a missing output)")
+        dt = check_time(t_raw, column="t")
+        return cls(str(name), None, t_raw - t_raw[0], dt, u, y, tuple(model.input_names),
+                   tuple(model.output_names), t_raw)
 
     @property
     def n(self) -> int:
@@ -502,6 +543,14 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     Raises:
         DataError: see the module docstring.
     """
+    if not hasattr(model, "data") or not hasattr(model, "output_names"):
+        raise DataError(f"load_record needs the compiled spec or the model, got "
+                        f"{type(model).__name__} {str(model)[:60]!r}",
+                        hint="load_record(vsidgen.load_model('spec.yaml'), 'flight.csv')")
+    if not isinstance(path, (str, os.PathLike)):
+        raise DataError(f"load_record reads a file; got {type(path).__name__}",
+                        hint="give the file's path; for arrays use vsidgen.Record.from_arrays("
+                             "model, t, u, y)")
     path = check_input_file(path, what="data file")
     spec = model.data
     in_names, out_names = _names(model, "input"), _names(model, "output")

@@ -46,7 +46,7 @@ import numpy as np
 from .records import write_csv
 from ..model.dynamics import transition
 from ..errors import VsidgenError
-from ..model import theta_vector
+from ..model.runtime import finite_theta
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -325,7 +325,13 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
         if not (math.isfinite(float(q)) and float(q) > 0):
             raise VsidgenError(f"quantize: the step of {k!r} must be finite and > 0, got {q}\n"
                                "  hint: leave the output out of --quantize for no quantisation")
-    p = theta_vector(model, theta)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise VsidgenError(f"simulate: seed must be an integer >= 0, got {seed!r}")
+    if substeps is not None or integrator is not None or input_hold is not None:
+        from ..model.dynamics import check_settings
+        check_settings(integrator or model.integrator, model.substeps if substeps is None
+                       else substeps, input_hold or model.input_hold)
+    p = finite_theta(model, theta, who="simulate")
     U = _input_matrix(model, u, t)
     x0v = _named_vector(model, x0, model.state_names, "x0")
     g = _std_vector(process_std, model.state_names, "process_std")

@@ -402,11 +402,21 @@ def _determined_columns(J: np.ndarray, rtol: float = 1e-8) -> np.ndarray:
 
 
 def _check_records(model, records):
+    """The records of a fit, checked; the model and each record must be vsidgen's objects
+    (a spec path as the model, a file path or an array as a record raised AttributeError
+    deep inside; session 44)."""
+    if not all(hasattr(model, a) for a in ("ny", "nu", "nx", "parameters", "output_names")):
+        raise FitError(f"the model must be a vsidgen Model, got {_shown(model)}\n  hint: "
+                       "model = vsidgen.load_model('spec.yaml')")
     if not isinstance(records, Sequence) or isinstance(records, (str, bytes)):
         records = [records]
     if len(records) == 0:
         raise FitError("no records to fit")
     for rec in records:
+        if not all(hasattr(rec, a) for a in ("t", "dt", "u", "y")):
+            raise FitError(f"a record must be a vsidgen Record, got {_shown(rec)}\n  hint: "
+                           "record = vsidgen.load_record(model, 'flight.csv'), or "
+                           "vsidgen.Record(name, t, u, y, ...) from arrays")
         y = np.asarray(rec.y, float)
         u = np.asarray(rec.u, float)
         name = getattr(rec, "name", "?")
@@ -425,6 +435,12 @@ def _check_records(model, records):
         if not float(rec.dt) > 0:
             raise FitError(f"record '{name}': sample period dt must be positive")
     return list(records)
+
+
+def _shown(value) -> str:
+    """A value named for an error message: its type, and a short text of it."""
+    text = repr(value)
+    return f"{type(value).__name__} {text[:60]}{'…' if len(text) > 60 else ''}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -580,6 +596,9 @@ class Problem:
         self.branch = branch
         #: start the assumed density at the start noise (Σ_cond = T diag(G Gᵀ), C = 0) instead of Σ = I
         self.noise_scaled_start = False
+        if not isinstance(options, FitOptions):
+            raise FitError(f"options must be a FitOptions, got {_shown(options)}\n  hint: "
+                           "options=vsidgen.FitOptions(max_iter=300)")
         self.records = _check_records(model, records)
         self.integrator, self.substeps = transition_settings(
             model, integrator=options.integrator, substeps=options.substeps)

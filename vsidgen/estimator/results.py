@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import enum
 from collections.abc import Callable
 
@@ -324,6 +325,46 @@ class FitOptions:
     held_parameters: tuple[str, ...] = ()
     parallel_starts: bool = True
     input_state_prior: str | tuple[str, ...] = "all"
+
+    def __post_init__(self):
+        """Numbers checked where they are given (``FitOptions(max_iter=-1)`` ended in a
+        TypeError inside the optimizer; session 44)."""
+        from ..errors import FitError
+
+        def count(name, low):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+                raise FitError(f"FitOptions: {name} must be an integer >= {low}, got {v!r}")
+
+        def positive(name, *, optional=False):
+            v = getattr(self, name)
+            if v is None and optional:
+                return
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not (
+                    math.isfinite(float(v)) and float(v) > 0):
+                raise FitError(f"FitOptions: {name} must be a finite number > 0, got {v!r}")
+
+        count("max_iter", 1)
+        count("stall_window", 0)
+        for name in ("gtol", "decrement_tol", "deterministic_std", "limit_tol", "xtol",
+                     "lambda0", "stall_rtol"):
+            positive(name)
+        positive("time_limit", optional=True)
+        positive("deterministic_input_scale", optional=True)
+        if self.substeps is not None or self.integrator is not None or self.input_hold is not None:
+            from ..model.dynamics import INPUT_HOLDS, INTEGRATORS
+            from ..limits import MAX_SUBSTEPS
+            if self.integrator is not None and self.integrator not in INTEGRATORS:
+                raise FitError(f"FitOptions: integrator must be one of {', '.join(INTEGRATORS)}, "
+                               f"got {self.integrator!r}")
+            if self.input_hold is not None and self.input_hold not in INPUT_HOLDS:
+                raise FitError(f"FitOptions: input_hold must be one of {', '.join(INPUT_HOLDS)}, "
+                               f"got {self.input_hold!r}")
+            if self.substeps is not None:
+                count("substeps", 1)
+                if self.substeps > MAX_SUBSTEPS:
+                    raise FitError(f"FitOptions: substeps must be at most {MAX_SUBSTEPS}, got "
+                                   f"{self.substeps!r}")
 
 
 @dataclasses.dataclass(frozen=True)

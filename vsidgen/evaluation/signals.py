@@ -57,7 +57,7 @@ import scipy.linalg
 
 from ..model.dynamics import transition
 from ..errors import VsidgenError
-from ..model import theta_vector
+from ..model.runtime import finite_theta
 
 from .. import precision  # noqa: F401  (float64, set once)
 
@@ -193,6 +193,8 @@ def _matrix(a, shape0, name, square=False) -> np.ndarray:
     if m.ndim != 2 or m.shape[0] != shape0 or (square and m.shape[1] != shape0):
         want = f"({shape0}, {shape0})" if square else f"({shape0}, k)"
         raise VsidgenError(f"evaluate: {name} must be a {want} matrix, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise VsidgenError(f"evaluate: {name} holds NaN or inf")
     return m
 
 
@@ -264,7 +266,7 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
             used by the estimator); with ``input_hold="foh"`` the free simulation and the
             predictor step from sample k with the input interpolated to u_{k+1}.
     """
-    p = jnp.asarray(theta_vector(model, theta))
+    p = jnp.asarray(finite_theta(model, theta, who="evaluate"))
     mu = np.asarray(mu, dtype=np.float64)
     u = np.asarray(record.u, dtype=np.float64)
     y = np.asarray(record.y, dtype=np.float64)

@@ -158,6 +158,13 @@ def _fit_located(fit, model, records, options):
                              "spec's initial values") from None
 
 
+def _paths(paths) -> list:
+    """A list of file paths; a single path (str or PathLike) is a list of one."""
+    if isinstance(paths, (str, os.PathLike)):
+        return [paths]
+    return list(paths or ())
+
+
 def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             out: str | os.PathLike, validate: Sequence[str | os.PathLike] = (),
             integrator: str | None = None, substeps: int | None = None,
@@ -181,9 +188,13 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     directory that is not a vsidgen results directory needs ``overwrite``, and
     even then only vsidgen's files in it are replaced).
     """
+    data, validate = _paths(data), _paths(validate)   # one path is one record, not characters
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
     overrides = overrides if overrides is not None else Overrides()
+    if not isinstance(overrides, Overrides):
+        raise VsidgenError(f"overrides must be a vsidgen.spec.overrides.Overrides, got "
+                           f"{type(overrides).__name__}\n  hint: Overrides(fix={{'CL_0': 0.45}})")
     for p in list(data) + list(validate):
         check_input_file(p, what="data file")
     ref_path = None

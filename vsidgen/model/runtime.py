@@ -118,12 +118,35 @@ def theta_vector(model, theta) -> np.ndarray:
         if unknown:
             raise VsidgenError(f"unknown parameter(s) {', '.join(map(repr, unknown))}\n"
                                f"  hint: model {model.name} has parameters {', '.join(names)}")
-        return np.array([float(theta.get(p.name, p.initial)) for p in model.parameters])
-    if theta is None:
-        return np.array([float(p.initial) for p in model.parameters])
-    arr = np.asarray(theta, dtype=np.float64).ravel()
-    if arr.shape != (model.np,):
-        raise VsidgenError(f"theta has {arr.size} values, model {model.name} has {model.np} parameters")
+        out = []
+        for p in model.parameters:
+            v = theta.get(p.name, p.initial)
+            try:
+                out.append(float(v))
+            except (TypeError, ValueError):
+                raise VsidgenError(f"parameter {p.name!r}: {v!r} is not a number") from None
+        arr = np.array(out)
+    elif theta is None:
+        arr = np.array([float(p.initial) for p in model.parameters])
+    else:
+        try:
+            arr = np.asarray(theta, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise VsidgenError(f"theta must be a dict name -> number or an array of "
+                               f"{model.np} numbers, got {type(theta).__name__}") from None
+        if arr.shape != (model.np,):
+            raise VsidgenError(f"theta has {arr.size} values, model {model.name} has {model.np} parameters")
+    return arr
+
+
+def finite_theta(model, theta, *, who: str) -> np.ndarray:
+    """:func:`theta_vector`, refused with the parameters' names where a value is NaN or inf
+    (``simulate`` and ``evaluate`` returned NaN signals without a word; session 44)."""
+    arr = theta_vector(model, theta)
+    bad = [n for n, v in zip(model.parameter_names, arr) if not np.isfinite(v)]
+    if bad:
+        raise VsidgenError(f"{who}: parameter(s) {', '.join(map(repr, bad))} not finite "
+                           "(NaN or inf)")
     return arr
 
 

@@ -17,6 +17,7 @@ where f and h may use the ordered ``definitions`` (intermediate quantities);
 from __future__ import annotations
 
 import dataclasses
+import os
 import pathlib
 import math
 import re
@@ -358,6 +359,12 @@ def compile_spec(path) -> SymbolicModel:
     Raises:
         SpecError: any problem in the spec (with file, line, column and hint).
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise SpecError(f"compile_spec reads a spec file; got {type(path).__name__}",
+                        hint="compile_spec('specs/my_aircraft.yaml')")
+    if isinstance(path, str) and "\n" in path:
+        raise SpecError("compile_spec reads a spec file; got a text of several lines (the "
+                        "spec itself?)", hint="write the text to a .yaml file and give its path")
     try:
         return compile_typed(read_spec(path, generator_version=GENERATOR_VERSION))
     except RecursionError:
