@@ -235,8 +235,28 @@ def test_simulate_never_writes_over_what_it_reads(user_dir):
     _case(user_dir, base + ["--out", "user/flight.csv"], "user/flight.csv", "reads")
     _case(user_dir, base + ["--out", "user/attas_sp.yaml"], "reads")
     os.symlink("user/flight.csv", user_dir / "alias.csv")
-    _case(user_dir, base + ["--out", "alias.csv"], "alias.csv", "reads")
+    _case(user_dir, base + ["--out", "alias.csv"], "alias.csv", "symbolic link")
     _case(user_dir, base + ["--out", "user"], "user", "is a directory")
+    # a link to any file is refused: the rename would replace the link (session 44)
+    (user_dir / "other.csv").write_text("mine\n")
+    os.symlink("other.csv", user_dir / "lnk.csv")
+    _case(user_dir, base + ["--out", "lnk.csv"], "lnk.csv", "symbolic link")
+    assert (user_dir / "lnk.csv").is_symlink() and (user_dir / "other.csv").read_text() == "mine\n"
+
+
+def test_simulate_refuses_records_it_could_not_hold(user_dir):
+    """`--duration 1e7 --dt 0.1` (1e8 samples, within the old bound) and a multisine of 1e8
+    components ended in MemoryError, exit 3; a maneuver option given twice was taken
+    silently (session 44, red team)."""
+    assert run_cli(["build", "user/attas_sp.yaml"], user_dir, None).returncode == 0
+    base = ["simulate", "user/attas_sp.yaml", "--out", "s.csv"]
+    _case(user_dir, base + ["--duration", "1e7", "--dt", "0.1",
+                            "--input", "de=doublet:amplitude=0.02"], "--duration", "fit reads")
+    _case(user_dir, base + ["--duration", "10", "--dt", "0.1",
+                            "--input", "de=multisine:amplitude=0.01,n=100000000"], "from 1 to 1000")
+    _case(user_dir, base + ["--duration", "10", "--dt", "0.1",
+                            "--input", "de=doublet:amplitude=1,amplitude=2"], "given twice")
+    assert not (user_dir / "s.csv").exists()
 
 
 # --------------------------------------------------------------------------- results directories

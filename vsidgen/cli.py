@@ -398,6 +398,16 @@ def _cmd_simulate(args) -> int:
             raise VsidgenError(f"--duration {args.duration:g} s at --dt {dt:g} s gives more than "
                                "1e8 samples; shorten the record or raise --dt")
         n = int(round(args.duration / dt)) + 1
+        # the record written must be one `fit` reads: at most the data limit, at 24 bytes a
+        # value (%.17g and a comma) in the time, input and output columns; 1e8 samples were
+        # allowed and ended in MemoryError (session 44)
+        from .limits import DATA_LIMIT_ENV, data_limit, human_bytes
+        size = n * (1 + model.nu + model.ny) * 24
+        if size > data_limit():
+            raise VsidgenError(f"--duration {args.duration:g} s at --dt {dt:g} s gives {n} samples, "
+                               f"a record of about {human_bytes(size)}: larger than the "
+                               f"{human_bytes(data_limit())} that fit reads\n  hint: shorten the "
+                               f"record, raise --dt, or raise ${DATA_LIMIT_ENV}")
         t = np.arange(n) * dt
         gens = {}
         for item in args.input or ():

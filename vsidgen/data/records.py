@@ -543,7 +543,7 @@ def load_record(model, path, *, name: str | None = None) -> Record:
     Raises:
         DataError: see the module docstring.
     """
-    if not hasattr(model, "data") or not hasattr(model, "output_names"):
+    if not hasattr(model, "data"):
         raise DataError(f"load_record needs the compiled spec or the model, got "
                         f"{type(model).__name__} {str(model)[:60]!r}",
                         hint="load_record(vsidgen.load_model('spec.yaml'), 'flight.csv')")

@@ -74,6 +74,11 @@ def three_two_one_one(t, *, amplitude: float, start: float = 1.0, unit: float = 
     return out
 
 
+#: most components of a multisine (a sum of n cosines is evaluated on every sample: n =
+#: 1e8 asked for 75 GiB; session 44)
+MAX_COMPONENTS = 1000
+
+
 def multisine(t, *, amplitude: float, f_min: float = 0.1, f_max: float = 2.0, n: int = 10,
               start: float = 0.0) -> np.ndarray:
     """Schroeder-phased multisine of ``n`` components in ``[f_min, f_max]`` Hz.
@@ -83,8 +88,8 @@ def multisine(t, *, amplitude: float, f_min: float = 0.1, f_max: float = 2.0, n:
     ``c`` makes ``max |u| = amplitude`` over the given ``t``.
     """
     n = int(n)
-    if n < 1 or f_min <= 0 or f_max < f_min:
-        raise VsidgenError(f"multisine: need n >= 1 and 0 < f_min <= f_max (got n={n}, "
+    if n < 1 or n > MAX_COMPONENTS or f_min <= 0 or f_max < f_min:
+        raise VsidgenError(f"multisine: need 1 <= n <= {MAX_COMPONENTS} and 0 < f_min <= f_max (got n={n}, "
                            f"f_min={f_min}, f_max={f_max})")
     t = _t(t)
     f = np.linspace(f_min, f_max, n) if n > 1 else np.array([float(f_min)])
@@ -196,6 +201,8 @@ def parse_input_spec(text: str) -> InputSpec:
                 fail(f"option {item!r} of {man} needs KEY=VALUE")
             if key not in required and key not in defaults:
                 fail(f"unknown option {key!r} of {man} (valid: {', '.join(required + list(defaults))})")
+            if key in opts:
+                fail(f"option {key} of {man} given twice")
             try:
                 v = float(val)
             except ValueError:
@@ -203,8 +210,8 @@ def parse_input_spec(text: str) -> InputSpec:
             if not math.isfinite(v):
                 fail(f"option {key} of {man} must be finite")
             if key == "n":
-                if v != int(v) or v < 1:
-                    fail("option n of multisine must be a positive integer")
+                if v != int(v) or v < 1 or v > MAX_COMPONENTS:
+                    fail(f"option n of multisine must be an integer from 1 to {MAX_COMPONENTS}")
                 v = int(v)
             opts[key] = v
         missing = [k for k in required if k not in opts]
