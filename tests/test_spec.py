@@ -422,3 +422,19 @@ def test_numbers_yaml_11_reads_oddly_are_refused_at_their_line(tmp_path, written
     ok = compile_spec(write(tmp_path, replace("CD0: {initial: 0.1, bounds: [0, 1]}",
                                               "CD0: {initial: 1_000.5, bounds: [-1e4, 1E+4]}")))
     assert ok.parameters[0].initial == 1000.5
+
+
+@pytest.mark.parametrize("char, hint", [("\u2028", "line break"), ("\x85", "line break"),
+                                        ("\x1b", "plain text"), ("\x0c", "plain text")])
+def test_characters_yaml_refuses_or_counts_as_lines_are_located_by_the_files_lines(
+        tmp_path, char, hint):
+    """An ESC byte gave "YAML error: … position 1415" (no line, a literal `\\n`); U+2028 or
+    NEL in a description moved every later error's line number (YAML counts them as line
+    breaks, editors do not) (session 44, red team). Refused at the file's own line and
+    column, whatever its line ends."""
+    for end in ("\n", "\r\n"):
+        text = replace("  alpha: MDE*de\n", f"  alpha: MDE*de  # a{char}b\n").replace("\n", end)
+        err = error(tmp_path, text)
+        line = next(i for i, ln in enumerate(GOOD.splitlines(), 1) if "alpha: MDE*de" in ln)
+        assert f":{line}:" in str(err) and f"U+{ord(char):04X}" in str(err), str(err)
+        assert hint in str(err)

@@ -362,7 +362,7 @@ def compile_spec(path) -> SymbolicModel:
     if not isinstance(path, (str, os.PathLike)):
         raise SpecError(f"compile_spec reads a spec file; got {type(path).__name__}",
                         hint="compile_spec('specs/my_aircraft.yaml')")
-    if isinstance(path, str) and "\n" in path:
+    if isinstance(path, str) and "\n" in path and ":" in path and not os.path.lexists(path):
         raise SpecError("compile_spec reads a spec file; got a text of several lines (the "
                         "spec itself?)", hint="write the text to a .yaml file and give its path")
     try:
