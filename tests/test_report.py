@@ -299,7 +299,8 @@ def test_standard_error_issues_are_listed_with_their_parameters(tmp_path):
     assert "the information is nearly singular (CD0, CDV): fix one" in params
 
 
-@pytest.mark.parametrize("edit", ["deep", "ragged_correlation", "huge_integer"])
+@pytest.mark.parametrize("edit", ["deep", "ragged_correlation", "huge_integer",
+                                  "repeated_outputs"])
 def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
     """results.json that parses but is not what vsidgen writes (from the hostile-input
     report): a 10^5-deep nesting (RecursionError), a ragged correlation matrix, a 5000-digit
@@ -318,6 +319,9 @@ def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
         doc = json.loads(path.read_text())
         if edit == "ragged_correlation":
             doc["correlation"] = {"names": ["a", "b"], "matrix": [[1, 2], [3]]}
+            path.write_text(json.dumps(doc))
+        elif edit == "repeated_outputs":    # 50 copies: minutes of plotting (session 44)
+            doc["model"]["outputs"] = doc["model"]["outputs"] * 50
             path.write_text(json.dumps(doc))
         else:
             name = next(iter(doc["parameters"]))
