@@ -84,13 +84,16 @@ def test_refit_of_the_unchanged_model_gains_nothing_over_the_search_reference(tm
     _record(csv)
     gen = tmp_path / "generated"
     said: list[str] = []
-    run = types.SimpleNamespace(gen=gen, max_iter=200, say=said.append)
+    run = types.SimpleNamespace(gen=gen, max_iter=200, say=said.append, progress=None,
+                                past_deadline=lambda: False)
+    st = types.SimpleNamespace(reference=None)
 
     base = fit_spec(spec, [csv], generated_dir=gen, max_iter=200)
     assert base.fit.deterministic_states == ("theta",)
     assert base.fit.deterministic_limit is not None and base.fit.converged
-    ref = _held_reference(run, spec, base)
+    ref = _held_reference(run, spec, base, st)
     assert ref is not base and ref.fit.converged
+    assert st.reference["held"] and st.reference["states"] == ["theta"]
     assert any("in the exact limit" in s for s in said)
     # the same model refitted the way candidates are: no gain over the search's reference ...
     again = refit_warm(spec, ref, ref, generated_dir=gen, iterations=400, max_iter=200)
@@ -103,4 +106,30 @@ def test_refit_of_the_unchanged_model_gains_nothing_over_the_search_reference(tm
     spec2.write_text(SPEC.replace("states: [q]", "states: [q, theta]").replace(
         "name: pitch_det", "name: pitch_noisy"), encoding="utf-8")
     base2 = fit_spec(spec2, [csv], generated_dir=gen, max_iter=200)
-    assert _held_reference(run, spec2, base2) is base2
+    assert _held_reference(run, spec2, base2, st) is base2
+
+
+def test_an_unconverged_held_reference_is_continued_and_the_fallback_recorded(monkeypatch):
+    """A new user's model: the held fit stopped unconverged and refits were measured against
+    the limit's ELBO, said in one progress line only (an integrator setting's 2ΔELBO 1406
+    where ~160; session 44). The held fit is now continued once; when it still does not
+    converge, findings.json's `reference` says so, with both ELBOs."""
+    from vsidgen.discrepancy import search
+
+    fit = types.SimpleNamespace(deterministic_states=("theta",), deterministic_limit=0.1,
+                                elbo=100.0, status="converged")
+    base = types.SimpleNamespace(fit=fit, elbo=100.0)
+    held = types.SimpleNamespace(fit=types.SimpleNamespace(elbo=150.0, status="iteration limit"),
+                                 elbo=150.0)
+    polished = []
+    monkeypatch.setattr(search, "refit_warm", lambda *a, **k: held)
+    monkeypatch.setattr(search, "refit_converged", lambda f: False)
+    monkeypatch.setattr(search, "polish", lambda st, **k: polished.append(st) or st)
+    said: list[str] = []
+    run = types.SimpleNamespace(gen=None, max_iter=10, say=said.append, progress=None,
+                                past_deadline=lambda: False)
+    st = types.SimpleNamespace(reference=None)
+    assert search._held_reference(run, "spec.yaml", base, st) is base
+    assert polished == [held]
+    assert st.reference["held"] is False and st.reference["elbo_held"] == 150.0
+    assert "overstated" in st.reference["note"] and any("overstated" in s for s in said)

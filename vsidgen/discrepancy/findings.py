@@ -37,6 +37,9 @@ findings.json (keys in this order)::
                                  "screen": [the round's ranking, as rounds[].screen]},
      "stop": {"reason": "completed" | "time_limit" | "interrupted" | "running",
               "time_limit_s"},
+     "reference": null | {"held": bool, "states": [...], "elbo_limit", "elbo_held",
+                          "held_converged": bool, "note"?}  (states without process noise:
+                          the fit every refit is compared with),
      "report": "diagnose.html", "wall_time_s": ...}
 """
 
