@@ -248,12 +248,12 @@ def test_bad_results_dir_raises_vsidgen_error(tmp_path, breakage, message):
 def test_existing_report_replaced_atomically(tmp_path):
     d = write_results_dir(tmp_path / "fit", validation=False, n_samples=80, n_outputs=1)
     (d / "report.html").write_text("old")
-    write_report(d)
+    write_report(d, overwrite=True)      # (not vsidgen's file: replaced only when asked)
     assert (d / "report.html").read_text().startswith("<!DOCTYPE html>")
     # a failing run leaves the previous report untouched
     (d / "signals_hfb320_1_10.csv").write_text("t_s\n")
-    with pytest.raises(VsidgenError):
-        write_report(d)
+    with pytest.raises(VsidgenError, match="signals"):
+        write_report(d, overwrite=True)
     assert (d / "report.html").read_text().startswith("<!DOCTYPE html>")
 
 
@@ -351,3 +351,28 @@ def test_an_overlong_equation_is_shown_as_source_not_typeset(monkeypatch):
     many = _equations({"drift": {f"x{i}": "x + " * (MAX_TYPESET_CHARS // 5) + "1" for i in range(40)}})
     imgs = [e["img"] is not None for e in many[0]["eqs"]]
     assert any(imgs) and not all(imgs)          # the report's budget ends typesetting
+
+
+def test_a_report_written_by_the_api_is_the_tools_own(tmp_path, capsys):
+    """`write_report(dir)` from a script, then `vsidgen report dir`, was refused: "exists and
+    was not written by vsidgen" (session 44, a new user). The API lists its report in the
+    manifest; neither replaces a file vsidgen did not write without `overwrite`."""
+    from report_fixture import write_results_dir
+
+    from vsidgen.atomic import MANIFEST, read_manifest
+    from vsidgen.cli import main
+    from vsidgen.errors import VsidgenError
+
+    d = write_results_dir(tmp_path / "res", n_samples=40, validation=False, n_outputs=1)
+    (d / MANIFEST).write_text(json.dumps({"format": "vsidgen-results", "version": 1,
+                                          "files": sorted(p.name for p in d.iterdir())}))
+    write_report(d)
+    assert "report.html" in read_manifest(d)["files"]
+    assert main(["report", str(d)]) == 0
+    mine = tmp_path / "mine.html"
+    mine.write_text("mine")
+    with pytest.raises(VsidgenError, match="not written by vsidgen"):
+        write_report(d, out=mine)
+    assert mine.read_text() == "mine"
+    write_report(d, out=mine, overwrite=True)
+    assert mine.read_text() != "mine"

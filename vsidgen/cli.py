@@ -600,7 +600,7 @@ def _cmd_report(args) -> int:
     """
     import os
 
-    from .atomic import add_to_manifest, check_output_file, read_manifest
+    from .atomic import check_output_file, read_manifest
     from .report import parse_reference, write_report
 
     d = pathlib.Path(args.dir)
@@ -618,15 +618,14 @@ def _cmd_report(args) -> int:
                            f"the manifest of {d}); pass --overwrite to replace it or choose "
                            "another --out")
     try:
-        path = write_report(args.dir, out=out, reference=args.reference)
+        path = write_report(args.dir, out=out, reference=args.reference,
+                            overwrite=bool(args.overwrite))
     except (ValueError, TypeError, KeyError, IndexError, AttributeError, RecursionError) as err:
         # results.json parsed, but its content is not what vsidgen writes (hand-edited or
         # hostile: a 10^5-deep nesting, a 5000-digit integer, a ragged correlation matrix)
         raise VsidgenError(f"{d / 'results.json'}: error: its content is not what vsidgen "
                            f"writes ({type(err).__name__}: {str(err)[:200]})\n  hint: re-run "
                            "`vsidgen fit` to write it again") from None
-    if in_dir:
-        add_to_manifest(d, [out.name])
     print(f"wrote {path}")
     return 0
 

@@ -700,7 +700,8 @@ def _versions(res: dict) -> list[tuple[str, str]]:
 
 def write_report(results_dir, *, out=None, reference=None, title: str | None = None,
                  extra_sections: Sequence[tuple[str, str]] | None = None,
-                 display_dir: str | os.PathLike | None = None) -> pathlib.Path:
+                 display_dir: str | os.PathLike | None = None,
+                 overwrite: bool = False) -> pathlib.Path:
     """Render a fit's results directory into one self-contained HTML file.
 
     Args:
@@ -719,6 +720,9 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
             discrepancy analysis); ``html`` is inserted verbatim (trusted).
         display_dir: the directory named in the footer (default ``results_dir``;
             ``vsidgen fit`` passes its final ``--out`` while it writes a temporary one).
+        overwrite: replace an existing ``out`` that vsidgen did not write (one listed in the
+            results directory's manifest is replaced anyway, and a report written into the
+            results directory is listed there, so ``vsidgen report`` may replace it later).
 
     Only files inside ``results_dir`` are read (:func:`contained_file`); the page's
     one inline script is allowed by its SHA-256 hash in the Content-Security-Policy
@@ -733,10 +737,19 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
     import jinja2
     from markupsafe import Markup
 
+    from ..atomic import add_to_manifest, read_manifest
+
     results_dir = pathlib.Path(results_dir)
     res = read_results(results_dir)
     ref, ref_label, _ = parse_reference(reference)
     out_path = pathlib.Path(out) if out is not None else results_dir / "report.html"
+    in_dir = results_dir.is_dir() and out_path.parent.resolve() == results_dir.resolve()
+    if os.path.lexists(out_path) and not overwrite:
+        manifest = read_manifest(results_dir) if in_dir else None
+        if manifest is None or out_path.name not in manifest["files"]:
+            raise VsidgenError(f"{out_path}: error: exists and was not written by vsidgen (not "
+                               f"listed in the manifest of {results_dir}); pass overwrite "
+                               "(--overwrite) to replace it or choose another output file")
 
     outputs = _vars(res["model"].get("outputs"))
     states = _vars(res["model"].get("states"))
@@ -813,6 +826,8 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
 
     try:
         write_text_atomic(out_path, html)
+        if in_dir:
+            add_to_manifest(results_dir, [out_path.name])
     except OSError as err:
         raise VsidgenError(f"{out_path}: error: cannot write report: {err}") from None
     return out_path
