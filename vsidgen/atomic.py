@@ -391,6 +391,16 @@ def plan_output_dir(target: str | os.PathLike, *, overwrite: bool = False,
 def _plan_claimed(target: pathlib.Path, parent: pathlib.Path, *, overwrite: bool, reads,
                   option: str, recover_leftovers: bool) -> OutputPlan:
     """:func:`plan_output_dir` once the directory is this process's to write."""
+    if parent.is_dir():
+        # permission bits can say yes where the file system says no (root in /sys or /proc):
+        # the results would be computed and then not written (session 44)
+        probe = _leftover_path(target, "tmp")
+        try:
+            os.mkdir(probe)
+            os.rmdir(probe)
+        except OSError as exc:
+            raise VsidgenError(f"{target}: error: {option} cannot be created in {parent} "
+                               f"({exc.strerror})") from None
     recovered = recover(target) if (recover_leftovers and parent.is_dir()) else ()
     reads_r = _resolved(reads)
     if not target.exists():
@@ -581,11 +591,21 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
         print_recovered(plan)
     target = plan.target
     parent = target.parent if str(target.parent) else pathlib.Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise VsidgenError(f"{target}: error: cannot create the folder {parent} "
+                           f"({exc.strerror})") from None
     tmp = _leftover_path(target, "tmp")
     _ACTIVE.add(str(tmp))
     try:
-        os.mkdir(tmp)
+        try:
+            os.mkdir(tmp)
+        except OSError as exc:
+            # e.g. a folder root may "write" by its permission bits but the file system
+            # refuses (/sys, /proc): the message names the directory asked for (session 44)
+            raise VsidgenError(f"{target}: error: cannot create the results directory there "
+                               f"({exc.strerror})") from None
         try:
             yield tmp
             if plan.mode is WriteMode.SWAP:
