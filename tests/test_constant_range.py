@@ -92,3 +92,17 @@ def test_unused_constant_and_other_dimensions_are_left_alone(tmp_path):
 def test_a_text_column_named_like_a_constant_does_not_break_loading(tmp_path):
     w = _case(tmp_path, V=60.0, speed=np.array(["fast"] * 50, dtype=object))
     assert w == []
+
+
+def test_a_constant_written_to_fewer_digits_than_the_column_is_inside(tmp_path):
+    """`Iyy: 32920.6` against a column that records 32920.6156 throughout was warned "outside
+    the range (32920.6 … 32920.6)" (session 44, a new user). A constant agrees with the
+    record to the digits it is written with (half a unit of its last digit); 32920.5 does
+    not."""
+    from vsidgen.spec.dataunits import written_half_digit
+
+    assert written_half_digit(32920.6) == pytest.approx(0.05)
+    assert written_half_digit(0.001) == pytest.approx(5e-4)
+    flat = np.full(50, 72.0156)
+    assert _case(tmp_path, V=72.0, speed=flat) == []
+    assert len(_case(tmp_path, V=71.9, speed=flat)) == 1

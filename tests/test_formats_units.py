@@ -508,3 +508,16 @@ def test_constant_columns_of_a_wide_header_take_linear_time():
     header = ["t", "v_mps", "mass_kg", "mass_kg", "V"] + [f"c{i}" for i in range(50000)]
     consts = [types.SimpleNamespace(name=n) for n in ("V", "MASS", "rho")]
     assert dataunits.constant_columns(consts, header, taken=["t"]) == {"V": ["v_mps", "V"]}
+
+
+def test_a_spec_or_readme_given_as_a_record_is_not_read_as_a_csv(tmp_path):
+    """`vsidgen fit spec.yaml spec.yaml` said "line 1 is a comment (...), not the column
+    names": the spec was read as a CSV (session 44, a new user). A file whose name says it
+    is no record is refused as such."""
+    sym = compile_spec(SPEC)
+    for name, what in (("notes.md", "Markdown"), ("spec.yaml", "YAML"), ("r.json", "JSON")):
+        p = tmp_path / name
+        p.write_text("# DHC-6 Twin Otter,longitudinal\nt_s,de_rad\n0,1\n")
+        with pytest.raises(DataError) as ei:
+            load_record(sym, p)
+        assert f"not a supported data file (a {what} file)" in str(ei.value)

@@ -91,6 +91,11 @@ def detect_format(path: pathlib.Path) -> DataFormat:
         return DataFormat.MAT73
     if path.suffix.lower() == ".mat":
         return DataFormat.MAT  # v4 has no text header; scipy decides
+    if path.suffix.lower() in _NOT_DATA:
+        # a spec or a README given as a record was read as a CSV whose first line is a
+        # comment (session 44, a new user)
+        raise DataError(f"not a supported data file (a {_NOT_DATA[path.suffix.lower()]} file)",
+                        path=path, hint=f"give the flight record; supported formats: {SUPPORTED}")
     if b"\0" not in head:
         try:
             head.decode("utf-8")
@@ -114,6 +119,13 @@ def detect_format(path: pathlib.Path) -> DataFormat:
     kind = _guess_binary(head)
     raise DataError(f"not a supported data file{kind}", path=path,
                     hint=f"supported formats: {SUPPORTED}")
+
+
+#: file name endings that are never a flight record, and what they are
+_NOT_DATA = {".yaml": "YAML", ".yml": "YAML", ".json": "JSON", ".md": "Markdown",
+             ".html": "HTML", ".htm": "HTML", ".py": "Python", ".ipynb": "notebook",
+             ".pdf": "PDF", ".xlsx": "Excel workbook", ".xls": "Excel workbook",
+             ".zip": "zip archive", ".gz": "gzip archive"}
 
 
 def _utf16_without_bom(head: bytes) -> bool:

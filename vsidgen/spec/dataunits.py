@@ -316,6 +316,18 @@ def constant_columns(constants, header, *, taken=()) -> dict[str, list[str]]:
     return out
 
 
+def written_half_digit(value: float) -> float:
+    """Half a unit of the last digit of ``value`` as Python writes it shortest (``repr``):
+    0.05 for 32920.6, 5e-4 for 0.001, 0.05 for 90.0: the precision a number written with
+    those digits claims."""
+    import decimal
+
+    if not math.isfinite(value):
+        return 0.0
+    exponent = decimal.Decimal(repr(float(value))).as_tuple().exponent
+    return 0.5 * 10.0 ** int(exponent) if isinstance(exponent, int) else 0.0
+
+
 def constant_range_warnings(constants, columns, matches, *, path=None) -> tuple[DataWarning, ...]:
     """One warning per constant whose value lies outside the recorded range of a column that
     records the same quantity (``matches``: :func:`constant_columns`; ``columns``: {column:
@@ -347,7 +359,10 @@ def constant_range_warnings(constants, columns, matches, *, path=None) -> tuple[
             elif named and not c.unit:
                 shown = named
             lo, hi, mean = float(v.min()), float(v.max()), float(v.mean())
-            if lo <= c.value <= hi:
+            # the constant as written (32920.6) agrees with a column that records 32920.6156
+            # to the digits it was written with: half a unit of its last digit (session 44)
+            half = written_half_digit(c.value)
+            if lo - half <= c.value <= hi + half:
                 continue
             unit = f" {shown}" if shown else ""
             conv = f" (converted from {named})" if named and c.unit and named != c.unit else ""
