@@ -126,7 +126,7 @@ def test_what_other_languages_write_gets_the_spec_equivalent(text, hint):
     ("'abc'", "number literals", 1),
     ("__import__('os')", "unknown function `__import__`", 1),
     ("foo(V)", "unknown function `foo`", 1),
-    ("V ^ 2", "operator `^`", 1),
+    ("V ^ 2", "operator `^`", 3),
     ("2**1000", "exponent is too large", 4),
     ("9**9**9", "exponent is too large", 4),
     ("1e999999", "not finite", 1),

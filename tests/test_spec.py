@@ -201,7 +201,13 @@ def test_unknown_unit(tmp_path):
     err = error(tmp_path, replace("  V: {unit: m/s}", "  V: {unit: m/sec}", ))
     assert err.message == "unknown unit `sec`"
     assert (err.line, err.column) == (3, 15)
-    assert "known units" in err.hint
+    assert "did you mean `s`?" in err.hint           # (had only the list; session 44)
+    err = error(tmp_path, replace("  V: {unit: m/s}", "  V: {unit: furlong}", ))
+    assert "known units" in err.hint and "`1` for a dimensionless" in err.hint
+    err = error(tmp_path, replace("  V: {unit: m/s}", "  V: {unit: dimensionless}", ))
+    assert "did you mean `1`?" in err.hint
+    err = error(tmp_path, replace("  V: {unit: m/s}", "  V: {unit: \"\"}", ))
+    assert err.message == "empty unit"
 
 
 def test_extends_cycle(tmp_path):

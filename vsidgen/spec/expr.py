@@ -406,8 +406,17 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
         if not isinstance(op, (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow)):
             hint = "allowed: + - * / **"
             if isinstance(op, ast.BitXor):
-                hint = "use ** for powers"
-            raise _error(ctx, f"operator `{_op_text(node.op)}` is not allowed", node, hint=hint)
+                hint = ("use ** for powers: `" + ctx.text.strip().replace("^", "**") + "`")
+            # point at the operator itself, not at the whole operation (`^` binds last, so
+            # the operation of `k*a + k*a^2` was the whole line; session 44)
+            gap_start = _char_offset(ctx.text, getattr(node.left, "end_col_offset", 0) or 0)
+            gap_end = _char_offset(ctx.text, getattr(node.right, "col_offset", 0) or 0)
+            sym = _op_text(node.op)
+            at = ctx.text.find(sym, gap_start, max(gap_end, gap_start))
+            if at < 0 or getattr(node, "end_lineno", 1) != getattr(node, "lineno", 1):
+                raise _error(ctx, f"operator `{sym}` is not allowed", node, hint=hint)
+            raise _error(ctx, f"operator `{sym}` is not allowed", None, hint=hint, offset=at,
+                         length=len(sym))
         left = _convert(ctx, node.left, depth + 1)
         right = _convert(ctx, node.right, depth + 1)
         if isinstance(op, ast.Pow):
@@ -485,6 +494,8 @@ def _name(ctx: _Ctx, node: ast.Name):
                 + (", e.g. m/s^2 for accelerations" if name == "g" else
                    ", e.g. m/s for speeds" if name in ("kt", "knot", "mph") else
                    ", e.g. N for forces or kg for masses"))
+    if ctx.units and name.lower() in _UNIT_SPELLINGS:
+        hint = f"did you mean `{_UNIT_SPELLINGS[name.lower()]}`?"
     if ctx.units:
         m = re.fullmatch(r"([A-Za-z]+)(\d+)", name)
         if m and m.group(1) in ctx.namespace:   # `m/s2`: a power written without ^
@@ -494,11 +505,23 @@ def _name(ctx: _Ctx, node: ast.Name):
                 "else declare `e` under states, inputs, constants, parameters or definitions")
     if hint is None:
         hint = ("declare it under states, inputs, constants, parameters or definitions"
-                if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace)))
+                if not ctx.units else "known units: " + ", ".join(sorted(ctx.namespace))
+                + "; `1` for a dimensionless quantity")
     note = non_ascii_note(name) if spelt == name else None
     if note:
         hint = f"{note} (names are ASCII); {hint}"
     raise _error(ctx, f"unknown {what} `{name}`", node, hint=hint)
+
+
+#: unit names as people write them -> the spec's spelling (`rad/sec` had no hint)
+_UNIT_SPELLINGS = {"sec": "s", "secs": "s", "second": "s", "seconds": "s", "meter": "m",
+                   "meters": "m", "metre": "m", "metres": "m", "radian": "rad", "radians": "rad",
+                   "degree": "deg", "degrees": "deg", "hz": "Hz", "newton": "N", "newtons": "N",
+                   "kilogram": "kg", "kilograms": "kg", "feet": "ft", "foot": "ft",
+                   "hour": "h", "hours": "h", "hr": "h", "minute": "min", "minutes": "min",
+                   "pascal": "Pa", "kelvin": "K", "dimensionless": "1", "none": "1",
+                   "unitless": "1", "nondim": "1", "nd": "1",
+                   "dps": "deg/s", "mps": "m/s"}
 
 
 def _table(ctx: _Ctx, node, depth: int, what: str):
@@ -626,6 +649,10 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
                           line=line, column=column, offset=None, length=None,
                           hint=f"at most {MAX_LENGTH} characters; split it into definitions")
     if not text.strip():
+        if units:
+            raise SpecError("empty unit", path=path, line=line, column=column,
+                            hint="write a unit such as `m/s` or `1` for a dimensionless "
+                                 "quantity, or leave `unit:` out")
         raise SpecError("empty expression", path=path, line=line, column=column,
                         hint="write an expression such as `0` or `a*b`")
     if "\x00" in text:
