@@ -233,3 +233,17 @@ def test_records_with_one_file_name_in_two_folders_keep_both_names(tmp_path):
     est, val = load_records(compile_spec(SPEC), [tmp_path / "d1" / "rec.csv"],
                             [tmp_path / "d2" / "rec.csv"])
     assert [r.name for r in est] == ["rec"] and [r.name for r in val] == ["rec_1"]
+
+
+def test_a_mistyped_option_gets_the_commands_usage_and_the_nearest_option(capsys):
+    """`vsidgen fit … --validation v.csv` printed the top-level usage and no hint (session 44,
+    a new user): the command's usage, the argument, and the option meant."""
+    from vsidgen.cli import main
+
+    code = main(["fit", str(SPEC), str(DATA), "-o", "never", "--validation", str(VAL)])
+    err = capsys.readouterr().err
+    assert code == 2 and "usage: vsidgen fit" in err and "did you mean `--validate`?" in err
+    assert not pathlib.Path("never").exists()
+    code = main(["check", str(SPEC), "--dta", str(DATA)])
+    err = capsys.readouterr().err
+    assert code == 2 and "did you mean `--data`?" in err

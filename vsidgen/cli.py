@@ -669,12 +669,35 @@ def make_parser(*, light: bool = False) -> argparse.ArgumentParser:
     return parser
 
 
+def _unrecognized(parser: argparse.ArgumentParser, args, extra: list[str]) -> int:
+    """The command's usage and, for a mistyped option, the nearest of its own options
+    (`--validation` printed the top-level usage and no hint; session 44). Exit status 2."""
+    import difflib
+
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    cmd = sub.choices.get(getattr(args, "command", None), parser)
+    options = [o for a in cmd._actions for o in a.option_strings if o.startswith("--")]
+    lines = [cmd.format_usage().rstrip(),
+             f"{cmd.prog}: error: unrecognized argument{'s' if len(extra) > 1 else ''}: "
+             + " ".join(extra)]
+    for word in extra:
+        if word.startswith("-"):
+            near = difflib.get_close_matches(word.split("=", 1)[0], options, n=1, cutoff=0.6)
+            if near:
+                lines.append(f"  hint: did you mean `{near[0]}`? (`{cmd.prog} --help` lists "
+                             "the options)")
+    print("\n".join(lines), file=sys.stderr)
+    return 2
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 error, 130 interrupted)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = make_parser(light=bool(argv) and argv[0] in _LIGHT_COMMANDS)
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
+        if extra:
+            return _unrecognized(parser, args, extra)
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)
         return int(exc.code or 0) if isinstance(exc.code, int) else 2
     try:
