@@ -521,3 +521,20 @@ def test_a_spec_or_readme_given_as_a_record_is_not_read_as_a_csv(tmp_path):
         with pytest.raises(DataError) as ei:
             load_record(sym, p)
         assert f"not a supported data file (a {what} file)" in str(ei.value)
+
+
+def test_an_equation_mixing_degrees_and_radians_names_its_terms(tmp_path):
+    """`cos(theta - alpha)` with θ in rad and α in deg had only the generic per-variable
+    warnings (session 44, a new user): the equation is named with the two terms whose
+    numbers disagree; a consistent equation gets nothing."""
+    path = tmp_path / "mix.yaml"
+    path.write_text("name: mix\nstates:\n  alpha: {unit: deg}\n  q: {unit: rad/s}\n"
+                    "  theta: {unit: rad}\ninputs:\n  de: {unit: rad}\noutputs:\n"
+                    "  a_m: {unit: deg}\nparameters:\n  Za: {unit: 1/s}\n  Ma: {unit: 1/s^2}\n"
+                    "drift:\n  alpha: Za*alpha\n  q: Ma*theta + cos(theta - alpha)\n"
+                    "  theta: q\nobservations:\n  a_m: alpha\n"
+                    "data:\n  time: t\n  inputs: {de: de}\n  outputs: {a_m: a}\n")
+    got = [w for w in compile_spec(path).warnings if w.code == "unit_scale"]
+    assert len(got) == 1 and "drift of `q`" in got[0].message, [w.message for w in got]
+    assert "degree-based" in got[0].message and "coherent" in got[0].message
+    assert got[0].line == 15

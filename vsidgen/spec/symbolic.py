@@ -239,7 +239,19 @@ def _warn_coherence(warnings: list, spec: Spec, right: set[tuple[str, str]]) -> 
             _warn(warnings, msg, d.name, code="noncoherent_unit", hint=hint)
 
 
-def _right_as_written(decl: "_Declared", definitions, drift, observations) -> set[tuple[str, str]]:
+def _factor_words(f: float) -> str:
+    """A unit factor to coherent units in words: `deg` numbers, coherent numbers, or ×f."""
+    for k, words in ((1.0, "coherent units (SI, rad)"),
+                     (math.pi / 180.0, "degree-based units (deg, deg/s, …)"),
+                     (180.0 / math.pi, "per-degree units"),
+                     ((math.pi / 180.0) ** 2, "units of degrees squared")):
+        if math.isclose(f, k, rel_tol=1e-9):
+            return words
+    return f"units {f:.6g} × the coherent ones"
+
+
+def _right_as_written(decl: "_Declared", definitions, drift, observations,
+                      issues: list | None = None) -> set[tuple[str, str]]:
     """(kind, name) of the declarations in a non-coherent unit whose numbers are right as they stand: every
     equation that uses them, directly or through definitions, is consistent in the declared
     units — :func:`units.scale_of` gives the equation a factor to coherent units and it
@@ -247,7 +259,9 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations) -> se
     degrees throughout (q in deg/s, a bias in deg/s², a side-force derivative in m/(s·deg)
     times a rate in deg/s) is; sin() of a state in deg, or an α in rad beside a derivative
     per deg, is not, and neither is an equation with a symbol without a unit (unknown).
-    The check follows the algebra, not which names appear (sessions 43–44)."""
+    The check follows the algebra, not which names appear (sessions 43–44). ``issues``
+    receives ``(where, message)`` for each equation whose numbers disagree, naming the terms
+    (`θ − α` with θ in rad and α in deg had only the generic warnings; session 44)."""
     def factor(unit) -> float | None:
         return None if unit is None else _units.coherent(unit)[0]
 
@@ -270,9 +284,24 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations) -> se
             if lhs is decl.states:      # the state's own unit is the left-hand side's
                 names |= {v.symbol}
             used |= names
-            got, want = _units.scale_of(expr, scales), factor(v.unit)
+            found: list = []
+            got = _units.scale_of(expr, scales, lambda *a: found.append(a))
+            want = factor(v.unit)
             if got is None or want is None or not math.isclose(got, want, rel_tol=1e-9):
                 wrong |= names
+            where = f"{'drift' if lhs is decl.states else 'observation'} of `{v.name}`"
+            if issues is not None and found:
+                term, f, other, fo = found[0]
+                issues.append((where, v.name, lhs is decl.states,
+                               f"`{term}` is in {_factor_words(f)}" + (
+                                   f" but `{other}` beside it in {_factor_words(fo)}"
+                                   if other is not None else
+                                   " where a function needs coherent units (rad)")))
+            elif issues is not None and got is not None and want is not None and not \
+                    math.isclose(got, want, rel_tol=1e-9):
+                issues.append((where, v.name, lhs is decl.states,
+                               f"the expression is in {_factor_words(got)} but `{v.name}` is "
+                               f"declared in {_factor_words(want)}"))
     kinds = {v.symbol: "state" for v in decl.states}
     kinds.update({v.symbol: "input" for v in decl.inputs})
     kinds.update({q.symbol: "parameter" for q in decl.parameters})
@@ -579,7 +608,15 @@ def compile_typed(spec: Spec) -> SymbolicModel:
                          decl.outputs, eqs.sections)
     _check_constant_singularities(decl, definitions, drift, observations, eqs.sections)
     _warn_unused(warnings, spec, definitions, deps, drift + observations)
-    _warn_coherence(warnings, spec, _right_as_written(decl, definitions, drift, observations))
+    unit_issues: list = []
+    _warn_coherence(warnings, spec, _right_as_written(decl, definitions, drift, observations,
+                                                      unit_issues))
+    for where, name, is_drift, what in unit_issues:
+        at = eqs.sections["drift" if is_drift else "observations"][name].expression
+        _warn(warnings, f"units in the {where}: {what}; the numbers are used as they stand",
+              at, code="unit_scale", key=False,
+              hint="write every term in one unit system (convert with pi/180, or declare the "
+                   "variable in rad and convert its data column in the data map)")
 
     output_names = [o.name for o in decl.outputs]
     process, measurement = _noise(spec, [v.name for v in decl.states], output_names)

@@ -84,7 +84,9 @@ def coherent(text, *, path=None, line=None, column=None) -> tuple[float, str]:
     return factor, shown
 
 
-def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None]) -> float | None:
+def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None],
+             report: Callable[[sympy.Expr, float, sympy.Expr | None, float], None] | None = None
+             ) -> float | None:
     """The factor from ``expr``'s value, computed with every number in its declared unit, to
     its value in coherent units (SI, rad): ``s`` in ``s·x = x_coherent``. ``scales`` gives
     each symbol's factor (:func:`coherent`; None: no unit). None when it is unknown (a
@@ -93,18 +95,22 @@ def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None]) -> f
     ``M_α·α`` with α in rad), a function of an argument not in coherent units (sin of
     degrees). An equation is right in its declared units exactly where this factor is
     defined and equals its left-hand side's: a derivative in m/(s·deg) times a rate in
-    deg/s is a term in m/s² (factor 1), as its equation needs."""
+    deg/s is a term in m/s² (factor 1), as its equation needs. ``report(term, factor,
+    other, other_factor)`` is told of each place where the numbers disagree (``other`` None:
+    a function's argument, which needs factor 1)."""
     def agree(args) -> float | None:
-        found = None
+        found, first = None, None
         for a in args:
-            f = scale_of(a, scales)
+            f = scale_of(a, scales, report)
             if f is None:
                 return None
             if a.is_Number:
                 continue        # a bare number takes the unit of its sum (V - 100)
             if found is None:
-                found = f
+                found, first = f, a
             elif not math.isclose(f, found, rel_tol=1e-9):
+                if report is not None:
+                    report(a, f, first, found)
                 return None
         return 1.0 if found is None else found
 
@@ -115,18 +121,18 @@ def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None]) -> f
     if isinstance(expr, (sympy.Add, sympy.Min, sympy.Max)):
         return agree(expr.args)
     if isinstance(expr, sympy.Abs):
-        return scale_of(expr.args[0], scales)
+        return scale_of(expr.args[0], scales, report)
     if isinstance(expr, sympy.Mul):
         out = 1.0
         for factor in expr.args:
-            f = scale_of(factor, scales)
+            f = scale_of(factor, scales, report)
             if f is None:
                 return None
             out *= f
         return out
     if isinstance(expr, sympy.Pow):
         base, exp = expr.args
-        fb = scale_of(base, scales)
+        fb = scale_of(base, scales, report)
         if fb is None:
             return None
         if exp.is_Number:
@@ -134,17 +140,28 @@ def scale_of(expr: sympy.Expr, scales: Mapping[sympy.Symbol, float | None]) -> f
                 return float(fb ** float(exp))
             except (OverflowError, ZeroDivisionError, ValueError):
                 return None
-        fe = scale_of(exp, scales)
-        return 1.0 if fe is not None and math.isclose(fb, 1.0) and math.isclose(fe, 1.0) else None
+        fe = scale_of(exp, scales, report)
+        if fe is None:
+            return None
+        for part, f in ((base, fb), (exp, fe)):
+            if not math.isclose(f, 1.0):
+                if report is not None:
+                    report(part, f, None, 1.0)
+                return None
+        return 1.0
     if isinstance(expr, _TRANSCENDENTAL):
-        f = scale_of(expr.args[0], scales)
-        return 1.0 if f is not None and math.isclose(f, 1.0) else None
+        f = scale_of(expr.args[0], scales, report)
+        if f is not None and not math.isclose(f, 1.0):
+            if report is not None:
+                report(expr.args[0], f, None, 1.0)
+            return None
+        return None if f is None else 1.0
     if isinstance(expr, sympy.atan2):
         return None if agree(expr.args) is None else 1.0
     if isinstance(expr, (sympy.sign, sympy.Heaviside)):
         # the sign of a quantity does not depend on its unit; its argument must be a sum
         # that agrees
-        return None if scale_of(expr.args[0], scales) is None else 1.0
+        return None if scale_of(expr.args[0], scales, report) is None else 1.0
     return None
 
 
