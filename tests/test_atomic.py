@@ -298,3 +298,22 @@ def test_a_second_run_into_the_same_directory_is_refused_while_the_first_writes(
     plan_output_dir(d)
     atomic.release(d)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+
+def test_written_files_get_the_mode_a_user_expects(tmp_path):
+    """Every results file, report and generated module was created 0600 (mkstemp) whatever
+    the umask, so colleagues could not read a report (session 44, a new user). A new file
+    gets 0666 less the umask; a replaced file keeps its mode."""
+    old = os.umask(0o022)
+    try:
+        new = atomic.write_text_atomic(tmp_path / "new.txt", "x")
+        assert stat.S_IMODE(new.stat().st_mode) == 0o644
+        kept = tmp_path / "kept.txt"
+        kept.write_text("a")
+        os.chmod(kept, 0o640)
+        atomic.write_bytes_atomic(kept, b"b")
+        assert stat.S_IMODE(kept.stat().st_mode) == 0o640 and kept.read_bytes() == b"b"
+        _run(tmp_path / "res", {"results.json": "1"})
+        assert stat.S_IMODE((tmp_path / "res" / MANIFEST).stat().st_mode) == 0o644
+    finally:
+        os.umask(old)

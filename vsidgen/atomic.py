@@ -648,6 +648,31 @@ def results_in_place(plan: OutputPlan, *, command: str,
         release(target)
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it (``os.umask`` sets it, and a thread
+    creating a file meanwhile would get mode 0666): Linux's /proc, else the usual 022."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0o022
+
+
+def _publish_mode(tmp: str, path: pathlib.Path) -> None:
+    """Give the temporary file the mode the user expects before it is renamed into place:
+    the replaced file's, or a new file's (0666 less the umask). ``mkstemp`` creates 0600,
+    so every report and results file was unreadable to colleagues (session 44)."""
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        mode = 0o666 & ~_umask()
+    with contextlib.suppress(OSError):
+        os.chmod(tmp, mode)
+
+
 @contextlib.contextmanager
 def atomic_text_file(path: str | os.PathLike) -> Iterator[TextIO]:
     """A UTF-8 text file (``\\n`` line ends) that appears at ``path`` only when the block ends.
@@ -665,6 +690,7 @@ def atomic_text_file(path: str | os.PathLike) -> Iterator[TextIO]:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
             yield fh
+        _publish_mode(tmp, path)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -690,6 +716,7 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> pathlib.Path:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        _publish_mode(tmp, path)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
