@@ -1854,6 +1854,8 @@ def _held_reference(run: _RunConfig, spec, base: FitState, st: "_RunState") -> F
     if not getattr(res, "deterministic_states", ()) or getattr(res, "deterministic_limit", None) is None:
         return base
     names = ", ".join(res.deterministic_states)
+    if run.past_deadline():
+        return base          # no refit will be compared with it
     try:
         held = refit_warm(pathlib.Path(spec), base, base, generated_dir=run.gen,
                           iterations=2 * run.max_iter, max_iter=run.max_iter)
@@ -3042,7 +3044,9 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
     add_override_arguments(p)
     p.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                    help="stop cleanly between refits after this many seconds; the effects "
-                        "accepted so far and the unfinished round are written (exit status 1)")
+                        "accepted so far and the unfinished round are written (exit status 1). "
+                        "The base fit always runs to its end, so a run may take longer than "
+                        "the limit when the base fit alone does")
     from ..engine import add_engine_arguments
 
     add_engine_arguments(p, what="candidate refits of a round")
