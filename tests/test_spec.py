@@ -444,3 +444,12 @@ def test_characters_yaml_refuses_or_counts_as_lines_are_located_by_the_files_lin
         line = next(i for i, ln in enumerate(GOOD.splitlines(), 1) if "alpha: MDE*de" in ln)
         assert f":{line}:" in str(err) and f"U+{ord(char):04X}" in str(err), str(err)
         assert hint in str(err)
+
+
+def test_a_data_map_scale_of_zero_is_refused(tmp_path):
+    """`scale: 0` read every sample as the offset (`check` showed `de: 0 .. 0`; session 44,
+    red team)."""
+    text = GOOD.replace("de: de_rad", "de: {column: de_rad, scale: 0}")
+    assert text != GOOD
+    err = error(tmp_path, text)
+    assert "scale of `de` is 0" in str(err)

@@ -495,6 +495,12 @@ def _channel(name: str, node: YNode) -> ChannelDecl:
                            column=Located.of(node, node.string(f"data column of `{name}`")))
     fields = keys_check(node, ("column", "expr", "scale", "offset", "unit"), f"data mapping of `{name}`")
     scale = fields["scale"].number(f"scale of `{name}`") if "scale" in fields else 1.0
+    if scale == 0.0:
+        # every sample would be read as the offset: a constant channel (session 44)
+        raise SpecError(f"scale of `{name}` is 0: every sample would read as the offset",
+                        **fields["scale"].loc, text=fields["scale"].source_line(),
+                        hint="write the factor that converts the column (e.g. -1 for a sign, "
+                             "or 0.3048 for ft to m), or leave `scale` out")
     offset = fields["offset"].number(f"offset of `{name}`") if "offset" in fields else 0.0
     unit = None
     if "unit" in fields:
