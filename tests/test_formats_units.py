@@ -538,3 +538,23 @@ def test_an_equation_mixing_degrees_and_radians_names_its_terms(tmp_path):
     assert len(got) == 1 and "drift of `q`" in got[0].message, [w.message for w in got]
     assert "degree-based" in got[0].message and "coherent" in got[0].message
     assert got[0].line == 15
+
+
+def test_an_expression_undefined_at_a_sample_is_not_called_a_missing_value(tmp_path):
+    """`log` of a negative column value was reported as "missing value in input" (session
+    44, red team): the expression and the column values at that sample are named."""
+    lines = CSV.read_text().splitlines()
+    head = lines[0].split(",")
+    j = head.index("de_rad")
+    row = lines[5].split(",")
+    row[j] = "-2"
+    lines[5] = ",".join(row)
+    rec = tmp_path / "neg.csv"
+    rec.write_text("\n".join(lines) + "\n")
+    path = tmp_path / "logx.yaml"
+    path.write_text(f"extends: {SPEC}\nname: logx\ndata:\n  time: t_s\n"
+                    "  inputs:\n    de: {expr: \"log(de_rad + 1)\"}\n")
+    with pytest.raises(DataError) as ei:
+        load_record(compile_spec(path), rec)
+    assert "is undefined (NaN)" in str(ei.value) and "de_rad = -2" in str(ei.value)
+    assert ei.value.sample == 4

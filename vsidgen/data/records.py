@@ -689,6 +689,14 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
         if kind == "input" and nan.any():
             k = _first(nan)
             bad = [c for c in srcs if np.isnan(cols[c][k])]
+            if not bad and cmap.expr is not None:
+                # every column has a value: the expression itself gave NaN (log or sqrt of a
+                # negative value, 0/0), which was reported as a missing value (session 44)
+                vals = ", ".join(f"{c} = {fmt_number(cols[c][k])}" for c in srcs)
+                raise DataError(f"input '{nm}' = {cmap.expr} is undefined (NaN) at these "
+                                f"values: {vals}", path=path, column=col_for or nm, sample=k,
+                                hint="the expression is not defined there (log or sqrt of a "
+                                     "negative value, 0/0); check it and the columns")
             col = bad[0] if bad else (col_for or nm)
             raise DataError(f"missing value in input '{nm}'", path=path, column=col, sample=k,
                             hint="inputs cannot be missing (only outputs may have empty cells); "
