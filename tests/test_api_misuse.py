@@ -124,3 +124,14 @@ def test_run_fit_takes_one_path_and_checks_its_overrides(tmp_path):
     with pytest.raises(VsidgenError, match="overrides must be"):
         vsidgen.run_fit(SPEC, str(DATA), out=tmp_path / "o", overrides={"fix": {"Za": 0.0}})
     assert not (tmp_path / "o").exists()
+
+
+def test_smooth_reads_theta_as_a_mapping_like_evaluate(model, record):
+    """`smooth(model, rec, {"CL_0": 0.45}, noise)` raised `TypeError: float() argument…`
+    although evaluate and simulate accept the same mapping (session 44)."""
+    names = model.parameter_names
+    with pytest.raises(FitError, match="is not a number"):
+        vsidgen.smooth(model, record, {names[0]: "x"}, {"G": np.eye(model.nx),
+                                                         "R": np.eye(model.ny)})
+    with pytest.raises(FitError, match="theta has 1 values"):
+        vsidgen.smooth(model, record, [0.0], {"G": np.eye(model.nx), "R": np.eye(model.ny)})

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.stats import chi2
 
-from ..errors import FitError
+from ..errors import FitError, VsidgenError
 from .core import diff_scale
 from .problem import Gradient, Problem
 from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, StdErrorFlag, StdErrorIssue,
@@ -1705,7 +1705,9 @@ def validate_own_noise(model, records, theta, *, free: Sequence[str] = (),
 def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) -> FitResult:
     """Validation mode: θ and noise fixed, only the assumed densities q (one per record) are fitted.
 
-    ``theta``: all parameters in model order; ``noise``: a FitResult, or a mapping with
+    ``theta``: all parameters in model order, or a mapping name -> value (missing names:
+    the spec's initial values, as :func:`vsidgen.evaluate` and :func:`vsidgen.simulate`
+    read it); ``noise``: a FitResult, or a mapping with
     ``G`` (nx×nx) and ``R`` (ny×ny), or ``process_std``/``measurement_std`` dicts.
     The returned FitResult has the maximised ELBO (a lower bound on log p(y | θ)) and the
     smoother paths; std_errors are NaN. States without process noise are smoothed in the
@@ -1714,9 +1716,15 @@ def smooth(model, records, theta, noise, *, options: FitOptions = FitOptions()) 
     first stage and ends at exactly the std the estimation ended with (never further), so the
     validation ELBO is that of the estimated noise.
     """
-    theta = np.asarray(theta, float)
-    if theta.shape != (model.np,):
-        raise FitError(f"theta has shape {theta.shape}, expected ({model.np},)")
+    from ..model.runtime import finite_theta
+
+    if not hasattr(model, "parameter_names"):
+        raise FitError("the model must be a vsidgen Model\n  hint: model = "
+                       "vsidgen.load_model('spec.yaml')")
+    try:
+        theta = finite_theta(model, theta, who="smooth")
+    except VsidgenError as err:
+        raise FitError(str(err)) from None
     G, R = _noise_from(noise, model)
     P = Problem(model, records, options, theta_fixed=theta, fixed_G=G, fixed_R=R)
     if options.deterministic == "limit" and P.nm.deterministic.any():
