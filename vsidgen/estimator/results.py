@@ -410,7 +410,7 @@ class SmootherPath:
         return np.sqrt(np.diag(self.cov_marg))
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, repr=False)
 class FitResult:
     """Outcome of a fit (or of a validation smoothing run).
 
@@ -458,6 +458,12 @@ class FitResult:
     #: A statistic compared with the ELBO (a one-step predictive likelihood) uses this one.
     G_objective: np.ndarray | None = None
 
+    def __repr__(self) -> str:
+        """One line a notebook can show (the arrays are attributes: ``theta``, ``smoothers``)."""
+        est = ", ".join(f"{n}={v:.5g}" for n, v in list(zip(self.parameter_names, self.theta))[:6])
+        more = ", …" if len(self.parameter_names) > 6 else ""
+        return (f"FitResult(elbo={self.elbo:.6g}, converged={self.converged}, "
+                f"iterations={self.iterations}, theta={{{est}{more}}})")
     @property
     def estimates(self) -> dict:
         return dict(zip(self.parameter_names, map(float, self.theta)))

@@ -35,6 +35,9 @@ class FitJob:
     fit: Any                 # estimator FitResult (estimation records)
     validation: Any | None   # estimator FitResult of the smoothing-only validation run
 
+    def __repr__(self) -> str:
+        return f"FitJob(out_dir={str(self.out_dir)!r}, fit={self.fit!r})"
+
 
 def _latex_equations(model: Model) -> dict[str, dict[str, str]]:
     sym = model.symbolic
