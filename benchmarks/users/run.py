@@ -96,6 +96,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "twotter_lat_longnames": (("totter_lat_f1_014",), ("totter_lat_f1_017",),
                               "lateral with long descriptive names, bounds and a fixed "
                               "parameter"),
+    "otter_lon_coef": (("totter_lon_020213f1_017",), ("totter_lon_020213f1_018",),
+                       "short period and attitude in lift and moment coefficients with the "
+                       "aircraft constants, g/V cos(theta - alpha), an a_z output"),
 }
 
 
