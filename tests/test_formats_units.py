@@ -558,3 +558,37 @@ def test_an_expression_undefined_at_a_sample_is_not_called_a_missing_value(tmp_p
         load_record(compile_spec(path), rec)
     assert "is undefined (NaN)" in str(ei.value) and "de_rad = -2" in str(ei.value)
     assert ei.value.sample == 4
+
+
+def test_check_accepts_text_columns_the_data_map_does_not_use(tmp_path, capsys):
+    """A record with a `flight` column ("F1") the map does not use: `fit` read it, `check
+    --data` refused it as a non-numeric value (session 44, a new user). A text cell in a
+    mapped column is still refused, at its column."""
+    from vsidgen.cli import main
+
+    lines = CSV.read_text().splitlines()
+    text = [lines[0] + ",flight"] + [ln + ",F1" for ln in lines[1:]]
+    rec = tmp_path / "text.csv"
+    rec.write_text("\n".join(text) + "\n")
+    assert main(["check", str(SPEC), "--data", str(rec)]) == 0, capsys.readouterr().err
+    head = lines[0].split(",")
+    j = head.index("de_rad")
+    bad = [lines[0]] + [",".join("x" if i == j and k == 0 else v
+                                  for i, v in enumerate(ln.split(",")))
+                        for k, ln in enumerate(lines[1:])]
+    rec2 = tmp_path / "bad.csv"
+    rec2.write_text("\n".join(bad) + "\n")
+    assert main(["check", str(SPEC), "--data", str(rec2)]) == 2
+    assert "column 'de_rad'" in capsys.readouterr().err
+
+
+def test_a_named_matrix_column_written_with_the_matrix_name_gets_the_plain_name(mat_files,
+                                                                                  tmp_path):
+    """`X.t` for the column `t` named in `X_names` was answered "did you mean 'X(:,1..4)'?"
+    (session 44, a new user): the hint now gives the name alone, which works."""
+    path = tmp_path / "dotted.yaml"
+    path.write_text(f"extends: {SPEC}\nname: dotted\ndata: {{time: X.t_s, inputs: {{de: de_rad}}, "
+                    "outputs: {alpha: alpha_rad, q: q_radps}}\n")
+    with pytest.raises(DataError) as ei:
+        load_record(compile_spec(path), mat_files / "named.mat")
+    assert "`t_s`" in ei.value.hint and "name alone" in ei.value.hint

@@ -439,7 +439,7 @@ def _add_fit(sub):
                     "when converged, 1 when the optimizer (or the validation smoothing) stopped without converging (results "
                     "are still written and say so), 2 on bad input.")
     p.add_argument("spec", help="model spec (YAML)")
-    p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
+    p.add_argument("data", nargs="+", help="estimation record(s) (CSV or MATLAB .mat)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="validation record(s): θ fixed at the estimate, smoothing only")
     p.add_argument("-o", "--out", required=True, help="results directory")

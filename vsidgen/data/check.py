@@ -74,11 +74,21 @@ def read_first_row(csv_path) -> dict[str, float]:
         try:
             out[h] = cell_value(cell)
         except ValueError:
-            # the cell, not the spec, is at fault (it was read as NaN and the drift at the
-            # first sample then blamed the spec's equation)
-            raise DataError(f"non-numeric value {cell.strip()[:40]!r}", path=csv_path,
-                            column=h, sample=0, hint=cell_hint(cell)) from None
+            # a text column the data map does not use (a flight number, an event mark) is
+            # read by nobody: `fit` ignores it, so `check` must too (session 44); the
+            # columns the map uses are checked where their values are taken
+            out[h] = _Text(cell)
     return out
+
+
+class _Text(float):
+    """A non-numeric cell of the first data row: NaN to arithmetic, refused where a channel
+    reads it (:func:`_channel_value`)."""
+
+    def __new__(cls, cell: str):
+        obj = super().__new__(cls, float("nan"))
+        obj.cell = cell
+        return obj
 
 
 def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns,
@@ -91,6 +101,12 @@ def _channel_value(ch: ChannelMap, row: Mapping[str, float], csv_path, columns,
             raise DataError(f"column `{c}` (for `{ch.name}`) is not in the file", path=csv_path,
                             column=c, hint=(hint + "; " if hint else "") +
                             "columns: " + ", ".join(columns))
+    for c in ch.columns:
+        if isinstance(row[c], _Text):
+            # the cell, not the spec, is at fault (it was read as NaN and the drift at the
+            # first sample then blamed the spec's equation)
+            raise DataError(f"non-numeric value {row[c].cell.strip()[:40]!r}", path=csv_path,
+                            column=c, sample=0, hint=cell_hint(row[c].cell))
     if ch.expr is None:
         base = row[ch.column]
     else:

@@ -628,6 +628,13 @@ def _resolve(variables, ref: str, path, named, taken=None) -> np.ndarray:
                             f"`{var}` is not a matrix with that many columns", path=path,
                             column=ref, hint="give one name per column of the matrix")
         return matrix[:, j]
+    if v is None and "." in base and base.split(".")[-1] in named and \
+            named[base.split(".")[-1]][0] == base.rsplit(".", 1)[0]:
+        # `fdata.t` for the column `t` that `fdata_names` names: written plain (session 44)
+        col_name = base.split(".")[-1]
+        raise DataError(f"variable '{ref}' not found", path=path, column=ref,
+                        hint=f"a column named in `{base.rsplit('.', 1)[0]}_names` is written by "
+                             f"its name alone: `{col_name}`")
     if v is None:
         from ..suggest import column_hint
 

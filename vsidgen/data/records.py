@@ -472,8 +472,10 @@ def check_time(t_raw: np.ndarray, *, path=None, column: str = "t_s") -> float:
     if nonpos.any():
         k = _first(nonpos) + 1
         what = "duplicated" if steps[k - 1] == 0 else "goes back"
-        raise DataError(f"time is not increasing: {what} ({fmt_number(t_raw[k - 1])} -> "
-                        f"{fmt_number(t_raw[k])})",
+        # every digit of the stamps (54819.06 was shown as 54819: the row cannot be found
+        # by its time; session 44)
+        raise DataError(f"time is not increasing: {what} ({float(t_raw[k - 1])!r} -> "
+                        f"{float(t_raw[k])!r})",
                         path=path, column=column, sample=k,
                         hint="sort the record by time and remove repeated samples; "
                              "split it where the recording restarts")

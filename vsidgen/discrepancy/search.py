@@ -2997,7 +2997,7 @@ def add_diagnose_parser(subparsers) -> argparse.ArgumentParser:
                     "significant after a Holm correction (and holds on --validate records). "
                     "Writes DIR/findings.json, DIR/diagnose.html and DIR/candidates/.")
     p.add_argument("spec", help="model spec (YAML)")
-    p.add_argument("data", nargs="+", help="estimation record(s) (CSV)")
+    p.add_argument("data", nargs="+", help="estimation record(s) (CSV or MATLAB .mat)")
     p.add_argument("--validate", nargs="+", default=[], metavar="DATA",
                    help="validation record(s): an accepted effect must raise their ELBO too")
     p.add_argument("-o", "--out", required=True, help="output directory")

@@ -183,7 +183,7 @@ def add_fleet_parser(subparsers):
                     "status 0 when every fit converged, 1 when some did not or were lost, "
                     "2 when a record had bad input (the others are still fitted).")
     p.add_argument("spec", help="model spec (YAML)")
-    p.add_argument("data", nargs="+", help="records (CSV), one fit each")
+    p.add_argument("data", nargs="+", help="records (CSV or MATLAB .mat), one fit each")
     p.add_argument("-o", "--out", required=True, help="output directory (one results folder per record)")
     from ..engine import add_engine_arguments
 

@@ -285,13 +285,21 @@ def plausibility_warnings(model, u: np.ndarray, y: np.ndarray, *, path=None) -> 
             else:
                 deg = "deg" if ak[0] == "angle" else "deg/s"
                 hint = (f"if the column is in degrees, declare it in the data map: "
-                        f"`{v.name}: {{column: {source}, unit: {deg}}}`")
+                        f"`{v.name}: {{column: {yaml_name(source)}, unit: {deg}}}`")
             out.append(DataWarning(
                 DataWarningCode.IMPLAUSIBLE_RANGE,
                 f"{kind} `{v.name}` (column `{source}`) reaches {peak:.3g} rad"
                 f"{'/s' if ak[0] == 'rate' else ''}, beyond {limit}: implausible for an "
                 f"{what} in `{v.unit}`", path=path, channel=v.name, hint=hint))
     return tuple(out)
+
+
+def yaml_name(column: str) -> str:
+    """A column name as it must be written in a spec's flow mapping: plain when it is a
+    simple name, else double-quoted (`DA [deg]` pasted plain was a YAML syntax error)."""
+    if re.fullmatch(r"[A-Za-z_][\w.]*", column):
+        return column
+    return '"' + column.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
 def column_stem(column: str) -> str:

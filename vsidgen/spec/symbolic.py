@@ -927,7 +927,7 @@ def _warn_column_suffix(warnings: list, ch: ChannelDecl, what: str, spec_unit) -
     named = dataunits.suffix_mismatch(col, spec_unit)
     if named is None:
         return
-    shown = col if re.fullmatch(r"[A-Za-z_][\w.]*", col) else '"' + col.replace('"', '\\"') + '"'
+    shown = dataunits.yaml_name(col)
     _warn(warnings, f"column `{col}` of {what} `{name}` is named in `{named}`, but `{name}` is "
           f"in `{spec_unit}` and the data map converts nothing: its values are read as "
           f"`{spec_unit}`", ch.column, key=False, code="column_unit_suffix",
