@@ -336,20 +336,21 @@ class FitOptions:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
                 raise FitError(f"FitOptions: {name} must be an integer >= {low}, got {v!r}")
 
-        def positive(name, *, optional=False):
+        def positive(name, *, optional=False, zero=False):
             v = getattr(self, name)
             if v is None and optional:
                 return
             if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not (
-                    math.isfinite(float(v)) and float(v) > 0):
-                raise FitError(f"FitOptions: {name} must be a finite number > 0, got {v!r}")
+                    math.isfinite(float(v)) and (float(v) >= 0 if zero else float(v) > 0)):
+                raise FitError(f"FitOptions: {name} must be a finite number "
+                               f"{'>= 0' if zero else '> 0'}, got {v!r}")
 
         count("max_iter", 1)
         count("stall_window", 0)
         for name in ("gtol", "decrement_tol", "deterministic_std", "limit_tol", "xtol",
                      "lambda0", "stall_rtol"):
             positive(name)
-        positive("time_limit", optional=True)
+        positive("time_limit", optional=True, zero=True)   # 0: one iteration (a deadline passed)
         positive("deterministic_input_scale", optional=True)
         if self.substeps is not None or self.integrator is not None or self.input_hold is not None:
             from ..model.dynamics import INPUT_HOLDS, INTEGRATORS
