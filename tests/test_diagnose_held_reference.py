@@ -133,3 +133,24 @@ def test_an_unconverged_held_reference_is_continued_and_the_fallback_recorded(mo
     assert polished == [held]
     assert st.reference["held"] is False and st.reference["elbo_held"] == 150.0
     assert "overstated" in st.reference["note"] and any("overstated" in s for s in said)
+
+
+def test_a_finding_stopped_at_a_kink_gives_no_standard_errors():
+    """A finding whose refit stopped at a kink says "its estimates are those of that point,
+    without standard errors" and printed `D_p_b_brk = 1.136 ± 0.12` beside it (session 44, a
+    new user): the indefinite Hessian's values are not given."""
+    import numpy as np
+
+    from vsidgen.discrepancy.findings import _params, estimate_text
+
+    par = types.SimpleNamespace(name="D_brk", fixed=False, unit="1", description="break",
+                                lower=None, upper=None)
+    st = types.SimpleNamespace(model=types.SimpleNamespace(parameter_names=("a", "D_brk")),
+                               fit=types.SimpleNamespace(std_errors=np.array([0.1, 0.12]),
+                                                         theta=np.array([1.0, 1.136]),
+                                                         std_error_flags=()))
+    kink = types.SimpleNamespace(parameters=(par,), info={"stopped_at_kink": True})
+    plain = types.SimpleNamespace(parameters=(par,), info={})
+    assert _params(kink, st)["D_brk"]["std_error"] is None
+    assert "±" not in estimate_text("D_brk", _params(kink, st)["D_brk"])
+    assert _params(plain, st)["D_brk"]["std_error"] == 0.12

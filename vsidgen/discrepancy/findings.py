@@ -98,7 +98,11 @@ def _params(c, st) -> dict:
         if p.name not in names:
             continue
         i = names.index(p.name)
-        se = st.fit.std_errors[i] if not p.fixed else None
+        # a refit stopped at a kink of the ELBO has no valid curvature there: its finding
+        # says "without standard errors", so none is given (it printed ± from the indefinite
+        # Hessian beside that sentence; session 44)
+        at_kink = bool((c.info or {}).get("stopped_at_kink"))
+        se = st.fit.std_errors[i] if not (p.fixed or at_kink) else None
         est = float(st.fit.theta[i])
         ent = {"estimate": _f(est), "std_error": _f(se), "unit": p.unit,
                "fixed": bool(p.fixed), "description": p.description}
