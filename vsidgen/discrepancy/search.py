@@ -1858,7 +1858,7 @@ def _held_reference(run: _RunConfig, spec, base: FitState, st: "_RunState") -> F
         return base          # no refit will be compared with it
     try:
         held = refit_warm(pathlib.Path(spec), base, base, generated_dir=run.gen,
-                          iterations=2 * run.max_iter, max_iter=run.max_iter)
+                          iterations=2 * run.max_iter, max_iter=run.max_iter, keep_theta=True)
     except (VsidgenError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         run.say(f"the base fit with {names} held quasi-deterministic failed ({exc}); refits are "
                 f"compared with the limit fit, which favours them")
