@@ -98,7 +98,7 @@ def test_parse_input_spec():
 @pytest.mark.parametrize("text, frag", [
     ("de", "NAME=MANEUVER"), ("de=wiggle:amplitude=1", "unknown maneuver 'wiggle'"),
     ("de=doublet:amp=1", "unknown option 'amp'"), ("de=doublet:start=1", "needs option(s) amplitude"),
-    ("de=step:amplitude=x", "not a number"), ("de=multisine:amplitude=1,n=2.5", "positive integer"),
+    ("de=step:amplitude=x", "not a number"), ("de=multisine:amplitude=1,n=2.5", "an integer from 1 to 1000"),
 ])
 def test_parse_input_spec_errors(text, frag):
     with pytest.raises(VsidgenError) as info:
