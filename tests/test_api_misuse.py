@@ -117,10 +117,10 @@ def test_simulate_and_evaluate_refuse_unusable_arguments(model, record):
 def test_run_fit_takes_one_path_and_checks_its_overrides(tmp_path):
     """`run_fit(spec, "est.csv")` split the path into characters ("/: data file is a
     directory"); a dict as `overrides` raised AttributeError ('empty')."""
-    from vsidgen.fitjob.run import _paths
+    from vsidgen.data import as_paths
 
-    assert _paths(str(DATA)) == [str(DATA)] and _paths(DATA) == [DATA]
-    assert _paths([DATA, DATA]) == [DATA, DATA] and _paths(None) == []
+    assert as_paths(str(DATA)) == [str(DATA)] and as_paths(DATA) == [DATA]
+    assert as_paths([DATA, DATA]) == [DATA, DATA] and as_paths(None) == []
     with pytest.raises(VsidgenError, match="overrides must be"):
         vsidgen.run_fit(SPEC, str(DATA), out=tmp_path / "o", overrides={"fix": {"Za": 0.0}})
     assert not (tmp_path / "o").exists()

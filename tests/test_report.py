@@ -300,7 +300,7 @@ def test_standard_error_issues_are_listed_with_their_parameters(tmp_path):
 
 
 @pytest.mark.parametrize("edit", ["deep", "ragged_correlation", "huge_integer",
-                                  "repeated_outputs"])
+                                  "repeated_outputs", "list_as_name"])
 def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
     """results.json that parses but is not what vsidgen writes (from the hostile-input
     report): a 10^5-deep nesting (RecursionError), a ragged correlation matrix, a 5000-digit
@@ -323,6 +323,9 @@ def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
         elif edit == "repeated_outputs":    # 50 copies: minutes of plotting (session 44)
             doc["model"]["outputs"] = doc["model"]["outputs"] * 50
             path.write_text(json.dumps(doc))
+        elif edit == "list_as_name":        # an unhashable name (the check itself must hold)
+            doc["model"]["outputs"][0]["name"] = ["a"]
+            path.write_text(json.dumps(doc))
         else:
             name = next(iter(doc["parameters"]))
             doc["parameters"][name]["estimate"] = "BIG"
@@ -330,6 +333,8 @@ def test_report_of_a_hostile_results_json_exits_2(tmp_path, capsys, edit):
     code = main(["report", str(d), "--out", str(tmp_path / "r.html")])
     err = capsys.readouterr().err
     assert code == 2 and "results.json" in err and "internal error" not in err
+    if edit in ("repeated_outputs", "list_as_name"):
+        assert "not a file vsidgen wrote" in err, err
     assert not (tmp_path / "r.html").exists()
 
 

@@ -596,11 +596,10 @@ def _cmd_report(args) -> int:
     """Write the report; never over a file it reads or a file of the user's.
 
     The default ``DIR/report.html`` may be replaced when DIR's manifest lists it
-    (vsidgen wrote it); any other existing file needs ``--overwrite``.
+    (vsidgen wrote it); any other existing file needs ``--overwrite``
+    (:func:`vsidgen.report.write_report` decides).
     """
-    import os
-
-    from .atomic import check_output_file, read_manifest
+    from .atomic import check_output_file
     from .report import parse_reference, write_report
 
     d = pathlib.Path(args.dir)
@@ -610,14 +609,7 @@ def _cmd_report(args) -> int:
     if d.is_dir():
         reads += [q for q in d.iterdir() if q.name.startswith("signals_")]
     check_output_file(out, reads=reads)
-    in_dir = d.is_dir() and out.parent.resolve() == d.resolve()
-    manifest = read_manifest(d) if in_dir else None
-    owned = manifest is not None and out.name in manifest["files"]
-    if os.path.lexists(out) and not owned and not args.overwrite:
-        raise VsidgenError(f"{out}: error: exists and was not written by vsidgen (not listed in "
-                           f"the manifest of {d}); pass --overwrite to replace it or choose "
-                           "another --out")
-    try:
+    try:       # (write_report refuses a file vsidgen did not write, unless --overwrite)
         path = write_report(args.dir, out=out, reference=args.reference,
                             overwrite=bool(args.overwrite))
     except (ValueError, TypeError, KeyError, IndexError, AttributeError, RecursionError) as err:

@@ -11,10 +11,11 @@ Public API (what later stages use)::
 
     load_record(model, path) -> Record
     load_records(model, data, validate) -> (records, validation records), names unique
+    as_paths(paths) -> [path, ...] (one path is a list of one)
     resolution, unique_names, delay_input, write_csv
 """
 
-from .records import (Record, delay_input, load_record, load_records, resolution, unique_names,
-                      write_csv)
+from .records import (Record, as_paths, delay_input, load_record, load_records, resolution,
+                      unique_names, write_csv)
 
-__all__ = ["Record", "delay_input", "load_record", "load_records", "resolution", "unique_names", "write_csv"]
+__all__ = ["Record", "as_paths", "delay_input", "load_record", "load_records", "resolution", "unique_names", "write_csv"]

@@ -628,13 +628,12 @@ def _resolve(variables, ref: str, path, named, taken=None) -> np.ndarray:
                             f"`{var}` is not a matrix with that many columns", path=path,
                             column=ref, hint="give one name per column of the matrix")
         return matrix[:, j]
-    if v is None and "." in base and base.split(".")[-1] in named and \
-            named[base.split(".")[-1]][0] == base.rsplit(".", 1)[0]:
+    matrix_name, _, col_name = base.rpartition(".")
+    if v is None and matrix_name and named.get(col_name, ("",))[0] == matrix_name:
         # `fdata.t` for the column `t` that `fdata_names` names: written plain (session 44)
-        col_name = base.split(".")[-1]
         raise DataError(f"variable '{ref}' not found", path=path, column=ref,
-                        hint=f"a column named in `{base.rsplit('.', 1)[0]}_names` is written by "
-                             f"its name alone: `{col_name}`")
+                        hint=f"a column named in `{matrix_name}_names` is written by its name "
+                             f"alone: `{col_name}`")
     if v is None:
         from ..suggest import column_hint
 

@@ -135,19 +135,16 @@ class Record:
             raise DataError(f"u has shape {u.shape} and y {y.shape}; the model needs ({n}, {nu}) "
                             f"inputs {tuple(model.input_names)} and ({n}, {ny}) outputs "
                             f"{tuple(model.output_names)}", column="u" if u.shape != (n, nu) else "y")
-        bad = ~np.isfinite(u)
-        if bad.any():
-            k, j = (int(v[0]) for v in np.nonzero(bad))
-            raise DataError(f"input `{model.input_names[j]}` is {fmt_number(u[k, j])}",
-                            column=model.input_names[j], sample=k,
-                            hint="inputs must be finite at every sample")
         for what, names, arr in (("input", model.input_names, u), ("output", model.output_names, y)):
-            big = np.isinf(arr) | (np.abs(np.nan_to_num(arr)) > MAX_ABS_VALUE)
-            if big.any():
-                k, j = (int(v[0]) for v in np.nonzero(big))
+            # inputs: finite everywhere; outputs: NaN marks a missing sample
+            bad = np.isinf(arr) | (np.abs(np.nan_to_num(arr)) > MAX_ABS_VALUE)
+            if what == "input":
+                bad |= np.isnan(arr)
+            if bad.any():
+                k, j = (int(v[0]) for v in np.nonzero(bad))
                 raise DataError(f"{what} `{names[j]}` is {fmt_number(arr[k, j])}", column=names[j],
                                 sample=k, hint=f"values must be finite and below {MAX_ABS_VALUE:g} "
-                                "in magnitude (NaN marks a missing output)")
+                                "in magnitude (NaN marks a missing output; inputs cannot miss)")
         dt = check_time(t_raw, column="t")
         return cls(str(name), None, t_raw - t_raw[0], dt, u, y, tuple(model.input_names),
                    tuple(model.output_names), t_raw)
@@ -869,6 +866,14 @@ def unique_names(records: Sequence[Record]) -> list[Record]:
     return out
 
 
+def as_paths(paths) -> list:
+    """File paths as a list; one path (str or PathLike) is a list of one, not its characters
+    (`run_fit(spec, "est.csv")` read "/" as a data file; session 44); None is empty."""
+    if isinstance(paths, (str, os.PathLike)):
+        return [paths]
+    return list(paths or ())
+
+
 def load_records(model, data: Sequence, validate: Sequence = ()) -> tuple[list[Record], list[Record]]:
     """(estimation, validation) records of the files ``data`` and ``validate``, their names
     unique across both lists (:func:`unique_names`): `fit d1/rec.csv --validate d2/rec.csv`
@@ -903,4 +908,4 @@ def write_csv(path, columns: Mapping[str, np.ndarray]) -> pathlib.Path:
     return path
 
 
-__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "check_time", "delay_input", "hash_header", "load_record", "load_records", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]
+__all__ = ["JITTER", "MAX_ABS_VALUE", "MAX_DT", "MIN_DT", "MIN_SAMPLES", "RESOLUTION", "fmt_number", "Record", "as_paths", "check_time", "delay_input", "hash_header", "load_record", "load_records", "most_extreme_sample", "refuse_other_delimiter", "resolution", "unique_names", "write_csv"]

@@ -57,7 +57,6 @@ import argparse
 import dataclasses
 import enum
 import functools
-import os
 import math
 import pathlib
 import sys
@@ -1598,9 +1597,9 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         catalogue = [e for e in catalogue if e.id in set(effects)]
     if max_iter < 1:
         raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
-    # one path is one record (a str was split into its characters)
-    data = [data] if isinstance(data, (str, os.PathLike)) else list(data)
-    validate = [validate] if isinstance(validate, (str, os.PathLike)) else list(validate or ())
+    from ..data import as_paths
+
+    data, validate = as_paths(data), as_paths(validate)
     engine = Engine(workers=workers, scheduler=scheduler)
     for p in list(data) + list(validate):
         check_input_file(p, what="data file")

@@ -416,7 +416,7 @@ def _check_records(model, records):
         if not all(hasattr(rec, a) for a in ("t", "dt", "u", "y")):
             raise FitError(f"a record must be a vsidgen Record, got {_shown(rec)}\n  hint: "
                            "record = vsidgen.load_record(model, 'flight.csv'), or "
-                           "vsidgen.Record(name, t, u, y, ...) from arrays")
+                           "vsidgen.Record.from_arrays(model, t, u, y)")
         y = np.asarray(rec.y, float)
         u = np.asarray(rec.u, float)
         name = getattr(rec, "name", "?")

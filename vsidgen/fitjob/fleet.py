@@ -101,6 +101,9 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     from ..model import load_model
     from ..model.dynamics import check_settings
 
+    from ..data import as_paths
+
+    data = as_paths(data)
     if not data:
         raise VsidgenError("no data records given: `vsidgen fleet SPEC DATA [DATA...] --out DIR`")
     if max_iter < 1:

@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import __version__
 from ..codegen import display_path
-from ..data import Record, load_records, write_csv
+from ..data import Record, as_paths, load_records, write_csv
 from ..errors import VsidgenError
 from ..model import Model, load_model
 from ..spec.overrides import Overrides, apply_overrides
@@ -161,13 +161,6 @@ def _fit_located(fit, model, records, options):
                              "spec's initial values") from None
 
 
-def _paths(paths) -> list:
-    """A list of file paths; a single path (str or PathLike) is a list of one."""
-    if isinstance(paths, (str, os.PathLike)):
-        return [paths]
-    return list(paths or ())
-
-
 def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             out: str | os.PathLike, validate: Sequence[str | os.PathLike] = (),
             integrator: str | None = None, substeps: int | None = None,
@@ -191,7 +184,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     directory that is not a vsidgen results directory needs ``overwrite``, and
     even then only vsidgen's files in it are replaced).
     """
-    data, validate = _paths(data), _paths(validate)   # one path is one record, not characters
+    data, validate = as_paths(data), as_paths(validate)
     if not data:
         raise VsidgenError("no data records given: `vsidgen fit SPEC DATA [DATA...]`")
     overrides = overrides if overrides is not None else Overrides()

@@ -113,12 +113,13 @@ def read_results(results_dir: str | os.PathLike) -> dict[str, Any]:
             raise VsidgenError(f"{path}: error: results.json `model.{key}` is missing or not a list")
         # each name once, as vsidgen writes them: 50 copies of the outputs made `report` run
         # for minutes, a panel per copy (session 44, red team)
-        names = [e.get("name") if isinstance(e, dict) else e for e in entries]
-        seen: set = set()
-        for n in names:
-            if not isinstance(n, str) or n in seen:
-                raise VsidgenError(f"{path}: error: results.json `model.{key}` "
-                                   f"{'repeats' if n in seen else 'has an entry without a name:'} "
+        seen: set[str] = set()
+        for e in entries:
+            n = e.get("name") if isinstance(e, dict) else e
+            what = ("has an entry without a name:" if not isinstance(n, str)
+                    else "repeats" if n in seen else None)
+            if what:
+                raise VsidgenError(f"{path}: error: results.json `model.{key}` {what} "
                                    f"{str(n)[:60]!r}: not a file vsidgen wrote")
             seen.add(n)
     return res

@@ -278,40 +278,39 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
         reach[_sym(nm)] = frozenset().union(*(reach.get(x, {x}) for x in expr.free_symbols))
     used: set[sympy.Symbol] = set()
     wrong: set[sympy.Symbol] = set()
+    right_outputs: set[str] = set()
     for lhs, exprs in ((decl.states, drift), (decl.outputs, observations)):
+        is_drift = lhs is decl.states
         for v, expr in zip(lhs, exprs):
             names = frozenset().union(*(reach.get(x, {x}) for x in expr.free_symbols))
-            if lhs is decl.states:      # the state's own unit is the left-hand side's
+            if is_drift:                # the state's own unit is the left-hand side's
                 names |= {v.symbol}
             used |= names
             found: list = []
             got = _units.scale_of(expr, scales, lambda *a: found.append(a))
             want = factor(v.unit)
-            if got is None or want is None or not math.isclose(got, want, rel_tol=1e-9):
+            ok = got is not None and want is not None and math.isclose(got, want, rel_tol=1e-9)
+            if not ok:
                 wrong |= names
-            where = f"{'drift' if lhs is decl.states else 'observation'} of `{v.name}`"
-            if issues is not None and found:
+            elif not is_drift:          # an output is right when its own observation is
+                right_outputs.add(v.name)
+            if issues is None or (ok or (not found and (got is None or want is None))):
+                continue
+            where = f"{'drift' if is_drift else 'observation'} of `{v.name}`"
+            if found:
                 term, f, other, fo = found[0]
-                issues.append((where, v.name, lhs is decl.states,
-                               f"`{term}` is in {_factor_words(f)}" + (
-                                   f" but `{other}` beside it in {_factor_words(fo)}"
-                                   if other is not None else
-                                   " where a function needs coherent units (rad)")))
-            elif issues is not None and got is not None and want is not None and not \
-                    math.isclose(got, want, rel_tol=1e-9):
-                issues.append((where, v.name, lhs is decl.states,
-                               f"the expression is in {_factor_words(got)} but `{v.name}` is "
-                               f"declared in {_factor_words(want)}"))
+                what = f"`{term}` is in {_factor_words(f)}" + (
+                    f" but `{other}` beside it in {_factor_words(fo)}" if other is not None
+                    else " where a function needs coherent units (rad)")
+            else:
+                what = (f"the expression is in {_factor_words(got)} but `{v.name}` is "
+                        f"declared in {_factor_words(want)}")
+            issues.append((where, v.name, is_drift, what))
     kinds = {v.symbol: "state" for v in decl.states}
     kinds.update({v.symbol: "input" for v in decl.inputs})
     kinds.update({q.symbol: "parameter" for q in decl.parameters})
-    right = {(kinds[s], s.name) for s in used - wrong if s in kinds}
-    # an output is right when its own observation is
-    for o, expr in zip(decl.outputs, observations):
-        got, want = _units.scale_of(expr, scales), factor(o.unit)
-        if got is not None and want is not None and math.isclose(got, want, rel_tol=1e-9):
-            right.add(("output", o.name))
-    return right
+    return ({(kinds[s], s.name) for s in used - wrong if s in kinds}
+            | {("output", n) for n in right_outputs})
 
 
 def _find_cycle(deps: dict[str, list[str]], order: list[str]) -> list[str] | None:
