@@ -50,7 +50,7 @@ def _decrement_and_relgrad(model, rec, s, recs):
     grs = [gg[:nq]]
     gs = gg[nq:]
     act = P.floor_active(s, gs)
-    return newton_decrement(P, blks, gs, gmus, grs, act), _relgrad(f, s, recs, gs, gmus, grs)
+    return newton_decrement(P, blks, gs, gmus, grs, act), _relgrad(P, f, s, recs, gs, gmus, grs)
 
 
 @pytest.fixture(scope="module")

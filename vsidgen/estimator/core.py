@@ -206,6 +206,33 @@ class ThetaMap:
                                                                               (self.hi - self.lo) * sig * (1 - sig))))
 
 
+# --------------------------------------------------------------------------- units
+def coherent_factors(variables) -> np.ndarray:
+    """Per variable, the factor ``s`` from its declared unit to the coherent unit (SI, rad):
+    a value ``x`` in the declared unit is ``s·x`` in the coherent one (``deg`` → π/180,
+    ``ft/s`` → 0.3048); 1 for a variable without a unit or with one vsidgen cannot read.
+
+    What the estimator chooses without the data — the "unit" noise start (std 1), the
+    assumed density's first covariance (Σ = I), the floor of the Marquardt scaling — is
+    chosen in these coherent units and converted to the declared ones, so that a model
+    written in degrees or feet is fitted along exactly the path of the same model written
+    in radians or metres (the two are one linear change of variables apart).
+    """
+    from ..spec.units import coherent
+
+    out = []
+    for v in variables:
+        text = getattr(v, "unit", None)
+        f = 1.0
+        if text:
+            try:
+                f = float(coherent(text)[0])
+            except Exception:   # a unit the spec checker let through but pint-free parsing cannot read
+                f = 1.0
+        out.append(f if math.isfinite(f) and f > 0 else 1.0)
+    return np.asarray(out, float)
+
+
 # --------------------------------------------------------------------------- noise map
 def diff_scale(records, j: int) -> float:
     """Robust std (1.4826 · MAD) of the sample-to-sample differences of output j, pooled over records.
@@ -378,8 +405,9 @@ class NoiseMap:
     driven to the limit G_ii → 0 like a deterministic state's; with ``relax`` their diagonal
     is estimated instead (they are ``relaxed``: the first stage of that limit).
     Measurement: σ_j = floor_j + exp(s_j) (estimated) or the fixed std.
-    Starting values (``inits``): the spec's std where given; otherwise "unit":
-    exp(0) = 1 above the floor; "data" (:func:`diff_scale`): σ_j =
+    Starting values (``inits``): the spec's std where given; otherwise "unit": 1 coherent
+    unit above the floor (:func:`coherent_factors`: 1 rad/s/√s for a rate in deg/s, 1 rad
+    for an angle measured in deg); "data" (:func:`diff_scale`): σ_j =
     max(scale_j/√2, 2·floor_j) and, for a state measured directly by output j,
     G_ii = scale_j/√T; "data-meas": σ from the data, G unit. Floors are honoured by the map, never by clipping.
     """
@@ -389,6 +417,7 @@ class NoiseMap:
         nx, ny = model.nx, model.ny
         self.nx, self.ny = nx, ny
         states = model.state_names
+        sx, sy = coherent_factors(model.states), coherent_factors(model.outputs)
         pn = model.process_noise
         noisy_names = tuple(pn.states) if pn.states else states
         for s in noisy_names:
@@ -428,7 +457,8 @@ class NoiseMap:
             self.proc_est_idx = np.nonzero(est)[0]
             for i in self.proc_est_idx:
                 s0 = float(pn.std.get(states[i], 0.0) or 0.0)
-                v = math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else 0.0
+                # no std in the spec: 1 coherent unit/√s above the floor (1 rad/s/√s for q in deg/s)
+                v = math.log(s0 - self.proc_floor[i]) if s0 > self.proc_floor[i] else -math.log(sx[i])
                 init.append(v)
                 if not s0 > 0 and state_outputs and i in state_outputs:
                     dt = float(np.mean([float(r.dt) for r in records]))
@@ -466,7 +496,8 @@ class NoiseMap:
             if est:
                 self.meas_est[j] = True
                 s0 = None if sp is None else sp.std
-                v = math.log(s0 - self.meas_floor[j]) if s0 and s0 > self.meas_floor[j] else 0.0
+                v = (math.log(s0 - self.meas_floor[j]) if s0 and s0 > self.meas_floor[j]
+                     else -math.log(sy[j]))          # 1 coherent unit above the floor
                 minit.append(v)
                 if not s0:
                     sd = max(diff_scale(records, j) / math.sqrt(2.0), 2.0 * self.meas_floor[j])

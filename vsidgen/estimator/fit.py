@@ -40,12 +40,16 @@ from .results import (FitOptions, FitPhase, FitResult, PhaseKind, SmootherPath, 
 from .. import precision  # noqa: F401  (float64, set once)
 
 
-def _relgrad(f, s, recs, gs, gmus, grs):
+def _relgrad(P: Problem, f, s, recs, gs, gmus, grs):
+    """max_i |∂f/∂v_i| · max(|v_i|, 1) / max(|f|, 1), with v in coherent units and 1 for a
+    logarithmic coordinate (:meth:`CoherentScale.reference`: the same number for a model in
+    degrees as in radians)."""
+    cs = P.coherent
     scale = max(abs(f), 1.0)
-    vals = [np.abs(gs) * np.maximum(np.abs(s), 1.0)]
+    vals = [np.abs(gs) * cs.reference(s, cs.shared, cs.shared_log)]
     for (m, r), gm, gr in zip(recs, gmus, grs):
-        vals.append((np.abs(gm) * np.maximum(np.abs(m), 1.0)).ravel())
-        vals.append(np.abs(gr) * np.maximum(np.abs(r), 1.0))
+        vals.append((np.abs(gm) * cs.reference(m, cs.state, False)).ravel())
+        vals.append(np.abs(gr) * cs.reference(r, cs.r, cs.r_log))
     return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
 
 
@@ -170,7 +174,7 @@ def _lm_measure(P: Problem, s, recs) -> _Measured:
     grad = P.gradient(blks, gg)
     gs, gmus, grs = grad.shared, list(grad.records_mu), list(grad.records_r)
     active = P.floor_active(s, gs)
-    rg = _relgrad(f, s, recs, np.where(active, 0.0, gs), gmus, grs)
+    rg = _relgrad(P, f, s, recs, np.where(active, 0.0, gs), gmus, grs)
     dec = newton_decrement(P, blks, gs, gmus, grs, active)
     return _Measured(blks=blks, f=f, grad=grad, Hg=Hg, active=active, relgrad=rg, decrement=dec,
                      n_held=int(P.held.sum()))
@@ -214,13 +218,21 @@ def _lm_terminate(m: _Measured, options: FitOptions, it: int, elapsed: float) ->
     return None
 
 
-def _marquardt_diagonal(m: _Measured):
-    """Marquardt scaling: |diag H| per state mean and over the border, floored at DIAG_FLOOR of its largest entry."""
+def _marquardt_diagonal(P: Problem, m: _Measured):
+    """Marquardt scaling: |diag H| per state mean and over the border, floored at DIAG_FLOOR of its largest entry.
+
+    The floor is taken in coherent units (:attr:`Problem.coherent`: a variable v = c·v' in
+    them has the curvature H'/c²), so the damping, like the undamped Newton step, does not
+    depend on whether the model is written in degrees or radians."""
+    cs = P.coherent
+    cm2 = cs.state ** 2
+    cb2 = cs.border(P.nrec) ** 2
     dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in m.blks]
     dglob = np.abs(np.diag(m.Hg))
-    big = max([1.0] + [float(d.max()) for d in dmus] + ([float(dglob.max())] if dglob.size else []))
+    big = max([1.0] + [float((d / cm2).max()) for d in dmus]
+              + ([float((dglob / cb2).max())] if dglob.size else []))
     floor = DIAG_FLOOR * big
-    return [np.maximum(d, floor) for d in dmus], np.maximum(dglob, floor)
+    return [np.maximum(d, floor * cm2) for d in dmus], np.maximum(dglob, floor * cb2)
 
 
 #: relative size (to the largest entry) below which a gradient component or a Hessian entry
@@ -368,7 +380,7 @@ def _curvature_direction(P: Problem, m: _Measured):
     keep[off + np.nonzero(m.active)[0]] = False
     if not keep.any():
         return None
-    _, dglob = _marquardt_diagonal(m)
+    _, dglob = _marquardt_diagonal(P, m)
     isd = 1.0 / np.sqrt(dglob[keep])
     St = red.S[np.ix_(keep, keep)] * isd[:, None] * isd[None, :]
     w, V = np.linalg.eigh(0.5 * (St + St.T))
@@ -397,7 +409,7 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
     gs, gmus, grs = m.grad.shared, list(m.grad.records_mu), list(m.grad.records_r)
     pd = math.isfinite(m.decrement)
     f = m.f
-    dmus, dglob = _marquardt_diagonal(m)
+    dmus, dglob = _marquardt_diagonal(P, m)
     nu = 2.0
     while True:
         sol = P.newton_step(m.blks, lam, dmus, dglob, frozen=m.active)
@@ -412,9 +424,10 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
             pred = -0.5 * gdot + 0.5 * lam * dDd
             s_new = s + ds
             recs_new = [(mu + d1, r + d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
-            step = max([float(np.max(np.abs(ds) / np.maximum(np.abs(s), 1.0))) if ds.size else 0.0]
-                       + [float(np.max(np.abs(d1) / np.maximum(np.abs(mu), 1.0))) for (mu, _), d1 in zip(recs, dmu)]
-                       + [float(np.max(np.abs(d2) / np.maximum(np.abs(r), 1.0))) for (_, r), d2 in zip(recs, dr)])
+            cs = P.coherent       # the relative step in coherent units, as the gradient test
+            step = max([float(np.max(np.abs(ds) / cs.reference(s, cs.shared, cs.shared_log))) if ds.size else 0.0]
+                       + [float(np.max(np.abs(d1) / cs.reference(mu, cs.state, False))) for (mu, _), d1 in zip(recs, dmu)]
+                       + [float(np.max(np.abs(d2) / cs.reference(r, cs.r, cs.r_log))) for (_, r), d2 in zip(recs, dr)])
             if pred <= PRED_RTOL * max(abs(f), 1.0) or step < options.xtol:
                 return s, recs, lam, _Stop(
                     StopReason.NO_PROGRESS if pd else StopReason.INDEFINITE_HESSIAN,
@@ -640,7 +653,7 @@ def _optimize_trust_constr(P: Problem, options: FitOptions, start: str = "data")
         gs, grecs = lay.unpack(np.asarray(g))
         gmus, grs = [gm for gm, _ in grecs], [gr for _, gr in grecs]
         active = P.floor_active(ss, gs)
-        return _relgrad(f, ss, recs, np.where(active, 0.0, gs), gmus, grs)
+        return _relgrad(P, f, ss, recs, np.where(active, 0.0, gs), gmus, grs)
 
     def callback(intermediate_result):
         res = intermediate_result
@@ -1242,14 +1255,14 @@ def _smoothing_start_std(P: Problem) -> np.ndarray:
 
     A state measured directly by output j gets the robust spread of output j's
     sample-to-sample differences / √T (the random-walk rate the record allows); an
-    unmeasured one 1 (state unit/√s).
+    unmeasured one 1 coherent unit/√s (1 rad/√s for an angle in deg).
     """
     pairs = P.direct
     T = float(np.mean([float(r.dt) for r in P.records]))
     out = []
     for i in np.nonzero(P.nm.deterministic)[0]:
         v = diff_scale(P.records, pairs[i].output) / abs(pairs[i].gain) / math.sqrt(T) if i in pairs else 0.0
-        out.append(v if v > 0 else 1.0)
+        out.append(v if v > 0 else 1.0 / float(P.coherent.state[i]))
     return np.asarray(out, float)
 
 

@@ -52,8 +52,8 @@ from ..model.dynamics import input_hold as transition_input_hold
 from ..model.dynamics import settings as transition_settings
 from ..model.dynamics import transition
 from ..errors import FitError
-from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, carried_inputs, cov_factors_of,
-                   get_objective, input_filter_scales, make_cfg, quasi_deterministic_stds, record_data)
+from .core import (NoiseMap, SwitchedObjective, ThetaMap, bucket_length, carried_inputs, coherent_factors,
+                   cov_factors_of, get_objective, input_filter_scales, make_cfg, quasi_deterministic_stds, record_data)
 from .results import FitOptions, FitResult, WarmStart
 
 from .. import precision  # noqa: F401  (float64, set once)
@@ -566,6 +566,53 @@ class Gradient:
     records_mu: tuple[np.ndarray, ...]
 
 
+@dataclasses.dataclass(frozen=True)
+class CoherentScale:
+    """Per decision variable v, the factor c with c·v the same variable in coherent units
+    (SI, rad; :func:`~vsidgen.estimator.core.coherent_factors`).
+
+    With x = D x' (x in coherent units, x' in the declared ones, D = diag(``state``)): a
+    state mean scales by its state's factor; the assumed density's log-variances d are
+    shifted, not scaled (c = 1); Σ_cond = L diag(eᵈ) Lᵀ gives L = D L' D⁻¹ (L_ij by
+    s_i/s_j) and Σ_marg = Sm Smᵀ, Sm = D Sm', gives the cross factor C = D C' (row i by
+    s_i); a free unbounded parameter scales by its unit's factor, a bounded one (its
+    transformed coordinate) and the noise parameters (logarithms) do not (c = 1).
+    ``shared`` covers s, ``r`` one record's r; ``shared_log`` and ``r_log`` mark the
+    logarithmic coordinates (noise stds, log-variances, one-sided bounded parameters), which
+    a change of units shifts instead of scaling.
+    """
+
+    state: np.ndarray
+    shared: np.ndarray
+    r: np.ndarray
+    shared_log: np.ndarray
+    r_log: np.ndarray
+
+    def reference(self, v, c, log) -> np.ndarray:
+        """max(|v|, 1/c) per coordinate (1 coherent unit, or |v| where larger); 1 for a
+        logarithmic one (a shift of 1 is a factor e in any unit): the scale of a relative
+        gradient or step that is the same in every unit system."""
+        return np.where(log, 1.0, np.maximum(np.abs(v), 1.0 / c))
+
+    @classmethod
+    def of(cls, P: "Problem") -> "CoherentScale":
+        sx = coherent_factors(P.model.states)
+        n = len(sx)
+        il = np.tril_indices(n, -1)
+        r = np.concatenate([np.ones(n), sx[il[0]] / sx[il[1]], np.repeat(sx, n)])
+        pf = coherent_factors(P.model.parameters)[P.tm.free_idx]
+        th = np.where(P.tm.kind == 0, pf, 1.0)
+        shared = np.concatenate([th, np.ones(P.layout.ng - len(th))])
+        shared_log = np.concatenate([np.isin(P.tm.kind, (1, 2)), np.ones(P.layout.ng - len(th), bool)])
+        r_log = np.zeros(len(r), bool)
+        r_log[:n] = True
+        return cls(state=sx, shared=shared, r=r, shared_log=shared_log, r_log=r_log)
+
+    def border(self, nrec: int) -> np.ndarray:
+        """Factors of the border b = (r_1, …, r_nrec, s)."""
+        return np.concatenate([np.tile(self.r, nrec), self.shared])
+
+
 class Problem:
     """Everything fixed during one optimisation: maps, objective, records, layout (module docstring).
 
@@ -720,7 +767,8 @@ class Problem:
             raise FitError("warm_start result does not match this problem's shape")
         s = np.concatenate([self.tm.z0, self.nm.inits[start]])
         pairs = self.direct
-        r0 = np.zeros(self.layout.nq)  # Σ_cond = Σ_marg = I
+        r0 = np.zeros(self.layout.nq)  # Σ_cond = Σ_marg = I in coherent units (rad², not deg²)
+        r0[:self.model.nx] = -2.0 * np.log(self.coherent.state)
         if (self.nm.fixed_G is not None and self.tm.n_free == 0) or self.noise_scaled_start:
             # smoothing with known noise (validation mode): start the assumed density at the
             # prior's conditional covariance, Σ_cond = diag(T G Gᵀ), C = 0. With Σ = I the
@@ -737,6 +785,11 @@ class Problem:
             recs = [(initial_means(self.model, r, pairs, options.init_states), r0.copy())
                     for r in self.records]
         return s, recs
+
+    @functools.cached_property
+    def coherent(self) -> "CoherentScale":
+        """Factors from the decision vector's declared units to coherent ones (:class:`CoherentScale`)."""
+        return CoherentScale.of(self)
 
     @functools.cached_property
     def measured_start(self) -> list[np.ndarray]:
