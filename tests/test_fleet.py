@@ -89,3 +89,28 @@ def test_fleet_follows_the_results_directory_rules(tmp_path, capsys):
         assert main(["fleet", str(SPEC), str(bad), "--out", str(tmp_path / "o"), "--workers",
                      "1", "--quiet", *opt]) == 2
         assert not (tmp_path / "o").exists()
+
+
+def test_fleet_passes_overrides_and_noise_start_to_every_fit(tmp_path, capsys):
+    """--fix, --method, --noise-start reach each record's fit (the results say so, and equal a
+    single `run_fit` with the same settings); an unknown --fix name is refused before any fit."""
+    from vsidgen import Overrides
+    from vsidgen.cli import main
+    from vsidgen.fitjob import run_fit
+    from vsidgen.spec.overrides import Method
+
+    out = tmp_path / "fleet"
+    rc = main(["fleet", str(SPEC), str(RECS[1]), "--out", str(out), "--workers", "1", "--max-iter", "3",
+               "--fix", "ZQ=0", "--method", "output-error", "--noise-start", "data", "--quiet"])
+    res = json.loads((out / "attas_sp_synthetic_val" / "results.json").read_text())
+    assert rc == (0 if res["converged"] else 1)
+    assert res["overrides"]["fix"] == {"ZQ": 0.0} and res["overrides"]["method"] == "output-error"
+    assert res["parameters"]["ZQ"]["fixed"] and res["parameters"]["ZQ"]["estimate"] == 0.0
+    ref = run_fit(SPEC, [RECS[1]], out=tmp_path / "single", max_iter=3, noise_start="data",
+                  overrides=Overrides(fix={"ZQ": 0.0}, method=Method.OUTPUT_ERROR))
+    assert res["elbo"] == pytest.approx(ref.results["elbo"], rel=1e-9)
+    capsys.readouterr()
+    assert main(["fleet", str(SPEC), str(RECS[1]), "--out", str(tmp_path / "f2"), "--workers", "1",
+                 "--fix", "NOPE=1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "NOPE" in err and not (tmp_path / "f2" / "attas_sp_synthetic_val").exists()

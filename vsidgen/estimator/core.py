@@ -131,7 +131,8 @@ class ThetaMap:
     """Smooth bijection between unconstrained z (free parameters only) and θ (all parameters).
 
     * unbounded: θ = z (z₀ = initial)
-    * lower only: θ = lo + s·exp(z), s = initial − lo (z₀ = 0) or 1 when initial ≤ lo
+    * lower only: θ = lo + s·exp(z), s = initial − lo (z₀ = 0) or, when initial ≤ lo, 1
+      coherent unit of the parameter (:func:`coherent_factors`)
     * upper only: θ = hi − s·exp(z)
     * two-sided: θ = lo + (hi − lo)·sigmoid(z)
     * fixed: θ = initial.
@@ -149,6 +150,7 @@ class ThetaMap:
         hi = np.ones(npar)
         sc = np.ones(npar)
         z0 = np.zeros(npar)
+        one = 1.0 / coherent_factors(parameters)      # 1 coherent unit in the declared one
         for i, p in enumerate(parameters):
             a, b = p.lower, p.upper
             a = None if a is None or not np.isfinite(a) else float(a)
@@ -160,12 +162,12 @@ class ThetaMap:
             elif a is not None and b is None:
                 kind[i] = 1
                 lo[i] = a
-                sc[i] = x0 - a if x0 > a else 1.0
+                sc[i] = x0 - a if x0 > a else one[i]
                 z0[i] = 0.0
             elif a is None and b is not None:
                 kind[i] = 2
                 hi[i] = b
-                sc[i] = b - x0 if x0 < b else 1.0
+                sc[i] = b - x0 if x0 < b else one[i]
                 z0[i] = 0.0
             else:
                 if not b > a:

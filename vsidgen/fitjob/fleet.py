@@ -85,9 +85,15 @@ def _fit_one(spec: str, data: str, out: str, generated_dir: str | None, kwargs: 
 def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
               scheduler: str | None = None, generated_dir=None, max_iter: int = 200,
               integrator: str | None = None, substeps: int | None = None,
-              report: bool = False, overwrite: bool = False,
+              noise_start: str = "auto", init_states: str = "measured",
+              overrides=None, report: bool = False, overwrite: bool = False,
               progress: Callable[[str], None] | None = None) -> FleetResult:
     """Fit ``spec`` to every record of ``data`` separately; results in ``out/<record>/``.
+
+    ``noise_start``, ``init_states`` and ``overrides`` (:class:`vsidgen.Overrides`: fixed,
+    freed and initial parameter values, output-error method) are those of
+    :func:`vsidgen.run_fit` and apply to every record's fit; the overrides are checked
+    against the spec here, before any fit starts, and recorded in each ``results.json``.
 
     ``workers`` worker processes of a local dask cluster (1: serially in this process; None:
     one per two local cores) or the cluster at ``scheduler``. The spec is compiled once here
@@ -110,19 +116,27 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
         raise VsidgenError(f"--max-iter must be >= 1, got {max_iter}")
     if substeps is not None:
         check_settings(integrator or "euler", substeps)
+    from ..spec.overrides import Overrides, apply_overrides
+
+    overrides = overrides if overrides is not None else Overrides()
+    if not isinstance(overrides, Overrides):
+        raise VsidgenError(f"overrides must be a vsidgen.Overrides, got {type(overrides).__name__}\n"
+                           "  hint: Overrides(fix={'CL_0': 0.45})")
     engine = Engine(workers=workers, scheduler=scheduler)
-    plan = plan_output_dir(out, overwrite=overwrite, reads=[spec, *data])
+    plan = plan_output_dir(out, overwrite=overwrite,
+                           reads=[spec, *data, *([overrides.init_from] if overrides.init_from else [])])
     print_recovered(plan)
-    load_model(spec, generated_dir=generated_dir)
+    apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)   # unknown names: now
     names = _dir_names(data)
     with results_in_place(plan, command="fleet", owns=(*names, "fleet.json")) as out_dir:
         return _run_fleet(spec, data, names, out_dir, engine, generated_dir=generated_dir,
-                          max_iter=max_iter, integrator=integrator, substeps=substeps,
-                          report=report, progress=progress)
+                          kwargs={"max_iter": max_iter, "integrator": integrator, "substeps": substeps,
+                                  "noise_start": noise_start, "init_states": init_states,
+                                  "overrides": overrides, "report": report},
+                          progress=progress)
 
 
-def _run_fleet(spec, data, names, out, engine, *, generated_dir, max_iter, integrator, substeps,
-               report, progress) -> FleetResult:
+def _run_fleet(spec, data, names, out, engine, *, generated_dir, kwargs, progress) -> FleetResult:
     from ..atomic import write_text_atomic
     from ..engine import TaskStatus
     from ..model import default_generated_dir
@@ -130,8 +144,6 @@ def _run_fleet(spec, data, names, out, engine, *, generated_dir, max_iter, integ
 
     gen = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec)
     out = pathlib.Path(out)
-    kwargs = {"max_iter": max_iter, "integrator": integrator, "substeps": substeps,
-              "report": report}
     tasks = [(n, (str(spec), str(d), str(out / n), str(gen.resolve()), kwargs))
              for n, d in zip(names, data)]
     done: dict[str, FleetEntry] = {}
@@ -195,7 +207,14 @@ def add_fleet_parser(subparsers):
     p.add_argument("--substeps", type=int, default=None)
     p.add_argument("--max-iter", type=int, default=200,
                    help="optimizer iterations per noise start (each start is a fit of its own; a stage of the deterministic limit of states without process noise gets max(30, MAX_ITER/4)) (default 200)")
+    p.add_argument("--init-states", choices=("measured", "zero"), default="measured",
+                   help="initial state-path mean: measured states where possible, or zero")
+    p.add_argument("--noise-start", choices=("auto", "release", "data", "data-meas", "unit"),
+                   default="auto", help="starting noise levels, as for `vsidgen fit` (default auto)")
     p.add_argument("--report", action="store_true", help="also write a report per record")
+    from ..spec.overrides import add_override_arguments
+
+    add_override_arguments(p)
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.add_argument("--overwrite", action="store_true",
                    help="write into a non-empty DIR that is not a vsidgen results directory "
@@ -208,12 +227,17 @@ def fleet_command(args) -> int:
     from ..compilecache import enable_compilation_cache
     from ..engine import terminate_as_interrupt
 
+    from ..spec.overrides import overrides_of
+
     enable_compilation_cache()
+    overrides = overrides_of(args)
     progress = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
     with terminate_as_interrupt():
         res = run_fleet(args.spec, args.data, out=args.out, workers=args.workers,
                         scheduler=args.scheduler, max_iter=args.max_iter,
-                        integrator=args.integrator, substeps=args.substeps, report=args.report,
+                        integrator=args.integrator, substeps=args.substeps,
+                        noise_start=args.noise_start, init_states=args.init_states,
+                        overrides=overrides, report=args.report,
                         overwrite=args.overwrite, progress=progress)
     for e in res.entries:
         extra = f"ELBO {e.elbo:.6g}" if e.elbo is not None else (e.error or "")
