@@ -99,6 +99,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "otter_lon_coef": (("totter_lon_020213f1_017",), ("totter_lon_020213f1_018",),
                        "short period and attitude in lift and moment coefficients with the "
                        "aircraft constants, g/V cos(theta - alpha), an a_z output"),
+    "otter_pitch_degrees": (("totter_lon_020213f1_019",), ("totter_lon_020213f1_018",),
+                            "short period and attitude in degrees throughout, g/V cos(theta - "
+                            "alpha) through d2r, an a_z output"),
 }
 
 
