@@ -106,7 +106,7 @@ def test_the_direction_is_the_most_negative_curvature_of_the_dense_hessian():
     Dmu = np.maximum(np.abs(np.diag(H)[mu]), 1e-300)
     Al = H[np.ix_(mu, mu)] + SCORE_DAMPING * np.diag(Dmu)
     S = H[np.ix_(b, b)] - H[np.ix_(b, mu)] @ np.linalg.solve(Al, H[np.ix_(mu, b)])
-    _, dglob = F._marquardt_diagonal(m)
+    _, dglob = F._marquardt_diagonal(P, m)
     w = scipy.linalg.eigh(S, np.diag(dglob), eigvals_only=True)
     assert e < 0
     # λ = 1e-10 makes the elimination ill-conditioned (≈ 1e10): agreement to 1e-5
