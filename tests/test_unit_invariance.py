@@ -66,7 +66,7 @@ observations:
   az: V*k*(Za*alpha + Zq*q + Zde*de) + az0
 noise:
   process:
-    states: [alpha, q]
+    states: [alpha, q]{structure}
   measurement:
     alpha: {{floor: auto}}
     q: {{floor: auto}}
@@ -113,25 +113,29 @@ def _simulate(n=300, dt=0.02, seed=3):
     return t, de, Y
 
 
-def _model(tmp_path, tag):
+def _model(tmp_path, tag, full=False):
     deg = tag == "deg"
-    text = SPEC.format(tag=tag, a="deg" if deg else "rad", k=1.0 / D if deg else 1.0,
-                       ku="rad/deg" if deg else "1")
-    path = tmp_path / f"pitch_{tag}.yaml"
+    text = SPEC.format(tag=tag + ("_full" if full else ""), a="deg" if deg else "rad",
+                       k=1.0 / D if deg else 1.0, ku="rad/deg" if deg else "1",
+                       structure="\n    structure: full" if full else "")
+    path = tmp_path / f"pitch_{tag}{'_full' if full else ''}.yaml"
     path.write_text(text)
     return load_model(path, generated_dir=tmp_path / "gen")
 
 
-@pytest.fixture(scope="module")
-def models_and_records(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("units")
+def _pair(tmp, full=False):
     t, de, Y = _simulate()
     out = {}
     for tag, c in (("rad", 1.0), ("deg", D)):
-        m = _model(tmp, tag)
+        m = _model(tmp, tag, full)
         y = Y * np.array([c, c, c, 1.0])
         out[tag] = (m, Record.from_arrays(m, t, de[:, None] * c, y, name=f"sim_{tag}"))
     return out
+
+
+@pytest.fixture(scope="module")
+def models_and_records(tmp_path_factory):
+    return _pair(tmp_path_factory.mktemp("units"))
 
 
 @pytest.mark.parametrize("start", ["data", "data-meas", "unit"])
@@ -156,4 +160,20 @@ def test_degree_model_follows_the_radian_path(models_and_records, start):
     scale = np.array([D if n in ("Z0", "M0") else 1.0 for n in names])
     np.testing.assert_allclose(d.theta, r.theta * scale, rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(d.std_errors, r.std_errors * scale, rtol=1e-4)
+    assert d.elbo - r.elbo == pytest.approx(offset, abs=1e-6 * n)
+
+
+def test_full_process_noise_in_degrees_follows_the_radian_path(tmp_path):
+    """A full (correlated) process-noise factor: its off-diagonal entry G_qα is linear in the
+    units of q (G → D G), not a logarithm like the diagonal stds."""
+    pair = _pair(tmp_path, full=True)
+    fits = {tag: fit(m, [rec], options=FitOptions(noise_start="data", max_iter=150, parallel_starts=False))
+            for tag, (m, rec) in pair.items()}
+    r, d = fits["rad"], fits["deg"]
+    n = pair["rad"][1].y.shape[0]
+    offset = (3 * n - 3) * math.log(math.pi / 180.0)
+    hr = np.array([h["elbo"] for h in r.history])
+    hd = np.array([h["elbo"] for h in d.history])
+    np.testing.assert_allclose(hd[:40] - hr[:40], offset, rtol=0, atol=1e-6 * n)
+    assert r.converged and d.converged and r.iterations == d.iterations
     assert d.elbo - r.elbo == pytest.approx(offset, abs=1e-6 * n)

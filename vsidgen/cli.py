@@ -455,7 +455,7 @@ def _add_fit(sub):
                    help="initial state-path mean: measured states where possible, or zero")
     p.add_argument("--noise-start", choices=("auto", "release", "data", "data-meas", "unit"), default="auto",
                    help="starting noise levels: from the data's sample-to-sample spread, or "
-                        "std = 1 ('unit', the paper's), or 'release' (unmeasured states with "
+                        "std = 1 in SI units and rad ('unit', the paper's), or 'release' (unmeasured states with "
                         "process noise first held deterministic, then released); auto tries "
                         "them all and keeps the best converged one (θ always starts at the "
                         "spec's null guesses)")

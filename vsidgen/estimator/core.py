@@ -220,19 +220,21 @@ def coherent_factors(variables) -> np.ndarray:
     written in degrees or feet is fitted along exactly the path of the same model written
     in radians or metres (the two are one linear change of variables apart).
     """
+    return np.asarray([_coherent_factor(getattr(v, "unit", None) or "") for v in variables], float)
+
+
+@functools.lru_cache(maxsize=1024)
+def _coherent_factor(text: str) -> float:
+    """:func:`coherent_factors` of one unit text (parsed once per text)."""
+    if not text:
+        return 1.0
     from ..spec.units import coherent
 
-    out = []
-    for v in variables:
-        text = getattr(v, "unit", None)
-        f = 1.0
-        if text:
-            try:
-                f = float(coherent(text)[0])
-            except Exception:   # a unit the spec checker let through but pint-free parsing cannot read
-                f = 1.0
-        out.append(f if math.isfinite(f) and f > 0 else 1.0)
-    return np.asarray(out, float)
+    try:
+        f = float(coherent(text)[0])
+    except Exception:       # a unit of a model built in Python that the spec grammar cannot read
+        return 1.0
+    return f if math.isfinite(f) and f > 0 else 1.0
 
 
 # --------------------------------------------------------------------------- noise map

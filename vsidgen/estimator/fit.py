@@ -41,15 +41,15 @@ from .. import precision  # noqa: F401  (float64, set once)
 
 
 def _relgrad(P: Problem, f, s, recs, gs, gmus, grs):
-    """max_i |∂f/∂v_i| · max(|v_i|, 1) / max(|f|, 1), with v in coherent units and 1 for a
-    logarithmic coordinate (:meth:`CoherentScale.reference`: the same number for a model in
-    degrees as in radians)."""
+    """max_i |∂f/∂v_i| · max(|v_i|, 1) / max(|f|, 1), with v in coherent units
+    (:meth:`CoherentScale.reference`: the same number for a model in degrees as in radians,
+    up to the ELBO's own change of units in |f|)."""
     cs = P.coherent
     scale = max(abs(f), 1.0)
-    vals = [np.abs(gs) * cs.reference(s, cs.shared, cs.shared_log)]
+    vals = [np.abs(gs) * cs.reference(s, cs.shared, cs.shared_shift)]
     for (m, r), gm, gr in zip(recs, gmus, grs):
-        vals.append((np.abs(gm) * cs.reference(m, cs.state, False)).ravel())
-        vals.append(np.abs(gr) * cs.reference(r, cs.r, cs.r_log))
+        vals.append((np.abs(gm) * cs.reference(m, cs.state, 0.0)).ravel())
+        vals.append(np.abs(gr) * cs.reference(r, cs.r, cs.r_shift))
     return float(max((v.max() if v.size else 0.0) for v in vals)) / scale
 
 
@@ -229,7 +229,9 @@ def _marquardt_diagonal(P: Problem, m: _Measured):
     cb2 = cs.border(P.nrec) ** 2
     dmus = [np.abs(np.diagonal(np.asarray(b["D"]), axis1=1, axis2=2)) for b in m.blks]
     dglob = np.abs(np.diag(m.Hg))
-    big = max([1.0] + [float((d / cm2).max()) for d in dmus]
+    # the largest entry over the records' own samples (a padded sample's block is the identity
+    # in declared units, which is not the same curvature in every unit system)
+    big = max([1.0] + [float((d[:n] / cm2).max()) for d, n in zip(dmus, P.lengths) if n]
               + ([float((dglob / cb2).max())] if dglob.size else []))
     floor = DIAG_FLOOR * big
     return [np.maximum(d, floor * cm2) for d in dmus], np.maximum(dglob, floor * cb2)
@@ -280,12 +282,17 @@ def _saddle_step(P: Problem, s, recs, m: _Measured):
         W = np.asarray(b["W"])
         if np.any(np.abs(W[..., nq + zero]) > ZERO_RTOL * hmax):
             return None
-    w, V = np.linalg.eigh(0.5 * (Hzz + Hzz.T))
+    # the eigenproblem in coherent units (H → C⁻¹HC⁻¹, v → C⁻¹v: the same direction and
+    # step for a parameter in deg/s² as in rad/s²)
+    cz = P.coherent.shared[zero]
+    w, V = np.linalg.eigh(0.5 * (Hzz + Hzz.T) / np.outer(cz, cz))
     if not w[0] < -SADDLE_RTOL * max(float(np.max(np.abs(w))), 1e-300):
         return None
+    v0 = V[:, 0] / cz
+
     def point(a):
         s_new = np.array(s, float)
-        s_new[zero] += a * V[:, 0]
+        s_new[zero] += a * v0
         return s_new, recs
 
     best = _along_negative_curvature(P, m, point, float(w[0]), early=False)
@@ -425,9 +432,9 @@ def _lm_step(P: Problem, options: FitOptions, s, recs, m: _Measured, lam: float)
             s_new = s + ds
             recs_new = [(mu + d1, r + d2) for (mu, r), d1, d2 in zip(recs, dmu, dr)]
             cs = P.coherent       # the relative step in coherent units, as the gradient test
-            step = max([float(np.max(np.abs(ds) / cs.reference(s, cs.shared, cs.shared_log))) if ds.size else 0.0]
-                       + [float(np.max(np.abs(d1) / cs.reference(mu, cs.state, False))) for (mu, _), d1 in zip(recs, dmu)]
-                       + [float(np.max(np.abs(d2) / cs.reference(r, cs.r, cs.r_log))) for (_, r), d2 in zip(recs, dr)])
+            step = max([float(np.max(np.abs(ds) / cs.reference(s, cs.shared, cs.shared_shift))) if ds.size else 0.0]
+                       + [float(np.max(np.abs(d1) / cs.reference(mu, cs.state, 0.0))) for (mu, _), d1 in zip(recs, dmu)]
+                       + [float(np.max(np.abs(d2) / cs.reference(r, cs.r, cs.r_shift))) for (_, r), d2 in zip(recs, dr)])
             if pred <= PRED_RTOL * max(abs(f), 1.0) or step < options.xtol:
                 return s, recs, lam, _Stop(
                     StopReason.NO_PROGRESS if pd else StopReason.INDEFINITE_HESSIAN,

@@ -577,36 +577,48 @@ class CoherentScale:
     s_i/s_j) and Σ_marg = Sm Smᵀ, Sm = D Sm', gives the cross factor C = D C' (row i by
     s_i); a free unbounded parameter scales by its unit's factor, a bounded one (its
     transformed coordinate) and the noise parameters (logarithms) do not (c = 1).
-    ``shared`` covers s, ``r`` one record's r; ``shared_log`` and ``r_log`` mark the
-    logarithmic coordinates (noise stds, log-variances, one-sided bounded parameters), which
-    a change of units shifts instead of scaling.
+    ``shared`` covers s, ``r`` one record's r. A logarithmic coordinate (a noise log-std w of
+    σ = floor + eʷ, a log-variance d) is shifted by a change of units, not scaled: its factor
+    is 1 and ``shared_shift``/``r_shift`` hold the shift to its coherent value (log s for a
+    std, 2 log s for a variance; 0 elsewhere). An off-diagonal entry of a full process-noise
+    factor G (G → D G) scales by its row state's factor.
     """
 
     state: np.ndarray
     shared: np.ndarray
     r: np.ndarray
-    shared_log: np.ndarray
-    r_log: np.ndarray
+    shared_shift: np.ndarray
+    r_shift: np.ndarray
 
-    def reference(self, v, c, log) -> np.ndarray:
-        """max(|v|, 1/c) per coordinate (1 coherent unit, or |v| where larger); 1 for a
-        logarithmic one (a shift of 1 is a factor e in any unit): the scale of a relative
-        gradient or step that is the same in every unit system."""
-        return np.where(log, 1.0, np.maximum(np.abs(v), 1.0 / c))
+    @staticmethod
+    def reference(v, c, shift) -> np.ndarray:
+        """max(|v + shift|, 1/c) per coordinate: max(|v|, 1) of the coordinate in coherent
+        units, expressed in the declared ones — the scale of a relative gradient or step that
+        is the same for a model in degrees as in radians (and the old max(|v|, 1) where every
+        unit is coherent)."""
+        return np.maximum(np.abs(np.asarray(v, float) + shift), 1.0 / c)
 
     @classmethod
     def of(cls, P: "Problem") -> "CoherentScale":
         sx = coherent_factors(P.model.states)
+        sy = coherent_factors(P.model.outputs)
         n = len(sx)
         il = np.tril_indices(n, -1)
         r = np.concatenate([np.ones(n), sx[il[0]] / sx[il[1]], np.repeat(sx, n)])
+        r_shift = np.zeros(len(r))
+        r_shift[:n] = 2.0 * np.log(sx)
         pf = coherent_factors(P.model.parameters)[P.tm.free_idx]
-        th = np.where(P.tm.kind == 0, pf, 1.0)
-        shared = np.concatenate([th, np.ones(P.layout.ng - len(th))])
-        shared_log = np.concatenate([np.isin(P.tm.kind, (1, 2)), np.ones(P.layout.ng - len(th), bool)])
-        r_log = np.zeros(len(r), bool)
-        r_log[:n] = True
-        return cls(state=sx, shared=shared, r=r, shared_log=shared_log, r_log=r_log)
+        nm = P.nm
+        n_diag = len(nm.proc_est_idx)
+        # s = (free θ, process-noise log-stds, off-diagonal G entries, measurement log-stds)
+        shared = np.concatenate([np.where(P.tm.kind == 0, pf, 1.0), np.ones(n_diag),
+                                 np.array([sx[a] for a, _ in nm.offdiag], float),
+                                 np.ones(nm.n_meas)])
+        shared_shift = np.concatenate([np.zeros(P.tm.n_free), np.log(sx[nm.proc_est_idx]),
+                                       np.zeros(len(nm.offdiag)), np.log(sy[nm.meas_est_idx])])
+        if len(shared) != P.layout.ng:
+            raise FitError(f"internal: {len(shared)} unit factors for {P.layout.ng} shared variables")
+        return cls(state=sx, shared=shared, r=r, shared_shift=shared_shift, r_shift=r_shift)
 
     def border(self, nrec: int) -> np.ndarray:
         """Factors of the border b = (r_1, …, r_nrec, s)."""

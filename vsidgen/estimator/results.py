@@ -251,7 +251,7 @@ class FitOptions:
             the sample-to-sample differences, process std of measured states from the
             same spread / √T), "data-meas" (measurement std from the data, process std
             1 coherent unit/√s), "unit" (all std 1 coherent unit above their floors: 1 rad for
-            an angle declared in deg, 1 m/s for a speed in kt), "release" (for unmeasured states
+            an angle declared in deg, 1 m/s for a speed in ft/s), "release" (for unmeasured states
             with estimated process noise: those states first held deterministic in the
             exact limit with every other std fixed at its "data" start, then the other
             noise freed, then their stds released from where the limit ended; see
