@@ -360,13 +360,16 @@ def test_substeps_are_bounded(tmp_path):
 
 
 def test_hints_a_new_user_needs(tmp_path):
-    """Case-only typos suggest the case variant; `unit: g` in the spec points to the data map;
+    """Case-only typos suggest the case variant; `unit: knot` suggests `kt`, `unit: mph` points
+    to the data map;
     a comma inside an unquoted {...} value says to quote it."""
     from vsidgen.suggest import closest
 
     assert closest("Cl_P", ["Cl_b", "Cl_p", "Cl_r"]) == ["Cl_p"]
-    err = error(tmp_path, replace("outputs:\n  V: {unit: m/s}\n", "outputs:\n  V: {unit: g}\n"))
-    assert "unknown unit `g`" in str(err) and "data column" in err.hint and "m/s^2" in err.hint
+    err = error(tmp_path, replace("outputs:\n  V: {unit: m/s}\n", "outputs:\n  V: {unit: knot}\n"))
+    assert "unknown unit `knot`" in str(err) and err.hint == "did you mean `kt`?"
+    err = error(tmp_path, replace("outputs:\n  V: {unit: m/s}\n", "outputs:\n  V: {unit: mph}\n"))
+    assert "unknown unit `mph`" in str(err) and "data column" in err.hint and "kt" in err.hint
     err = error(tmp_path, replace("  MDE: {unit: 1/s}\n",
                                   "  MDE: {unit: 1/s, description: M_de (per rad, nose down)}\n"),
                 "comma.yaml")

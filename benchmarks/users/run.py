@@ -102,6 +102,9 @@ MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...], str]] = {
     "otter_pitch_degrees": (("totter_lon_020213f1_019",), ("totter_lon_020213f1_018",),
                             "short period and attitude in degrees throughout, g/V cos(theta - "
                             "alpha) through d2r, an a_z output"),
+    "attas_sp_us": (("attas_elv1",), ("attas_elv2",),
+                    "short period in degrees, the reference airspeed in knots and the vertical "
+                    "accelerometer in g"),
 }
 
 

@@ -487,13 +487,12 @@ def _name(ctx: _Ctx, node: ast.Name):
     spelt = _ascii_greek(name)
     hint = (f"did you mean `{spelt}`? (names are ASCII: spell Greek letters out)"
             if spelt != name and spelt in known else did_you_mean(name, known))
-    if ctx.units and name in ("g", "kt", "knot", "lbf", "lb", "mph"):
-        # units the data map converts (pint) but the equations cannot use as they stand
+    if ctx.units and name in ("knot", "knots", "kts"):
+        hint = "did you mean `kt`?"
+    elif ctx.units and name in ("mph", "kph", "fps"):
+        # units the data map converts (pint) but the spec's equations do not use
         hint = (f"`{name}` is a unit for a data column (the data map converts it: "
-                f"`{{column: NAME, unit: {name}}}`); the spec's own units are SI and rad"
-                + (", e.g. m/s^2 for accelerations" if name == "g" else
-                   ", e.g. m/s for speeds" if name in ("kt", "knot", "mph") else
-                   ", e.g. N for forces or kg for masses"))
+                f"`{{column: NAME, unit: {name}}}`); for speeds the spec takes m/s, ft/s or kt")
     if ctx.units and name.lower() in _UNIT_SPELLINGS:
         hint = f"did you mean `{_UNIT_SPELLINGS[name.lower()]}`?"
     if ctx.units:

@@ -207,11 +207,13 @@ def _warn_coherence(warnings: list, spec: Spec, right: set[tuple[str, str]]) -> 
     it stands, which is right only where each equation it enters is written in those units
     (3 deg inside cos() is 3 rad; a span in ft beside a speed in m/s is not metres). A
     conversion factor between a unit and its coherent counterpart (`deg/rad`, `ft/m`) is
-    written to convert, and is not warned about; nor is a variable or parameter in ``right``
-    (:func:`_right_as_written`: every equation it enters is consistent in declared units)."""
+    written to convert, and is not warned about; nor is a constant, variable or parameter in
+    ``right`` (:func:`_right_as_written`: every equation it enters is consistent in declared
+    units; a reference speed in kt times a kt-to-m/s factor is)."""
     for c in spec.constants:
         factor, unit = _coherent(c.unit)
-        if factor != 1.0 and not _units.is_conversion_factor(c.unit.value):
+        if factor != 1.0 and not _units.is_conversion_factor(c.unit.value) \
+                and ("constant", c.name.value) not in right:
             _warn(warnings, f"constant `{c.name.value}` is {c.value:g} {c.unit.value}, and the "
                             f"equations use the number {c.value:g} as it stands: where it meets "
                             f"quantities in coherent units (SI, rad) it counts as {c.value:g} "
@@ -309,6 +311,7 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
     kinds = {v.symbol: "state" for v in decl.states}
     kinds.update({v.symbol: "input" for v in decl.inputs})
     kinds.update({q.symbol: "parameter" for q in decl.parameters})
+    kinds.update({c.symbol: "constant" for c in decl.constants})
     return ({(kinds[s], s.name) for s in used - wrong if s in kinds}
             | {("output", n) for n in right_outputs})
 

@@ -32,9 +32,12 @@ ONE = Dimension(1)
 
 #: unit name -> dimension
 UNITS: dict[str, Dimension] = {
-    "m": length, "km": length, "ft": length,
+    "m": length, "km": length, "ft": length, "nmi": length,
     "s": time, "min": time, "h": time,
-    "kg": mass,
+    "kg": mass, "lb": mass, "slug": mass,
+    # the units of US flight-test practice: knots, pound-force, and g, the standard
+    # acceleration of gravity (the unit of load factors, as in the data map; not gram)
+    "kt": length / time, "lbf": mass * length / time**2, "g": length / time**2,
     "K": temperature,
     "A": current, "mol": amount_of_substance,
     "N": mass * length / time**2,
@@ -52,7 +55,10 @@ _UNIT_SYMBOLS = {name: sympy.Symbol(name, positive=True) for name in UNITS}
 #: is off by the factor wherever it meets coherent ones (a constant of 3 deg in cos() is
 #: 3 rad; a span in ft beside a speed in m/s)
 NON_COHERENT = {"km": ("m", 1000.0), "ft": ("m", 0.3048), "min": ("s", 60.0),
-                "h": ("s", 3600.0), "deg": ("rad", math.pi / 180.0)}
+                "h": ("s", 3600.0), "deg": ("rad", math.pi / 180.0), "nmi": ("m", 1852.0),
+                "lb": ("kg", 0.45359237), "slug": ("kg", 14.593902937206364),
+                "kt": ("m/s", 1852.0 / 3600.0), "lbf": ("N", 4.4482216152605),
+                "g": ("m/s^2", 9.80665)}
 
 
 def is_conversion_factor(text) -> bool:
@@ -63,7 +69,8 @@ def is_conversion_factor(text) -> bool:
     except SpecError:
         return False
     names = {n for n, s in _UNIT_SYMBOLS.items() if s in expr.free_symbols}
-    return any(n in names and NON_COHERENT[n][0] in names for n in NON_COHERENT)
+    return any(n in names and set(re.findall(r"[A-Za-z_]\w*", NON_COHERENT[n][0])) <= names
+               for n in NON_COHERENT)
 
 
 def coherent(text, *, path=None, line=None, column=None) -> tuple[float, str]:
