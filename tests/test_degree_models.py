@@ -141,3 +141,30 @@ def test_speed_equation_in_metres_per_second_in_any_angle_unit(tmp_path, tag, au
     dq = _eval(sym, sympy.diff(f_ang, s_q), THETA)
     want = (1.0 if closure else -THETA["ZQ"]) * k / kq
     assert dq == pytest.approx(want, rel=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["vane", "speed"])
+def test_positions_and_speed_equation_in_si_when_the_trim_speed_is_in_knots(tmp_path, kind):
+    """V0 written as 194.38 kt (= 100 m/s): the vane's arm over V is in metres and the speed
+    candidate's trim airspeed in m/s, exactly as with V0 in m/s (session 45: the arm came out
+    in kt·s, 21.36 'm' for an 10.99 m vane on a user's ATTAS model in knots)."""
+    kt = 1852.0 / 3600.0
+    out = {}
+    for tag, v0 in (("ms", "{value: 100.0, unit: m/s}"), ("kt", f"{{value: {100.0 / kt!r}, unit: kt}}")):
+        path = _spec(tmp_path, f"v_{tag}", "deg", "deg/s")
+        path.write_text(path.read_text().replace("V0: {value: 100.0, unit: m/s}", "V0: " + v0))
+        key = "sensor_position:alpha:q" if kind == "vane" else "speed_dynamics"
+        info = model_info(path, dt=0.02)
+        c = next(c for c in propose(info) if c.key == key or c.key.startswith(key))
+        cand = tmp_path / f"cand_{tag}.yaml"
+        cand.write_text(c.spec_yaml(path, name=f"cand_{tag}", candidate_path=cand))
+        sym = compile_spec(cand)
+        vals = {**_point("deg", "deg/s"), **THETA, "V0": 100.0 if tag == "ms" else 100.0 / kt}
+        vals.update({q.name: 0.7 for q in c.parameters})
+        exprs = sym.observations_expanded() + sym.drift_expanded()
+        names = {}
+        for e in exprs:
+            names.update({s.name: s for s in e.free_symbols})
+        vals.update({n: 0.3 for n in names if n not in vals})   # added states (speed perturbation)
+        out[tag] = [_eval(sym, e, vals) for e in exprs]
+    assert out["kt"] == pytest.approx(out["ms"], rel=1e-12)

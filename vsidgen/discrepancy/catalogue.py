@@ -934,6 +934,23 @@ def airspeed_name(info: ModelInfo) -> str | None:
 
 
 
+def speed_in_mps(info: ModelInfo, name: str) -> str:
+    """Spec text of the model's airspeed ``name`` (a state, input or constant) in m/s: the name
+    itself where its unit is m/s (or none), else the name times its unit's factor
+    (``(0.514444444444*V)`` for V in kt, ``(0.3048*V)`` in ft/s), so that a lever arm over V
+    comes out in metres whatever unit the user wrote the speed in."""
+    from ..spec.units import coherent
+
+    unit = info.unit(name) or (getattr(info, "constant_units", None) or {}).get(name)
+    try:
+        factor, shown = coherent(unit or "")
+    except Exception:          # no unit the parser reads: the number as it stands
+        return name
+    if factor == 1.0 or shown.replace(" ", "") != "m/s":
+        return name
+    return f"({factor!r}*{name})"
+
+
 _AXES = ("x", "y", "z")
 
 
@@ -1011,6 +1028,7 @@ class SensorPosition(Effect):
         # x·r/V is in radians with r in rad/s: in the vane's unit (degrees too)
         k = info.radians_per(r) / info.radians_per(o)
         if speed is not None:
+            speed_mps = speed_in_mps(info, speed)     # V in kt or ft/s: the arm still in metres
             ref, refv = self._reference(info, "noseboom", axis, axsign)
             what = (f"a flow vane {p} m {where} sees the induced angle "
                     f"{sign or '+'}{p}·{r}/V of the rotation {r} (local air velocity v + ω × r; "
@@ -1020,7 +1038,7 @@ class SensorPosition(Effect):
                 explanation=self.explain(output=o, what=what, signal=f"the rate {r}",
                                          reference=ref),
                 parameters=(NewParameter(p, "m", f"{o} vane distance {where}"),),
-                add_terms={"observations": {o: f"{sign}{p}*{_times(k, r)}/{speed}"}},
+                add_terms={"observations": {o: f"{sign}{p}*{_times(k, r)}/{speed_mps}"}},
                 info={"output": o, "regressor": f"rate:{r}", "airspeed": speed,
                       "airspeed_source": speed_source, "reference_m": refv})
         what = (f"a flow vane ahead of/above the CG sees an induced angle proportional to the "
@@ -1295,7 +1313,7 @@ def _speed_value(info: ModelInfo) -> tuple[str | None, str]:
     constants file), else (None, reason)."""
     own = airspeed_name(info)
     if own is not None:
-        return own, f"the model's {own}"
+        return speed_in_mps(info, own), f"the model's {own}"
     fl = info.flight
     if fl is not None and fl.airspeed is not None:
         return repr(round(float(fl.airspeed.value), 4)), fl.airspeed.source
