@@ -151,6 +151,10 @@ def test_degree_model_follows_the_radian_path(models_and_records, start):
     # the same path, iterate by iterate (40 iterations: where a start does not converge, as
     # "unit" does not on this record, its path is chaotic and rounding parts them later)
     np.testing.assert_allclose(hd[:40] - hr[:40], offset, rtol=0, atol=1e-6 * n)
+    # the relative gradient (the status's number, the secondary stopping test) too
+    gr = np.array([h["grad_norm"] for h in r.history[:40]])
+    gd = np.array([h["grad_norm"] for h in d.history[:40]])
+    np.testing.assert_allclose(gd, gr, rtol=1e-5)
     assert r.converged == d.converged
     if start == "unit":
         assert not r.converged     # in both unit systems alike (before: the degree model differed)

@@ -41,11 +41,11 @@ from .. import precision  # noqa: F401  (float64, set once)
 
 
 def _relgrad(P: Problem, f, s, recs, gs, gmus, grs):
-    """max_i |∂f/∂v_i| · max(|v_i|, 1) / max(|f|, 1), with v in coherent units
-    (:meth:`CoherentScale.reference`: the same number for a model in degrees as in radians,
-    up to the ELBO's own change of units in |f|)."""
+    """max_i |∂f/∂v_i| · max(|v_i|, 1) / max(|f|, 1), with v and f in coherent units
+    (:meth:`CoherentScale.reference`, :attr:`Problem.elbo_shift`: the same number for a model
+    in degrees as in radians)."""
     cs = P.coherent
-    scale = max(abs(f), 1.0)
+    scale = max(abs(f - P.elbo_shift), 1.0)        # |ELBO| in coherent units
     vals = [np.abs(gs) * cs.reference(s, cs.shared, cs.shared_shift)]
     for (m, r), gm, gr in zip(recs, gmus, grs):
         vals.append((np.abs(gm) * cs.reference(m, cs.state, 0.0)).ravel())
@@ -67,7 +67,7 @@ def _stalled(P: "Problem", history, ws, window: int, rtol: float, remaining: int
     if window <= 0 or len(history) <= window or len(ws) <= window:
         return False
     e1, e0 = history[-1]["elbo"], history[-1 - window]["elbo"]
-    if e1 - e0 >= rtol * max(abs(e1), 1.0):
+    if e1 - e0 >= rtol * max(abs(e1 + P.elbo_shift), 1.0):      # |ELBO| in coherent units
         return False
     nm = P.nm
     floors = [(a, nm.proc_floor[i]) for a, i in enumerate(nm.proc_est_idx)]
@@ -304,7 +304,7 @@ def _along_negative_curvature(P: Problem, m: _Measured, point, e: float, *, earl
     α₀ = √(2 max(|f|, 1)/|e|) (where the quadratic model along a direction of curvature e < 0
     predicts a fall of max(|f|, 1)); ``early``: stop once a shorter step is no better. None
     when no step lowers −ELBO."""
-    a0 = math.sqrt(2.0 * max(abs(m.f), 1.0) / abs(e))
+    a0 = math.sqrt(2.0 * max(abs(m.f - P.elbo_shift), 1.0) / abs(e))
     best = None
     for k in range(12):
         x = point(a0 * 4.0 ** -k)

@@ -804,6 +804,25 @@ class Problem:
         return CoherentScale.of(self)
 
     @functools.cached_property
+    def elbo_shift(self) -> float:
+        """ELBO in coherent units minus the ELBO in declared ones (a constant of the problem).
+
+        Under x = D x′, y = E y′ (D, E the states' and outputs' factors) every density of the
+        joint transforms with its Jacobian and the entropy of q with the opposite one, except
+        what is not a density: the flat prior of the initial states. So ELBO′ = ELBO +
+        Σ_j M_j log e_j − Σ_records Σ_{i flat} log d_i (M_j the observed samples of output j;
+        a state with the initial-value prior of ``input_state_prior`` is not flat). The
+        estimator's tests that compare a change of the ELBO with its magnitude (the relative
+        gradient, the stall test) use the coherent value."""
+        cs = self.coherent
+        sy = coherent_factors(self.model.outputs)
+        m = sum(np.sum(np.isfinite(np.asarray(r.y, float)), axis=0) for r in self.records)
+        flat = np.ones(self.model.nx, bool)
+        if self.prior is not None:
+            flat[np.asarray(self.prior[0][0], int)] = False
+        return float(-(np.asarray(m, float) @ np.log(sy)) + self.nrec * np.sum(np.log(cs.state[flat])))
+
+    @functools.cached_property
     def measured_start(self) -> list[np.ndarray]:
         """Per record, the state means of the "measured" start at the initial parameters:
         :func:`initial_means`, then :func:`invert_outputs` (computed once: every noise start
