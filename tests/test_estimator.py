@@ -658,7 +658,7 @@ def test_stall_test_spares_a_std_sliding_onto_its_floor():
 
     nm = types.SimpleNamespace(proc_est_idx=np.array([0]), proc_floor=np.array([0.0]), n_proc=1,
                                meas_est_idx=np.array([0]), meas_floor=np.array([1e-6]))
-    P = types.SimpleNamespace(nm=nm)
+    P = types.SimpleNamespace(nm=nm, elbo_shift=0.0)
     hist = [{"elbo": 1000.0 + 1e-9 * k} for k in range(12)]
     w_fast = [np.array([0.0, math.log(1e-6) - 0.5 * k]) for k in range(12)]  # floor active in ~4 it.
     w_slow = [np.array([0.0, math.log(1e-5) - 0.001 * k]) for k in range(12)]  # ~7000 it. to go
