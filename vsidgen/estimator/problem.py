@@ -572,19 +572,18 @@ class CoherentScale:
     (SI, rad; :func:`~vsidgen.estimator.core.coherent_factors`).
 
     With x = D x' (x in coherent units, x' in the declared ones, D = diag(``state``)): a
-    state mean scales by its state's factor; the assumed density's log-variances d are
-    shifted, not scaled (c = 1); Σ_cond = L diag(eᵈ) Lᵀ gives L = D L' D⁻¹ (L_ij by
-    s_i/s_j) and Σ_marg = Sm Smᵀ, Sm = D Sm', gives the cross factor C = D C' (row i by
-    s_i); a free unbounded parameter scales by its unit's factor, a bounded one (its
-    transformed coordinate) and the noise parameters (logarithms) do not (c = 1).
-    ``shared`` covers s, ``r`` one record's r. A logarithmic coordinate (a noise log-std w of
-    σ = floor + eʷ, a log-variance d) is shifted by a change of units, not scaled: its factor
-    is 1 and ``shared_shift``/``r_shift`` hold the shift to its coherent value (log s for a
-    std, 2 log s for a variance; 0 elsewhere). An off-diagonal entry of a full process-noise
-    factor G (G → D G) scales by its row state's factor.
+    state mean scales by its state's factor; Σ_cond = L diag(eᵈ) Lᵀ gives L = D L' D⁻¹ (L_ij
+    by s_i/s_j) and Σ_marg = Sm Smᵀ, Sm = D Sm', gives the cross factor C = D C' (row i by
+    s_i); a free unbounded parameter scales by its unit's factor, a bounded one's transformed
+    coordinate not at all; an off-diagonal entry of a full process-noise factor G (G → D G)
+    by its row state's factor. A logarithmic coordinate (a log-variance d, a noise log-std w
+    of σ = floor + eʷ) is shifted, not scaled: its factor is 1 and ``shared_shift``/``r_shift``
+    hold the shift to its coherent value (2 log s for a variance, log s for a std; 0
+    elsewhere). ``shared`` covers s, ``r`` one record's r, ``output`` the outputs' factors.
     """
 
     state: np.ndarray
+    output: np.ndarray
     shared: np.ndarray
     r: np.ndarray
     shared_shift: np.ndarray
@@ -618,7 +617,7 @@ class CoherentScale:
                                        np.zeros(len(nm.offdiag)), np.log(sy[nm.meas_est_idx])])
         if len(shared) != P.layout.ng:
             raise FitError(f"internal: {len(shared)} unit factors for {P.layout.ng} shared variables")
-        return cls(state=sx, shared=shared, r=r, shared_shift=shared_shift, r_shift=r_shift)
+        return cls(state=sx, output=sy, shared=shared, r=r, shared_shift=shared_shift, r_shift=r_shift)
 
     def border(self, nrec: int) -> np.ndarray:
         """Factors of the border b = (r_1, …, r_nrec, s)."""
@@ -815,12 +814,11 @@ class Problem:
         estimator's tests that compare a change of the ELBO with its magnitude (the relative
         gradient, the stall test) use the coherent value."""
         cs = self.coherent
-        sy = coherent_factors(self.model.outputs)
         m = sum(np.sum(np.isfinite(np.asarray(r.y, float)), axis=0) for r in self.records)
         flat = np.ones(self.model.nx, bool)
         if self.prior is not None:
             flat[np.asarray(self.prior[0][0], int)] = False
-        return float(-(np.asarray(m, float) @ np.log(sy)) + self.nrec * np.sum(np.log(cs.state[flat])))
+        return float(-(np.asarray(m, float) @ np.log(cs.output)) + self.nrec * np.sum(np.log(cs.state[flat])))
 
     @functools.cached_property
     def measured_start(self) -> list[np.ndarray]:
