@@ -45,6 +45,12 @@ WORKER_ENV = {
 WORKER_DEATH_RETRIES = 1
 #: seconds to wait for a client / local cluster to shut down before giving up on it
 CLOSE_TIMEOUT_S = 20
+#: level of dask's own logging in local worker processes. Everything a task's user needs
+#: comes back through its :class:`TaskOutcome` (an exception's message, a lost worker), so
+#: dask's records are kept out of the user's output: at ERROR, a worker whose heartbeat
+#: races the scheduler's shutdown logged ``Failed to communicate with scheduler during
+#: heartbeat`` with two tracebacks at the end of a clean run (seen in CI, 1 run in many).
+WORKER_LOG_LEVEL = logging.CRITICAL
 
 
 class TaskStatus(enum.Enum):
@@ -207,12 +213,18 @@ class Engine:
                 env = worker_env()
                 # one task at a time per worker process (saturation 1): a dying worker
                 # takes only the task it was running with it
+                # dask's logging is set up when a worker process imports distributed, from
+                # the environment it is spawned with (silence_logs reaches only the nanny's
+                # logger there, not the worker's)
+                spawn_env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+                spawn_env["DASK_LOGGING__DISTRIBUTED"] = logging.getLevelName(WORKER_LOG_LEVEL)
                 with dask.config.set({"distributed.scheduler.allowed-failures":
                                       WORKER_DEATH_RETRIES,
-                                      "distributed.scheduler.worker-saturation": 1.0}):
+                                      "distributed.scheduler.worker-saturation": 1.0,
+                                      "distributed.nanny.pre-spawn-environ": spawn_env}):
                     self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1,
                                                 processes=True, dashboard_address=None,
-                                                silence_logs=logging.ERROR, env=env)
+                                                silence_logs=WORKER_LOG_LEVEL, env=env)
                     self.client = Client(self.cluster)
         except (OSError, TimeoutError, ValueError, TypeError) as err:
             # ValueError/TypeError: an address dask cannot parse ('garbage address', 'tcp://[::1')
