@@ -688,7 +688,11 @@ def atomic_text_file(path: str | os.PathLike) -> Iterator[TextIO]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
+        # backslashreplace: a file name that is not UTF-8 reaches text as surrogates
+        # (`\udcfe`), which UTF-8 cannot encode (`fit --report` with such a record or spec
+        # name was an internal error after the fit, its results lost; session 46)
+        with os.fdopen(fd, "w", encoding="utf-8", errors="backslashreplace",
+                       newline="\n") as fh:
             yield fh
         _publish_mode(tmp, path)
         os.replace(tmp, path)

@@ -206,7 +206,7 @@ def _cmd_show(args) -> int:
                 extra.append("fixed")
             print(f"  {p.name}{_unit(p.unit)} initial {p.initial:g}"
                   + (", " + ", ".join(extra) if extra else "")
-                  + (f"  {p.description}" if p.description else ""))
+                  + (f"  {printable(p.description)}" if p.description else ""))
     if m.definitions:
         print("definitions:")
         for n, e in m.definitions:
@@ -282,11 +282,16 @@ def _name_values(items, what):
         if not sep or not name.strip():
             raise VsidgenError(f"--{what} {item!r}: expected NAME=VALUE")
         try:
-            out[name.strip()] = float(value)
+            x = float(value)
         except ValueError:
             raise VsidgenError(f"--{what} {item!r}: {value!r} is not a number") from None
-        if not math.isfinite(out[name.strip()]):
+        if not math.isfinite(x):
             raise VsidgenError(f"--{what} {item!r}: the value must be finite")
+        if name.strip() in out and out[name.strip()] != x:
+            # `--param MQ=5 --param MQ=6` kept the last one silently (session 46)
+            raise VsidgenError(f"--{what} {name.strip()} is given twice, with different values "
+                               f"({out[name.strip()]:g} and {x:g})")
+        out[name.strip()] = x
     return out
 
 
@@ -339,6 +344,7 @@ def _cmd_simulate(args) -> int:
 
     from .atomic import check_output_file
     from .data import load_record
+    from .errors import printable
     from .limits import check_input_file
 
     reads = [args.spec] + [p for p in (args.inputs_from, args.params_from) if p]
@@ -376,6 +382,9 @@ def _cmd_simulate(args) -> int:
     theta = {}
     if args.params_from:
         theta.update(read_estimates(args.params_from, option="--params-from"))
+        # named as the file's, not as a --param (the message named `--param NOPE`; session 46)
+        _check_names(theta, model.parameter_names, "parameter", model,
+                     f"--params-from {printable(args.params_from)}:")
     theta.update(given)
     _check_names(theta, model.parameter_names, "parameter", model, "--param")
     _check_names(x0, model.state_names, "state", model, "--x0")
@@ -412,6 +421,11 @@ def _cmd_simulate(args) -> int:
         gens = {}
         for item in args.input or ():
             spec = parse_input_spec(item)
+            if spec.name in gens:
+                # the second replaced the first without a word (session 46)
+                raise VsidgenError(f"--input {spec.name} is given twice\n  hint: give each input "
+                                   "once; join maneuvers with '+' to add them up "
+                                   f"({spec.name}=doublet:amplitude=0.02+step:amplitude=0.01)")
             gens[spec.name] = spec.evaluate
         _check_names(gens, model.input_names, "input", model, "--input")
         u = np.zeros((n, model.nu))

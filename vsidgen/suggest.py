@@ -116,14 +116,15 @@ def model_roles(model) -> dict[str, str]:
 
 def unknown_name_error(name: str, role: str, model, *, option: str):
     """VsidgenError for an unknown ``role`` name given to ``option`` (role-aware hint)."""
-    from .errors import VsidgenError
+    from .errors import VsidgenError, printable
 
     roles = model_roles(model)
     same = [n for n, r in roles.items() if r.endswith(" " + role)]
     others = {n: r for n, r in roles.items() if not r.endswith(" " + role)}
     hint = suggest(name, same, others, role=role)
     listing = ", ".join(same) if same else "none"
-    msg = f"{option} {name}: unknown {role} `{name}`"
+    shown = printable(name)   # a name from a results.json may hold terminal escapes
+    msg = f"{option} {shown}: unknown {role} `{shown}`"
     return VsidgenError(msg + (f" — {hint}" if hint else "") + f"\n  hint: {role}s: {listing}")
 
 

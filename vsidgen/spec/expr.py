@@ -196,6 +196,15 @@ class _Ctx:
         self.units = units
         self.free: dict[str, sympy.Symbol] = {}
         self.aliases: dict[str, str] = {}
+        self.flat = text   # the text ast parsed (its byte offsets are the nodes')
+
+
+def _source(ctx: _Ctx, node: ast.AST) -> str | None:
+    """The text of ``node`` as written (ast normalises names to NFKC and numbers to values)."""
+    end = getattr(node, "end_col_offset", None)
+    if end is None or getattr(node, "end_lineno", 1) != getattr(node, "lineno", 1):
+        return None
+    return ctx.flat.encode("utf-8")[node.col_offset:end].decode("utf-8", "replace")
 
 
 def _error(ctx: _Ctx, message: str, node: ast.AST | None = None, *, hint: str | None = None,
@@ -326,6 +335,16 @@ def did_you_mean(name: str, candidates) -> str | None:
 def _check_number(ctx, value, node):
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _error(ctx, "only int and float number literals are allowed", node)
+    written = _source(ctx, node) or ""
+    if written[:2].lower() in ("0x", "0o", "0b"):
+        # `0x10` was read as 16 (session 46): numbers in a spec are plain decimal
+        raise _error(ctx, f"number literal `{written}` is not decimal", node,
+                     hint="write numbers in plain decimal, e.g. 16 or 1e-3")
+    if value == 0 and re.search(r"[1-9]", re.split(r"[eE]", written, maxsplit=1)[0]):
+        # `1e-999` silently became 0 and its term vanished (session 46)
+        raise _error(ctx, f"number literal `{written}` is too small: it becomes 0 in double "
+                          "precision", node,
+                     hint=f"literals must be 0 or at least {1 / MAX_CONSTANT:g} in magnitude")
     if isinstance(value, float) and not math.isfinite(value):
         raise _error(ctx, "number literal is not finite", node, hint="use a finite number")
     if abs(value) > MAX_CONSTANT:
@@ -466,6 +485,14 @@ def _describe(node) -> str:
 
 
 def _name(ctx: _Ctx, node: ast.Name):
+    written = _source(ctx, node)
+    if written is not None and written != node.id and node.id.isascii():
+        # Python reads `ＭＱ` (full-width) or `ﬁ` (a ligature) as `MQ`, `fi` (NFKC): a name
+        # that is not the declared one was taken silently (session 46)
+        note = non_ascii_note(written)
+        raise _error(ctx, f"name `{written}` is not ASCII (Python would read it as "
+                          f"`{node.id}`)", node,
+                     hint=(f"{note}; " if note else "") + f"write the ASCII `{node.id}`")
     name = ctx.aliases.get(node.id, node.id)
     if name.startswith("__") or name.startswith("_"):
         raise _error(ctx, f"name `{name}` is not allowed (leading underscore)", node)
@@ -673,6 +700,7 @@ def _parse(text, namespace, *, path, line, column, free_names, units):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             tree = ast.parse(flat, mode="eval")
+        ctx.flat = flat
     except SyntaxError as exc:
         off = (exc.offset - 1) if exc.offset and (exc.lineno in (None, 1)) else None
         if off is not None and (off < 0 or off > len(flat)):

@@ -315,6 +315,23 @@ class _Budget:
                                  "use; nested aliases multiply it (an alias bomb)")
 
 
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _refuse_surrogates(text, node, path, src) -> None:
+    """SpecError at a scalar whose text holds a lone surrogate (U+D800-U+DFFF), which a
+    double-quoted YAML escape such as "\\ud800" can produce: it is not a character, and
+    printing or writing it as UTF-8 failed (`show`, `fit --report`: internal error; session 46)."""
+    m = _SURROGATE.search(text) if isinstance(text, str) else None
+    if m is None:
+        return
+    line, col = node.start_mark.line + 1, node.start_mark.column + 1
+    raise SpecError(f"text holds U+{ord(m.group()):04X}, a lone surrogate (not a character)",
+                    path=path, line=line, column=col, text=_line_text(src, line),
+                    hint="remove the \\u escape or write the character itself (YAML takes "
+                         "characters beyond U+FFFF as one 8-digit escape, \\U0001F600)")
+
+
 def _convert(node, path, src, parent_key, constructor, depth=0, budget=None) -> YNode:
     if depth > 50:
         raise SpecError("YAML nesting is too deep", path=path, line=node.start_mark.line + 1,
@@ -331,6 +348,7 @@ def _convert(node, path, src, parent_key, constructor, depth=0, budget=None) -> 
                                 line=knode.start_mark.line + 1, column=knode.start_mark.column + 1,
                                 text=_line_text(src, knode.start_mark.line + 1))
             key = knode.value
+            _refuse_surrogates(key, knode, path, src)
             if knode.tag == "tag:yaml.org,2002:merge":
                 raise SpecError("YAML merge keys (<<) are not supported", path=path,
                                 line=knode.start_mark.line + 1, column=knode.start_mark.column + 1)
@@ -356,6 +374,8 @@ def _convert(node, path, src, parent_key, constructor, depth=0, budget=None) -> 
                  for v in node.value]
         return YNode("seq", items, path, line, col, src=src, start_index=node.start_mark.index,
                      end_index=node.end_mark.index)
+    if parent_key != "extends":   # a path: file names that are not UTF-8 arrive as
+        _refuse_surrogates(node.value, node, path, src)   # surrogates (diagnose writes them)
     try:
         value = constructor.construct_object(node, deep=True)
     except yaml.YAMLError as exc:

@@ -27,7 +27,7 @@ import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ..errors import VsidgenError
+from ..errors import VsidgenError, printable
 from ..metadata import ProcessNoiseSpec
 
 
@@ -72,6 +72,19 @@ def _name_value(item: str, option: str) -> tuple[str, float]:
     return name.strip(), x
 
 
+def _name_values(items: Sequence[str] | None, option: str) -> dict[str, float]:
+    """``{name: value}`` of repeated ``--option NAME=VALUE``; a name given twice with
+    different values is refused (`--fix MQ=1 --fix MQ=2` kept the last silently; session 46)."""
+    out: dict[str, float] = {}
+    for item in items or ():
+        name, x = _name_value(item, option)
+        if name in out and out[name] != x:
+            raise VsidgenError(f"--{option} {name} is given twice, with different values "
+                               f"({out[name]:g} and {x:g})")
+        out[name] = x
+    return out
+
+
 def read_estimates(path, *, option: str = "--init-from") -> dict[str, float]:
     """``{parameter: estimate}`` of a ``results.json`` written by ``vsidgen fit`` (``option``
     names the command-line option that gave ``path`` in error messages)."""
@@ -113,8 +126,8 @@ def parse_overrides(*, fix: Sequence[str] | None = None, free: Sequence[str] | N
                     init: Sequence[str] | None = None, init_from: str | None = None,
                     method: str = "filter-error") -> Overrides:
     """Overrides from the CLI's option strings (VsidgenError on malformed ones)."""
-    fixd = dict(_name_value(i, "fix") for i in fix or ())
-    initd = dict(_name_value(i, "init") for i in init or ())
+    fixd = _name_values(fix, "fix")
+    initd = _name_values(init, "init")
     freed = tuple(n.strip() for n in free or ())
     both = sorted(set(fixd) & set(freed))
     if both:
@@ -143,6 +156,15 @@ def apply_overrides(model, ov: Overrides):
         for name in given:
             if name not in names:
                 raise unknown_name_error(name, "parameter", model, option=f"--{option}")
+    if ov.init_from is not None and names and not set(names) & set(ov.init_from_values):
+        # a results.json of another model set nothing, and the fit went on silently from the
+        # spec's initial values (session 46)
+        given = ", ".join(sorted(ov.init_from_values)[:8]) or "none"
+        raise VsidgenError(f"--init-from {printable(ov.init_from)}: none of its parameters "
+                           f"is a parameter of model `{model.name}` (it has: "
+                           f"{printable(given)[:200]})\n"
+                           f"  hint: give the results.json of a fit of this model; its "
+                           f"parameters: {', '.join(names[:20])}")
     params = []
     for p in model.parameters:
         initial, fixed = p.initial, p.fixed

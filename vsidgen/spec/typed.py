@@ -16,6 +16,7 @@ namespace of declared names, which is the compiler's job.
 from __future__ import annotations
 
 import dataclasses
+import keyword
 import math
 import pathlib
 import re
@@ -556,6 +557,13 @@ def parse(raw: RawSpec, *, generator_version: str) -> Spec:
                         text=top["name"].source_line(),
                         hint="use an ASCII letter, then letters, digits and _, at most "
                              f"{MAX_NAME_LENGTH} characters (it becomes a Python module name)")
+    if keyword.iskeyword(name):
+        # the generated module's name is an identifier in its text (`import` was an internal
+        # error in `build`, after `check` had passed; session 46)
+        raise SpecError(f"model name `{name}` is a Python keyword", **top["name"].loc,
+                        text=top["name"].source_line(),
+                        hint=f"choose another name, e.g. `{name}_model` (the name becomes a "
+                             "Python module name)")
     description = ""
     if "description" in top and top["description"].value is not None:
         description = top["description"].string("`description`")
