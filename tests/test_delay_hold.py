@@ -96,8 +96,11 @@ def _record(path, stepped: bool, seed: int = 3, n: int = 440):
             w.writerow([f"{v:.10g}" for v in row])
 
 
-@pytest.mark.parametrize("stepped, method", [(False, "rk4"), (True, "rk4"), (False, "euler")],
-                         ids=["moving", "stepped", "moving-euler"])
+@pytest.mark.parametrize("stepped, method", [
+    (False, "rk4"),
+    pytest.param(True, "rk4", marks=pytest.mark.slow),
+    pytest.param(False, "euler", marks=pytest.mark.slow)],
+    ids=["moving", "stepped", "moving-euler"])
 def test_delay_and_hold_decided_together(tmp_path, stepped, method):
     """``moving-euler``: the same spec stepping by Euler, whose one step per sample has a phase
     error of the order of the hold's half sample: the delay is profiled again under RK4 with

@@ -249,6 +249,7 @@ def _accept_lag(cand, out, st, tmp_path, name):
     return got, lam
 
 
+@pytest.mark.slow
 def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_bound(tmp_path):
     """A 0.06 s lag at 20 Hz (1.2 samples). The model holds its input over each sample, which
     already delays this continuously moving input by half a sample, so the fitted time
@@ -297,6 +298,7 @@ def test_lag_shorter_than_a_sample_is_estimated_with_its_hold_and_not_held_at_a_
     assert abs(ent["estimate"] - tau_true) < 3.0 * ent["std_error"], ent
 
 
+@pytest.mark.slow
 def test_lag_screen_starts_the_refit_and_the_accepted_lag_is_refitted_under_the_other_hold(
         tmp_path):
     """An actuator lag of 0.12 s (independent simulation: the state driven by the lagged
@@ -374,6 +376,7 @@ def _fit_rk4_foh_without_lag(tmp_path):
     return st, model_info_of(st)
 
 
+@pytest.mark.slow
 def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     """On an RK4 model with a first-order hold, of an independent record with no lag (the
     input moving between samples, integrated with 20 sub-steps), the actuator-lag candidate's
@@ -409,6 +412,7 @@ def test_rk4_lag_refit_starts_at_the_current_model(tmp_path):
     assert proj.elbo == pytest.approx(st.elbo, abs=0.05)
 
 
+@pytest.mark.slow
 def test_lag_refit_from_a_bad_screen_start_falls_back_to_the_nesting_point(tmp_path):
     """A lag refit started at the screen's time constant (:func:`filter_start`) that ends below
     the nested reference is done again from the nesting point and the better kept. On the

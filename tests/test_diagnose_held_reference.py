@@ -74,6 +74,7 @@ def _record(path: pathlib.Path, seed: int = 4) -> None:
             fh.write(",".join(f"{v:.10g}" for v in r) + "\n")
 
 
+@pytest.mark.slow
 def test_refit_of_the_unchanged_model_gains_nothing_over_the_search_reference(tmp_path):
     from vsidgen.discrepancy.fitstate import refit_warm
     from vsidgen.discrepancy.search import _held_reference, fit_spec

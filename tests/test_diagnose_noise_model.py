@@ -220,6 +220,7 @@ def test_adopted_noise_model_in_findings_summary_and_report_agree():
                                              0.01).to_json()) == ""
 
 
+@pytest.mark.slow
 def test_correlated_gust_is_named_as_noise_model_not_as_a_sensor_position(tmp_path):
     """One gust acting on both equations (ρ = 0.9): diagnose adopts the correlated noise
     model with ρ̂ near the simulation's and names no physical effect; the catalogue is
@@ -271,6 +272,7 @@ def _lr_refit(spec, csv, out, monkeypatch):
     return t["statistic"]
 
 
+@pytest.mark.slow
 def test_independent_noise_is_kept_by_the_score_test_without_a_refit(tmp_path, monkeypatch):
     """ρ = 0 (independent process noise per equation): Rao's score statistic at the diagonal
     fit is not significant, so the diagonal model is kept without refitting (no start run).

@@ -285,6 +285,7 @@ def test_quantized_outputs_hit_floor_and_fit_stays_well_conditioned():
 
 
 # ----------------------------------------------------------------- 5. structured Hessian and solve
+@pytest.mark.slow
 def test_structured_hessian_and_newton_step_equal_dense(monkeypatch):
     model = lin_model(structure="full")
     r1 = make_record(6, seed=2, name="a")
@@ -374,7 +375,8 @@ def test_btd_solve_detects_indefinite(monkeypatch, small_block):
     assert not bool(ok2)
 
 
-@pytest.mark.parametrize("unrolled", [False, True], ids=["library", "unrolled"])
+@pytest.mark.parametrize("unrolled", [pytest.param(False, marks=pytest.mark.slow), True],
+                         ids=["library", "unrolled"])
 def test_btd_solve_parallel_equals_dense_and_sequential(unrolled):
     """Cyclic reduction against a dense solve and the sequential recursion: block counts whose
     levels are odd and even in every order (13 → 7 → 4 → 2 → 1, 12 → 6 → 3 → 2, 5 → 3), a
@@ -489,6 +491,7 @@ def _pend_problem():
     return model, rec
 
 
+@pytest.mark.slow
 def test_structured_hessian_exact_for_nonlinear_model_and_chunks():
     """The sigma-point assembly (model curvature per point, shared lifting) equals jax.hessian for
     nonlinear F and h (bounded θ, full process-noise factor, missing samples), with the pairs and
@@ -583,6 +586,7 @@ def _numeric_pairs(fn, na, nu, points=3):
     return S
 
 
+@pytest.mark.slow
 def test_structural_hessian_pairs_and_cover():
     """The structural Hessian pattern (nothing compiled) holds every non-zero second
     derivative, and equals the numerical one for element-wise code and the transitions and
@@ -745,6 +749,7 @@ def test_smooth_with_rk4_first_order_hold_matches_kalman():
     assert res0.elbo < res.elbo - 1.0
 
 
+@pytest.mark.slow
 def test_held_parameters_stay_at_their_start_and_share_the_compiled_functions():
     """``FitOptions(held_parameters=...)``: the held parameter is exactly its start value, the
     fit is the optimum over the others (equal to the fit with that parameter fixed in the

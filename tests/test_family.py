@@ -64,6 +64,7 @@ def test_member_outcomes_of_a_failed_family_task_are_per_candidate():
     assert member_outcomes(single, ()) == [single]
 
 
+@pytest.mark.slow
 def test_a_family_refit_equals_each_candidates_own_refit(lin1, monkeypatch):
     from vsidgen.discrepancy.search import _family_task, _refit_task
     from vsidgen.engine import TaskStatus

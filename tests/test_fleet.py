@@ -91,6 +91,7 @@ def test_fleet_follows_the_results_directory_rules(tmp_path, capsys):
         assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_fleet_passes_overrides_and_noise_start_to_every_fit(tmp_path, capsys):
     """--fix, --method, --noise-start reach each record's fit (the results say so, and equal a
     single `run_fit` with the same settings); an unknown --fix name is refused before any fit."""

@@ -36,6 +36,7 @@ def _with_fixed(model, fixed: dict):
         for p in model.parameters))
 
 
+@pytest.mark.slow
 def test_free_set_is_a_runtime_array_and_fits_share_compiled_code():
     base = lin_model()
     rec = make_record(300, seed=3)

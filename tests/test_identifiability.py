@@ -87,6 +87,7 @@ def _cli(args, cwd):
                           env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
 
 
+@pytest.mark.slow
 def test_check_and_fit_report_it(tmp_path):
     p = _spec(tmp_path, "M0 + MAL*K*alpha + MQ*q + MDE*de", "  K: {unit: \"1\"}")
     chk = _cli(["check", p], tmp_path)

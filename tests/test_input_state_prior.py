@@ -122,6 +122,7 @@ def test_prior_scale_and_mean_are_the_carried_input_s(case):
         input_state_prior_scales(m2, [r2], ("q",))
 
 
+@pytest.mark.slow
 def test_structured_derivatives_include_the_prior(case):
     """Value, gradient and Hessian of the structured assembly with the prior equal those of
     jax on the flat objective (an independent path), and the prior adds exactly
@@ -166,6 +167,7 @@ def test_structured_derivatives_include_the_prior(case):
     np.testing.assert_allclose(gs, gd, rtol=1e-9, atol=1e-9 * np.abs(gd).max())
 
 
+@pytest.mark.slow
 def test_a_fast_lag_at_its_nesting_point_gains_nothing_from_its_initial_value(case):
     """The candidate at its nesting point (smallest time constant), the current model's
     estimates and noise, only the assumed density fitted (diagnose's stage 0): with the

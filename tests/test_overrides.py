@@ -32,6 +32,7 @@ def test_fix_equals_a_spec_with_fixed_true(tmp_path):
     assert apply_overrides(sym, ov).parameters == compile_spec(_fixed_child(tmp_path)).parameters
 
 
+@pytest.mark.slow
 def test_fit_with_fix_equals_fit_of_the_fixed_spec(tmp_path):
     from vsidgen.data import load_record
     from vsidgen.estimator import FitOptions, fit

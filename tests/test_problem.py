@@ -63,6 +63,7 @@ def test_noise_vector_inverts_the_noise_map(problem_point):
     assert P.process_noise_index("x2") == P.layout.noise_index[1]
 
 
+@pytest.mark.slow
 def test_reduced_system_equals_dense_elimination_of_the_flat_hessian(problem_point):
     P, s, recs = problem_point
     lay = P.layout

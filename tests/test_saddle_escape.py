@@ -42,6 +42,7 @@ def rec():
     return make_record(300, seed=4)
 
 
+@pytest.mark.slow
 def test_a_product_of_parameters_starting_at_zero_leaves_the_saddle(rec, monkeypatch):
     opts = FitOptions(noise_start="data", max_iter=200)
     ref = fit(lin_model(), [rec], options=opts)

@@ -150,6 +150,7 @@ def fit_lin1(tmp, t, u, y):
     return st, model_info_of(st)
 
 
+@pytest.mark.slow
 def test_state_adding_score_statistic_matches_kalman_filter(tmp_path):
     from vsidgen.discrepancy import propose
     from vsidgen.discrepancy.refit import REFIT_DETERMINISTIC_STD

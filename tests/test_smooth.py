@@ -10,10 +10,12 @@ import json
 import pathlib
 
 import numpy as np
+import pytest
 
 from vsidgen import FitOptions, load_model, load_record, smooth
 
 
+@pytest.mark.slow
 def test_smoothing_at_fixed_filter_error_estimates_reaches_physical_optimum(flight_data_dir):
     ref = json.loads((flight_data_dir.parent.parent / "reference" / "hfb320_reference.json").read_text())
     fem = ref["fem"]

@@ -113,6 +113,7 @@ def _record() -> Record:
                   input_names=("de",), output_names=("alpha", "q"), t_raw=t)
 
 
+@pytest.mark.slow
 def test_a_fit_loads_its_stored_programs_and_gives_the_same_result(tmp_path, monkeypatch):
     spec = tmp_path / "sp.yaml"
     spec.write_text(SPEC)

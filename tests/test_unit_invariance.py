@@ -138,7 +138,8 @@ def models_and_records(tmp_path_factory):
     return _pair(tmp_path_factory.mktemp("units"))
 
 
-@pytest.mark.parametrize("start", ["data", "data-meas", "unit"])
+@pytest.mark.parametrize("start", [pytest.param("data", marks=pytest.mark.slow),
+                                   "data-meas", "unit"])
 def test_degree_model_follows_the_radian_path(models_and_records, start):
     fits = {}
     for tag, (m, rec) in models_and_records.items():
@@ -167,6 +168,7 @@ def test_degree_model_follows_the_radian_path(models_and_records, start):
     assert d.elbo - r.elbo == pytest.approx(offset, abs=1e-6 * n)
 
 
+@pytest.mark.slow
 def test_full_process_noise_in_degrees_follows_the_radian_path(tmp_path):
     """A full (correlated) process-noise factor: its off-diagonal entry G_qα is linear in the
     units of q (G → D G), not a logarithm like the diagonal stds."""

@@ -45,6 +45,7 @@ def _fit_ok(name, data, tmp_path):
     return row
 
 
+@pytest.mark.slow
 def test_user_model_with_per_sample_mass_fits(flight_data_dir, tmp_path):
     """Mass and inertia per sample as inputs, abs(), bounds and initial values (24 s)."""
     row = _fit_ok("otter_sp_mass", flight_data_dir, tmp_path)
@@ -61,6 +62,7 @@ def test_user_model_fits(name, flight_data_dir, tmp_path):
     _fit_ok(name, flight_data_dir, tmp_path)
 
 
+@pytest.mark.slow
 def test_nonlinear_user_model_is_fitted_at_its_highest_start(flight_data_dir, tmp_path):
     """A new user's nonlinear Twin Otter model (V, α, q, θ; coefficients; 50 s): two noise
     starts stop at their iteration limit far above the one start that converges (ELBO 8976 and

@@ -95,6 +95,7 @@ def _simulate_attas(path, de, dt, m0, seed):
     return path
 
 
+@pytest.mark.slow
 def test_validation_re_estimates_the_trim_constants_of_another_flight(tmp_path):
     """Two records of the textbook ATTAS short period (independent numpy simulation), the
     validation one flown at another trim (M0 larger by 0.05 rad/s²): with the trim constants
