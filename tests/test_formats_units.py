@@ -592,3 +592,29 @@ def test_a_named_matrix_column_written_with_the_matrix_name_gets_the_plain_name(
     with pytest.raises(DataError) as ei:
         load_record(compile_spec(path), mat_files / "named.mat")
     assert "`t_s`" in ei.value.hint and "name alone" in ei.value.hint
+
+
+def test_a_definition_mixing_degrees_and_radians_names_its_terms(tmp_path):
+    """A definition whose terms disagree made every equation using it unknown, so nothing was
+    said (session 46, a new user's lateral model: `side: Yb*beta + Y0` with β in deg, used by
+    the β equation and the a_y output); written out in the equation it was warned. The
+    definition itself is now named, at its line; a consistent definition gets nothing."""
+    text = ("name: mixdef\nstates:\n  beta: {unit: BETA_UNIT}\n  r: {unit: rad/s}\n"
+            "inputs:\n  dr: {unit: rad}\noutputs:\n  ay_m: {unit: m/s^2}\n"
+            "constants:\n  V0: {value: 70, unit: m/s}\n"
+            "parameters:\n  Yb: {unit: 1/s}\n  Y0: {unit: 1/s}\n  Nb: {unit: 1/s^2}\n"
+            "definitions:\n  side: Yb*beta + Y0\n"
+            "drift:\n  beta: side - r\n  r: Nb*beta + dr\n"
+            "observations:\n  ay_m: V0*side\n"
+            "data:\n  time: t\n  inputs: {dr: dr}\n  outputs: {ay_m: ay}\n")
+    path = tmp_path / "mixdef.yaml"
+    path.write_text(text.replace("BETA_UNIT", "deg"))
+    got = [w for w in compile_spec(path).warnings
+           if w.code == "unit_scale"]
+    defs = [w for w in got if "definition of `side`" in w.message]
+    assert len(defs) == 1, [w.message for w in got]
+    assert "`Yb*beta`" in defs[0].message and "`Y0`" in defs[0].message
+    assert defs[0].line == 16
+    path.write_text(text.replace("BETA_UNIT", "rad"))
+    assert not [w for w in compile_spec(path).warnings
+                if w.code == "unit_scale"]

@@ -386,6 +386,12 @@ def _rect(x, y):
 
 
 def _latex_name(name: str) -> str:
+    """A declared name as LaTeX, as the equations' right-hand sides show it: a Greek name as
+    its letter, one letter in italics, several upright (``\\mathrm{side}``, not the product
+    s·i·d·e), digits or ``_rest`` as a subscript (``beta_m`` -> ``\\beta_{\\mathrm{m}}``)."""
+    base, sep, sub = name.partition("_")
+    if sep and base and sub and re.fullmatch(r"\w+", sub):
+        return f"{_latex_name(base)}_{{\\mathrm{{{sub.replace('_', ',')}}}}}"
     if name in _GREEK:
         return "\\" + name
     m = re.match(r"^([A-Za-z]+?)(\d+)$", name)
@@ -462,6 +468,9 @@ def _equation(lhs: str, rhs: str, *, budget: list | None = None) -> dict:
         try:
             item["img"] = _mathtext_svg(candidate)
             item["error"] = None
+            # the LaTeX shown (alt text) is the one typeset: multi-letter names upright there
+            # too (`\mathrm{side}`, not the italic product s·i·d·e)
+            item["tex"] = candidate
             break
         except Exception as err:  # mathtext supports a subset of LaTeX: show the source instead
             item["error"] = str(err).splitlines()[0] if str(err) else type(err).__name__
@@ -477,8 +486,10 @@ def _equations(latex: Mapping | None) -> list[dict]:
                             ("drift", "State equations (drift)",
                              lambda n: f"\\dot{{{_latex_name(n)}}}"),
                             ("observations", "Observation equations",
-                             lambda n: f"{_latex_name(n)}_{{\\mathrm{{m}}}}" if len(n) == 1 or n in _GREEK
-                             else f"\\mathrm{{{n}}}_{{\\mathrm{{m}}}}")):
+                             # an output named with its own subscript (`beta_m`) as written;
+                             # else the measured quantity's name with a subscript m
+                             lambda n: _latex_name(n) if "_" in n.strip("_")
+                             else f"{_latex_name(n)}_{{\\mathrm{{m}}}}")):
         eqs = latex.get(key)
         if isinstance(eqs, Mapping) and eqs:
             groups.append({"title": title, "eqs": [
@@ -608,6 +619,37 @@ def _metrics_table(m: Mapping, names: Iterable[str]) -> list[dict]:
     return rows
 
 
+def _seconds(v) -> str:
+    """A time in seconds for people: 6 significant digits (a sample period of
+    0.020000000000002335 s, the mean step of float time stamps, reads 0.02)."""
+    v = _num(v)
+    return f"{v:.6g}" if math.isfinite(v) else "—"
+
+
+def _record_rows(records: Mapping) -> dict:
+    """The records of results.json for the data-records table, their sample period and
+    duration rounded (:func:`_seconds`); other fields as they are."""
+    rows = {}
+    for kind, recs in records.items():
+        if not isinstance(recs, list):
+            rows[kind] = recs
+            continue
+        rows[kind] = [{**r, **{k: _seconds(r[k]) for k in ("dt", "duration_s")
+                               if r.get(k) is not None}}
+                      if isinstance(r, Mapping) else r for r in recs]
+    return rows
+
+
+def _status_text(status, converged: bool) -> str:
+    """The fit's status after the converged / not converged tag: without the leading
+    "converged: " that the tag already says ("converged converged: Newton decrement ...")."""
+    text = str(status or "")
+    for word in (("converged",) if converged else ("not converged",)):
+        if text.lower().startswith(word + ":"):
+            return text[len(word) + 1:].lstrip()
+    return text
+
+
 def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: str,
                     outputs: list[dict], states: list[dict]) -> dict:
     name = str(rec.get("name", ""))
@@ -615,8 +657,8 @@ def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: st
     rid = re.sub(r"[^A-Za-z0-9_\-]", "_", f"{kind}-{name}")
     sec = {"name": name, "id": rid, "kind": kind, "outputs": [], "states": [], "whiteness": [],
            "metrics": [], "derivative": [], "missing": None,
-           "n_samples": rec.get("n_samples"), "dt": _fmt(rec.get("dt")),
-           "duration": _fmt(rec.get("duration_s")), "path": rec.get("path") or ""}
+           "n_samples": rec.get("n_samples"), "dt": _seconds(rec.get("dt")),
+           "duration": _seconds(rec.get("duration_s")), "path": rec.get("path") or ""}
     m = ((res.get("metrics") or {}).get(kind) or {}).get(name) or {}
     sec["metrics"] = _metrics_table(m, [o["name"] for o in outputs])
     der = m.get("derivative") or {}
@@ -775,9 +817,10 @@ def write_report(results_dir, *, out=None, reference=None, title: str | None = N
     ctx = {
         "title": title or f"vsidgen report: {spec.get('name', 'unnamed model')}",
         "spec": spec, "method": method,
-        "records": records,
+        "records": _record_rows(records),
         "converged": bool(res.get("converged", False)),
-        "status": res.get("status", ""), "iterations": res.get("iterations"),
+        "status": _status_text(res.get("status", ""), bool(res.get("converged", False))),
+        "iterations": res.get("iterations"),
         "wall_time": _fmt(res.get("wall_time_s"), 3), "elbo": _fmt(res.get("elbo"), 8),
         "validation_elbo": _fmt(val.get("elbo"), 8),
         "validation_converged": val.get("converged", True) is not False,

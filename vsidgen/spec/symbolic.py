@@ -252,6 +252,14 @@ def _factor_words(f: float) -> str:
     return f"units {f:.6g} × the coherent ones"
 
 
+def _disagreement(found) -> str:
+    """Words for one place where :func:`units.scale_of` found the numbers disagreeing."""
+    term, f, other, fo = found
+    return f"`{term}` is in {_factor_words(f)}" + (
+        f" but `{other}` beside it in {_factor_words(fo)}" if other is not None
+        else " where a function needs coherent units (rad)")
+
+
 def _right_as_written(decl: "_Declared", definitions, drift, observations,
                       issues: list | None = None) -> set[tuple[str, str]]:
     """(kind, name) of the declarations in a non-coherent unit whose numbers are right as they stand: every
@@ -262,8 +270,9 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
     times a rate in deg/s) is; sin() of a state in deg, or an α in rad beside a derivative
     per deg, is not, and neither is an equation with a symbol without a unit (unknown).
     The check follows the algebra, not which names appear (sessions 43–44). ``issues``
-    receives ``(where, message)`` for each equation whose numbers disagree, naming the terms
-    (`θ − α` with θ in rad and α in deg had only the generic warnings; session 44)."""
+    receives ``(where, name, section, message)`` for each equation or definition whose
+    numbers disagree, naming the terms (`θ − α` with θ in rad and α in deg had only the
+    generic warnings; session 44)."""
     def factor(unit) -> float | None:
         return None if unit is None else _units.coherent(unit)[0]
 
@@ -276,8 +285,14 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
         scales[q.symbol] = factor(q.unit)
     reach: dict[sympy.Symbol, frozenset] = {}
     for nm, expr in definitions:
-        scales[_sym(nm)] = _units.scale_of(expr, scales)
+        found_def: list = []
+        scales[_sym(nm)] = _units.scale_of(expr, scales, lambda *a: found_def.append(a))
         reach[_sym(nm)] = frozenset().union(*(reach.get(x, {x}) for x in expr.free_symbols))
+        if issues is not None and found_def:
+            # terms of a definition that disagree make every equation using it unknown, so
+            # those were silent: the definition itself is named (a new user's `side: Yb*beta
+            # + Y0` with beta in deg had no unit_scale warning; written out, it had; session 46)
+            issues.append((f"definition of `{nm}`", nm, "definitions", _disagreement(found_def[0])))
     used: set[sympy.Symbol] = set()
     wrong: set[sympy.Symbol] = set()
     right_outputs: set[str] = set()
@@ -300,14 +315,11 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
                 continue
             where = f"{'drift' if is_drift else 'observation'} of `{v.name}`"
             if found:
-                term, f, other, fo = found[0]
-                what = f"`{term}` is in {_factor_words(f)}" + (
-                    f" but `{other}` beside it in {_factor_words(fo)}" if other is not None
-                    else " where a function needs coherent units (rad)")
+                what = _disagreement(found[0])
             else:
                 what = (f"the expression is in {_factor_words(got)} but `{v.name}` is "
                         f"declared in {_factor_words(want)}")
-            issues.append((where, v.name, is_drift, what))
+            issues.append((where, v.name, "drift" if is_drift else "observations", what))
     kinds = {v.symbol: "state" for v in decl.states}
     kinds.update({v.symbol: "input" for v in decl.inputs})
     kinds.update({q.symbol: "parameter" for q in decl.parameters})
@@ -464,12 +476,59 @@ def _declarations(spec: Spec, root_loc: dict) -> _Declared:
                      names.namespace())
 
 
+#: the prefix of a stability/control derivative named after its variable: `Ldr` (L + dr),
+#: `Cl_p`, `CYb`, `Mq`
+_DERIVATIVE_PREFIX = re.compile(r"[A-Z][A-Za-z]?_?")
+
+
+def _undeclared_hint(name: str, spec: Spec, decl: _Declared) -> str | None:
+    """The hint for an unknown ``name`` in an equation when it is evidently a variable that
+    was not declared (None: keep the expression parser's hint).
+
+    A name mapped under ``data.inputs`` or ``data.outputs``, or one that declared parameters
+    are named after (``dr`` with ``Ldr``, ``Ndr``: the did-you-mean would offer ``Ldr``),
+    is a variable to declare; an output's name is a measurement, not a variable.
+    """
+    if not re.fullmatch(r"[A-Za-z]\w*", name):
+        return None
+    if any(o.name == name for o in decl.outputs):
+        return (f"`{name}` is an output (a measurement); equations use states, inputs, "
+                "constants, parameters and definitions: write the quantity it measures")
+    data = spec.data
+    if data is not None:
+        for key, chans in (("inputs", data.inputs), ("outputs", data.outputs)):
+            for ch in chans:
+                if ch.name.value != name:
+                    continue
+                source = (f"column `{ch.column.value}`" if ch.column is not None
+                          else f"`{ch.expr.value}`" if ch.expr is not None else "a column")
+                if key == "inputs":
+                    return (f"declare `{name}` under `inputs:` (e.g. `{name}: {{unit: ...}}`): "
+                            f"`data.inputs` maps it to {source}, but it is not declared")
+                return (f"`data.outputs` maps `{name}` to {source}, but it is not declared; "
+                        f"declare it under `states:` or `inputs:` as fits (an output, "
+                        f"declared under `outputs:`, is not used in equations)")
+    if name == "e":   # the parser's hint is about Euler's number
+        return None
+    named_after = sorted(q.name for q in decl.parameters
+                         if len(q.name) > len(name) and q.name.endswith(name)
+                         and _DERIVATIVE_PREFIX.fullmatch(q.name[:-len(name)]))
+    if named_after:
+        listed = ", ".join(f"`{q}`" for q in named_after[:4])
+        return (f"`{name}` looks like an undeclared variable (the parameter"
+                f"{'s' if len(named_after) > 1 else ''} {listed} "
+                f"{'are' if len(named_after) > 1 else 'is'} named after it): declare it under "
+                f"`inputs:` (and map its column under `data.inputs`) or `states:` as fits")
+    return None
+
+
 class _Equations:
     """The equations of the three sections, each parsed once with its ``add_terms`` added;
     records where each equation is written (``locations``)."""
 
     def __init__(self, spec: Spec, decl: _Declared, root_loc: dict):
         self.spec, self.namespace, self.root_loc = spec, decl.namespace, root_loc
+        self.decl = decl
         self.sections: dict[str, dict[str, Equation]] = {
             "definitions": decl.definitions, "drift": {e.name.value: e for e in spec.drift},
             "observations": {e.name.value: e for e in spec.observations}}
@@ -485,11 +544,24 @@ class _Equations:
                                 hint=did_you_mean(a.term.name.value, target) or
                                 f"add_terms only extends existing {a.section} entries")
             self.added.setdefault((a.section, a.term.name.value), []).append(
-                _expression(a.term.expression, self.namespace))
+                self._parse(a.term.expression))
+
+    def _parse(self, text: Located[str]) -> sympy.Expr:
+        """An equation's expression; an unknown name that is an undeclared variable gets a
+        hint to declare it (not a did-you-mean towards a parameter named after it)."""
+        try:
+            return _expression(text, self.namespace)
+        except SpecError as err:
+            m = re.fullmatch(r"unknown symbol `(.+)`", err.message)
+            hint = _undeclared_hint(m.group(1), self.spec, self.decl) if m else None
+            if hint is None:
+                raise
+            raise SpecError(err.message, path=err.path, line=err.line, column=err.column,
+                            text=err.text, hint=hint, span=err.span) from None
 
     def equation(self, section: str, e: Equation) -> sympy.Expr:
         """One equation's expression plus its added terms."""
-        expr = _expression(e.expression, self.namespace)
+        expr = self._parse(e.expression)
         for extra in self.added.get((section, e.name.value), []):
             expr = expr + extra
         at = e.expression
@@ -613,8 +685,8 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     unit_issues: list = []
     _warn_coherence(warnings, spec, _right_as_written(decl, definitions, drift, observations,
                                                       unit_issues))
-    for where, name, is_drift, what in unit_issues:
-        at = eqs.sections["drift" if is_drift else "observations"][name].expression
+    for where, name, section, what in unit_issues:
+        at = eqs.sections[section][name].expression
         _warn(warnings, f"units in the {where}: {what}; the numbers are used as they stand",
               at, code="unit_scale", key=False,
               hint="write every term in one unit system (convert with pi/180, or declare the "
