@@ -121,24 +121,38 @@ def _run(tmp_path, gains):
 
 def test_most_accurate_setting_first_and_the_rest_only_when_it_is_significant(tmp_path):
     """With m = 4 settings Holm adopts nothing unless the largest 2ΔELBO clears χ²₁ at α/4:
-    the most accurate setting (rk4, first-order hold) is refitted first and, when it stays
-    below that level, the three coarser ones are not refitted; the decision is unchanged."""
+    the most accurate setting of each input hold (rk4 with the first-order hold, rk4 with the
+    held inputs) is refitted first and, when both stay below that level, the two coarser ones
+    are not refitted; the decision is unchanged."""
     labels = [s.label for s in numerics_settings(NumericsSetting("euler", 1, "zoh"))]
     strictest = float(stats.chi2.isf(0.01 / 4, 1))
     low = {k: 0.5 * 0.9 * strictest for k in labels}
     res, eng = _run(tmp_path, low)
-    assert eng.asked == ["rk4x1_foh"]
+    assert eng.asked == ["rk4x1_foh", "rk4x1_zoh"]
     assert res.adopted is None
     verdicts = {t.setting.label: t.verdict for t in res.trials}
     assert verdicts.pop("rk4x1_foh") is NumericsVerdict.NOT_SIGNIFICANT
+    assert verdicts.pop("rk4x1_zoh") is NumericsVerdict.NOT_SIGNIFICANT
     assert set(verdicts.values()) == {NumericsVerdict.NOT_TRIED}
     assert {t["verdict"] for t in res.to_json()["trials"]} == {"not_significant", "not_tried"}
     # significant: every setting is refitted and the cheapest within 0.5 nats is adopted
     high = {"rk4x1_foh": 50.0, "rk4x1_zoh": 20.0, "eulerx4_foh": 49.9, "eulerx4_zoh": 10.0}
     res, eng = _run(tmp_path, high)
-    assert sorted(eng.asked) == sorted(labels) and eng.asked[0] == "rk4x1_foh"
+    assert sorted(eng.asked) == sorted(labels) and eng.asked[:2] == ["rk4x1_foh", "rk4x1_zoh"]
     assert res.adopted is not None and res.adopted.setting.label in ("rk4x1_foh", "eulerx4_foh")
     assert not any(t.verdict is NumericsVerdict.NOT_TRIED for t in res.trials)
+
+
+def test_a_held_input_setting_is_not_skipped_because_the_first_order_hold_lost(tmp_path):
+    """The input hold is not an accuracy (session 46, a new user's Twin Otter lateral record:
+    rk4 with the first-order hold lost 620.6 while rk4 with held inputs gained): the held-input
+    probe is refitted beside it, and when it is significant every setting is refitted and the
+    best adopted."""
+    gains = {"rk4x1_foh": -310.0, "rk4x1_zoh": 30.0, "eulerx4_foh": -200.0, "eulerx4_zoh": 12.0}
+    res, eng = _run(tmp_path, gains)
+    assert eng.asked[:2] == ["rk4x1_foh", "rk4x1_zoh"] and sorted(eng.asked) == sorted(gains)
+    assert res.adopted is not None and res.adopted.setting.label == "rk4x1_zoh"
+    assert res.adopted.statistic == 60.0
 
 
 @pytest.mark.slow

@@ -25,12 +25,14 @@ per sample, then the larger ELBO). The
 adopted setting is a *modelling-numerics finding* ("use integrator: {...}"), reported
 apart from the physical findings; the rest of the run (and the final spec) uses it.
 
-Order. The most accurate setting (the most drift evaluations per sample; RK4 and the
-first-order hold first among equals) is refitted alone first. Holm's procedure adopts nothing
-unless the largest statistic clears its strictest level, χ²₁ at α/m; a coarser setting's
-discretisation lies between the current one and the most accurate, so it explains less of a
-discretisation mismatch. When the most accurate setting converges below that level the other
-m − 1 settings are therefore not refitted (verdict ``not_tried``; each would cost a
+Order. The most accurate setting of each input hold (the most drift evaluations per sample,
+RK4 first among equals: :func:`most_accurate_per_hold`) is refitted first. Holm's procedure
+adopts nothing unless the largest statistic clears its strictest level, χ²₁ at α/m; a coarser
+integrator's discretisation lies between the current one and the most accurate of the same
+hold, so it explains less of a discretisation mismatch. (The hold is not an accuracy: the
+first-order hold models inputs that move between samples, the zero-order hold inputs a data
+system held, and either can be the right one.) When every probe converges below that level
+the other settings are therefore not refitted (verdict ``not_tried``; each would cost a
 compilation of its own) and the decision is the one the whole family would give. Otherwise
 every setting is refitted and decided as above.
 """
@@ -57,7 +59,7 @@ class NumericsVerdict(enum.Enum):
     SIGNIFICANT = "significant"          # above its threshold, but another setting was better
     NOT_SIGNIFICANT = "not_significant"
     NOT_CONVERGED = "not_converged"
-    NOT_TRIED = "not_tried"              # the most accurate setting was not significant
+    NOT_TRIED = "not_tried"              # no most accurate setting (per hold) was significant
     NOT_TESTED = "not_tested_base_unconverged"   # nothing can be decided against a non-optimum
     FAILED = "failed"
 
@@ -134,6 +136,24 @@ def numerics_settings(current: NumericsSetting) -> list[NumericsSetting]:
                 if m != current.method and s != current.substeps:
                     continue   # rk4 with more sub-steps: one change at a time besides the hold
                 out.append(st)
+    return out
+
+
+def most_accurate_per_hold(settings: list[NumericsSetting]) -> list[int]:
+    """Indices of the most accurate setting (most drift evaluations per sample, RK4 first
+    among equals) for each input hold among ``settings``, the first-order hold first.
+
+    The hold is not an axis of accuracy: a first-order hold is the right model of inputs that
+    move between samples, the zero-order hold of inputs a data system held. A coarser
+    integrator lies between the current setting and the most accurate one *of its hold*, not
+    of the other: on a new user's Twin Otter lateral record RK4 with a first-order hold lost
+    (2ΔELBO −620.6) while RK4 with the held inputs gained, and one probe had taken both for
+    one change (session 46)."""
+    out = []
+    for hold in ("foh", "zoh"):
+        idx = [i for i, st in enumerate(settings) if st.inputs == hold]
+        if idx:
+            out.append(max(idx, key=lambda i: (settings[i].cost, settings[i].method == "rk4")))
     return out
 
 
@@ -312,26 +332,24 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
         return got
 
     m = len(tasks)
-    first = max(range(m), key=lambda i: (settings[i].cost, settings[i].method == "rk4",
-                                         settings[i].inputs == "foh"), default=None)
+    firsts = most_accurate_per_hold(settings)
     trials = []
-    if first is not None and m > 1:
+    if firsts and m > len(firsts):
         if progress is not None:
-            progress(f"modelling numerics first: refitting with the most accurate setting, "
-                     f"{settings[first].text}")
-        trials = refit([tasks[first]])
-        t = trials[0]
+            progress("modelling numerics first: refitting with the most accurate setting of "
+                     "each input hold, " + ", ".join(settings[i].text for i in firsts))
+        trials = refit([tasks[i] for i in firsts])
         strictest = float(stats.chi2.isf(alpha / m, 1))
-        if t.state is not None and t.converged and not t.statistic > strictest:
+        if all(t.state is not None and t.converged and not t.statistic > strictest
+               for t in trials):
             trials += [NumericsTrial(settings[i], paths[settings[i].label][1],
                                      verdict=NumericsVerdict.NOT_TRIED)
-                       for i in range(m) if i != first]
+                       for i in range(m) if i not in firsts]
         else:
-            rest = [tk for i, tk in enumerate(tasks) if i != first]
             if progress is not None:
                 progress("modelling numerics: refitting with " + ", ".join(
-                    settings[i].text for i in range(m) if i != first))
-            trials += refit(rest)
+                    settings[i].text for i in range(m) if i not in firsts))
+            trials += refit([tk for i, tk in enumerate(tasks) if i not in firsts])
     else:
         if progress is not None and tasks:
             progress("modelling numerics first: refitting with " + ", ".join(s.text for s in settings))
@@ -343,8 +361,8 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
     if progress is not None:
         for t in trials:
             if t.verdict is NumericsVerdict.NOT_TRIED:
-                progress(f"    {t.setting.text}: not tried (the most accurate setting was not "
-                         "significant)")
+                progress(f"    {t.setting.text}: not tried (the most accurate setting of each "
+                         "input hold was not significant)")
                 continue
             progress(f"    {t.setting.text}: 2ΔELBO {t.statistic:.4g} (threshold "
                      f"{t.threshold:.4g}) {t.verdict.value}" + (f" [{t.error}]" if t.error else ""))
@@ -355,4 +373,5 @@ def run_numerics(current, out: pathlib.Path, *, alpha: float, generated_dir, max
 
 
 __all__ = ["NumericsResult", "NumericsSetting", "NumericsTrial", "NumericsVerdict",
-           "accurate_alternative", "decide", "numerics_settings", "refit_setting", "run_numerics"]
+           "accurate_alternative", "decide", "most_accurate_per_hold", "numerics_settings",
+           "refit_setting", "run_numerics"]
