@@ -11,7 +11,8 @@ the continuation of one fit towards vanishing process noise, not another
 start); iterations that restart without a name are counted as noise starts. :class:`DiagnoseProgress`
 prints diagnose's messages and, on a terminal, keeps a live line with the
 round, the candidate being refitted and an estimate of the time left in the
-round (mean refit time so far × candidates left).
+round (mean time per finished candidate × candidates left) and, under a time limit, when
+the limit ends the round.
 """
 
 from __future__ import annotations
@@ -108,8 +109,10 @@ class DiagnoseProgress:
     """Diagnose's ``progress(message)`` callback plus a live status line on a terminal.
 
     ``refitting(round, index, total, key)`` is called before each candidate's
-    refit; the time left in the round is the mean duration of the round's
-    finished refits times the refits left (unknown before the first one ends).
+    refit; the time left in the round is the mean time per candidate finished in the
+    round so far times the candidates left (unknown before the first one ends). Under a
+    time limit the line says when the limit ends the round, every time, next to that
+    estimate while the estimate is shorter.
     """
 
     def __init__(self, stream: TextIO, *, live: bool | None = None):
@@ -117,8 +120,7 @@ class DiagnoseProgress:
         self.live = stream.isatty() if live is None else bool(live)
         self._round: int | None = None
         self._t_round = 0.0
-        self._t_cand: float | None = None
-        self._done: list[float] = []
+        self._index0 = 1
         self._status = None
         if self.live:
             from rich.console import Console
@@ -135,22 +137,26 @@ class DiagnoseProgress:
             self.stream.flush()
 
     def refitting(self, rnd: int, index: int, total: int, key: str, *,
-                  limit_left: float | None = None) -> str:
+                  limit_left: float | None = None, n: int = 1, action: str | None = None) -> str:
         """Note the start of refit ``index`` (1-based) of ``total``; returns the status text.
-        ``limit_left``: seconds to the round's time limit, which bounds the estimate."""
+        ``limit_left``: seconds to the round's time limit, which bounds the estimate; ``n``:
+        candidates refitted together from ``index`` on (one compilation, ``key`` names them);
+        ``action``: what is done instead of "refitting {key}" (e.g. a delay profile)."""
         now = time.perf_counter()
         if self._round != rnd:
-            self._round, self._t_round, self._done = rnd, now, []
-        elif self._t_cand is not None:
-            self._done.append(now - self._t_cand)
-        self._t_cand = now
+            self._round, self._t_round, self._index0 = rnd, now, index
+        done = index - self._index0     # candidates finished since the round's first line
         left = total - index + 1
-        eta = (f"about {sum(self._done) / len(self._done) * left:.0f} s left in this round"
-               if self._done else "time left: after the first refit")
-        if limit_left is not None and (not self._done or
-                                       sum(self._done) / len(self._done) * left > limit_left):
-            eta = f"the time limit ends the round in {max(limit_left, 0.0):.0f} s"
-        text = f"round {rnd}: refitting {key} ({index}/{total}; {eta})"
+        est = (now - self._t_round) / done * left if done > 0 else None
+        parts = []
+        if est is None:
+            parts.append("time left: after the first refit")
+        elif limit_left is None or est <= limit_left:
+            parts.append(f"about {est:.0f} s left in this round")
+        if limit_left is not None:
+            parts.append(f"the time limit ends the round in {max(limit_left, 0.0):.0f} s")
+        count = f"{index}/{total}" if n <= 1 else f"{index}–{index + n - 1}/{total}"
+        text = f"round {rnd}: {action or f'refitting {key}'} ({count}; {'; '.join(parts)})"
         if self._status is not None:
             self._status.update(text)
         return text

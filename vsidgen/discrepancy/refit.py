@@ -173,6 +173,14 @@ class RefitOutcome:
     limit_correction: float | None = None
     limit_detail: dict | None = None
 
+    @property
+    def elbo_nesting(self) -> float:
+        """The nested reference at the noise the candidate's own fit was made at (the added
+        states quasi-deterministic): ``elbo_ref`` without the limit correction. A refit whose
+        ELBO ends below it ended below its nesting point (``RefitVerdict.BELOW_NESTING_POINT``)
+        whatever the corrected statistic says."""
+        return self.elbo_ref + 0.5 * (self.limit_correction or 0.0)
+
     def to_json(self) -> dict:
         f = _f
         return {"elbo_ref": f(self.elbo_ref), "elbo_stage0": f(self.elbo_stage0),

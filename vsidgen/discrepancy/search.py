@@ -441,18 +441,35 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
     on the same side of their thresholds). A continuation that ran its stages out before the
     ELBO settled (``reached`` False) gives the statistic at its smallest std, both ELBOs at
     that std: closer to the limit than the quasi-deterministic one (a note says so).
+
+    Only the added states are taken to the limit; the model's own states without process
+    noise stay at their quasi-deterministic std on both sides (``WarmStart.deterministic_limit``
+    ``"hold"``), where the round's reference holds them: taken down too, they cost the
+    reference (its noise fixed) ~1/ε² that the candidate (its noise refitted) did not pay.
+    A refit that ended below its nesting point at its own noise (2ΔELBO < −``BELOW_TOL``) gets
+    no correction: it is flagged (``RefitVerdict.BELOW_NESTING_POINT``), never corrected into
+    a statistic.
     """
     from ..estimator import WarmStart, fit, smooth
     from ..estimator.core import carried_inputs
-    from .refit import REFIT_DETERMINISTIC_STD, quasi_stds
+    from .refit import BELOW_TOL, REFIT_DETERMINISTIC_STD, quasi_stds
 
     added = {m2.state_names.index(n) for n in new_states}
     if res2.decision is None or not res2.deterministic_states \
-            or not any(i in added for i, _ in carried_inputs(m2)):
+            or not any(i in added for i, _ in carried_inputs(m2)) \
+            or not any(n in new_states for n in res2.deterministic_states):
         return
     theta0, noise0, r0, dec0 = r0_state
     q = quasi_stds(m2, records, REFIT_DETERMINISTIC_STD)
-    start = {"std": {n: float(q[m2.state_names.index(n)]) for n in res2.deterministic_states}}
+    std_q = {n: float(q[m2.state_names.index(n)]) for n in res2.deterministic_states}
+    # only the added states go to the limit: the model's own states without process noise (a
+    # user's φ̇ = p) stay at the quasi std at which the current model, the reference of every
+    # refit of the round, holds them (_held_reference). Taken to the limit with them, the
+    # candidate's fit re-fitted its noise at each std while the nested reference, a smoothing at
+    # the current model's fixed noise, could not: on a new user's Twin Otter lateral model
+    # (φ without process noise) the reference fell to ELBO −6.59e6 and a rudder lag that ended
+    # at its nesting point (2e-5 s, 0.26 below its reference) was reported at 2ΔELBO 1.3e7
+    start = {"std": std_q, "hold": {n: v for n, v in std_q.items() if n not in new_states}}
     t0 = time.perf_counter()
     try:
         if r0 is None:       # the nesting point smoothed at the quasi std (a profiled filter)
@@ -462,6 +479,16 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
                 out.notes.append("the statistic in the deterministic limit was not taken: the "
                                  "nesting point's smoothing did not converge")
                 return
+        lam_q = 2.0 * (float(res2.elbo) - float(r0.elbo))
+        below = 2.0 * (float(res2.elbo) - max(float(r0.elbo), float(out.elbo_ref)))
+        if not below >= -BELOW_TOL:
+            # the refit ended below its nesting point at its own noise (the smoothing there, or
+            # the reference its statistic uses): an optimiser failure
+            # (refit.RefitVerdict.BELOW_NESTING_POINT), not a statistic a limit can correct
+            out.notes.append(f"the statistic in the deterministic limit was not taken: the refit "
+                             f"ended below its nesting point at the quasi-deterministic std "
+                             f"(2ΔELBO {below:.4g})")
+            return
         ws = WarmStart.from_decision(res2.decision)
         resL = fit(m2, records, options=diag_options(
             max_iter, deterministic="limit",
@@ -482,7 +509,6 @@ def limit_correction(out, m2, records, res2, r0_state, new_states, *, new_params
         out.notes.append(f"the statistic in the deterministic limit was not taken "
                          f"({str(err).splitlines()[0]})")
         return
-    lam_q = 2.0 * (float(res2.elbo) - float(r0.elbo))
     lam_l = 2.0 * (float(resL.elbo) - float(r0L.elbo))
     corr = lam_l - lam_q
     out.limit_correction = corr
@@ -630,7 +656,7 @@ def _against_better_reference(trials: Sequence["Trial"], better: FitState) -> li
             p = delay_p_value(lam, n_grid)
         out.append(dataclasses.replace(t, statistic=lam, p_value=p, refit=ro,
                                        statistic_vs_base=2.0 * (t.state.elbo - better.elbo),
-                                       verdict=trial_verdict(t.candidate, t.state, lam)))
+                                       verdict=trial_verdict(t.candidate, t.state, lam, ro)))
     return out
 
 
@@ -734,8 +760,21 @@ def rank_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Effec
     return scored[:max_candidates]
 
 
-def trial_verdict(c: Candidate, st: FitState, statistic: float):
-    """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates)."""
+def trial_verdict(c: Candidate, st: FitState, statistic: float, refit=None):
+    """:class:`.refit.RefitVerdict` of a refitted candidate (its Λ and its estimates).
+
+    ``refit`` (its :class:`.refit.RefitOutcome`): a refit whose ELBO ended below its nesting
+    point at the noise it was fitted with (:attr:`.refit.RefitOutcome.elbo_nesting`) is
+    ``BELOW_NESTING_POINT`` whatever ``statistic`` says — a statistic corrected to another
+    noise (the deterministic limit, :func:`limit_correction`) must not turn an optimiser
+    failure into evidence: a rudder lag that ended 0.26 below its nesting point was reported
+    at 2ΔELBO 1.3e7 and led its round."""
+    from .refit import BELOW_TOL
+
+    nest = getattr(refit, "elbo_nesting", None)
+    if (nest is not None and st is not None and math.isfinite(nest) and math.isfinite(st.elbo)
+            and 2.0 * (st.elbo - nest) < -BELOW_TOL):
+        return RefitVerdict.BELOW_NESTING_POINT
     names = list(st.model.parameter_names)
     idx = {p.name: names.index(p.name) for p in c.parameters if p.name in names}
     est = {n: float(st.fit.theta[i]) for n, i in idx.items()}
@@ -878,7 +917,7 @@ def continued_trial(t: Trial, st: FitState, current: FitState, iterations: int) 
     return dataclasses.replace(t, state=st, statistic=lam, p_value=p, refit=ro,
                                statistic_vs_base=2.0 * (st.elbo - current.elbo),
                                converged=refit_converged(st.fit),
-                               verdict=trial_verdict(t.candidate, st, lam),
+                               verdict=trial_verdict(t.candidate, st, lam, ro),
                                plateau=on_plateau(t.state, st, iterations))
 
 
@@ -1307,7 +1346,7 @@ def _trial_of(oc, c, score, sr, path, current) -> Trial:
     return Trial(c, score, path, st, lam, c.n_free, p, refit=ro,
                  statistic_vs_base=2.0 * (st.elbo - current.elbo),
                  converged=refit_converged(st.fit), screen=sr,
-                 verdict=trial_verdict(c, st, lam))
+                 verdict=trial_verdict(c, st, lam, ro))
 
 
 def _grid_size(c: Candidate) -> int:
@@ -2059,9 +2098,16 @@ def _refit_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                 current: FitState, task) -> None:
     """Engine callback of one finished refit task: per candidate it refitted, progress
     lines and a checkpoint with the refit moved from pending to refitted (a cancelled one
-    stays pending)."""
-    for oc in plan.outcomes(task):
+    stays pending); then the line of what the round does next."""
+    from ..engine import TaskStatus
+
+    outs = plan.outcomes(task)
+    for oc in outs:
         _candidate_done(run, st, rnd, plan, current, oc)
+    # the next refit's line once the task's candidates are all in (a family's second member
+    # was refitted in this task: it is not "next")
+    if any(oc.status is not TaskStatus.CANCELLED for oc in outs):
+        _say_next(run, st, rnd, plan)
 
 
 def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
@@ -2084,12 +2130,32 @@ def _candidate_done(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         un["pending"].remove(c.key)
         un["refitted"].append(_undecided_json(t))
         _checkpoint(run, st, StopReason.RUNNING, report=False)
-        status = getattr(run.progress, "refitting", None)
-        nxt = plan.next_refitted(un["pending"])
-        if status is not None and nxt is not None:
-            n_done = len(un["refitted"])
-            run.say(status(rnd, n_done + 1, n_done + len(un["pending"]), nxt,
-                           **_limit_left(plan.deadline)))
+
+
+def _say_next(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan, *,
+              profile: str | None = None) -> None:
+    """The progress line (``run.progress.refitting``) of the engine refit the round starts
+    next, numbered among all the round's candidates (refits and delay profiles: the headline
+    counts both), or with ``profile`` of that delay profile. None when the round's refit
+    deadline has passed (no refit starts then: :func:`_refit_round`), nor for a refit when a
+    delay profile ranks before it (the profile runs first and has its own line)."""
+    status = getattr(run.progress, "refitting", None)
+    pending = st.unfinished["pending"]
+    limit = _limit_left(plan.deadline)
+    if status is None or not pending or (limit and limit["limit_left"] <= 0):
+        return
+    n_done = len(st.unfinished["refitted"])
+    total = n_done + len(pending)
+    if profile is not None:
+        run.say(status(rnd, n_done + 1, total, profile, **limit,
+                       action=f"profiling the delay of {profile} over a grid"))
+        return
+    nxt = plan.next_refitted(pending)
+    if nxt is None or plan.by_key[pending[0]][0] in plan.profiled:
+        return
+    members = next((ks for ks in plan.families.values() if nxt in ks), (nxt,))
+    members = [k for k in pending if k in members]   # a family's members refitted together
+    run.say(status(rnd, n_done + 1, total, " + ".join(members), **limit, n=len(members)))
 
 
 def round_refit_deadline(deadline: float | None, reserve_s: float) -> float | None:
@@ -2112,10 +2178,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     deadline left unrefitted, in rank order (none started after the first was cut)."""
     from ..engine import TaskStatus
 
-    status = getattr(run.progress, "refitting", None)  # live status line with time left
-    nxt = plan.next_refitted(st.unfinished["pending"])
-    if status is not None and plan.tasks and nxt is not None:
-        run.say(status(rnd, 1, plan.n_refits, nxt, **_limit_left(plan.deadline)))
+    _say_next(run, st, rnd, plan)          # live status line with time left
     on_done = functools.partial(_refit_done, run, st, rnd, plan, current)
     remaining = sorted(plan.tasks, key=lambda task: plan.task_rank(task[0]))
     outcomes, profiles, cut = [], [], []
@@ -2139,10 +2202,14 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         refit([task for task in remaining if plan.task_rank(task[0]) < i])
         remaining = [task for task in remaining if plan.task_rank(task[0]) >= i]
         _, score, c, sr = plan.ranked[i]
-        if cut:
+        if cut or (plan.deadline is not None and time.monotonic() >= plan.deadline):
+            # as the engine: nothing starts after the round's refit deadline
             cut.append(c.key)
             continue
-        run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
+        if getattr(run.progress, "refitting", None) is not None:
+            _say_next(run, st, rnd, plan, profile=c.key)
+        else:
+            run.say(f"round {rnd}: {c.key}: profiling the delay over a grid")
         t = delay_trial(c, score, current, plan.paths[i], _round_name(current, rnd, i + 1),
                         engine=run.engine, generated_dir=run.gen, max_iter=run.max_iter,
                         deadline=plan.deadline, screen=sr, alpha=run.alpha)
@@ -2160,6 +2227,7 @@ def _refit_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
         elif t.refit is not None:
             run.say(f"round {rnd}: {c.key}: {t.refit.notes[0]}")
         profiles.append(t)
+        _say_next(run, st, rnd, plan)      # the refits ranked after the profile
     refit(remaining)
     # per candidate, in the round's rank order (a family's members come back together)
     trials = []
@@ -2275,7 +2343,7 @@ def _multistart_round(run: "_RunConfig", st: "_RunState", rnd: int, trials: list
         trials[i] = dataclasses.replace(t, state=ns, statistic=lam, p_value=p, refit=ro,
                                         statistic_vs_base=2.0 * (ns.elbo - current.elbo),
                                         converged=refit_converged(ns.fit),
-                                        verdict=trial_verdict(t.candidate, ns, lam))
+                                        verdict=trial_verdict(t.candidate, ns, lam, ro))
     return trials
 
 
@@ -2725,10 +2793,14 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
                      "screen": table}
     _checkpoint(run, st, StopReason.RUNNING, report=False)
     fams = [f" ({' + '.join(ks)}: one compilation)" for ks in plan.families.values()]
+    profiled = [c.key for i, (_, _, c, _) in enumerate(ranked) if i in plan.profiled]
+    # the delay profiles are candidates of the round too (its progress lines count them)
     run.say(f"round {rnd}: refitting {plan.n_refits} candidates "
             f"({run.engine.describe()}): "
             + ", ".join(c.key for i, (_, _, c, _) in enumerate(ranked)
-                        if i not in plan.profiled) + "".join(fams))
+                        if i not in plan.profiled) + "".join(fams)
+            + (f"; profiling the delay of {', '.join(profiled)} over a grid "
+               f"({len(ranked)} candidates in all)" if profiled else ""))
     trials, cut = _refit_round(run, st, rnd, plan, current)
     if cut:
         # decided on what was refitted: the others enter the Holm family as not significant

@@ -1011,14 +1011,16 @@ def fit(model, records, *, options: FitOptions = FitOptions()) -> FitResult:
              and bool(P.nm.deterministic.any()))
     if limit:
         t0 = time.perf_counter()
+        hold = None
         if options.warm_start is not None:
             out0, P0 = None, None
             eps = _warm_limit_scale(P, options.warm_start)
+            hold = _warm_limit_hold(P, options.warm_start)
         else:
             P0 = Problem(model, records, options, relax=True)
             out0 = _multistart(P0, options, starts)
             eps = _first_stage_std(P, P0, out0)
-        out = _deterministic_limit(P, P0, out0, eps, options, t0)
+        out = _deterministic_limit(P, P0, out0, eps, options, t0, hold=hold)
         return _finish(P, out, mode="fit", options=options)
     if options.optimizer == "structured-newton":
         out = _multistart(P, options, starts)
@@ -1257,6 +1259,30 @@ def _warm_limit_scale(P: Problem, ws) -> np.ndarray:
     return _smoothing_start_std(P)
 
 
+def _warm_limit_hold(P: Problem, ws) -> np.ndarray | None:
+    """Per deterministic state of ``P`` (their order), the std at which a warm-started limit holds
+    it instead of taking it to zero (0: taken to the limit), from the warm start's
+    ``deterministic_limit["hold"]`` ``{state: std}``; None when it names none.
+
+    For a limit taken in some of the deterministic states only: the diagnose refits take the
+    states a candidate adds to their limit while the model's own states without process noise
+    stay at the quasi-deterministic std that the refits' common reference has
+    (:func:`vsidgen.discrepancy.search.limit_correction`)."""
+    lim = getattr(ws, "deterministic_limit", None)
+    held = (lim or {}).get("hold") if isinstance(lim, Mapping) else None
+    if not held:
+        return None
+    names = [P.model.state_names[i] for i in np.nonzero(P.nm.deterministic)[0]]
+    unknown = set(held) - set(names)
+    if unknown:
+        raise FitError(f"deterministic_limit hold: {sorted(unknown)} are not deterministic states "
+                       f"of {P.model.name} ({', '.join(names) or 'none'})")
+    out = np.asarray([float(held.get(n, 0.0)) for n in names], float)
+    if not np.all(np.isfinite(out) & (out >= 0.0)):
+        raise FitError("deterministic_limit hold: the held stds must be finite and non-negative")
+    return out
+
+
 def _smoothing_start_std(P: Problem) -> np.ndarray:
     """First-stage std of deterministic states when smoothing: the data start of a noisy state.
 
@@ -1346,7 +1372,8 @@ def limit_stage_small(d_elbo: float, d_theta: float, ratio: float, tol: float) -
 
 
 def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, target=None,
-                         start_name: str | None = None, smoothing: bool = False) -> dict:
+                         start_name: str | None = None, smoothing: bool = False,
+                         hold=None) -> dict:
     """Fit (or smooth) in the limit of vanishing process noise on the deterministic states.
 
     A state without process noise has a degenerate transition, x_{k+1,i} = F_i(x_k): the
@@ -1386,10 +1413,16 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
     Each stage is announced to the progress callback as a :class:`FitPhase` of kind
     ``LIMIT_STAGE`` (``start_name``: the noise start it belongs to; ``smoothing``: a
     validation smoothing).
+
+    ``hold`` (per deterministic state, or None): a positive entry holds that state's std
+    there in every stage (:func:`_warm_limit_hold`): the limit is taken in the others only.
     """
     det_idx = np.nonzero(P.nm.deterministic)[0]
     names = [P.model.state_names[i] for i in det_idx]
     eps = np.asarray(eps, float)
+    held = None if hold is None else np.asarray(hold, float) > 0.0
+    if held is not None:
+        eps = np.where(held, hold, eps)
     if target is not None:
         target = np.asarray(target, float)
         eps = np.maximum(eps, target)
@@ -1405,10 +1438,13 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         max_full = max(max_full, int(math.ceil(float(need.max()) - 1e-9)) if need.size else 0)
     max_attempts = max_full + 4  # full stages plus at most four milder retries
 
+    moving = np.ones(len(names), bool) if held is None else ~held   # the states taken to the limit
+
     def phase(stage, e):
         ref = np.where(eps > 0, eps, 1.0)
+        sc = (np.asarray(e, float) / ref)[moving]
         return FitPhase(PhaseKind.LIMIT_STAGE, start=start_name, stage=stage, max_stages=max_attempts,
-                        scale=float(np.max(np.asarray(e, float) / ref)) if len(e) else None,
+                        scale=float(np.max(sc)) if sc.size else None,
                         smoothing=smoothing)
 
     def record(stage, e, o, ratio):
@@ -1454,6 +1490,8 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         e = base["eps"] * ratio
         if target is not None:  # down to the target, and onto it when within rounding of it
             e = np.where(e <= target * (1.0 + 1e-9), target, e)
+        if held is not None:    # held at their std: the limit of the others only
+            e = np.where(held, base["eps"], e)
         P.set_deterministic_std(e)
         rho = np.ones(P.model.nx)
         rho[det_idx] = e / base["eps"]
@@ -1500,12 +1538,15 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         ratio = max(LIMIT_RATIO, ratio * ratio)
     out = base["out"] if base["out"] is not None else failed
     eps = base["eps"] if base["out"] is not None else eps
-    scale = float(np.max(eps / np.where(eps_ref > 0, eps_ref, 1.0)))
+    sc = (eps / np.where(eps_ref > 0, eps_ref, 1.0))[moving]
+    scale = float(np.max(sc)) if sc.size else 1.0
     out["limit"] = {"states": names, "std": {n: float(v) for n, v in zip(names, eps)}, "stages": stages,
                     "reached": reached, "elbo_change": float(d_elbo), "theta_change_se": float(d_theta),
                     "scale": scale, "collapsed_directions": collapsed}
     if target is not None:
         out["limit"]["target_std"] = {n: float(v) for n, v in zip(names, target)}
+    if held is not None and held.any():
+        out["limit"]["held_std"] = {n: float(v) for n, v, h in zip(names, eps, held) if h}
     pinned = {P.model.state_names[i] for i in np.nonzero(P.nm.pinned)[0]}
     det_names = [n for n in names if n not in pinned]
     parts = ([f"deterministic state(s) {', '.join(det_names)}"] if det_names else []) + \
@@ -1519,6 +1560,9 @@ def _deterministic_limit(P: Problem, P0, out0, eps, options: FitOptions, t0, *, 
         what = (f"{'; '.join(parts)}: limit of vanishing process noise "
                 + (f"reached after {len(stages) - 1} stage(s) (last change {d_elbo:.2g} nats, {d_theta:.2g} s.e.)"
                    if reached else f"NOT reached in {len(stages) - 1} stage(s)"))
+    if held is not None and held.any():
+        what += (f" (held at their std, not taken to the limit: "
+                 f"{', '.join(f'{n} {v:.3g}' for n, v, h in zip(names, eps, held) if h)})")
     if collapsed:
         what += (f"; the estimates converged while the ELBO falls by ln(1/ρ) per stage (ρ: the stage's "
                  f"process-noise factor) in {collapsed} "
