@@ -256,3 +256,28 @@ def test_nothing_is_announced_or_started_after_the_rounds_refit_deadline(monkeyp
     assert log == [("refit", "s1")]
     assert cut == ["delay_t", "s2"]
     assert len(lines) == 1 and lines[0].startswith("round 2: refitting s1 (1/3;")
+
+
+def test_a_unit_warning_for_an_added_term_points_at_the_add_terms_entry(tmp_path):
+    """A child spec adding `Yr*r` (Yr declared in 1/s) to a parent's definition was warned at
+    the parent's line, quoting an expression without the term (session 46, a new user); the
+    warning now names the child's `add_terms` entry."""
+    from vsidgen.spec import compile_spec
+
+    parent = tmp_path / "base.yaml"
+    parent.write_text("name: base\nstates:\n  beta: {unit: rad}\n  r: {unit: rad/s}\n"
+                      "inputs:\n  dr: {unit: rad}\noutputs:\n  b_m: {unit: rad}\n"
+                      "parameters:\n  Yb: {unit: 1/s}\n  Y0: {unit: 1/s}\n  Nb: {unit: 1/s^2}\n"
+                      "  Ndr: {unit: 1/s^2}\n"
+                      "definitions:\n  side: Yb*beta + Y0\n"
+                      "drift:\n  beta: side - r\n  r: Nb*beta + Ndr*dr\n"
+                      "observations:\n  b_m: beta\n"
+                      "data:\n  time: t\n  inputs: {dr: dr}\n  outputs: {b_m: b}\n")
+    child = tmp_path / "child.yaml"
+    child.write_text("extends: base.yaml\nname: child\nparameters:\n  Yr: {unit: 1/s}\n"
+                     "add_terms:\n  definitions:\n    side: Yr*r\n")
+    got = [w for w in compile_spec(child).warnings if w.code == "units"]
+    assert len(got) == 1, [w.message for w in got]
+    w = got[0]
+    assert pathlib.Path(w.path).name == "child.yaml" and w.line == 7, (w.path, w.line)
+    assert "`Yr*r`" in w.message and "add_terms" in w.message

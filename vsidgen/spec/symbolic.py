@@ -534,6 +534,8 @@ class _Equations:
             "observations": {e.name.value: e for e in spec.observations}}
         self.locations: dict[str, Location] = {}
         self.added: dict[tuple[str, str], list[sympy.Expr]] = {}
+        #: (section, name) -> [(added expression, where it is written)]
+        self.added_at: dict[tuple[str, str], list[tuple[sympy.Expr, Located]]] = {}
         for a in spec.add_terms:
             target = self.sections[a.section]
             if a.term.name.value not in target:
@@ -543,8 +545,10 @@ class _Equations:
                                 **a.term.name.key_loc, text=a.term.name.key_text,
                                 hint=did_you_mean(a.term.name.value, target) or
                                 f"add_terms only extends existing {a.section} entries")
-            self.added.setdefault((a.section, a.term.name.value), []).append(
-                self._parse(a.term.expression))
+            expr = self._parse(a.term.expression)
+            self.added.setdefault((a.section, a.term.name.value), []).append(expr)
+            self.added_at.setdefault((a.section, a.term.name.value), []).append(
+                (expr, a.term.expression))
 
     def _parse(self, text: Located[str]) -> sympy.Expr:
         """An equation's expression; an unknown name that is an undeclared variable gets a
@@ -699,7 +703,7 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     data = _data_spec(spec, [v.name for v in decl.inputs], output_names, root_loc, var_units,
                       warnings)
     _check_dimensions(warnings, decl.dims, definitions, decl.definitions, drift, eqs.sections,
-                      decl.states, observations, decl.outputs, decl.output_dims)
+                      decl.states, observations, decl.outputs, decl.output_dims, eqs.added_at)
 
     return SymbolicModel(
         name=spec.name.value, description=spec.description, source_path=spec.path,
@@ -1088,26 +1092,37 @@ def _data_spec(spec: Spec, input_names, output_names, root_loc,
 
 
 def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, states,
-                      observations, outputs, output_dims) -> None:
+                      observations, outputs, output_dims, added_at=None) -> None:
     dims = dict(dims)
     seen: set[str] = set()
+    added_at = added_at or {}
 
-    def reporter(where: str, at: Located):
+    def reporter(where: str, at: Located, key: tuple[str, str]):
         def report(issue: _units.DimensionIssue):
             msg = f"inconsistent units in {where}: {issue.message()}"
             if msg in seen:
                 return
             seen.add(msg)
-            _warn(warnings, msg, at, code="units", key=False,
+            here = at
+            for added, loc in added_at.get(key, ()):
+                # a term of an `add_terms` entry is shown where it is written (the warning
+                # quoted the parent's equation, which does not hold it; session 46)
+                terms = sympy.Add.make_args(added)
+                if issue.term in terms or (issue.other is not None and issue.other in terms):
+                    here, msg = loc, msg + " (a term added by `add_terms`)"
+                    break
+            _warn(warnings, msg, here, code="units", key=False,
                   hint="check the units of the symbols in this term")
         return report
 
     for nm, expr in definitions:
         at = def_at[nm].expression
-        dims[_sym(nm)] = _units.dimension_of(expr, dims, reporter(f"definition `{nm}`", at))
+        dims[_sym(nm)] = _units.dimension_of(expr, dims, reporter(f"definition `{nm}`", at,
+                                                                  ("definitions", nm)))
     for v, expr in zip(states, drift):
         at = sections["drift"][v.name].expression
-        d = _units.dimension_of(expr, dims, reporter(f"drift of `{v.name}`", at))
+        d = _units.dimension_of(expr, dims, reporter(f"drift of `{v.name}`", at,
+                                                     ("drift", v.name)))
         want = dims.get(v.symbol)
         if d is not None and want is not None:
             want = _units.Dimension(want.name / _units.time.name)
@@ -1117,7 +1132,8 @@ def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, stat
                       f"{_units.show(want)} (unit({v.name})/s)", at, code="units", key=False)
     for o, expr in zip(outputs, observations):
         at = sections["observations"][o.name].expression
-        d = _units.dimension_of(expr, dims, reporter(f"observation of `{o.name}`", at))
+        d = _units.dimension_of(expr, dims, reporter(f"observation of `{o.name}`", at,
+                                                     ("observations", o.name)))
         want = output_dims.get(o.name)
         if d is not None and want is not None and not _units.same(d, want):
             _warn(warnings, f"inconsistent units in observation of `{o.name}`: the expression has "
