@@ -34,7 +34,9 @@ def test_fleet_on_two_workers_matches_single_fits_and_isolates_a_bad_record(tmp_
     for name, rec in (("attas_sp_synthetic", RECS[0]), ("attas_sp_synthetic_val", RECS[1]),
                       ("attas_sp_synthetic_2", RECS[0])):
         r = rows[name]
-        assert r["status"] == "not_converged" and 4 <= r["iterations"] <= 12  # 4 per noise start
+        # 4 per noise start, and 4 more for the highest start stopped at its limit when no start
+        # converged (estimator.fit._start_to_continue; the bound predates it)
+        assert r["status"] == "not_converged" and 4 <= r["iterations"] <= 16
         res = json.loads((out / name / "results.json").read_text())
         assert res["elbo"] == pytest.approx(r["elbo"], rel=1e-12)
         assert res["records"]["estimation"][0]["path"].endswith(rec.name)
