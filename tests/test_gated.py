@@ -131,7 +131,7 @@ def test_gated_round_gives_the_per_candidate_findings(tmp_path):
         out = tmp_path / ("gated" if gated_ else "serial")
         search.run_diagnose(SPEC, [data], out=out, max_rounds=1, max_candidates=3,
                             effects=["time_skew", "sensor_bias", "sensor_scale"], numerics=False,
-                            workers=1, gated=gated_)
+                            noise_model=False, workers=1, gated=gated_)
         docs[gated_] = json.loads((out / "findings.json").read_text())
     g, s = docs[True], docs[False]
     assert [f["key"] for f in g["findings"]] == [f["key"] for f in s["findings"]] == ["time_skew:q"]
