@@ -209,6 +209,19 @@ def test_default_workers_one_per_two_usable_cores(monkeypatch, cores, workers):
     assert Engine().workers == workers and Engine().serial == (workers == 1)
 
 
+def _run_script(tmp_path, text: str):
+    """Run ``text`` as a script in a fresh interpreter that imports this checkout's vsidgen
+    (local dask workers need a ``__main__`` guard, so not in the test process)."""
+    import subprocess
+
+    script = tmp_path / "script.py"
+    script.write_text(text)
+    root = pathlib.Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=tmp_path)
+
+
 CLOSE_SCRIPT = """
 from vsidgen.engine import Engine
 
@@ -227,14 +240,7 @@ def test_workers_close_without_tracebacks(tmp_path):
     worker closes, and vsidgen's interrupt guard (:mod:`vsidgen.interrupts`) had wrapped it,
     so every closing worker printed ``ValueError: list.remove(x): x not in list`` with a
     traceback into the user's diagnose output."""
-    import subprocess
-
-    script = tmp_path / "close.py"
-    script.write_text(CLOSE_SCRIPT)
-    root = pathlib.Path(__file__).resolve().parents[1]
-    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                       timeout=300, env=env, cwd=tmp_path)
+    p = _run_script(tmp_path, CLOSE_SCRIPT)
     assert p.returncode == 0, p.stderr[-2000:]
     assert "[2, 4]" in p.stdout
     assert "Traceback" not in p.stderr and "not in list" not in p.stderr, p.stderr[-2000:]
@@ -260,14 +266,8 @@ def test_local_workers_keep_dask_records_out_of_the_output(tmp_path):
     clean run (CI, once). ``silence_logs`` reaches only the nanny's logger in the worker
     process, so the level travels in the environment the worker is spawned with."""
     import logging
-    import subprocess
 
-    script = tmp_path / "log.py"
-    script.write_text(LOG_SCRIPT)
-    root = pathlib.Path(__file__).resolve().parents[1]
-    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
-                       timeout=300, env=env, cwd=tmp_path)
+    p = _run_script(tmp_path, LOG_SCRIPT)
     assert p.returncode == 0, p.stderr[-2000:]
     assert f"[{logging.CRITICAL}, {logging.CRITICAL}]" in p.stdout, p.stdout
     assert "never sees" not in p.stderr, p.stderr[-2000:]

@@ -619,22 +619,16 @@ def _metrics_table(m: Mapping, names: Iterable[str]) -> list[dict]:
     return rows
 
 
-def _seconds(v) -> str:
-    """A time in seconds for people: 6 significant digits (a sample period of
-    0.020000000000002335 s, the mean step of float time stamps, reads 0.02)."""
-    v = _num(v)
-    return f"{v:.6g}" if math.isfinite(v) else "—"
-
-
 def _record_rows(records: Mapping) -> dict:
     """The records of results.json for the data-records table, their sample period and
-    duration rounded (:func:`_seconds`); other fields as they are."""
+    duration to 6 significant digits (0.020000000000002335 s, the mean step of float time
+    stamps, reads 0.02); other fields as they are."""
     rows = {}
     for kind, recs in records.items():
         if not isinstance(recs, list):
             rows[kind] = recs
             continue
-        rows[kind] = [{**r, **{k: _seconds(r[k]) for k in ("dt", "duration_s")
+        rows[kind] = [{**r, **{k: _fmt(r[k], 6) for k in ("dt", "duration_s")
                                if r.get(k) is not None}}
                       if isinstance(r, Mapping) else r for r in recs]
     return rows
@@ -644,10 +638,8 @@ def _status_text(status, converged: bool) -> str:
     """The fit's status after the converged / not converged tag: without the leading
     "converged: " that the tag already says ("converged converged: Newton decrement ...")."""
     text = str(status or "")
-    for word in (("converged",) if converged else ("not converged",)):
-        if text.lower().startswith(word + ":"):
-            return text[len(word) + 1:].lstrip()
-    return text
+    word = "converged:" if converged else "not converged:"
+    return text[len(word):].lstrip() if text.lower().startswith(word) else text
 
 
 def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: str,
@@ -657,8 +649,8 @@ def _record_section(res: dict, results_dir: pathlib.Path, rec: Mapping, kind: st
     rid = re.sub(r"[^A-Za-z0-9_\-]", "_", f"{kind}-{name}")
     sec = {"name": name, "id": rid, "kind": kind, "outputs": [], "states": [], "whiteness": [],
            "metrics": [], "derivative": [], "missing": None,
-           "n_samples": rec.get("n_samples"), "dt": _seconds(rec.get("dt")),
-           "duration": _seconds(rec.get("duration_s")), "path": rec.get("path") or ""}
+           "n_samples": rec.get("n_samples"), "dt": _fmt(rec.get("dt"), 6),
+           "duration": _fmt(rec.get("duration_s"), 6), "path": rec.get("path") or ""}
     m = ((res.get("metrics") or {}).get(kind) or {}).get(name) or {}
     sec["metrics"] = _metrics_table(m, [o["name"] for o in outputs])
     der = m.get("derivative") or {}
