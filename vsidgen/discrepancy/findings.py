@@ -46,6 +46,7 @@ findings.json (keys in this order)::
 from __future__ import annotations
 
 import html
+import math
 import pathlib
 from collections.abc import Sequence
 
@@ -1037,6 +1038,22 @@ def _not_tested(stage: dict) -> bool:
     return all(t.get("verdict") == "not_tested_base_unconverged" for t in stage["trials"])
 
 
+def _screen_leads(doc: dict) -> dict[str, str]:
+    """Per target of round 1's score screen, its strongest score-tested candidate as text
+    ("sensor_scale:p_m, −log₁₀ p 80.5"), strongest targets first; empty without a screen."""
+    rounds = doc.get("rounds") or []
+    best: dict[str, tuple[float, str]] = {}
+    for c in (rounds[0].get("screen") or []) if rounds else []:
+        st = c.get("score_test") or {}
+        v = st.get("minus_log10_p")
+        if not isinstance(v, (int, float)) or not math.isfinite(v) or not c.get("target"):
+            continue
+        if v > best.get(c["target"], (-math.inf, ""))[0]:
+            best[c["target"]] = (float(v), str(c.get("key", "")))
+    return {t: f"{k}, −log₁₀ p {v:.3g}"
+            for t, (v, k) in sorted(best.items(), key=lambda kv: -kv[1][0])}
+
+
 def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ()) -> str:
     """HTML section "Discrepancy diagnosis" for the report (findings table, text, plots)."""
     e = html.escape
@@ -1082,10 +1099,21 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                                                            for t in ng["trials"]], dof=True))
     loc = doc.get("locate", {})
     if loc:
-        parts.append("<h3>Where the base model and the records disagree</h3><table border='1' "
-                     "cellpadding='3' style='border-collapse:collapse;font-size:90%'>"
-                     "<tr><th>target</th><th>flagged</th><th>systematic share</th>"
-                     "<th>best regressor / test</th><th>windows (s)</th></tr>")
+        lead = _screen_leads(doc)
+        parts.append("<h3>Where the base model and the records disagree</h3>"
+                     "<p>Two kinds of evidence per target. <i>Residual tests</i> correlate the "
+                     "residuals of the base fit with regressors (state equations: the smoothed "
+                     "path's finite differences against the drift; outputs: the smoothed and "
+                     "predicted output residuals): they say <i>where</i> and <i>when</i>, but the "
+                     "smoother moves the state path wherever the process noise lets it, so an "
+                     "error on a state's own sensor can leave them clean. The <i>score test</i> "
+                     "uses the ELBO's exact gradient and Hessian at the fit (round 1's screen of "
+                     "the whole catalogue, its strongest candidate on that target shown, "
+                     "−log₁₀ p unadjusted); it decides what is refitted.</p>"
+                     "<table border='1' cellpadding='3' style='border-collapse:collapse;"
+                     "font-size:90%'><tr><th>target</th><th>residual tests flag</th>"
+                     "<th>systematic share</th><th>best regressor / test</th>"
+                     "<th>windows (s)</th><th>strongest score test</th></tr>")
         for s, ev in loc.get("states", {}).items():
             top = (ev.get("top_regressors") or [{}])[0]
             wins = ", ".join(f"{w['t0']:.1f}–{w['t1']:.1f}" for w in ev.get("windows", [])
@@ -1093,14 +1121,19 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             parts.append(f"<tr><td>equation {e(s)}</td><td>{'yes' if ev['flagged'] else 'no'}</td>"
                          f"<td>{(ev.get('systematic_share') or 0):.0%}</td>"
                          f"<td>{e(str(top.get('name', '')))} (p={top.get('p') or 0:.2g})</td>"
-                         f"<td>{e(wins)}</td></tr>")
+                         f"<td>{e(wins)}</td><td>{e(lead.pop(f'drift:{s}', '—'))}</td></tr>")
         for o, ev in loc.get("outputs", {}).items():
             wins = ", ".join(f"{w['t0']:.1f}–{w['t1']:.1f}" for w in ev.get("windows", [])
                              if w.get("t0") is not None)
             parts.append(f"<tr><td>output {e(o)}</td><td>{'yes' if ev['flagged'] else 'no'}</td>"
                          f"<td>{(ev.get('systematic_share') or 0):.0%}</td>"
                          f"<td>bias p={ev['bias']['p'] or 0:.2g}, scale p={ev['scale']['p'] or 0:.2g}, "
-                         f"lag {ev.get('lag_s') or 0:+.3g} s</td><td>{e(wins)}</td></tr>")
+                         f"lag {ev.get('lag_s') or 0:+.3g} s</td><td>{e(wins)}</td>"
+                         f"<td>{e(lead.pop(f'output:{o}', '—'))}</td></tr>")
+        for target, text in lead.items():
+            kind, _, name = target.partition(":")
+            parts.append(f"<tr><td>{e(kind)} {e(name)}</td><td>—</td><td>—</td><td>—</td>"
+                         f"<td>—</td><td>{e(text)}</td></tr>")
         parts.append("</table>")
     for f in doc["findings"]:
         ev = f["evidence"]
