@@ -62,3 +62,90 @@ def test_no_screen_no_score_column_values():
     assert _screen_leads(doc) == {}
     rows = _rows(report_section(doc))
     assert all("−log₁₀" not in r for r in rows)
+
+
+# ---------------------------------------------------------------------------
+# exact-geometry equations get no aerodynamic regressors (session 47: the bank-angle
+# equation of a new user's lateral model was offered β·δa)
+# ---------------------------------------------------------------------------
+
+def _lateral_records():
+    import numpy as np
+    from vsidgen.discrepancy.locate import LocateRecord
+
+    rng = np.random.default_rng(3)
+    n, dt = 1200, 0.02
+    t = np.arange(n) * dt
+    da = np.sign(np.sin(0.7 * t)) * 0.05
+    beta = 0.05 * np.sin(0.9 * t) + 0.002 * rng.standard_normal(n)
+    p = 0.2 * np.sin(1.3 * t + 0.4)
+    phi = np.cumsum(p) * dt
+    X = np.column_stack([beta, p, phi])
+    # the bank-angle equation error: a p-gyro scale error (0.05 p) plus a β·δa-shaped part
+    err = 0.05 * p[:-1] + 4.0 * beta[:-1] * da[:-1] + 0.002 * rng.standard_normal(n - 1)
+    f = np.zeros((n - 1, 3))
+    f[:, 2] = p[:-1]
+    xdot = f.copy()
+    xdot[:, 2] += err
+    rec = LocateRecord(name="r", t=t, u=da[:, None], y_meas=X, y_smooth=X, y_pred=X, y_sim=X,
+                       x_smooth=X, xdot_fd=xdot, f_smooth=f)
+    return [rec]
+
+
+def test_kinematic_equation_is_tested_only_against_its_rates():
+    from vsidgen.discrepancy.locate import locate
+
+    kw = dict(state_names=["beta", "p", "phi"], input_names=["da"],
+              output_names=["beta", "p", "phi"], roles={"beta": "beta", "p": "p"})
+    free = locate(_lateral_records(), **kw)
+    names = {r.name for r in free.states["phi"].regressors[:5]}
+    assert any(n.startswith("prod:") or n.startswith("u:") for n in names)   # the old offer
+    geo = locate(_lateral_records(), kinematics={"phi": frozenset({"p"})}, **kw)
+    ev = geo.states["phi"]
+    assert {r.name for r in ev.regressors} <= {"x:p", "1"}
+    assert ev.regressors[0].name == "x:p" and ev.flagged
+    # the other equations keep every regressor
+    assert len(geo.states["beta"].regressors) == len(free.states["beta"].regressors)
+
+
+def test_search_names_the_kinematic_equations_of_a_spec(tmp_path):
+    from vsidgen.discrepancy.search import _kinematic_equations
+    from vsidgen.model import load_model
+
+    spec = tmp_path / "lat.yaml"
+    spec.write_text("""
+name: lat_k
+states:
+  beta: {unit: rad}
+  p: {unit: rad/s}
+  r: {unit: rad/s}
+  phi: {unit: rad}
+inputs:
+  da: {unit: rad}
+parameters:
+  Lb: {unit: 1/s^2}
+  Lp: {unit: 1/s}
+  Nr: {unit: 1/s}
+  Yb: {unit: 1/s}
+  Lda: {unit: 1/s^2}
+drift:
+  beta: Yb*beta - r + 0.15*phi
+  p: Lb*beta + Lp*p + Lda*da
+  r: Nr*r
+  phi: p + 0.1*r
+outputs:
+  beta_m: {unit: rad}
+  p_m: {unit: rad/s}
+  phi_m: {unit: rad}
+observations:
+  beta_m: beta
+  p_m: p
+  phi_m: phi
+data:
+  time: t
+  inputs: {da: da}
+  outputs: {beta_m: b, p_m: p, phi_m: f}
+""")
+    m = load_model(spec, generated_dir=tmp_path / "gen")
+    kin = _kinematic_equations(m)
+    assert kin == {"phi": frozenset({"p", "r"})}

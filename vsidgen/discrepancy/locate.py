@@ -775,7 +775,8 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
            alpha: float = ALPHA_LOCATE, min_share: float = 0.02,
            window_s: float = 1.0,
            nuisance: Mapping[str, np.ndarray] | None = None,
-           roles: Mapping[str, str] | None = None) -> Evidence:
+           roles: Mapping[str, str] | None = None,
+           kinematics: Mapping[str, frozenset[str]] | None = None) -> Evidence:
     """Locate mismatches; see the module docstring for the statistics.
 
     Args:
@@ -797,6 +798,12 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
             plain correlations.
         roles: ``{state: role}`` (α, β, p, q, r, V: :meth:`.base.ModelInfo.state_roles`,
             which reads the states' descriptions too); ``None``: recognised by name.
+        kinematics: ``{state: variables}`` for the equations that are exact geometry
+            (``φ̇ = p + tanθ (q sinφ + r cosφ)``, ``θ̇ = q``): their errors are tested only
+            against the constant and the linear terms of the named variables (the rates of
+            the equation's dimension), since no aerodynamic, nonlinear or input term acts
+            on an attitude directly; an error there points at the sensors or the timing of
+            those rates (:func:`.catalogue.kinematic_rates`). ``None``: every regressor.
     """
     roles = state_roles(state_names, roles)
     process_std = dict(process_std or {})
@@ -806,14 +813,14 @@ def locate(records: Sequence[LocateRecord], *, state_names: Sequence[str],
     dt = float(np.median(np.concatenate([np.diff(r.t) for r in records])))
     states = _state_evidence(records, state_names, input_names, process_std, dt, alpha=alpha,
                              min_share=min_share, window_s=window_s, nuisance=nuisance,
-                             roles=roles)
+                             roles=roles, kinematics=dict(kinematics or {}))
     outputs = _output_evidence(records, state_names, input_names, output_names, measurement_std, dt,
                                alpha=alpha, min_share=min_share, window_s=window_s, roles=roles)
     return Evidence(states, outputs, dt, alpha)
 
 
 def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha, min_share, window_s,
-                    nuisance, roles) -> dict[str, StateEvidence]:
+                    nuisance, roles, kinematics=None) -> dict[str, StateEvidence]:
     """Per state equation: the equation error e = ẋ_fd − f(x̂) (records concatenated, last sample of
     each dropped) tested against every state regressor (partial correlations given ``nuisance``),
     stepwise selection, whiteness and low-frequency share, and its windows of excess error."""
@@ -839,6 +846,10 @@ def _state_evidence(records, state_names, input_names, process_std, dt, *, alpha
         g = process_std.get(s)
         level = g / math.sqrt(dt) if g is not None and g > 0 else _robust_level(e)
         own = {k: v for k, v in reg.items() if k != f"xdot:{s}"}
+        if kinematics and s in kinematics:
+            own = {k: v for k, v in own.items()
+                   if k.split(":", 1)[0] in ("x", "u") and k.split(":", 1)[1] in kinematics[s]
+                   and k != f"x:{s}"}
         e_t = e
         if nuisance is not None and nuisance.get(s) is not None:
             part = _Partial(nuisance[s], len(e))

@@ -669,7 +669,19 @@ def locate_state(st: FitState) -> Evidence:
     return locate(recs, state_names=m.state_names, input_names=m.input_names,
                   output_names=m.output_names, process_std=st.fit.process_std,
                   measurement_std=st.fit.measurement_std, nuisance=drift_sensitivities(st),
-                  roles=roles_of(sym.states) if sym is not None else None)
+                  roles=roles_of(sym.states) if sym is not None else None,
+                  kinematics=_kinematic_equations(m) if sym is not None else None)
+
+
+def _kinematic_equations(m) -> dict[str, frozenset[str]]:
+    """``{state: rates}`` of the model's exact-geometry equations (``φ̇ = p + …``): the
+    variables of the rate's dimension they are made of, or every state and input where
+    the units do not say (:func:`.catalogue.kinematic_rates`)."""
+    from .catalogue import kinematic_rates, kinematic_state
+    info = info_from_model(m)
+    every = frozenset([*m.state_names, *m.input_names])
+    return {s: kinematic_rates(info, s) or every for s in m.state_names
+            if kinematic_state(info, s)}
 
 
 def model_info_of(st: FitState) -> ModelInfo:
