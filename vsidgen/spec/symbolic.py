@@ -260,6 +260,12 @@ def _disagreement(found) -> str:
         else " where a function needs coherent units (rad)")
 
 
+def _pair(found) -> frozenset[str] | None:
+    """The two terms of a :func:`units.scale_of` disagreement, as texts (None: one term)."""
+    term, _, other, _ = found
+    return None if other is None else frozenset((str(term), str(other)))
+
+
 def _right_as_written(decl: "_Declared", definitions, drift, observations,
                       issues: list | None = None) -> set[tuple[str, str]]:
     """(kind, name) of the declarations in a non-coherent unit whose numbers are right as they stand: every
@@ -292,7 +298,8 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
             # terms of a definition that disagree make every equation using it unknown, so
             # those were silent: the definition itself is named (a new user's `side: Yb*beta
             # + Y0` with beta in deg had no unit_scale warning; written out, it had; session 46)
-            issues.append((f"definition of `{nm}`", nm, "definitions", _disagreement(found_def[0])))
+            issues.append((f"definition of `{nm}`", nm, "definitions", _disagreement(found_def[0]),
+                           _pair(found_def[0])))
     used: set[sympy.Symbol] = set()
     wrong: set[sympy.Symbol] = set()
     right_outputs: set[str] = set()
@@ -314,12 +321,13 @@ def _right_as_written(decl: "_Declared", definitions, drift, observations,
             if issues is None or (ok or (not found and (got is None or want is None))):
                 continue
             where = f"{'drift' if is_drift else 'observation'} of `{v.name}`"
+            pair = _pair(found[0]) if found else None
             if found:
                 what = _disagreement(found[0])
             else:
                 what = (f"the expression is in {_factor_words(got)} but `{v.name}` is "
                         f"declared in {_factor_words(want)}")
-            issues.append((where, v.name, "drift" if is_drift else "observations", what))
+            issues.append((where, v.name, "drift" if is_drift else "observations", what, pair))
     kinds = {v.symbol: "state" for v in decl.states}
     kinds.update({v.symbol: "input" for v in decl.inputs})
     kinds.update({q.symbol: "parameter" for q in decl.parameters})
@@ -689,21 +697,30 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     unit_issues: list = []
     _warn_coherence(warnings, spec, _right_as_written(decl, definitions, drift, observations,
                                                       unit_issues))
-    for where, name, section, what in unit_issues:
-        at = eqs.sections[section][name].expression
-        _warn(warnings, f"units in the {where}: {what}; the numbers are used as they stand",
-              at, code="unit_scale", key=False,
-              hint="write every term in one unit system (convert with pi/180, or declare the "
-                   "variable in rad and convert its data column in the data map)")
-
+    scale_at = len(warnings)
     output_names = [o.name for o in decl.outputs]
     process, measurement = _noise(spec, [v.name for v in decl.states], output_names)
     var_units = {("input", v.name): v.unit for v in decl.inputs}
     var_units.update({("output", v.name): v.unit for v in decl.outputs})
     data = _data_spec(spec, [v.name for v in decl.inputs], output_names, root_loc, var_units,
                       warnings)
-    _check_dimensions(warnings, decl.dims, definitions, decl.definitions, drift, eqs.sections,
-                      decl.states, observations, decl.outputs, decl.output_dims, eqs.added_at)
+    scale_warnings: list = []
+    wrong_dims = _check_dimensions(warnings, decl.dims, definitions, decl.definitions, drift,
+                                   eqs.sections, decl.states, observations, decl.outputs,
+                                   decl.output_dims, eqs.added_at)
+    for where, name, section, what, pair in unit_issues:
+        if pair is not None and (section, name, pair) in wrong_dims:
+            # the same two terms disagree in dimension: that warning is the defect to fix, and
+            # the two read as contradicting each other (session 47: `ay_m: V0*side/g0 + ay0`
+            # was told both that `V0*side/g0` is "in coherent units" beside `ay0` in g, and
+            # that it is dimensionless beside an acceleration)
+            continue
+        at = eqs.sections[section][name].expression
+        _warn(scale_warnings, f"units in the {where}: {what}; the numbers are used as they "
+              "stand", at, code="unit_scale", key=False,
+              hint="write every term in one unit system (convert with pi/180, or declare the "
+                   "variable in rad and convert its data column in the data map)")
+    warnings[scale_at:scale_at] = scale_warnings
 
     return SymbolicModel(
         name=spec.name.value, description=spec.description, source_path=spec.path,
@@ -1091,14 +1108,34 @@ def _data_spec(spec: Spec, input_names, output_names, root_loc,
                     time_unit=time_unit)
 
 
+def _dimension_hint(issue: "_units.DimensionIssue") -> str:
+    """The hint of a dimension warning; a load factor (an acceleration divided by g) beside an
+    acceleration gets its own, since declaring a quantity in `g` makes it an acceleration."""
+    accel = _units.parse_unit("m/s^2")
+    pair = (issue.dimension, issue.expected)
+    if issue.other is not None and any(
+            _units.same(a, _units.ONE) and _units.same(b, accel) for a, b in (pair, pair[::-1])):
+        return ("an acceleration divided by g (g0, 9.81) is a load factor, dimension 1, while a "
+                "quantity declared in `g` is an acceleration: write every term in m/s^2 (no "
+                "division by g; a data column in g is converted by the data map, `{column: NAME, "
+                "unit: g}`), or every term as a load factor (declared without a unit)")
+    return "check the units of the symbols in this term"
+
+
 def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, states,
-                      observations, outputs, output_dims, added_at=None) -> None:
+                      observations, outputs, output_dims, added_at=None) -> set:
+    """Warn where the terms of an equation disagree in dimension, or an equation's dimension is
+    not its left-hand side's; returns ``{(section, name, {term, other})}`` of the pairs of terms
+    that disagree."""
     dims = dict(dims)
     seen: set[str] = set()
     added_at = added_at or {}
+    pairs: set = set()
 
     def reporter(where: str, at: Located, key: tuple[str, str]):
         def report(issue: _units.DimensionIssue):
+            if issue.other is not None:
+                pairs.add((*key, frozenset((str(issue.term), str(issue.other)))))
             msg = f"inconsistent units in {where}: {issue.message()}"
             if msg in seen:
                 return
@@ -1111,8 +1148,7 @@ def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, stat
                 if issue.term in terms or (issue.other is not None and issue.other in terms):
                     here, msg = loc, msg + " (a term added by `add_terms`)"
                     break
-            _warn(warnings, msg, here, code="units", key=False,
-                  hint="check the units of the symbols in this term")
+            _warn(warnings, msg, here, code="units", key=False, hint=_dimension_hint(issue))
         return report
 
     for nm, expr in definitions:
@@ -1139,3 +1175,4 @@ def _check_dimensions(warnings, dims, definitions, def_at, drift, sections, stat
             _warn(warnings, f"inconsistent units in observation of `{o.name}`: the expression has "
                   f"dimension {_units.show(d)} but output `{o.name}` has dimension "
                   f"{_units.show(want)}", at, code="units", key=False)
+    return pairs
