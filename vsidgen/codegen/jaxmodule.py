@@ -472,14 +472,16 @@ class BuildResult:
     symbolic: SymbolicModel
 
 
-def build_model(symbolic: SymbolicModel, *, out_dir="generated", force: bool = False) -> BuildResult:
+def build_model(symbolic: SymbolicModel, *, out_dir="generated", force: bool = False,
+                text: str | None = None) -> BuildResult:
     """Write ``out_dir/<name>.py`` for a compiled spec unless it is up to date.
 
     Up to date means: the file exists and holds exactly the text :func:`generate` gives
     now (so a changed recorded path, template or generator is always rewritten).
+    ``text``: that text when the caller has it already (``generate(symbolic)``).
     """
     module_path = pathlib.Path(out_dir) / f"{symbolic.name}.py"
-    text = generate(symbolic)
+    text = generate(symbolic) if text is None else text
     current = _current_text(module_path)
     if not force and current == text:
         return BuildResult(symbolic.source_path, module_path, False, symbolic)
@@ -545,9 +547,10 @@ def _current_text(module_path: pathlib.Path) -> str | None:
         return None
 
 
-def is_up_to_date(symbolic: SymbolicModel, module_path) -> bool:
-    """True when ``module_path`` holds exactly the text :func:`generate` gives for ``symbolic``."""
-    return _current_text(pathlib.Path(module_path)) == generate(symbolic)
+def is_up_to_date(symbolic: SymbolicModel, module_path, *, text: str | None = None) -> bool:
+    """True when ``module_path`` holds exactly the text :func:`generate` gives for ``symbolic``
+    (``text``: that text, when the caller has it)."""
+    return _current_text(pathlib.Path(module_path)) == (generate(symbolic) if text is None else text)
 
 
 def build(spec_paths, *, out_dir="generated", force: bool = False) -> list[BuildResult]:

@@ -1558,6 +1558,9 @@ def generated_model_key(model, F) -> str | None:
             or (jac is not None and getattr(mod, "drift_jac_x", None) is not jac.drift_x)
             or getattr(F, "fn", None) is None):
         return None
+    executed = getattr(mod, "__vsidgen_source_sha256__", None)
+    if executed is not None:        # the text the loader ran (model.runtime._import_module)
+        return executed
     try:
         return hashlib.sha256(pathlib.Path(path).read_bytes()).hexdigest()
     except OSError:

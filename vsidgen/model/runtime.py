@@ -158,15 +158,26 @@ def default_generated_dir(spec_path) -> pathlib.Path:
     return pathlib.Path("generated")
 
 
-def _import_module(module_path: pathlib.Path, name: str, spec_hash: str) -> types.ModuleType:
-    import importlib.util
+def _import_module(module_path: pathlib.Path, name: str, spec_hash: str,
+                   text: str) -> types.ModuleType:
+    """A module made by executing ``text`` — the text :func:`~vsidgen.codegen.generate`
+    gives for the spec, which ``module_path`` holds — never the file itself.
 
-    unique = f"vsidgen_generated_{name}_{spec_hash[:16]}"
-    spec = importlib.util.spec_from_file_location(unique, module_path)
-    if spec is None or spec.loader is None:  # pragma: no cover
-        raise ImportError(f"cannot import {module_path}")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    Python's import system would run a matching ``__pycache__/*.pyc`` instead of the checked
+    source (a bytecode file unpacked with the project keeps the timestamps that make it
+    match: red team, session 47), and would read the file again after the check (another
+    process may have replaced it). The text is compiled here with the file's name, so
+    tracebacks and ``inspect`` still point at the file, and no bytecode is read or written.
+    """
+    import hashlib
+    import linecache
+
+    filename = str(module_path)
+    module = types.ModuleType(f"vsidgen_generated_{name}_{spec_hash[:16]}")
+    module.__file__ = filename
+    module.__vsidgen_source_sha256__ = hashlib.sha256(text.encode("utf-8")).hexdigest()
+    linecache.cache[filename] = (len(text), None, text.splitlines(True), filename)
+    exec(compile(text, filename, "exec", dont_inherit=True), module.__dict__)
     return module
 
 
@@ -182,19 +193,20 @@ def load_model(spec_path, *, generated_dir=None, build: bool = True) -> Model:
     Raises:
         SpecError: invalid spec, or stale module with ``build=False``.
     """
-    from ..codegen import build_model, is_up_to_date
+    from ..codegen import build_model, generate, is_up_to_date
     from ..errors import SpecError
     from ..spec import compile_spec
 
     symbolic = compile_spec(spec_path)
     out_dir = pathlib.Path(generated_dir) if generated_dir is not None else default_generated_dir(spec_path)
     module_path = out_dir / f"{symbolic.name}.py"
+    text = generate(symbolic)
     if build:
-        build_model(symbolic, out_dir=out_dir)
-    elif not is_up_to_date(symbolic, module_path):
+        build_model(symbolic, out_dir=out_dir, text=text)
+    elif not is_up_to_date(symbolic, module_path, text=text):
         raise SpecError(f"generated module {module_path} is missing or out of date",
                         path=spec_path, hint=f"run `vsidgen build {spec_path}`")
-    module = _import_module(module_path, symbolic.name, symbolic.source_hash)
+    module = _import_module(module_path, symbolic.name, symbolic.source_hash, text)
     return Model(
         name=symbolic.name, drift=module.drift, output=module.output,
         states=symbolic.states, inputs=symbolic.inputs, outputs=symbolic.outputs,
