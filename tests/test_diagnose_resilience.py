@@ -413,3 +413,30 @@ def test_conclusion_when_no_round_ran():
     text = conclusion_text([], [], alpha=0.01, validated=True, final_spec="s.yaml")
     assert text.startswith("No candidate effect was examined") and "--max-rounds" in text
     assert "No significant" not in text and "improved" not in text
+
+
+@pytest.mark.parametrize("command", ["diagnose", "fleet"])
+def test_an_unreachable_cluster_leaves_the_previous_results(monkeypatch, tmp_path, capsys,
+                                                            command):
+    """Red team, session 47: the previous run's files were removed before the cluster was
+    contacted, so a run refused for an unreachable ``--scheduler`` lost them."""
+    from vsidgen import engine as engine_mod
+    from vsidgen.atomic import atomic_directory
+    from vsidgen.cli import main
+    from vsidgen.errors import VsidgenError
+
+    out = tmp_path / "s"
+    with atomic_directory(out, command=command) as tmp:       # the previous run's results
+        (tmp / "findings.json").write_text('{"previous": true}')
+    before = sorted(p.name for p in out.iterdir())
+
+    def unreachable(self):
+        raise VsidgenError(f"cannot start or reach the dask cluster ({self.scheduler}): refused")
+
+    monkeypatch.setattr(engine_mod.Engine, "__enter__", unreachable)
+    rc = main([command, str(SPEC), str(DATA), "--out", str(out),
+               "--scheduler", "tcp://127.0.0.1:1", "--quiet"])
+    assert rc == 2 and "cannot start or reach" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert (out / "findings.json").read_text() == '{"previous": true}'
+

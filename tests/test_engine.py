@@ -97,6 +97,10 @@ def test_local_cluster_results_failures_and_dead_workers(tmp_path):
     deadline cancels what has not finished (last: the cancelled sleep keeps its worker)."""
     with Engine(workers=2) as eng:
         assert not eng.serial and len(eng.client.scheduler_info()["workers"]) == 2
+        client = eng.client
+        with eng:           # re-entered (a command enters it before its results directory)
+            assert eng.client is client
+        assert eng.client is client      # the inner exit does not close the cluster
         out = eng.run(_square, [(f"k{i}", (i,)) for i in range(5)])
         assert [o.value for o in out] == [0, 1, 4, 9, 16]
         assert all(o.status is TaskStatus.DONE for o in out)
@@ -135,6 +139,7 @@ def test_local_cluster_results_failures_and_dead_workers(tmp_path):
         slow = eng.run(_sleep, [("s2", (0.0,)), ("s1", (600.0,))], deadline=t0 + 30.0)
         assert time.monotonic() - t0 < 120.0
         assert slow[0].status is TaskStatus.DONE and slow[1].status is TaskStatus.CANCELLED
+    assert eng.client is None and eng.cluster is None     # the outer exit closed it
 
 
 def test_worker_env_single_thread_and_shared_compilation_cache(monkeypatch, tmp_path):

@@ -400,7 +400,8 @@ def test_crash_between_renames_without_complete_results_restores_the_old(tmp_pat
     _first_run(d)
     _crash(d, "between")
     for p in tmp_path.glob(".res.tmp-*"):
-        (p / ".vsidgen-results.json").unlink()  # incomplete new results
+        (p / ".vsidgen-results.json").unlink()  # incomplete new results: as a crash during
+        (p / ".vsidgen-building").touch()       # the build leaves them, marker still there
     proc = _next_run(tmp_path)
     expect_refused(proc, "input_1e308.csv")
     assert "previous results were restored" in proc.stderr

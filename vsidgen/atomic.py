@@ -194,7 +194,11 @@ def add_to_manifest(directory: str | os.PathLike, names: Iterable[str]) -> None:
 
 # --------------------------------------------------------------------------- leftovers
 
-_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?:(?P<pid>\d+)-)?[A-Za-z0-9_]+$")
+_LEFTOVER = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
+
+#: marker file of a results directory being built (``.DIR.tmp-*``): a leftover without it,
+#: and without a manifest, is not vsidgen's and is never touched
+BUILDING = ".vsidgen-building"
 
 
 def _pid_alive(pid: int | None) -> bool:
@@ -207,6 +211,21 @@ def _pid_alive(pid: int | None) -> bool:
     except (PermissionError, OSError):
         return True
     return True
+
+
+def _ours(path: pathlib.Path, kind: str) -> bool:
+    """Whether a directory named like a leftover is one vsidgen left: a ``tmp`` holds the
+    :data:`BUILDING` marker or a manifest (it was complete); an ``old`` was a results
+    directory that was replaced — one with a manifest, or an empty one. A user's folder
+    that only looks like one (``.out.old-123-0badcafe`` with their files) is not
+    (red team, session 47: such folders were deleted, or moved into ``--out``)."""
+    try:
+        if kind == "tmp":
+            return any((path / n).is_file() and not (path / n).is_symlink()
+                       for n in (BUILDING, MANIFEST))
+        return read_manifest(path) is not None or not any(path.iterdir())
+    except OSError:
+        return False
 
 
 def _stale(path: pathlib.Path, pid: int | None) -> bool:
@@ -240,8 +259,8 @@ def recover(target: str | os.PathLike) -> tuple[str, ...]:
         m = _LEFTOVER.match(p.name)
         if not m or m.group("name") != target.name or p.is_symlink() or not p.is_dir():
             continue
-        pid = int(m.group("pid")) if m.group("pid") else None
-        if not _stale(p, pid):
+        pid = int(m.group("pid"))
+        if not _stale(p, pid) or not _ours(p, m.group("kind")):
             continue
         (tmps if m.group("kind") == "tmp" else olds).append(p)
     tmps.sort(key=lambda p: p.stat().st_mtime)
@@ -250,6 +269,8 @@ def recover(target: str | os.PathLike) -> tuple[str, ...]:
         complete = [t for t in tmps if (t / MANIFEST).is_file() and not (t / MANIFEST).is_symlink()]
         if complete:
             os.rename(complete[-1], target)
+            with contextlib.suppress(OSError):      # a crash between manifest and marker
+                (target / BUILDING).unlink()
             tmps.remove(complete[-1])
             msgs.append(f"{target}: an earlier run was interrupted while replacing its results; "
                         "its new results were complete and are now in place")
@@ -486,12 +507,33 @@ def _claim(target: pathlib.Path, option: str) -> None:
             same = os.fstat(fd).st_ino == os.stat(path, follow_symlinks=False).st_ino
         except OSError:
             same = False
+        if same and not _lock_file_text(fd):
+            os.close(fd)
+            raise VsidgenError(f"{path}: error: this file is in the way of the lock vsidgen "
+                               f"keeps beside {option} {target} while it writes, and it is not "
+                               "one of vsidgen's lock files (which hold a process id); it is "
+                               "left as it is\n  hint: rename or move it, or write to another "
+                               "directory")
         if same:                 # not a file its holder removed between our open and lock
             os.ftruncate(fd, 0)
             os.write(fd, f"{os.getpid()}\n".encode())
             _LOCKS[key] = fd
             return
         os.close(fd)
+
+
+def _lock_file_text(fd: int) -> bool:
+    """Whether the open file ``fd`` is empty or holds a process id and a newline, as the lock
+    files of :func:`_claim` do (a user's ``.out.lock`` was truncated and deleted: red team,
+    session 47)."""
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > 32:
+            return False
+        text = os.pread(fd, 33, 0)
+    except OSError:
+        return False
+    return re.fullmatch(rb"(\d+\n?)?", text) is not None
 
 
 @atexit.register
@@ -550,7 +592,7 @@ def _remove_entry(path: pathlib.Path) -> None:
 
 def _commit_in_place(tmp: pathlib.Path, plan: OutputPlan, command: str) -> None:
     target = plan.target
-    new = sorted(listing(tmp) - {MANIFEST})
+    new = sorted(listing(tmp) - {MANIFEST, BUILDING})
     tres = target.resolve()
     for rel in new:
         dest = tres / rel
@@ -606,10 +648,13 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
             # refuses (/sys, /proc): the message names the directory asked for (session 44)
             raise VsidgenError(f"{target}: error: cannot create the results directory there "
                                f"({exc.strerror})") from None
+        (tmp / BUILDING).touch()
         try:
             yield tmp
             if plan.mode is WriteMode.SWAP:
-                write_text_atomic(tmp / MANIFEST, _manifest_text(listing(tmp), command=command))
+                write_text_atomic(tmp / MANIFEST, _manifest_text(listing(tmp) - {BUILDING},
+                                                                 command=command))
+                (tmp / BUILDING).unlink()
                 _commit_swap(tmp, plan)
             else:
                 _commit_in_place(tmp, plan, command)

@@ -186,6 +186,7 @@ class Engine:
         self.scheduler = scheduler
         self.client = None
         self.cluster = None
+        self._depth = 0
 
     @property
     def serial(self) -> bool:
@@ -199,7 +200,14 @@ class Engine:
         return f"local dask cluster of {self.workers} worker processes"
 
     def __enter__(self) -> Engine:
+        """Start or reach the cluster. Re-entrant: a command enters it before it touches its
+        results directory (an unreachable ``--scheduler`` must not cost the previous results:
+        red team, session 47), and the run inside enters it again; the cluster closes when
+        the outermost ``with`` ends."""
         if self.serial:
+            return self
+        if self._depth:
+            self._depth += 1
             return self
         import dask
         from distributed import Client, LocalCluster
@@ -231,9 +239,14 @@ class Engine:
             self.close()
             raise VsidgenError(f"cannot start or reach the dask cluster "
                                f"({self.scheduler or 'local'}): {err}") from None
+        self._depth = 1
         return self
 
     def __exit__(self, *exc) -> None:
+        if self._depth > 1:
+            self._depth -= 1
+            return
+        self._depth = 0
         self.close()
 
     def close(self) -> None:

@@ -1668,7 +1668,9 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         apply_overrides(symbolic, overrides)  # unknown names, bounds
     for p in list(data) + list(validate):
         load_record(symbolic, p)
-    with results_in_place(plan, command="diagnose", owns=DIAGNOSE_OUTPUTS) as out:
+    # the cluster is reached before the previous results are cleared (an unreachable
+    # --scheduler cost them: red team, session 47); the run enters the engine again
+    with engine, results_in_place(plan, command="diagnose", owns=DIAGNOSE_OUTPUTS) as out:
         if overrides is not None and not overrides.empty:
             from ..spec.overrides import write_override_spec
 

@@ -128,7 +128,8 @@ def run_fleet(spec, data: Sequence[str], *, out, workers: int | None = 1,
     print_recovered(plan)
     apply_overrides(load_model(spec, generated_dir=generated_dir), overrides)   # unknown names: now
     names = _dir_names(data)
-    with results_in_place(plan, command="fleet", owns=(*names, "fleet.json")) as out_dir:
+    # the cluster is reached before the previous results are cleared (red team, session 47)
+    with engine, results_in_place(plan, command="fleet", owns=(*names, "fleet.json")) as out_dir:
         return _run_fleet(spec, data, names, out_dir, engine, generated_dir=generated_dir,
                           kwargs={"max_iter": max_iter, "integrator": integrator, "substeps": substeps,
                                   "noise_start": noise_start, "init_states": init_states,
