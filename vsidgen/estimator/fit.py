@@ -125,11 +125,40 @@ def _lm_init(P: Problem, options: FitOptions, start: str, resume):
         s, recs = P.initial(options, start)
         f0 = P.value(s, recs)
         if not math.isfinite(f0):
+            s, recs, f0 = _narrower_start(P, s, recs)
+        if not math.isfinite(f0):
             raise FitError("the negative ELBO is not finite at the initial point"
                            + _nonfinite_where(P, s, recs))
         return s, recs, float(options.lambda0), [], 0
     # the last point of a resumed history is evaluated again
     return resume["s"], resume["recs"], resume["lam"], list(resume["history"])[:-1], resume["iterations"]
+
+
+#: factors by which :func:`_narrower_start` shrinks the assumed density's initial variances
+NARROWER_START = (1e-2, 1e-4, 1e-6, 1e-8)
+
+
+def _narrower_start(P: Problem, s, recs):
+    """The initial point with the assumed density's variances shrunk until −ELBO is finite.
+
+    The density starts at Σ = I in coherent units, so its sigma points lie ±√(2n) state
+    units from the means — ±2 rad for an angle. A model finite near the data but not that
+    far from it (``sqrt(alpha + 1)``, ``log(alpha)``, ``asin`` of a ratio) made every start
+    fail with a message about large initial values (red team, session 47). Σ × 10⁻², 10⁻⁴, …
+    brings the sigma points to the means, where the model is finite; the estimator then
+    widens Σ as the evidence asks. Returns the first finite point, or the input unchanged."""
+    nx = P.model.nx
+    f = math.nan
+    for k in NARROWER_START:
+        trial = []
+        for mu, r in recs:
+            r = np.array(r, float)
+            r[:nx] += math.log(k)
+            trial.append((mu, r))
+        f = P.value(s, trial)
+        if math.isfinite(f):
+            return s, trial, f
+    return s, recs, f
 
 
 def _nonfinite_where(P: Problem, s, recs) -> str:
@@ -162,9 +191,16 @@ def _nonfinite_where(P: Problem, s, recs) -> str:
                 "states start at their direct measurements, else solved from the outputs, else 0)\n  hint: check divisions, "
                 "log, sqrt and exp in that equation at these values, and --fix/--init values")
     big = [f"{n} = {float(v):.3g}" for n, v in zip(m.parameter_names, th) if abs(v) > 1e10]
-    return (": the drift and outputs are finite there, but their squared residuals overflow"
-            + (f" ({', '.join(big)})" if big else "")
-            + "\n  hint: check for very large initial values, --fix or --init values")
+    if big:
+        return (": the drift and outputs are finite there, but their squared residuals overflow"
+                f" ({', '.join(big)})\n  hint: check for very large initial values, --fix or "
+                "--init values")
+    return (": the drift and outputs are finite at the initial state means, but not at the "
+            "sigma points of the assumed state density around them, even with its variances "
+            f"shrunk to {NARROWER_START[-1]:g} of their start\n  hint: an equation leaves its "
+            "domain right next to the data (sqrt or log of a quantity that is zero there, asin "
+            "of a ratio at ±1, a division by a state that crosses zero); write it so that it is "
+            "defined a little beyond the data, or check --fix/--init values")
 
 
 def _lm_measure(P: Problem, s, recs) -> _Measured:
