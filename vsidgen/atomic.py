@@ -44,7 +44,7 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from typing import TextIO
 
-from .errors import VsidgenError
+from .errors import VsidgenError, printable_lines
 
 #: name of the manifest file of a results directory
 MANIFEST = ".vsidgen-results.json"
@@ -558,7 +558,7 @@ def print_recovered(plan: OutputPlan, stream=None) -> None:
     """Print what :func:`recover` did (stderr by default)."""
     stream = stream if stream is not None else sys.stderr
     for line in plan.recovered:
-        print(f"note: {line}", file=stream)
+        print(printable_lines(f"note: {line}"), file=stream)
 
 
 # --------------------------------------------------------------------------- writing

@@ -17,13 +17,13 @@ import pathlib
 import sys
 
 from .compilecache import enable_compilation_cache
-from .errors import VsidgenError
+from .errors import VsidgenError, eprint, printable
 from .spec.overrides import add_override_arguments, overrides_of, read_estimates
 
 
 def _print_warnings(warnings) -> None:
     for w in warnings:
-        print(str(w), file=sys.stderr)
+        eprint(str(w))
 
 
 # ---- build -------------------------------------------------------------------
@@ -121,7 +121,7 @@ def _print_ranges(symbolic, data) -> None:
             scale = "" if cm is None or (cm.scale == 1.0 and cm.offset == 0.0) else \
                 f", × {cm.scale:g} + {cm.offset:g}"
             rng = f"{fin.min():.6g} .. {fin.max():.6g}" if fin.size else "no finite value"
-            print(f"  {kind} {v.name}: {rng} {v.unit or ''} ({src}{conv}{scale})")
+            print(printable(f"  {kind} {v.name}: {rng} {v.unit or ''} ({src}{conv}{scale})"))
 
 
 def _fit_start(spec, symbolic):
@@ -169,7 +169,6 @@ def _unit(u) -> str:
 def _cmd_show(args) -> int:
     import sympy
 
-    from .errors import printable
     from .spec import compile_spec
 
     m = compile_spec(args.spec)
@@ -438,7 +437,7 @@ def _cmd_simulate(args) -> int:
                           substeps=args.substeps or model.substeps, seed=args.seed,
                           quantize=quant or None)
     for note in res.warnings:
-        print(f"warning: {note}", file=sys.stderr)
+        eprint(f"warning: {note}")
     print(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)")
     return 0
 
@@ -511,7 +510,7 @@ def _cmd_fit(args) -> int:
             progress.close()
     res = job.results
     for w in res["warnings"]:
-        print(f"warning: {w['message']}", file=sys.stderr)
+        eprint(f"warning: {w['message']}")
     if not args.quiet:
         width = max(len(n) for n in res["parameters"]) if res["parameters"] else 4
         print(f"{'parameter':<{width}}  {'estimate':>13}  {'std error':>11}")
@@ -577,6 +576,7 @@ def _print_fit_quality(res) -> None:
     print(f"{'record':<{w}}  {'output':<{wo}}  {'fit sim':>8}  {'fit pred':>8}  "
           f"{'RMS sim':>10}  {'Theil U':>7}  {'R2':>7}")
     for rec, o, sim, pred in rows:
+        rec = printable(rec)                  # a record's name is its file's name
         print(f"{rec:<{w}}  {o:<{wo}}  {f(sim.get('fit_percent'), '7.1f') + '%':>8}  "
               f"{f(pred.get('fit_percent'), '7.1f') + '%':>8}  {f(sim.get('rms'), '10.4g'):>10}  "
               f"{f(sim.get('theil'), '7.3f'):>7}  {f(sim.get('r2'), '7.4f'):>7}")
@@ -692,7 +692,7 @@ def _unrecognized(parser: argparse.ArgumentParser, args, extra: list[str]) -> in
             if near:
                 lines.append(f"  hint: did you mean `{near[0]}`? (`{cmd.prog} --help` lists "
                              "the options)")
-    print("\n".join(lines), file=sys.stderr)
+    eprint("\n".join(lines))
     return 2
 
 
@@ -709,7 +709,7 @@ def main(argv=None) -> int:
     try:
         return int(args.handler(args) or 0)
     except VsidgenError as err:
-        print(str(err), file=sys.stderr)
+        eprint(str(err))
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -724,9 +724,9 @@ def main(argv=None) -> int:
         where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
         why = ("exists and is not a folder" if isinstance(exc, (FileExistsError, NotADirectoryError))
                else exc.strerror or str(exc))
-        print(f"error: cannot write or read {where or 'a file'}: {why}\n"
-              "  hint: choose an output folder you can write to, where no file stands in the way "
-              "of the folders vsidgen creates (--out, ./generated)", file=sys.stderr)
+        eprint(f"error: cannot write or read {where or 'a file'}: {why}\n"
+               "  hint: choose an output folder you can write to, where no file stands in the "
+               "way of the folders vsidgen creates (--out, ./generated)")
         return 2
     except Exception as exc:  # a bug in vsidgen, not in the user's input
         import os
@@ -734,8 +734,8 @@ def main(argv=None) -> int:
 
         if os.environ.get("VSIDGEN_DEBUG"):
             traceback.print_exc()
-        print(f"internal error: {type(exc).__name__}: {exc}\n  hint: this is a bug in vsidgen; "
-              "rerun with VSIDGEN_DEBUG=1 for the traceback and report it", file=sys.stderr)
+        eprint(f"internal error: {type(exc).__name__}: {exc}\n  hint: this is a bug in "
+               "vsidgen; rerun with VSIDGEN_DEBUG=1 for the traceback and report it")
         return 3
 
 

@@ -25,6 +25,22 @@ def printable(text) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
 
 
+def printable_lines(text) -> str:
+    """:func:`printable` of each line of ``text``, the line breaks kept: for a message of
+    several lines ("error ...\n  hint: ...") that may quote a record's column names, a data
+    file's name or a MAT variable's name, so that no terminal escape in them reaches the
+    terminal (red team, session 47)."""
+    return "\n".join(printable(line) for line in str(text).split("\n"))
+
+
+def eprint(text, *, flush: bool = False) -> None:
+    """Print a message (error, warning, note, progress) to stderr, one harmless line per line
+    (:func:`printable_lines`)."""
+    import sys
+
+    print(printable_lines(text), file=sys.stderr, flush=flush)
+
+
 def _caret_block(text: str | None, column: int | None, length: int | None) -> str:
     if not text:
         return ""

@@ -21,6 +21,8 @@ import dataclasses
 import time
 from typing import TextIO
 
+from .errors import printable_lines
+
 
 @dataclasses.dataclass
 class _Start:
@@ -130,6 +132,7 @@ class DiagnoseProgress:
             self._status.start()
 
     def __call__(self, message: str) -> None:
+        message = printable_lines(message)     # record and file names from the user's data
         if self._status is not None:
             self._console.print(message, markup=False, highlight=False)
         else:

@@ -14,11 +14,10 @@ import dataclasses
 import enum
 import pathlib
 import re
-import sys
 import time
 from collections.abc import Callable, Sequence
 
-from ..errors import VsidgenError
+from ..errors import VsidgenError, eprint
 
 
 class FleetStatus(enum.Enum):
@@ -232,7 +231,7 @@ def fleet_command(args) -> int:
 
     enable_compilation_cache()
     overrides = overrides_of(args)
-    progress = None if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
+    progress = None if args.quiet else (lambda m: eprint(m, flush=True))
     with terminate_as_interrupt():
         res = run_fleet(args.spec, args.data, out=args.out, workers=args.workers,
                         scheduler=args.scheduler, max_iter=args.max_iter,

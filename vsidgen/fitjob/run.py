@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import pathlib
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -18,7 +17,7 @@ import numpy as np
 from .. import __version__
 from ..codegen import display_path
 from ..data import Record, as_paths, load_records, write_csv
-from ..errors import VsidgenError
+from ..errors import VsidgenError, eprint
 from ..model import Model, load_model
 from ..spec.overrides import Overrides, apply_overrides
 from ..atomic import atomic_directory, plan_output_dir, print_recovered, write_text_atomic
@@ -214,7 +213,7 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
     spec_warnings = data_map_warnings(symbolic) + list(
         symmetry_warnings(apply_overrides(symbolic, overrides)))
     for w in spec_warnings:
-        print(str(w), file=sys.stderr)
+        eprint(str(w))
     records, vrecords = load_records(symbolic, data, validate)     # names unique across both
     repeated = repeated_record_warnings(records, vrecords)
     from ..errors import FitError

@@ -1,0 +1,73 @@
+"""Hostile inputs found by the session-47 red team that reach the terminal: a record's column
+names, its file name, and the names in a data map were printed raw, so a terminal escape in a
+CSV header (ESC [2J clears the screen; OSC sequences set the title or write the clipboard)
+reached the terminal through "did you mean" hints, warnings, errors and `check`'s ranges.
+(The other defects of that red team have their tests beside the code they touch:
+test_generated_bytecode, test_atomic_leftovers_session47, test_domain_start,
+test_diagnose_resilience.)"""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+
+from vsidgen.cli import main
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SPEC = (ROOT / "specs" / "attas_sp.yaml").read_text()
+DATA = (ROOT / "data" / "attas_sp_synthetic.csv").read_text().splitlines()
+ESC = "\x1b[2J\x1b]0;pwned\x07"
+
+
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+
+
+def _run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err and "internal error" not in err, err
+    assert "\x1b" not in out and "\x07" not in out, out
+    assert "\x1b" not in err and "\x07" not in err, err
+    return code, out, err
+
+
+def _column(name):
+    """The data map's column of alpha (as the shipped spec names it)."""
+    for line in SPEC.splitlines():
+        if line.strip().startswith("alpha:") and "alpha_" in line:
+            return line.split(":", 1)[1].strip()
+    raise AssertionError("no alpha column in the spec's data map")
+
+
+def test_a_column_name_with_escapes_is_escaped_in_did_you_mean(tmp_path, capsys):
+    col = _column("alpha")
+    header = DATA[0].replace(col, col + ESC)
+    csv = tmp_path / "esc.csv"
+    csv.write_text("\n".join([header, *DATA[1:]]) + "\n")
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    code, _, err = _run(capsys, "check", str(spec), "--data", str(csv))
+    assert code == 2 and "\\x1b[2J" in err
+
+
+def test_a_data_file_name_with_escapes_is_escaped_in_errors_and_warnings(tmp_path, capsys):
+    rows = [DATA[0], DATA[1].replace(DATA[1].split(",")[1], "nan", 1), *DATA[2:]]
+    csv = tmp_path / f"f{ESC}bad.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    code, out, err = _run(capsys, "check", str(spec), "--data", str(csv))
+    assert "\\x1b" in out + err
+
+
+def test_a_mapped_column_with_escapes_is_escaped_in_check_ranges(tmp_path, capsys):
+    col = _column("alpha")
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC.replace(f"alpha: {col}", f'alpha: "{col}\\e[2J"', 1))
+    csv = tmp_path / "d.csv"
+    csv.write_text("\n".join([DATA[0].replace(col, col + "\x1b[2J"), *DATA[1:]]) + "\n")
+    code, out, _ = _run(capsys, "check", str(spec), "--data", str(csv))
+    assert code == 0 and "\\x1b[2J" in out
