@@ -191,3 +191,36 @@ def test_independent_symmetries_are_reported_apart(tmp_path):
     texts = [str(w) for w in symmetry_warnings(compile_spec(p))]
     assert any("2 of these 3 parameters are undetermined" in t and "fix 2 of them" in t
                for t in texts), texts
+
+
+# session 47 (red team): the points lay in [0.2, 1.2], where `sat(de, -0.1, 0.1)` is the
+# constant 0.1 and `sign(alpha)` is 1, so M0 and the term's parameter looked like one sum,
+# and the warning told the user to fix a parameter the data determine (fit: MDE -7.36 ± 0.32)
+@pytest.mark.parametrize("term", ["MDE*sat(de, -0.1, 0.1)",
+                                  "MDE*interp(de, [-0.1, 0, 0.1], [-0.1, 0, 0.2])",
+                                  "MDE*sign(de)", "MDE*abs(de - 0.05)",
+                                  "MDE*max(de, -0.05)"])
+def test_a_piecewise_term_is_not_a_false_symmetry(tmp_path, term):
+    assert _sym(_spec(tmp_path, f"M0 + MAL*alpha + MQ*q + {term}")) == ()
+
+
+def test_a_real_symmetry_beside_a_piecewise_term_is_still_found(tmp_path):
+    (s,) = _sym(_spec(tmp_path, "M0 + MB + MAL*alpha + MQ*q + MDE*sat(de, -0.1, 0.1)",
+                      "  MB: {unit: rad/s^2}"))
+    assert s.kind == "translation" and set(s.parameters) == {"M0", "MB"}
+    (s,) = _sym(_spec(tmp_path, "M0 + MAL*K*sign(alpha) + MQ*q + MDE*de", "  K: {unit: \"1\"}",
+                      name="k.yaml"))
+    assert s.kind == "scaling" and set(s.parameters) == {"MAL", "K"}
+
+
+def test_fit_prints_a_symmetry_warning_once(tmp_path, capsys, monkeypatch):
+    from vsidgen.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    p = _spec(tmp_path, "M0 + MB + MAL*alpha + MQ*q + MDE*de", "  MB: {unit: rad/s^2}")
+    main(["fit", str(p), str(DATA), "--out", str(tmp_path / "res"), "--quiet",
+          "--max-iter", "1", "--noise-start", "data"])
+    err = capsys.readouterr().err
+    assert err.count("enter the equations only through the sum") == 1, err
+    res = json.loads((tmp_path / "res" / "results.json").read_text())
+    assert any(w.get("code") == "parameter_symmetry" for w in res["warnings"])

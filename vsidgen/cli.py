@@ -509,7 +509,7 @@ def _cmd_fit(args) -> int:
         if progress is not None:
             progress.close()
     res = job.results
-    for w in res["warnings"]:
+    for w in res["warnings"][job.shown_before:]:    # the spec's were shown before the fit
         eprint(f"warning: {w['message']}")
     if not args.quiet:
         width = max(len(n) for n in res["parameters"]) if res["parameters"] else 4

@@ -33,6 +33,9 @@ class FitJob:
     results: dict[str, Any]
     fit: Any                 # estimator FitResult (estimation records)
     validation: Any | None   # estimator FitResult of the smoothing-only validation run
+    #: how many of ``results["warnings"]`` (the first ones: the spec's) were printed before the
+    #: fit, with their file and line; the command line does not print them again
+    shown_before: int = 0
 
     def __repr__(self) -> str:
         return f"FitJob(out_dir={str(self.out_dir)!r}, fit={self.fit!r})"
@@ -323,4 +326,5 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
         if report:
             from ..report import write_report
             write_report(tmp, reference=reference, display_dir=out)
-    return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult)
+    return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult,
+                  shown_before=len(spec_warnings))

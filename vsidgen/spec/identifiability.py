@@ -14,7 +14,9 @@ parameter Jacobian ``J(x, u, θ) = ∂(f, h)/∂θ`` of the expanded equations:
   one equation, ``M0 + MB``).
 
 The conditions are checked at random points, six more than free parameters (states, inputs
-and free parameters drawn in [0.2, 1.2], fixed parameters and constants at their values):
+and free parameters drawn in [0.2, 1.2], fixed parameters and constants at their values; for
+equations with non-smooth functions — ``sat``, ``interp``, ``sign``, ``abs`` — every other
+point has its states and inputs scattered around the functions' break values instead):
 ``c`` is a common null vector of the stacked, column-normalised matrices
 ``[J_k diag(θ_k)]`` (scaling) and ``[J_k]`` (translation); the null space, in reduced row
 echelon form, is split into the groups of parameters its rows join (independent symmetries
@@ -90,6 +92,36 @@ def _random_point(rng, n):
     return rng.uniform(0.2, 1.2, n)
 
 
+_NONSMOOTH = ("Abs", "sign", "Min", "Max", "Heaviside", "Piecewise", "Interp", "InterpSlope")
+
+
+def _break_values(exprs) -> tuple[float, ...]:
+    """The numbers at which the equations' non-smooth functions change form: the numeric
+    arguments of ``Min``/``Max`` (``sat(x, lo, hi)``'s limits), an ``interp`` table's nodes,
+    and 0 (``sign``, ``abs``). Analytic equations give ()."""
+    out: set[float] = set()
+    for e in exprs:
+        for node in sympy.preorder_traversal(e):
+            name = type(node).__name__
+            if name not in _NONSMOOTH:
+                continue
+            out.add(0.0)
+            for a in node.atoms(sympy.Number):
+                if a.is_finite and a.is_real:
+                    out.add(float(a))
+    return tuple(sorted(out))
+
+
+def _near_breaks(rng, n, breaks):
+    """States and inputs scattered around the break values (each variable near a random one,
+    on either side): an identity of a piecewise equation seen only on one side of its breaks
+    (``MDE*sat(de, -0.1, 0.1)`` is the constant ``0.1*MDE`` for ``de`` in [0.2, 1.2], so ``M0``
+    and ``MDE`` looked like one combination: red team, session 47) is broken there. A
+    structural symmetry holds at every point, so it is found as before."""
+    b = np.asarray(breaks, float)[rng.integers(0, len(breaks), n)]
+    return b + rng.normal(size=n) * 0.5 * np.maximum(np.abs(b), 0.1)
+
+
 class _Jacobian:
     """``∂(f, h)/∂θ`` of the expanded equations for the free parameters that reach them, as a
     numeric function of (states, inputs, those parameters); constants and fixed parameters at
@@ -125,6 +157,9 @@ class _Jacobian:
         def slope(x, xs, ys):
             return float(InterpSlope(sympy.Float(float(x)), xs, ys))
 
+        #: where non-smooth functions change form (``sat``'s limits, ``interp``'s nodes, 0
+        #: of ``sign``/``abs``); empty for analytic equations
+        self.breaks = _break_values(exprs)
         self.fn = sympy.lambdify(list(model.state_symbols) + list(model.input_symbols) + psyms,
                                  jac, modules=[{Interp.__name__: interp,
                                                 InterpSlope.__name__: slope}, "numpy"])
@@ -147,7 +182,9 @@ class _Jacobian:
             if len(out) == count:
                 break
             th = _random_point(rng, len(self.names)) if theta is None else theta(rng)
-            J = self.at(_random_point(rng, self.n_var), th)
+            xu = (_random_point(rng, self.n_var) if not self.breaks or len(out) % 2 == 0
+                  else _near_breaks(rng, self.n_var, self.breaks))
+            J = self.at(xu, th)
             if J is not None:
                 out.append((th, J))
         return out
