@@ -71,3 +71,62 @@ def test_a_mapped_column_with_escapes_is_escaped_in_check_ranges(tmp_path, capsy
     csv.write_text("\n".join([DATA[0].replace(col, col + "\x1b[2J"), *DATA[1:]]) + "\n")
     code, out, _ = _run(capsys, "check", str(spec), "--data", str(csv))
     assert code == 0 and "\\x1b[2J" in out
+
+
+# ---------------------------------------------------------------------------
+# simulate options and data-map expressions (red team, session 47)
+# ---------------------------------------------------------------------------
+
+def _spec(tmp_path, old=None, new=None):
+    text = SPEC if old is None else SPEC.replace(old, new, 1)
+    assert old is None or old in SPEC
+    p = tmp_path / "s.yaml"
+    p.write_text(text)
+    return p
+
+
+SIM = ["--duration", "5", "--dt", "0.04", "--input", "de=step:amplitude=0.01"]
+
+
+def test_a_quantisation_step_below_the_values_resolution_is_refused(tmp_path, capsys):
+    out = tmp_path / "q.csv"
+    code, _, err = _run(capsys, "simulate", str(_spec(tmp_path)), "-o", str(out), *SIM,
+                        "--measurement-std", "alpha=0.001", "--quantize", "alpha=1e-320")
+    assert code == 2 and "below the resolution" in err and "RuntimeWarning" not in err
+    assert not out.exists()
+
+
+def test_a_record_too_short_to_fit_is_said(tmp_path, capsys):
+    code, _, err = _run(capsys, "simulate", str(_spec(tmp_path)), "-o", str(tmp_path / "s.csv"),
+                        "--duration", "0.05", "--dt", "0.04", "--input", "de=step:amplitude=0.01")
+    assert code == 0 and "2 samples: a fit needs at least 10" in err
+
+
+@pytest.mark.parametrize("maneuver", ["doublet:amplitude=0.01,width=-1",
+                                      "doublet:amplitude=0.01,width=0",
+                                      "3211:amplitude=0.01,unit=-0.5"])
+def test_a_manoeuvre_of_no_duration_is_refused(tmp_path, capsys, maneuver):
+    code, _, err = _run(capsys, "simulate", str(_spec(tmp_path)), "-o", str(tmp_path / "m.csv"),
+                        "--duration", "5", "--dt", "0.04", "--input", f"de={maneuver}")
+    assert code == 2 and "must be a positive number of seconds" in err
+
+
+def test_an_unknown_output_lists_outputs_that_are_also_states(tmp_path, capsys):
+    code, _, err = _run(capsys, "simulate", str(_spec(tmp_path)), "-o", str(tmp_path / "x.csv"),
+                        *SIM, "--measurement-std", "alpah=1")
+    assert code == 2 and "did you mean `alpha`?" in err and "outputs: alpha, q" in err
+    assert "none" not in err
+
+
+def test_a_data_map_expression_outside_its_domain_is_named(tmp_path, capsys):
+    col = [ln.split(":", 1)[1].strip() for ln in SPEC.splitlines()
+           if ln.strip().startswith("de:") and "de_" in ln][0]
+    spec = _spec(tmp_path, f"de: {col}", f'de: {{expr: "log({col} - 1)"}}')
+    data = ROOT / "data" / "attas_sp_synthetic.csv"
+    code, _, err = _run(capsys, "check", str(spec), "--data", str(data))
+    assert code == 2 and "the data map's expression for input `de`" in err
+    assert "missing" not in err
+    code, _, err = _run(capsys, "fit", str(spec), str(data), "-o", str(tmp_path / "r"),
+                        "--quiet")
+    assert code == 2 and "is undefined (NaN) at these values" in err
+    assert "empty" not in err and "all NaN" not in err

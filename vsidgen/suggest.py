@@ -118,9 +118,13 @@ def unknown_name_error(name: str, role: str, model, *, option: str):
     """VsidgenError for an unknown ``role`` name given to ``option`` (role-aware hint)."""
     from .errors import VsidgenError, printable
 
-    roles = model_roles(model)
-    same = [n for n, r in roles.items() if r.endswith(" " + role)]
-    others = {n: r for n, r in roles.items() if not r.endswith(" " + role)}
+    attr = {"output": "outputs", "input": "inputs", "state": "states",
+            "constant": "constants", "parameter": "parameters"}.get(role)
+    # the names of this role from the model itself: a name that is both a state and an output
+    # (`alpha`, `q`: most specs) kept only its last role in model_roles, so the outputs read
+    # "none" (red team, session 47)
+    same = [v.name for v in getattr(model, attr, ()) or ()] if attr else []
+    others = {n: r for n, r in model_roles(model).items() if n not in same}
     hint = suggest(name, same, others, role=role)
     listing = ", ".join(same) if same else "none"
     shown = printable(name)   # a name from a results.json may hold terminal escapes

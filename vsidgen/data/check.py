@@ -18,7 +18,7 @@ import sympy
 
 from .records import (cell_hint, time_hint, cell_value, hash_header, load_record, refuse_other_delimiter,
                       refuse_units_row)
-from ..errors import DataError, Location, SpecError, SpecWarning
+from ..errors import DataError, Location, SpecError, SpecWarning, printable
 from ..spec.expr import did_you_mean
 from .formats import DataFormat, detect_format
 from ..limits import check_input_file
@@ -140,6 +140,18 @@ def check_first_sample(symbolic: SymbolicModel, csv_path, *, evaluate: bool = Tr
                 taken.setdefault(c, f"{kind} `{ch.name}`")
     for v, ch in zip(symbolic.inputs, symbolic.data.inputs):
         val = _channel_value(ch, row, csv_path, columns, taken)
+        if not math.isfinite(val) and ch.expr is not None and all(
+                isinstance(row.get(c), float) and math.isfinite(row[c]) for c in ch.columns):
+            # the columns are there and finite: the data map's expression is at fault, not
+            # the data (red team, session 47: `log(de_rad - 1)` was "missing data")
+            vals = ", ".join(f"{c} = {row[c]:.6g}" for c in ch.columns)
+            raise SpecError(f"the data map's expression for input `{v.name}`, "
+                            f"`{printable(ch.expr)}`, is not finite at the first sample of "
+                            f"{pathlib.Path(csv_path).name} ({vals})", path=symbolic.source_path,
+                            hint="the columns are present; the expression leaves its domain "
+                                 "at these values (log or sqrt of a negative number, a division "
+                                 "by zero): write it so that it is defined for the recorded "
+                                 "values")
         if not math.isfinite(val):
             # a record's inputs must be present at every sample: the data are at fault, not
             # the spec's equations (which a NaN input would make non-finite below)

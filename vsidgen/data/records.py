@@ -680,6 +680,21 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
             raise DataError(f"{kind} '{nm}' is {what} (from {label})", path=path,
                             column=col_for, sample=k, hint="check the expression and the data")
         nan = np.isnan(val)
+        if cmap.expr is not None and nan.any() and (kind == "input" or nan.all()):
+            present = np.all([np.isfinite(cols[c]) for c in srcs], axis=0)
+            undefined = nan & present
+            if undefined.any():
+                # every column has a value: the expression itself gave NaN (log or sqrt of a
+                # negative value, 0/0), which was reported as a missing value (session 44) or,
+                # at every sample, as an empty column (red team, session 47)
+                k = _first(undefined)
+                vals = ", ".join(f"{c} = {fmt_number(cols[c][k])}" for c in srcs)
+                raise DataError(f"{kind} '{nm}' = {cmap.expr} is undefined (NaN) at these "
+                                f"values: {vals}"
+                                + (" (and at every other sample)" if nan.all() else ""),
+                                path=path, column=col_for or nm, sample=k,
+                                hint="the expression is not defined there (log or sqrt of a "
+                                     "negative value, 0/0); check it and the columns")
         if nan.all():
             raise DataError(f"{kind} channel '{nm}' has no valid sample (all NaN)",
                             path=path, column=col_for or nm,
@@ -688,14 +703,6 @@ def _finish_record(model, path, name, cols, n, in_names, out_names, in_maps, out
         if kind == "input" and nan.any():
             k = _first(nan)
             bad = [c for c in srcs if np.isnan(cols[c][k])]
-            if not bad and cmap.expr is not None:
-                # every column has a value: the expression itself gave NaN (log or sqrt of a
-                # negative value, 0/0), which was reported as a missing value (session 44)
-                vals = ", ".join(f"{c} = {fmt_number(cols[c][k])}" for c in srcs)
-                raise DataError(f"input '{nm}' = {cmap.expr} is undefined (NaN) at these "
-                                f"values: {vals}", path=path, column=col_for or nm, sample=k,
-                                hint="the expression is not defined there (log or sqrt of a "
-                                     "negative value, 0/0); check it and the columns")
             col = bad[0] if bad else (col_for or nm)
             raise DataError(f"missing value in input '{nm}'", path=path, column=col, sample=k,
                             hint="inputs cannot be missing (only outputs may have empty cells); "

@@ -57,8 +57,17 @@ def _t(t) -> np.ndarray:
     return np.asarray(t, dtype=np.float64)
 
 
+def _positive(maneuver: str, option: str, value: float) -> None:
+    """Refuse a duration that is not a positive finite number (a doublet of width −1 was
+    accepted and gave a zero input: red team, session 47)."""
+    if not (math.isfinite(value) and value > 0):
+        raise VsidgenError(f"{maneuver}: {option} must be a positive number of seconds, got "
+                           f"{value:g}\n  hint: e.g. `{maneuver}:amplitude=0.02,{option}=1`")
+
+
 def doublet(t, *, amplitude: float, start: float = 1.0, width: float = 1.0) -> np.ndarray:
     """Doublet: ``+A`` on ``[start, start+width)``, ``−A`` on ``[start+width, start+2 width)``."""
+    _positive("doublet", "width", width)
     t = _t(t)
     return amplitude * (((t >= start) & (t < start + width)).astype(float)
                         - ((t >= start + width) & (t < start + 2 * width)).astype(float))
@@ -66,6 +75,7 @@ def doublet(t, *, amplitude: float, start: float = 1.0, width: float = 1.0) -> n
 
 def three_two_one_one(t, *, amplitude: float, start: float = 1.0, unit: float = 0.5) -> np.ndarray:
     """3-2-1-1: ``+A`` for 3 units, ``−A`` for 2, ``+A`` for 1, ``−A`` for 1 (then 0)."""
+    _positive("3211", "unit", unit)
     t = _t(t)
     out = np.zeros_like(t)
     edges = np.cumsum([0, 3, 2, 1, 1]) * unit + start
@@ -381,10 +391,22 @@ def simulate(model, *, theta, t, u, x0, process_std=None, measurement_std=None,
     for k, q in (quantize or {}).items():
         j = model.output_names.index(k)
         before = np.ptp(Y[:, j])
+        big = float(np.max(np.abs(Y[:, j]))) if Y.shape[0] else 0.0
+        if big / q > 2.0 ** 52:
+            # y/q would overflow, or the step is below the values' own float resolution (a
+            # step of 1e-320 wrote -inf into the record: red team, session 47)
+            raise VsidgenError(f"quantize: the step of {k!r} ({q:g}) is below the resolution of "
+                               f"its values (up to {big:.3g} in magnitude: a double holds "
+                               "about 16 digits)\n  hint: give a step of at least "
+                               f"{big / 2.0 ** 52:.3g}, or leave {k!r} out of --quantize")
         Y[:, j] = np.round(Y[:, j] / q) * q
         if before > 0 and np.ptp(Y[:, j]) == 0:
             notes.append(f"output `{k}` quantised to a single level (step {q:g} against a range "
                          f"of {before:.3g}): the channel carries no information")
+    from .records import MIN_SAMPLES
+    if len(t) < MIN_SAMPLES:
+        notes.append(f"{len(t)} samples: a fit needs at least {MIN_SAMPLES} (give a longer "
+                     "duration or a shorter sample period)")
     return SimulationResult(t=t, x=X, y=Y, u=U, warnings=tuple(notes))
 
 
