@@ -130,3 +130,40 @@ def test_a_data_map_expression_outside_its_domain_is_named(tmp_path, capsys):
                         "--quiet")
     assert code == 2 and "is undefined (NaN) at these values" in err
     assert "empty" not in err and "all NaN" not in err
+
+
+# ---------------------------------------------------------------------------
+# spec sizes and shapes (red team, session 47)
+# ---------------------------------------------------------------------------
+
+def test_a_long_flat_sum_is_not_nested(tmp_path, capsys):
+    """A polynomial of 80 terms was refused as "nested too deeply" (Python parses a + b + ...
+    as a left-leaning tree)."""
+    terms = " + ".join(f"{i + 1}e-3*alpha**{i % 5 + 1}" for i in range(80))
+    spec = _spec(tmp_path, "q: M0 + MAL*alpha", f"q: M0 + MAL*alpha + MAL*({terms})")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 0, err
+    deep = "sin(" * 70 + "alpha" + ")" * 70        # real nesting is still bounded
+    spec = _spec(tmp_path, "q: M0 + MAL*alpha", f"q: M0 + MAL*{deep}")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "nested too deeply" in err
+
+
+def test_too_many_states_are_refused_at_the_first_one_too_many(tmp_path, capsys):
+    lines = ["name: big", "states:"] + [f"  x{i}: {{unit: '1'}}" for i in range(101)]
+    lines += ["inputs:", "  u: {unit: '1'}", "outputs:", "  y: {unit: '1'}",
+              "parameters:", "  a: {unit: 1/s}", "drift:"]
+    lines += [f"  x{i}: -a*x{i} + u" for i in range(101)]
+    lines += ["observations:", "  y: x0", "data:", "  time: t", "  inputs: {u: u}",
+              "  outputs: {y: y}"]
+    spec = tmp_path / "big.yaml"
+    spec.write_text("\n".join(lines) + "\n")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "more than 100 states" in err and "big.yaml:103:" in err, err
+
+
+@pytest.mark.parametrize("value", ["5", "true", "0.1"])
+def test_a_state_given_a_value_instead_of_a_mapping_is_refused(tmp_path, capsys, value):
+    spec = _spec(tmp_path, "  alpha: {", f"  alpha: {value}\n  alpha_unused_: {{")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "must be a mapping" in err and f"not the value" in err, err

@@ -436,6 +436,8 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
                 raise _error(ctx, f"operator `{sym}` is not allowed", node, hint=hint)
             raise _error(ctx, f"operator `{sym}` is not allowed", None, hint=hint, offset=at,
                          length=len(sym))
+        if isinstance(op, (ast.Add, ast.Sub, ast.Mult, ast.Div)):
+            return _chain(ctx, node, depth)
         left = _convert(ctx, node.left, depth + 1)
         right = _convert(ctx, node.right, depth + 1)
         if isinstance(op, ast.Pow):
@@ -463,6 +465,34 @@ def _convert(ctx: _Ctx, node: ast.AST, depth: int):
                  hint=(_PIECEWISE_HINT if isinstance(node, (ast.IfExp, ast.Compare, ast.BoolOp))
                        else "expressions may use numbers, declared names, + - * / **, and the "
                             "functions " + ", ".join(FUNCTIONS)))
+
+
+_SAME_LEVEL = ((ast.Add, ast.Sub), (ast.Mult, ast.Div))
+
+
+def _chain(ctx: _Ctx, node: ast.BinOp, depth: int):
+    """A chain of operators of one precedence level (``a + b - c + ...``, ``a*b/c*...``), which
+    Python parses as a left-leaning tree, converted term by term at one depth: a long sum is
+    long, not deep (a flat 65-term polynomial was refused as "nested too deeply": red team,
+    session 47). Its length is bounded by the spec's size and the equation-size checks."""
+    level = next(c for c in _SAME_LEVEL if isinstance(node.op, c))
+    chain = []
+    cur = node
+    while isinstance(cur, ast.BinOp) and isinstance(cur.op, level):
+        chain.append(cur)
+        cur = cur.left
+    acc = _convert(ctx, cur, depth + 1)
+    for n in reversed(chain):
+        right = _convert(ctx, n.right, depth + 1)
+        if isinstance(n.op, ast.Add):
+            acc = _folded(ctx, acc + right, n)
+        elif isinstance(n.op, ast.Sub):
+            acc = _folded(ctx, acc - right, n)
+        elif isinstance(n.op, ast.Mult):
+            acc = _folded(ctx, acc * right, n)
+        else:
+            acc = _folded(ctx, acc / right, n)
+    return acc
 
 
 def _op_text(op) -> str:

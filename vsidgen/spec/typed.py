@@ -34,6 +34,10 @@ _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 MAX_NAME_LENGTH = 64
 #: largest pure transport delay of an input (``inputs: {u: {delay: seconds}}``)
 MAX_INPUT_DELAY_S = 10.0
+#: most entries per section: the generated Jacobians are dense (states × states, states ×
+#: parameters), so build time and module size grow with their product — 100 states took 4 s,
+#: 1500 took 83 s and a 14 MB module (red team, session 47); an aircraft model has tens
+MAX_ENTRIES = {"state": 100, "input": 100, "output": 200, "parameter": 2000}
 
 #: names the generated module defines or imports (no spec name may equal one of them;
 #: every other name the module uses itself starts with ``_``, which spec names cannot)
@@ -320,12 +324,32 @@ def _integrator(top: dict) -> tuple[str, int, str]:
     return method, substeps, input_hold
 
 
+def _at_most(section: dict, what: str) -> None:
+    """Refuse more than :data:`MAX_ENTRIES` entries of a section, at the first one too many."""
+    limit = MAX_ENTRIES[what]
+    if len(section) > limit:
+        name, node = list(section.items())[limit]
+        raise SpecError(f"more than {limit} {what}s (this is number {limit + 1}: `{name}`)",
+                        **node.loc, text=node.source_line(),
+                        hint=f"vsidgen builds dense Jacobians of the equations, whose size grows "
+                             f"with the number of {what}s; split the model, or write tables "
+                             "(interp) instead of one entry per value")
+
+
 def _variables(raw: RawSpec, key: str, what: str) -> tuple[VariableDecl, ...]:
     entries = []
-    for name, node in raw.section(key).items():
+    section = raw.section(key)
+    _at_most(section, what)
+    for name, node in section.items():
         check_name(name, node, what)
         if node.kind == "scalar" and node.value is None:
             fields = {}
+        elif node.kind == "scalar" and not isinstance(node.value, str):
+            # `alpha: 5` or `alpha: true` was accepted and the value dropped (red team, session 47)
+            raise SpecError(f"{what} `{name}` must be a mapping like {{unit: rad, description: ...}}, "
+                            f"not the value {node.value!r}", **node.loc, text=node.source_line(),
+                            hint="write `{unit: \"...\", description: \"...\"}` (or nothing after "
+                                 "the colon)")
         elif node.kind == "scalar" and isinstance(node.value, str):
             raise SpecError(f"{what} `{name}` must be a mapping like {{unit: m/s, description: ...}}",
                             **node.loc, text=node.source_line(),
@@ -378,7 +402,9 @@ def _constants(raw: RawSpec) -> tuple[ConstantDecl, ...]:
 
 def _parameters(raw: RawSpec) -> tuple[ParameterDecl, ...]:
     out = []
-    for name, node in raw.section("parameters").items():
+    section = raw.section("parameters")
+    _at_most(section, "parameter")
+    for name, node in section.items():
         check_name(name, node, "parameter")
         fields: dict = {}
         initial = 0.0
