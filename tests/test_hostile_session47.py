@@ -167,3 +167,58 @@ def test_a_state_given_a_value_instead_of_a_mapping_is_refused(tmp_path, capsys,
     spec = _spec(tmp_path, "  alpha: {", f"  alpha: {value}\n  alpha_unused_: {{")
     code, _, err = _run(capsys, "check", str(spec))
     assert code == 2 and "must be a mapping" in err and f"not the value" in err, err
+
+
+def test_fleet_record_names_never_name_the_fleet_s_own_files():
+    from vsidgen.atomic import MANIFEST
+    from vsidgen.fitjob.fleet import _dir_names
+
+    names = _dir_names(["..csv", "fleet.json.csv", f"{MANIFEST}.csv", "a.csv", "d/a.csv",
+                        "a_2.csv", ".hidden.csv"])
+    assert len(set(names)) == len(names)
+    assert not any(n.startswith(".") or n in ("fleet.json", MANIFEST) for n in names), names
+    assert names[3:6] == ["a", "a_2", "a_2_2"]
+
+
+# ---------------------------------------------------------------------------
+# silently accepted nonsense (red team, session 47)
+# ---------------------------------------------------------------------------
+
+def test_sat_with_its_limits_reversed_is_refused(tmp_path, capsys):
+    spec = _spec(tmp_path, "MDE*de", "MDE*sat(de, 0.1, -0.1)")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "lower limit 0.1 is above the upper limit" in err
+
+
+def test_an_initial_value_that_underflows_is_refused(tmp_path, capsys):
+    text = SPEC.replace("parameters:\n", "parameters:\n  K: {initial: 1e-400}\n", 1)
+    text = text.replace("MDE*de", "MDE*de + K*q", 1)
+    (tmp_path / "s.yaml").write_text(text)
+    code, _, err = _run(capsys, "check", str(tmp_path / "s.yaml"))
+    assert code == 2 and "`1e-400` is too small" in err
+
+
+def test_min_score_nan_is_refused(tmp_path, capsys):
+    code, _, err = _run(capsys, "diagnose", str(_spec(tmp_path)),
+                        str(ROOT / "data" / "attas_sp_synthetic.csv"), "-o", str(tmp_path / "d"),
+                        "--min-score", "nan", "--quiet")
+    assert code == 2 and "--min-score must be a finite number" in err
+    assert not (tmp_path / "d").exists()
+
+
+def test_report_never_writes_over_the_manifest(tmp_path, capsys):
+    from vsidgen.atomic import MANIFEST, atomic_directory
+
+    d = tmp_path / "res"
+    with atomic_directory(d) as tmp:
+        (tmp / "results.json").write_text("{}")
+    before = (d / MANIFEST).read_text()
+    code, _, err = _run(capsys, "report", str(d), "-o", str(d / MANIFEST), "--overwrite")
+    assert code == 2 and "keeps its results" in err
+    assert (d / MANIFEST).read_text() == before
+
+
+def test_a_bidi_override_in_a_comment_is_refused(tmp_path, capsys):
+    spec = _spec(tmp_path, "q: M0 + MAL*alpha", "q: M0 + MAL*alpha # \u202e comment")
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "U+202E" in err and "\u202e" not in err

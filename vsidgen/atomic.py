@@ -327,6 +327,11 @@ def check_output_file(path: str | os.PathLike, *, reads: Iterable[str | os.PathL
     path = pathlib.Path(path)
     if str(path) in ("", "."):
         raise VsidgenError(f"{option} '{path}': not a file name")
+    if path.name in (MANIFEST, BUILDING):
+        # `report DIR -o DIR/.vsidgen-results.json --overwrite` replaced the manifest, and the
+        # folder was no longer vsidgen's (red team, session 47)
+        raise VsidgenError(f"{path}: error: {option} names the file vsidgen keeps its results "
+                           "directories' records in; give another file name")
     if path.is_symlink():
         raise VsidgenError(_link_refusal(path, option))
     if os.path.lexists(path):

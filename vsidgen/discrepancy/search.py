@@ -1631,6 +1631,8 @@ def run_diagnose(spec, data, *, validate=(), out, max_rounds: int = 3, max_candi
         raise VsidgenError("no data records given: `vsidgen diagnose SPEC DATA [DATA...] --out DIR`")
     if not (0 < alpha < 1):
         raise VsidgenError(f"--alpha must be in (0, 1), got {alpha}")
+    if not math.isfinite(min_score):
+        raise VsidgenError(f"--min-score must be a finite number, got {min_score}")
     if max_rounds < 0 or max_candidates < 1:
         raise VsidgenError("--max-rounds must be >= 0 and --max-candidates >= 1")
     if time_limit is not None and not (time_limit > 0 and math.isfinite(time_limit)):

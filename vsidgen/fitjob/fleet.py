@@ -58,13 +58,28 @@ class FleetResult:
 
 
 def _dir_names(paths: Sequence[str]) -> list[str]:
-    """A results-directory name per record: the file stem, made unique (``_2``, ``_3``)."""
+    """A results-directory name per record: the file stem, made unique (``_2``, ``_3``).
+
+    Leading dots are dropped (``.``, ``..`` and hidden names: a record ``..csv`` was the fleet
+    directory itself) and the fleet's own names (``fleet.json``, the manifest) are renamed
+    (a record ``fleet.json.csv`` was refused with an ``--out`` the user never gave: red team,
+    session 47)."""
+    from ..atomic import MANIFEST
+
+    reserved = {"fleet.json", MANIFEST}
     seen: dict[str, int] = {}
     out = []
     for p in paths:
-        stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", pathlib.Path(p).stem) or "record"
-        seen[stem] = seen.get(stem, 0) + 1
-        out.append(stem if seen[stem] == 1 else f"{stem}_{seen[stem]}")
+        stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", pathlib.Path(p).stem).lstrip(".") or "record"
+        if stem in reserved:
+            stem = f"{stem}_record"
+        name = stem
+        while name in seen:              # `a`, `a` and `a_2` give a, a_2, a_2_2
+            seen[stem] += 1
+            name = f"{stem}_{seen[stem]}"
+        seen.setdefault(stem, 1)
+        seen[name] = seen.get(name, 1)
+        out.append(name)
     return out
 
 

@@ -644,6 +644,12 @@ def _call(ctx: _Ctx, node: ast.Call, depth: int):
     if name == "max":
         return sympy.Max(*args)
     if name == "sat":
+        lo, hi = args[1], args[2]
+        if lo.is_number and hi.is_number and lo.is_real and hi.is_real and bool(lo > hi):
+            # sat(x, 0.1, -0.1) is the constant -0.1 (red team, session 47)
+            raise _error(ctx, f"sat: the lower limit {float(lo):g} is above the upper limit "
+                              f"{float(hi):g}", node,
+                         hint="write sat(x, lo, hi) with lo <= hi")
         return sympy.Min(sympy.Max(args[0], args[1]), args[2])
     if name == "smoothsat":
         return smoothsat(*args)

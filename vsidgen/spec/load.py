@@ -226,6 +226,12 @@ class YNode:
             f = float("inf")
         if f != f or f in (float("inf"), float("-inf")):
             raise SpecError(f"{what} must be a finite number", **self.loc, text=self.source_line())
+        if f == 0.0 and raw and re.search(r"[1-9]", re.split(r"[eE]", raw, maxsplit=1)[0]):
+            # `initial: 1e-400` became 0 without a word, and a later error said "K = 0"
+            # (red team, session 47; the same rule as for literals in equations)
+            raise SpecError(f"{what} `{raw}` is too small: it becomes 0 in double precision",
+                            **self.loc, text=self.source_line(),
+                            hint="write 0, or a number of magnitude at least 1e-300")
         return f
 
     def boolean(self, what: str) -> bool:
@@ -444,8 +450,12 @@ def read_spec_text(path, *, where: dict | None = None) -> str:
 #: counts but editors and `\n` do not (NEL, U+2028, U+2029): an ESC byte gave "YAML error …
 #: position 1415" with no line, and three U+2028 in a description moved every later error
 #: three lines down (session 44, red team)
-_UNSAFE = re.compile("[\x85\u2028\u2029]|[^\x09\x0a\x0d\x20-\x7e\xa0-\ud7ff\ue000-\ufffd"
-                     "\U00010000-\U0010ffff]")
+#: and the bidirectional controls (U+202A-U+202E, U+2066-U+2069), which make a comment look
+#: like part of the equation in an editor ("Trojan Source"; refused in expressions already,
+#: accepted in comments: red team, session 47)
+_BIDI = "\u202a-\u202e\u2066-\u2069"
+_UNSAFE = re.compile("[\x85\u2028\u2029" + _BIDI + "]|[^\x09\x0a\x0d\x20-\x7e\xa0-\ud7ff"
+                     "\ue000-\ufffd\U00010000-\U0010ffff]")
 _BREAK = re.compile("\r\n|\r|\n")
 
 
@@ -466,7 +476,9 @@ def _refuse_unsafe_characters(src: str, path) -> None:
                     column=col, text=_BREAK.split(src[pos - col + 1:pos + 80], 1)[0],
                     hint=("YAML counts it as a line break; remove it (often pasted from a word "
                           "processor)" if ch in "\x85\u2028\u2029" else
-                          "remove it: a spec is plain text (tabs and line ends only)"))
+                          "remove it: it reorders how an editor shows the text after it, so the "
+                          "file would not read as it is parsed" if re.match(f"[{_BIDI}]", ch)
+                          else "remove it: a spec is plain text (tabs and line ends only)"))
 
 
 def load_yaml(path) -> YNode:
