@@ -73,19 +73,22 @@ def _characters_split(fn) -> int:
 
 
 def test_reading_a_spec_splits_its_text_into_lines_once(tmp_path):
-    """Reading a spec with 3000 parameters splits its text a bounded number of times, not
-    once or more per entry (that made a 250 KB spec take 1.5 min, a 750 KB one > 5)."""
-    spec = _many_parameters(tmp_path / "big.yaml", 3000)
+    """Reading a spec with 2000 parameters (the most a spec may have since session 47) splits
+    its text a bounded number of times, not once or more per entry (that made a 250 KB spec
+    take 1.5 min, a 750 KB one > 5)."""
+    spec = _many_parameters(tmp_path / "big.yaml", 2000)
     size = spec.stat().st_size
     split = _characters_split(lambda: read_spec(spec, generator_version="test"))
     assert split <= 3 * size, f"split {split} characters of a {size}-character spec"
 
 
 def test_big_spec_reads(tmp_path):
-    spec = read_spec(_many_parameters(tmp_path / "big.yaml", 3000), generator_version="test")
-    assert len(spec.parameters) == 3000
-    assert spec.parameters[-1].name.key_line == 3008
-    assert spec.parameters[-1].name.key_text == "p2999: {}"
+    spec = read_spec(_many_parameters(tmp_path / "big.yaml", 2000), generator_version="test")
+    assert len(spec.parameters) == 2000
+    assert spec.parameters[-1].name.key_line == 2008
+    assert spec.parameters[-1].name.key_text == "p1999: {}"
+    with pytest.raises(SpecError, match="more than 2000 parameters"):
+        read_spec(_many_parameters(tmp_path / "bigger.yaml", 2001), generator_version="test")
 
 
 # --------------------------------------------------------------------------- D3: extends chains
