@@ -1490,6 +1490,17 @@ def test_two_forms_of_one_input_delay_are_one_physics():
     assert same_physics(cand("transport_delay", "de"), cand("control_delay", "de"))
     assert not same_physics(cand("control_delay", "de"), cand("transport_delay", "thrust"))
     assert not same_physics(cand("control_delay", "de"), cand("actuator_lag", "de"))
+    # one effect class on two targets is two explanations (session 47: a β vane and a lateral
+    # accelerometer ahead of the CG tied, called "form uncertain" when the accelerometer led)
+    vane = Candidate(effect="sensor_position", key="sensor_position:beta:r",
+                     target="output:beta", explanation="", add_terms={})
+    acc = Candidate(effect="sensor_position", key="sensor_position:ay:r", target="output:ay",
+                    explanation="", add_terms={})
+    acc_q = Candidate(effect="sensor_position", key="sensor_position:ay:p", target="output:ay",
+                      explanation="", add_terms={})
+    assert not same_physics(vane, acc) and not same_physics(acc, vane)
+    assert same_physics(acc, acc_q)
+    assert not same_physics(cand("control_delay", "de"), cand("control_delay", "da"))
     # findings.json recomputes "ambiguous" from the alternatives' own flag (not the class)
     f = {"rank": 1, "key": "control_delay:de", "effect": "control_delay", "target": "input:de",
          "added_terms": {}, "ambiguous": True,

@@ -780,13 +780,16 @@ SAME_EFFECT_FORMS = (frozenset({"control_delay", "transport_delay"}),)
 
 
 def same_physics(a: Candidate, b: Candidate) -> bool:
-    """Whether two candidates are forms of one physical explanation: the same effect class,
-    two forms of one effect on the same target (:data:`SAME_EFFECT_FORMS`: an input delay as
-    a Padé state or as a shifted input), or a linear and a nonlinear term of a common
-    variable in the same target (a missing derivative and a break of the same coefficient in
-    the same input) — a choice of form, not between explanations."""
+    """Whether two candidates are forms of one physical explanation: the same effect class on
+    the same target, two forms of one effect on the same target (:data:`SAME_EFFECT_FORMS`:
+    an input delay as a Padé state or as a shifted input), or a linear and a nonlinear term
+    of a common variable in the same target (a missing derivative and a break of the same
+    coefficient in the same input) — a choice of form, not between explanations. One effect
+    class on two targets is two explanations: a β vane ahead of the CG and a lateral
+    accelerometer ahead of it are different sensors (session 47: their tie was called "form
+    uncertain" when the accelerometer led, AMBIGUOUS when the vane did)."""
     if a.effect == b.effect:
-        return True
+        return a.target == b.target
     kinds = {a.effect, b.effect}
     if a.target == b.target and any(kinds <= forms for forms in SAME_EFFECT_FORMS):
         return True
