@@ -149,3 +149,26 @@ data:
     m = load_model(spec, generated_dir=tmp_path / "gen")
     kin = _kinematic_equations(m)
     assert kin == {"phi": frozenset({"p", "r"})}
+
+
+# ---------------------------------------------------------------------------
+# break points are placed where the variable moves, not where it rests (session 47)
+# ---------------------------------------------------------------------------
+
+def test_break_points_leave_out_a_rest_value():
+    import numpy as np
+    from vsidgen.discrepancy.locate import break_points
+
+    t = np.arange(1500) * 0.02
+    rudder = np.where((t > 5) & (t < 9), 0.08 * np.sin(2.1 * (t - 5)), 0.0)   # at rest: 0
+    pts = break_points(rudder)
+    assert len(pts) == 4 and all(b != 0.0 for _, b in pts)
+    moving = rudder[rudder != 0.0]
+    assert all(moving.min() < b < moving.max() for _, b in pts)
+    # a variable without a rest value keeps its percentiles
+    alpha = 0.1 + 0.05 * np.sin(0.7 * t)
+    assert break_points(alpha) == [(k, float(f"{np.percentile(alpha, q):.6g}"))
+                                   for k, q in (("hinge", 70), ("hinge", 85),
+                                                ("hingelo", 15), ("hingelo", 30))]
+    # a control that hardly moves gets no break
+    assert break_points(np.where(t < 0.2, 0.01 * t, 0.0)) == []

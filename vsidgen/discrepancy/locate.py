@@ -649,12 +649,31 @@ def lowpass(x: np.ndarray, dt: float, tau: float, seg: Sequence[slice], *,
     return out
 
 
+#: share of the samples at one exact value that makes it a rest value of the variable
+ATOM_SHARE = 0.05
+#: fewest samples off the rest values for a break to be placed
+MIN_MOVING = 20
+
+
 def break_points(col: np.ndarray) -> list[tuple[str, float]]:
-    """Break points tried for ``max(v − b, 0)`` ("hinge") and ``max(b − v, 0)`` ("hingelo")."""
+    """Break points tried for ``max(v − b, 0)`` ("hinge") and ``max(b − v, 0)`` ("hingelo"):
+    percentiles of the values the variable moves through.
+
+    A value it rests at (a control at trim between manoeuvres: an atom holding at least
+    :data:`ATOM_SHARE` of the samples) is left out first: a break there puts the kink of
+    ``max(v − b, 0)`` under many samples at once, so the ELBO is not differentiable in ``b``
+    and the break's refit cannot converge (session 47: an independent lateral record's
+    rudder at 0 gave ``hinge:dr:0`` and ``hingelo:dr:0``, both NOT converged on every case)."""
     col = np.asarray(col, float)
     col = col[np.isfinite(col)]
     if len(col) == 0 or np.ptp(col) <= 0:
         return []
+    values, counts = np.unique(col, return_counts=True)
+    atoms = values[counts >= ATOM_SHARE * len(col)]
+    if len(atoms):
+        col = col[~np.isin(col, atoms)]
+        if len(col) < MIN_MOVING or np.ptp(col) <= 0:
+            return []
     out = [("hinge", float(f"{np.percentile(col, q):.6g}")) for q in (70, 85)]
     out += [("hingelo", float(f"{np.percentile(col, q):.6g}")) for q in (15, 30)]
     return out
