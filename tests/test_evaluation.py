@@ -312,3 +312,32 @@ def test_an_unstable_fit_says_its_free_simulation_diverges_along_a_growing_mode(
         assert w["growth_rate"] == pytest.approx(want[0], rel=1e-9)
         assert "unstable" in w["message"] and "trim" in w["message"]
         assert f"{want[0]:.3g}/s" in w["message"]
+
+
+def test_derivative_signal_is_the_transitions_rate_under_rk4_and_a_first_order_hold():
+    """Session 47: the drift at the sample differs from what an RK4/first-order-hold model
+    moves over the step by O(T) terms in the input's rate, and locate flagged `udot:da` in a
+    correct model. The derivative signal is now the transition's mean rate; on the model's own
+    noise-free path it equals the finite differences. The rate is checked against an
+    independent numpy RK4 with the input linear over the step."""
+    res = simulate(_model(), theta=THETA, t=TT, u={"de": three_two_one_one(
+        TT, amplitude=0.03, start=1, unit=0.4) + 0.01 * np.sin(3 * TT)}, x0=[0.02, 0.0],
+        integrator="rk4", input_hold="foh")
+    sig = evaluate(_model(), _record(res), dict(zip(("Za", "Ma", "Mq", "Mde"), THETA)),
+                   mu=res.x, G=np.zeros((2, 2)), R=RM, integrator="rk4", input_hold="foh")
+    np.testing.assert_allclose(sig.xdot_fd, sig.f_smooth, rtol=1e-8, atol=1e-10)
+
+    def f(x, u):
+        return A @ x + B[:, 0] * u
+
+    k = 60
+    x, u0, u1 = res.x[k], res.u[k, 0], res.u[k + 1, 0]
+    um = 0.5 * (u0 + u1)
+    k1 = f(x, u0)
+    k2 = f(x + T / 2 * k1, um)
+    k3 = f(x + T / 2 * k2, um)
+    k4 = f(x + T * k3, u1)
+    rate = (k1 + 2 * k2 + 2 * k3 + k4) / 6
+    np.testing.assert_allclose(sig.f_smooth[k], rate, rtol=1e-10, atol=1e-12)
+    # and it is not the drift at the sample where the input moves
+    assert np.abs(sig.f_smooth[k] - f(x, u0)).max() > 1e-6

@@ -233,12 +233,24 @@ def _scans(model, F):
 
     f = model.drift
 
+    euler_held = (F.integrator == "euler" and F.substeps == 1 and F.inputs == "zoh")
+
     @jax.jit
-    def on_path(mu, U, p):
-        """Outputs along the smoother mean and the drift at its samples (one compilation;
-        evaluated op by op, each operation compiled on its own)."""
-        return (jax.vmap(lambda x, uk: h(x, uk, p))(mu, U),
-                jax.vmap(lambda x, uk: f(x, uk, p))(mu[:-1], U[:-1]))
+    def on_path(mu, U, V, p, T):
+        """Outputs along the smoother mean and the model's rate at its samples (one
+        compilation; evaluated op by op, each operation compiled on its own).
+
+        The rate is the drift ``f(x_k, u_k)`` for Euler with held inputs, else the
+        transition's mean rate over the step, ``(F(x_k, v_k) − x_k)/T``: what the model
+        predicts the state moves from one sample to the next under its own integrator and
+        input hold, which the finite differences of the smoothed path are compared with. The
+        drift at the sample differs from it by O(T) terms in the input's rate, which locate
+        flagged as missing input-rate physics in a correct RK4/first-order-hold model
+        (session 47, an independent lateral record: ``udot:da`` at p = 6e-62)."""
+        ys = jax.vmap(lambda x, uk: h(x, uk, p))(mu, U)
+        if euler_held:
+            return ys, jax.vmap(lambda x, uk: f(x, uk, p))(mu[:-1], U[:-1])
+        return ys, jax.vmap(lambda x, vk: (F(x, vk, p, T) - x) / T)(mu[:-1], V[:-1])
 
     @jax.jit
     def linearised(x0, u0, v0, p, T):
@@ -289,12 +301,11 @@ def evaluate(model, record, theta, *, mu, G, R, integrator: str | None = None,
 
     mu_j, u_j = jnp.asarray(mu), jnp.asarray(u)
     free_sim, predictor, on_path, linearised = _scans(model, F)
-    y_smooth, f_smooth = (np.asarray(a) for a in on_path(mu_j, u_j, p))
+    v_j = F.scan_inputs(u_j)  # step input per sample (the last one is never used)
+    Tj = jnp.asarray(T)
+    y_smooth, f_smooth = (np.asarray(a) for a in on_path(mu_j, u_j, v_j, p, Tj))
     xdot_fd = np.diff(mu, axis=0) / T
 
-    v_j = F.scan_inputs(u_j)  # step input per sample (the last one is never used)
-
-    Tj = jnp.asarray(T)
     y_sim = np.asarray(free_sim(mu_j[0], u_j, v_j, p, Tj))
     if not np.isfinite(y_sim).all():
         k = int(np.flatnonzero(~np.isfinite(y_sim).all(axis=1))[0])
