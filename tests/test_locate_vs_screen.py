@@ -172,3 +172,40 @@ def test_break_points_leave_out_a_rest_value():
                                                 ("hingelo", 15), ("hingelo", 30))]
     # a control that hardly moves gets no break
     assert break_points(np.where(t < 0.2, 0.01 * t, 0.0)) == []
+
+
+# ---------------------------------------------------------------------------
+# two refits that tie exactly are one model (session 47: a β vane 6 m ahead and a lateral
+# accelerometer 5.5 m behind the CG reached the same ELBO to 1e-4 nats, and the finding said
+# "another airspeed" would separate them)
+# ---------------------------------------------------------------------------
+
+def _trial(elbo, dof=1, converged=True):
+    import types
+
+    fit = types.SimpleNamespace(converged=converged)
+    return types.SimpleNamespace(state=types.SimpleNamespace(elbo=elbo, fit=fit), dof=dof)
+
+
+def test_an_exact_tie_is_one_model_in_two_parameterisations():
+    from vsidgen.discrepancy.findings import TIE_NATS, exact_tie
+
+    best = _trial(20218.20597)
+    assert exact_tie(best, _trial(20218.20587))                    # the lateral record's pair
+    assert not exact_tie(best, _trial(20218.20597 - 3 * TIE_NATS))
+    assert not exact_tie(best, _trial(20218.20587, dof=2))
+    assert not exact_tie(best, _trial(20218.20587, converged=False))
+
+
+def test_an_exact_tie_reads_as_such_in_the_summary():
+    from vsidgen.discrepancy.findings import EQUIVALENT_TEXT, summary_lines
+
+    alt = {"key": "sensor_position:ay:r", "effect": "sensor_position", "target": "output:ay",
+           "statistic": 42.41174, "equivalent": True, "separated_by": EQUIVALENT_TEXT}
+    f = {"rank": 1, "key": "sensor_position:beta:r", "effect": "sensor_position",
+         "target": "output:beta", "ambiguous": True, "parameters": {}, "explanation": "x",
+         "evidence": {"statistic": 42.41193, "threshold": 15.37}, "alternatives": [alt]}
+    lines = summary_lines({"findings": [f], "conclusion": "c"}, "f.json")
+    text = "\n".join(lines)
+    assert "exactly as well, the same model in another parameterisation" in text
+    assert "another airspeed" not in text and "installed position" in text

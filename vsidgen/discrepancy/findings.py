@@ -252,6 +252,35 @@ def vuong_text(a: dict) -> str:
             f"{v['loglik_difference']:+.3g} nats over {v['n']} samples")
 
 
+#: ELBO difference (nats) within which two converged refits with as many parameters reach the
+#: same optimum: twice the estimator's convergence tolerance (half the Newton decrement
+#: below 1e-3 nats at each)
+TIE_NATS = 2e-3
+
+#: what separates two refits that tie exactly (:func:`exact_tie`)
+EQUIVALENT_TEXT = (
+    "nothing in records of this kind: the two refits reach the same ELBO, so within this model "
+    "they are one re-parameterisation of each other (its free parameters take up the "
+    "difference) at every airspeed and manoeuvre it describes; only knowledge from outside "
+    "the data separates them: the sensor's installed position, or fixing the parameters that "
+    "absorb the difference at independent (wind-tunnel, handbook) values")
+
+
+def exact_tie(best, alt) -> bool:
+    """Whether two refits of a round are one model in two parameterisations: both converged,
+    as many added parameters, and ELBOs within :data:`TIE_NATS`. An independent lateral
+    record (session 47) tied a β vane 6 m ahead of the CG and a lateral accelerometer 5.5 m
+    *behind* it to 1e-4 nats: with free Y_p, Y_r, Y_δa the vane term x·r/V is the accelerometer
+    term −x·ṙ, and "another airspeed" (the pair's usual separation) does not separate them
+    in a model whose derivatives are fitted per record."""
+    a, b = getattr(best, "state", None), getattr(alt, "state", None)
+    if a is None or b is None or not (a.fit.converged and b.fit.converged):
+        return False
+    if getattr(best, "dof", None) != getattr(alt, "dof", None):
+        return False
+    return abs(float(a.elbo) - float(b.elbo)) <= TIE_NATS
+
+
 def separating_experiment(effect: str, target: str, other_effect: str, other_target: str) -> str:
     """What data would separate two explanations of one mismatch (plain words, for a finding
     whose alternative the data could not rule out).
@@ -662,7 +691,9 @@ def summary_lines(document: dict, findings_path) -> list[str]:
         lines.append(f"   {f['explanation']}")
         for a in f.get("alternatives") or []:
             word = "AMBIGUOUS" if f.get("ambiguous") else "form uncertain"
-            lines.append(f"   {word}: {a['effect']} on {a['target']} explains it nearly as well "
+            how = ("exactly as well, the same model in another parameterisation"
+                   if a.get("equivalent") else "nearly as well")
+            lines.append(f"   {word}: {a['effect']} on {a['target']} explains it {how} "
                          f"(2ΔELBO = {statistic_text(a)})"
                          + (f"; to separate them: {a['separated_by']}"
                             if a.get("separated_by") else ""))
@@ -862,7 +893,8 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
             "ambiguous": any(not same_physics(c, a.candidate) for a in trial.alternatives),
             "alternatives": [{**a.alternative_json(),
                               "same_physics": same_physics(c, a.candidate),
-                              "separated_by": separating_experiment(
+                              "equivalent": (tie := exact_tie(trial, a)),
+                              "separated_by": EQUIVALENT_TEXT if tie else separating_experiment(
                                   c.effect, c.target, a.candidate.effect, a.candidate.target)}
                              for a in trial.alternatives],
             "spec": str(trial.spec_path)})
