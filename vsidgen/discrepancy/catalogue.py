@@ -190,7 +190,7 @@ class MissingDerivative(Effect):
                     effect=self.id, key=f"{self.id}:{s}:{v}", target=f"drift:{s}",
                     explanation=self.explain(state=s, var=v, param=p),
                     parameters=(NewParameter(p, _ratio(_drift_unit(info, s), info.unit(v)),
-                                             f"derivative of d{s}/dt with respect to {v}"),),
+                                             f"derivative of d({s})/dt with respect to {v}"),),
                     add_terms={"drift": {s: f"{p}*{v}"}},
                     info={"regressor": f"{kind}:{v}", "state": s, "var": v}))
         return out
@@ -227,14 +227,14 @@ class TrimTerm(Effect):
     title = "missing trim (constant) term"
     explanation = ("The {state} equation lacks a constant (trim) term ({param}): its equation "
                    "error has a mean the model's terms cannot supply. Physically it is the trim "
-                   "force or moment — d{state}/dt where the variables the equation is written in "
+                   "force or moment — d({state})/dt where the variables the equation is written in "
                    "are zero — which a model linearised about zero instead of its trim point "
-                   "leaves out (d{state}/dt += {param}).")
+                   "leaves out (d({state})/dt += {param}).")
     explanation_all = ("The {states} equations lack their constant (trim) terms ({params}): the "
                        "model is written in the recorded variables without the trim point, so "
                        "no equation balances its forces or moments where the aircraft was "
                        "trimmed. All constants are added together (one omission; "
-                       "d{first}/dt += {first_param}, …).")
+                       "d({first})/dt += {first_param}, …).")
     doc = "A constant (trim) term in a state equation that has none."
 
     def applies_to(self, info):
@@ -247,7 +247,7 @@ class TrimTerm(Effect):
                 effect=self.id, key=f"{self.id}:{s}", target=f"drift:{s}",
                 explanation=self.explain(state=s, param=p),
                 parameters=(NewParameter(p, _drift_unit(info, s),
-                                         f"trim (constant) term of d{s}/dt"),),
+                                         f"trim (constant) term of d({s})/dt"),),
                 add_terms={"drift": {s: p}}, info={"regressor": "1", "states": (s,)}))
         if len(states) >= 2:
             # one omission: a model linearised about zero instead of the trim point lacks the
@@ -260,7 +260,7 @@ class TrimTerm(Effect):
                     states=", ".join(states[:-1]) + " and " + states[-1],
                     params=", ".join(ps), first=states[0], first_param=ps[0]),
                 parameters=tuple(NewParameter(p, _drift_unit(info, s),
-                                              f"trim (constant) term of d{s}/dt")
+                                              f"trim (constant) term of d({s})/dt")
                                  for s, p in zip(states, ps)),
                 add_terms={"drift": dict(zip(states, ps))},
                 info={"regressor": "1", "states": tuple(states)}))
@@ -570,7 +570,7 @@ class NonlinearAero(Effect):
                                                f"of {v} (started at {b:.4g}; "
                                                f"{'a break, e.g. flow separation' if v in flow else 'saturation'})",
                                           extra=(NewParameter(bp, info.unit(v),
-                                                              f"break point of {v} in d{s}/dt",
+                                                              f"break point of {v} in d({s})/dt",
                                                               initial=float(b)),)))
             for a in flow:
                 for o in info.state_names + info.input_names:
@@ -589,7 +589,7 @@ class NonlinearAero(Effect):
         return Candidate(
             effect=self.id, key=f"{self.id}:{s}:{reg}", target=f"drift:{s}",
             explanation=self.explain(state=s, var=var, what=what),
-            parameters=(NewParameter(p, unit, f"nonlinear term {reg} in d{s}/dt"),) + tuple(extra),
+            parameters=(NewParameter(p, unit, f"nonlinear term {reg} in d({s})/dt"),) + tuple(extra),
             add_terms={"drift": {s: term}}, info={"regressor": reg, "state": s})
 
     def score(self, c, ev):
@@ -625,7 +625,7 @@ class UnsteadyAero(Effect):
                     explanation=self.explain(state=s, angle=a, param=p, tau=tau),
                     parameters=(NewParameter(p, _ratio(_drift_unit(info, s), info.unit(a) and
                                                        f"({info.unit(a)})/s"),
-                                             f"{a}-dot derivative of d{s}/dt"),
+                                             f"{a}-dot derivative of d({s})/dt"),
                                 NewParameter(tp, "s", f"time constant of the {a} lag filter",
                                              initial=tau, fixed=True)),
                     states=(NewState(lag, f"({a} - {lag})/{tp}", info.unit(a),
@@ -1077,7 +1077,7 @@ class SensorPosition(Effect):
         return Candidate(
             effect=self.id, key=f"{self.id}:{o}:{key_suffix}", target=f"output:{o}",
             explanation=self.explain(output=o, what=what,
-                                     signal=(f"the angular acceleration d{regressor}/dt"
+                                     signal=(f"the angular acceleration d({regressor})/dt"
                                              if regressor else "the squared rates"),
                                      reference=ref),
             parameters=(NewParameter(p, "m", f"{o} accelerometer distance {_WHERE[arm]}"),),
@@ -1099,11 +1099,11 @@ class SensorPosition(Effect):
             term = f"{p}*{_paren(_times(info.radians_per(r), rdot))}" + (
                 f"/{g!r}" if g_unit else "")
             what = (f"an accelerometer at a lever arm {p} m from the CG measures the tangential "
-                    f"acceleration {p}·d{r}/dt{'/g' if g_unit else ''} (ω̇ × r)")
+                    f"acceleration {p}·d({r})/dt{'/g' if g_unit else ''} (ω̇ × r)")
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{o}:{r}", target=f"output:{o}",
                 explanation=self.explain(output=o, what=what,
-                                         signal=f"the angular acceleration d{r}/dt", reference=""),
+                                         signal=f"the angular acceleration d({r})/dt", reference=""),
                 parameters=(NewParameter(p, "m", f"{o} accelerometer lever arm from the CG"),),
                 add_terms={"observations": {o: term}},
                 info={"output": o, "regressor": f"accel:{r}"}))
@@ -1224,7 +1224,7 @@ class MissingDynamics(Effect):
                    "one: the speed/attitude (phugoid) motion absent from a short-period model, "
                    "an engine state; a fast one: an actuator, a sensor filter): its equation "
                    "error follows {var} filtered through a first-order lag. Added as a new "
-                   "state {mode} with dynamics d{mode}/dt = -{mode}/{tau} + {gain}·{var}.")
+                   "state {mode} with dynamics d({mode})/dt = -{mode}/{tau} + {gain}·{var}.")
     doc = ("A first-order mode driven by a state or input, feeding one state equation (not an "
            "attitude or position equation, which is exact geometry).")
 
@@ -1246,7 +1246,7 @@ class MissingDynamics(Effect):
                                 NewParameter(tau, "s", "time constant of the missing mode",
                                              initial=LOWPASS_TAU, lower=lo, upper=100.0)),
                     states=(NewState(m, f"-{m}/{tau} + {k}*{v}", _drift_unit(info, s),
-                                     f"missing mode feeding d{s}/dt"),),
+                                     f"missing mode feeding d({s})/dt"),),
                     add_terms={"drift": {s: m}},
                     info={"state": s, "regressor": f"lp:{v}", "mode_driver": v,
                           "mode_tau": LOWPASS_TAU, "mode_gain": k, "dt": info.dt,
@@ -1350,17 +1350,17 @@ class SpeedDynamics(Effect):
                    "trades height for speed along its flight path (the phugoid): the speed "
                    "perturbation {dV} (m/s) changes lift ({zv}, into the {alpha} equation{az}) "
                    "and pitching moment ({mv}, into the {q} equation). Added as the standard "
-                   "longitudinal speed equation d{dV}/dt = {xv}·{dV} + {xa}·{alpha} − g·γ "
+                   "longitudinal speed equation d({dV})/dt = {xv}·{dV} + {xa}·{alpha} − g·γ "
                    "(drag/thrust change with speed and with {alpha}, gravity along the flight "
                    "path γ) {closure}; g = {g:.5g} m/s² ({g_source}); trim airspeed {v0} "
                    "({v_source}).")
     #: the two kinematic closures of the path angle γ = θ − α_inertial (see ``doc``)
     CLOSURES = {
-        "air": ("with the path-angle perturbation d{ang}/dt = {q} − d{alpha}/dt from the "
+        "air": ("with the path-angle perturbation d({ang})/dt = {q} − d({alpha})/dt from the "
                 "model's {alpha} equation: the part of the measured {alpha} that its process "
                 "noise carries (gusts: an air-relative vane) does not move the flight path"),
         "attitude": ("with γ = {ang} − {alpha} from the pitch-attitude perturbation "
-                     "d{ang}/dt = {q}: the measured {alpha} is the inertial angle of attack "
+                     "d({ang})/dt = {q}: the measured {alpha} is the inertial angle of attack "
                      "(process noise acts on the motion itself, e.g. α from inertial data)"),
     }
     doc = ("The speed degree of freedom a short-period (α, q) model leaves out: ΔV̇ = X_V ΔV + "
@@ -1402,8 +1402,8 @@ class SpeedDynamics(Effect):
             NewParameter(xv, "1/s", "X_V: speed damping (drag and thrust change with speed)"),
             NewParameter(xa, f"(m/s^2)/({au})", f"X_alpha: speed derivative of {a} "
                                                  "(lift tilt / induced drag)"),
-            NewParameter(zv, f"({au})/m", f"Z_V: change of d{a}/dt with speed (lift), per m/s"),
-            NewParameter(mv, f"({qu})/m", f"M_V: change of d{q}/dt with speed, per m/s"))
+            NewParameter(zv, f"({au})/m", f"Z_V: change of d({a})/dt with speed (lift), per m/s"),
+            NewParameter(mv, f"({qu})/m", f"M_V: change of d({q})/dt with speed, per m/s"))
         # angles in α's unit and q's in its own (degrees too): gravity along the path and the
         # vertical accelerometer need radians, the attitude integrates q in α's unit
         ka, kq = info.radians_per(a), info.radians_per(q)

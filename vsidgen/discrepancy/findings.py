@@ -308,10 +308,10 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
         if ch in _FLOW_ANGLES:
             return (f"a record at another airspeed: a {ch} vane ahead of the centre of gravity "
                     f"reads {ch} − x·(rate)/V, an error that shrinks as the airspeed grows, "
-                    f"while a time skew τ·d{ch}/dt does not depend on the airspeed")
+                    f"while a time skew τ·d({ch})/dt does not depend on the airspeed")
         return (f"a manoeuvre whose angular acceleration and {ch} rate differ in shape (a "
                 f"short sharp pulse next to a slow doublet): a sensor position error follows "
-                f"the angular rates and accelerations, a time skew follows d{ch}/dt")
+                f"the angular rates and accelerations, a time skew follows d({ch})/dt")
     if pair == {"control_delay", "transport_delay"} and same_channel:
         return (f"nothing at these bandwidths: both are the same time delay of {ch}, as a "
                 f"first-order Padé state and as the input shifted by τ — a much faster {ch} "
@@ -351,7 +351,7 @@ def separating_experiment(effect: str, target: str, other_effect: str, other_tar
                     f"position, the boom length measured on the ground): in a linear model a "
                     f"{pos_ch} vane's error x·(rate)/V is the same as a rate derivative of "
                     f"{coef} with the moment equations' rate derivatives shifted, at every "
-                    f"airspeed; only the vane's x·(angular acceleration)/V in d{pos_ch}/dt tells "
+                    f"airspeed; only the vane's x·(angular acceleration)/V in d({pos_ch})/dt tells "
                     f"them apart")
     parts, oparts = set(ch.split("+")), set(och.split("+"))
     if effect == other_effect and not same_channel and (parts < oparts or oparts < parts):
@@ -1053,7 +1053,7 @@ def plot_finding(finding, base, final) -> str | None:
             ef = sf.xdot_fd[:, jf] - sf.f_smooth[:, jf]
             ax.plot(sb.t[:-1], eb, color="tab:red", lw=0.8, label="equation error, base")
             ax.plot(sf.t[:-1], ef, color="tab:blue", lw=0.8, label="equation error, augmented")
-            ax.set_ylabel(f"d{name}/dt − f")
+            ax.set_ylabel(f"d({name})/dt − f")
         ax.legend(fontsize=7, loc="upper right")
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("t [s]")
