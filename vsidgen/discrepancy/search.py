@@ -2721,7 +2721,11 @@ def lag_hold(run: _RunConfig, best: Trial, base: FitState, name: str) -> Trial:
                   "spec": str(path)}
     c = dataclasses.replace(c, explanation=c.explanation + note,
                             info={**(c.info or {}), "hold_comparison": comparison})
-    run.say(f"    {c.key}: {(alt if switch else now).text} (2ΔELBO {alt.label} − {now.label} "
+    # the two sides differ in the lag's form, and in the setting where the hold changes
+    # ("rk4x1_foh − rk4x1_foh = +83.03" read as a setting against itself: session 47)
+    sides = ((f"continuous form, {alt.label}", f"exact discretisation, {now.label}")
+             if alt.label == now.label else (alt.label, now.label))
+    run.say(f"    {c.key}: {(alt if switch else now).text} (2ΔELBO {sides[0]} − {sides[1]} "
             f"= {d:+.4g})")
     if not switch:
         return dataclasses.replace(best, candidate=c)
