@@ -209,3 +209,17 @@ def test_an_exact_tie_reads_as_such_in_the_summary():
     text = "\n".join(lines)
     assert "exactly as well, the same model in another parameterisation" in text
     assert "another airspeed" not in text and "installed position" in text
+
+
+def test_a_projected_refit_is_named_after_the_spec_it_extends(tmp_path):
+    import types
+
+    from vsidgen.discrepancy.search import projected_path
+
+    cand = types.SimpleNamespace(key="coefficient_nonlinear:side_force:sq:dr")
+    spec = tmp_path / "candidates" / "r1_04_coefficient_nonlinear_side_force_sq_dr.yaml"
+    t = types.SimpleNamespace(candidate=cand, spec_path=spec)
+    got = projected_path(tmp_path, 1, 2, t)       # third in the round's list, fourth by rank
+    assert got == spec.with_name("r1_04_coefficient_nonlinear_side_force_sq_dr.projected.yaml")
+    t = types.SimpleNamespace(candidate=cand, spec_path=None)
+    assert projected_path(tmp_path, 1, 2, t).name.startswith("r1_03_")

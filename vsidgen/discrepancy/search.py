@@ -2372,6 +2372,19 @@ def x0_entropy_of(state: FitState, c) -> float:
     return x0_entropy(state.vfit, names, state.model, state.vrecords)
 
 
+def projected_path(out: pathlib.Path, rnd: int, i: int, t: "Trial") -> pathlib.Path:
+    """Where the projected refit of trial ``t`` (the ``i``-th of its round) is written: beside
+    the candidate's own spec, which it extends, with ``.projected`` added (the trial's position
+    in the round's list is not the spec's rank number: ``r1_03_x.projected.yaml`` extended
+    ``r1_04_x.yaml``; session 47)."""
+    sp = getattr(t, "spec_path", None)
+    if sp:
+        sp = pathlib.Path(sp)
+        return sp.with_name(sp.stem + ".projected.yaml")
+    return (pathlib.Path(out) / "candidates"
+            / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
+
+
 def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
                      trials: list[Trial], *, lead_only: bool = False
                      ) -> tuple[list[Trial], list[dict], FitState | None] | None:
@@ -2394,8 +2407,7 @@ def _projected_round(run: _RunConfig, st: _RunState, rnd: int, plan: _RoundPlan,
     for i, t in enumerate(trials):
         if id(t) not in chosen:
             continue
-        ppath = (run.out / "candidates"
-                 / f"r{rnd}_{i + 1:02d}_{safe_name(t.candidate.key)}.projected.yaml")
+        ppath = projected_path(run.out, rnd, i, t)
         ptasks.append((t.candidate.key, (t, current, ppath, _round_name(current, rnd, f"{i + 1}p"),
                                          run.gen, run.max_iter, plan.groups.get(t.candidate.key))))
     if ptasks:
