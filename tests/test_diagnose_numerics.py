@@ -175,4 +175,8 @@ def test_null_record_from_continuous_time_adopts_interpolated_inputs(tmp_path):
     assert ad is not None and ad["setting"]["inputs"] == "foh"
     assert ad["statistic"] > ad["threshold"]
     assert res.findings == ()
-    assert "integrator" in pathlib.Path(res.document["final_spec"]).read_text()
+    # the final spec carries the setting, in its own text or through the spec it extends
+    # (the noise-model spec adopted after the numerics stage extends the numerics spec; the
+    # text check predated that stage and failed before session 47 too)
+    from vsidgen.spec import compile_spec
+    assert compile_spec(res.document["final_spec"]).input_hold == "foh"
