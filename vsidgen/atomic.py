@@ -653,8 +653,8 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
             # refuses (/sys, /proc): the message names the directory asked for (session 44)
             raise VsidgenError(f"{target}: error: cannot create the results directory there "
                                f"({exc.strerror})") from None
-        (tmp / BUILDING).touch()
         try:
+            (tmp / BUILDING).touch()     # inside: a failed touch still removes tmp
             yield tmp
             if plan.mode is WriteMode.SWAP:
                 write_text_atomic(tmp / MANIFEST, _manifest_text(listing(tmp) - {BUILDING},
