@@ -701,6 +701,13 @@ def summary_lines(document: dict, findings_path) -> list[str]:
             lines.append(f"   complementary: {cm['effect']} on {cm['target']} (not separated "
                          f"in round {f['rank']}) was accepted on top of it in round "
                          f"{cm['accepted_in_round']}")
+    for r in document.get("noise_model_retests") or []:
+        a = r.get("adopted")
+        if a:
+            lines.append(f"+ noise model re-tested after round {r['after_round']} (not physics): "
+                         f"{a['recommendation']}: 2ΔELBO = {a['statistic']:.4g} > "
+                         f"{a['threshold']:.4g}")
+            lines.append(f"   {a['explanation']}")
     lines.append(f"{document['conclusion']} Findings in {findings_path}.")
     return lines
 
@@ -759,6 +766,31 @@ def noise_model_text(noise_model: dict | None) -> str:
             f"state equations ({rho}); {adopted['recommendation']} (2ΔELBO = "
             f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}, chi2({adopted['dof']})); "
             "the physical search below used it. ")
+
+
+def noise_retest_text(retests: Sequence[dict]) -> str:
+    """Sentences on the noise model re-tested after rounds that accepted an effect ("" when
+    none adopted correlated noise or was significant without converging)."""
+    out = []
+    for r in retests or ():
+        k = r.get("after_round")
+        adopted, unresolved = r.get("adopted"), r.get("significant_not_adopted")
+        if adopted:
+            rho = ", ".join(f"ρ({c['states'][0]}, {c['states'][1]}) = {c['rho']:+.2f}"
+                            for c in adopted.get("correlations") or [] if c.get("rho") is not None)
+            out.append(f" NOISE MODEL re-tested after round {k}'s finding (not a physical "
+                       f"effect): with that effect in the model the process noise is correlated "
+                       f"between the state equations ({rho}; 2ΔELBO = {adopted['statistic']:.4g} "
+                       f"> {adopted['threshold']:.4g}, chi2({adopted['dof']})), which the first "
+                       f"test, on the model without it, did not show; "
+                       f"{adopted['recommendation']} (in the final spec).")
+        elif unresolved:
+            out.append(f" NOISE MODEL UNRESOLVED after round {k}'s finding: correlated process "
+                       f"noise 2ΔELBO ≥ {unresolved['statistic_lower_bound']:.4g} > "
+                       f"{unresolved['threshold']:.4g} from a refit that stopped before its "
+                       f"optimum ({unresolved.get('stop_reason')}); the final spec keeps the "
+                       "diagonal noise.")
+    return "".join(out)
 
 
 def gust_check_text(noise_gust: dict | None) -> str:
@@ -832,13 +864,16 @@ def noise_gust_text(noise_gust: dict | None) -> str:
 def build_document(*, base, final, accepted, rounds, evidence, final_evidence, alpha, version,
                    wall_time_s, out, options, stop: dict | None = None,
                    unfinished_round: dict | None = None, numerics: dict | None = None,
-                   noise_model: dict | None = None, noise_gust: dict | None = None) -> dict:
+                   noise_model: dict | None = None, noise_gust: dict | None = None,
+                   noise_retests: Sequence[dict] = ()) -> dict:
     """The findings.json mapping (see the module docstring).
 
     ``stop``: {"reason": completed | time_limit | interrupted | running, "time_limit_s"};
     ``unfinished_round``: the round that was in progress (refitted trials, pending keys);
     ``numerics``: the modelling-numerics stage (:meth:`.numerics.NumericsResult.to_json`);
-    ``noise_model``: the noise-model stage (:meth:`.noisemodel.NoiseModelResult.to_json`).
+    ``noise_model``: the noise-model stage (:meth:`.noisemodel.NoiseModelResult.to_json`);
+    ``noise_retests``: the same test after a round accepted an effect, each with its
+    ``after_round``.
     """
     findings = []
     for rank, (trial, before, ev) in enumerate(accepted, start=1):
@@ -905,19 +940,21 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  base_status=base.fit.status,
                                  numerics_adopted=bool((numerics or {}).get("adopted"))
                                  or bool((noise_model or {}).get("adopted"))
-                                 or bool((noise_gust or {}).get("adopted")))
+                                 or bool((noise_gust or {}).get("adopted"))
+                                 or any(r.get("adopted") for r in noise_retests))
     stopped = stop_text(stop, unfinished_round, len(findings), alpha=alpha)
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
     conclusion = (stopped + numerics_text(numerics) + noise_model_text(noise_model)
-                  + noise_gust_text(noise_gust) + conclusion)
+                  + noise_gust_text(noise_gust) + conclusion + noise_retest_text(noise_retests))
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
         "numerics": numerics, "noise_model": noise_model, "noise_gust": noise_gust,
+        "noise_model_retests": list(noise_retests),
         "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "validation_elbo_own_noise": _f(base.val_elbo_own_noise),
@@ -1116,6 +1153,23 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
                              "significantly.")
                      + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
                                                            for t in nm["trials"]], dof=True))
+    for r in doc.get("noise_model_retests") or []:
+        if not r.get("trials"):
+            continue
+        k = r.get("after_round")
+        parts.append(f"<h3>Noise model re-tested after round {e(str(k))} (its effect accepted)</h3>"
+                     f"<p>Current process noise: <code>structure: "
+                     f"{e(r['current']['structure'])}</code> on "
+                     f"{e(', '.join(r['current']['states']))}. "
+                     + (f"<b>{e(r['adopted']['explanation'])}</b>" if r.get("adopted")
+                        else "<b>Not tested</b>: the current fit did not converge."
+                        if _not_tested(r)
+                        else f"<b>{e(noise_retest_text([r]))}</b>"
+                        if r.get("significant_not_adopted")
+                        else "Kept: with the accepted effect in the model, correlated process "
+                             "noise is still not significant.")
+                     + "</p>" + _trial_table("alternative", [(e(t["alternative"]), t)
+                                                           for t in r["trials"]], dof=True))
     ng = doc.get("noise_gust") or {}
     if ng.get("trials"):
         gusts = "; ".join(f"{g['velocity']} − {g['gust_state']} in "

@@ -445,13 +445,17 @@ def decide(trial: NoiseModelTrial, elbo_current: float, alpha: float) -> NoiseMo
 
 
 def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, max_iter: int,
-                    engine, deadline=None, progress=None) -> NoiseModelResult:
+                    engine, deadline=None, progress=None,
+                    after_round: int | None = None) -> NoiseModelResult:
     """Refit ``current`` (a search.FitState) with correlated process noise and decide (see
-    the module docstring). The adopted trial's state is the model the run continues from."""
+    the module docstring). The adopted trial's state is the model the run continues from.
+    ``after_round``: None before physics (spec files ``r0_nII_…``); K when diagnose re-tests
+    the noise model because round K accepted an effect (spec files ``rK_nII_…``)."""
     from ..engine import NOT_NEEDED, TaskStatus
     from .fitstate import refit_converged
     from .specwrite import safe_name
 
+    tag = "r0" if after_round is None else f"r{int(after_round)}"
     model = current.model
     pn = model.process_noise
     states = tuple(pn.states or model.state_names) if pn is not None else ()
@@ -466,17 +470,20 @@ def run_noise_model(current, out: pathlib.Path, *, alpha: float, generated_dir, 
             progress("noise model: not tested (the current fit did not converge)")
         return NoiseModelResult(structure, states, current.elbo, tuple(
             NoiseModelTrial(alt, pathlib.Path(out) / "candidates"
-                            / f"r0_n{i + 1:02d}_noise_{alt.value}.yaml", dof,
+                            / f"{tag}_n{i + 1:02d}_noise_{alt.value}.yaml", dof,
                             verdict=NoiseModelVerdict.NOT_TESTED)
             for i, (alt, dof) in enumerate(alts)), alpha)
     t0 = time.perf_counter()
     trials = []
     for i, (alt, dof) in enumerate(alts):
-        path = pathlib.Path(out) / "candidates" / f"r0_n{i + 1:02d}_noise_{alt.value}.yaml"
+        path = pathlib.Path(out) / "candidates" / f"{tag}_n{i + 1:02d}_noise_{alt.value}.yaml"
         if progress is not None:
-            progress(f"noise model first: refitting with correlated process noise on "
+            progress(("noise model first" if after_round is None else
+                      f"noise model re-tested (round {after_round} accepted an effect)")
+                     + ": refitting with correlated process noise on "
                      f"{', '.join(states)} ({dof} parameter{'s' if dof > 1 else ''} added)")
-        write_noise_spec(current, path, f"{safe_name(model.name)[:30]}_noise{i + 1}")
+        write_noise_spec(current, path, f"{safe_name(model.name)[:30]}_"
+                         f"{'' if after_round is None else tag}noise{i + 1}")
         try:
             score = score_test(current, path, generated_dir=generated_dir, dof=dof, alpha=alpha)
         except _SCORE_ERRORS as err:   # no statistic: the refit decides
