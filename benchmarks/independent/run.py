@@ -212,7 +212,16 @@ def classify(case: Case, res: dict) -> dict:
     adopted = (doc.get("numerics") or {}).get("adopted")
     # a modelling-numerics finding is not a physical effect: reported, never counted as one
     out["numerics"] = adopted["setting"]["text"] if adopted else None
+    turb = doc.get("noise_turbulence") or []
+    if turb:
+        # coloured turbulence accepted in a round (a gust state): a noise-model finding
+        t = "coloured turbulence (" + ", ".join(
+            f"{f['key']}, Λ {f['evidence']['statistic']:.4g}" for f in turb) + ")"
+        out["noise_model"] = t if out["noise_model"] is None else f"{out['noise_model']}; {t}"
     findings = doc.get("findings") or []
+    if case.effect == "gust":
+        # the concealed effect is the turbulence itself: its gust state is what is named
+        findings = sorted(findings + turb, key=lambda f: f["rank"])
     if findings:
         f = findings[0]
         out["named"] = f"{f['effect']}:{f['target']}"

@@ -1493,15 +1493,20 @@ class UnmodelledWind(Effect):
                    "{tau} (Dryden-like first-order Gauss–Markov state {w}) changes the "
                    "aerodynamic {angle} seen by the wings and the vane, while the inertial "
                    "motion does not. The equation errors are slow and coloured rather than "
-                   "white turbulence increments.")
-    doc = "A Gauss–Markov gust state added to the aerodynamic flow angle."
+                   "white turbulence increments. This is a model of the atmosphere (the "
+                   "turbulence is coloured), not of the aircraft: a noise-model finding, not "
+                   "missing physics.")
+    doc = ("A Gauss–Markov gust state added to the aerodynamic flow angle: coloured "
+           "turbulence, a disturbance model (``info['disturbance']``): refitted in every "
+           "round until it is accepted, so that a physical candidate is accepted only where it "
+           "beats the turbulence, and reported as a noise-model finding, not as physics.")
 
     def applies_to(self, info):
         out = []
         for kind in ("alpha", "beta"):
             a = info.flow_angle(kind)
-            if a is None:
-                continue
+            if a is None or any(s.startswith(f"D_WIND_{a}") for s in info.state_names):
+                continue      # one gust state per flow angle (an accepted one is in the model)
             gains = {s: g for s, g in ((s, info.gain_text(s, a)) for s in info.state_names
                                        if info.depends(s, a)) if g is not None}
             if not gains:
@@ -1520,7 +1525,8 @@ class UnmodelledWind(Effect):
                                          initial=1.0, lower=lo, upper=50.0),),
                 states=(NewState(w, f"-{w}/{tau}", info.unit(a), f"gust component of {a}",
                                  process_noise=True),),
-                add_terms=adds, info={"angle": a, "states": tuple(gains)}, screenable=False))
+                add_terms=adds, info={"angle": a, "states": tuple(gains), "disturbance": True},
+                screenable=False))
         return out
 
     def score(self, c, ev):

@@ -680,9 +680,12 @@ def summary_lines(document: dict, findings_path) -> list[str]:
                      f"{unresolved['statistic_lower_bound']:.4g} > {unresolved['threshold']:.4g}, "
                      f"refit stopped before its optimum ({unresolved.get('stop_reason')}); "
                      "the search used the diagonal noise")
-    for f in document.get("findings") or []:
+    for f in sorted((document.get("findings") or []) + (document.get("noise_turbulence") or []),
+                    key=lambda f: f["rank"]):
         ev = f["evidence"]
-        lines.append(f"{f['rank']}. {f['effect']} on {f['target']}: 2ΔELBO = "
+        lines.append(f"{f['rank']}. " + ("noise model (not physics): coloured turbulence, "
+                                          if f.get("disturbance") else "")
+                     + f"{f['effect']} on {f['target']}: 2ΔELBO = "
                      f"{ev['statistic']:.4g} > {ev['threshold']:.4g}")
         est = [estimate_text(k, v) for k, v in (f.get("parameters") or {}).items()
                if not v.get("fixed")]
@@ -766,6 +769,21 @@ def noise_model_text(noise_model: dict | None) -> str:
             f"state equations ({rho}); {adopted['recommendation']} (2ΔELBO = "
             f"{adopted['statistic']:.4g} > {adopted['threshold']:.4g}, chi2({adopted['dof']})); "
             "the physical search below used it. ")
+
+
+def turbulence_text(turbulence: Sequence[dict]) -> str:
+    """Sentence on coloured turbulence accepted in a round (a gust state: a disturbance
+    model, ``findings.json`` → ``noise_turbulence``), put before the conclusion."""
+    out = []
+    for f in turbulence or ():
+        ev = f["evidence"]
+        est = "; ".join(estimate_text(k, v) for k, v in (f.get("parameters") or {}).items()
+                        if not v.get("fixed"))
+        out.append(f"NOISE MODEL (not a physical effect), round {f['rank']}: the turbulence is "
+                   f"coloured, not white — {f['key']} ({f['title']}; {est}; 2ΔELBO = "
+                   f"{ev['statistic']:.4g} > {ev['threshold']:.4g}); the rounds after it used "
+                   "it, and the final spec carries it. ")
+    return "".join(out)
 
 
 def noise_retest_text(retests: Sequence[dict]) -> str:
@@ -925,6 +943,7 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                 "locate": locate_part,
                 "delay_profile": (c.info or {}).get("profile_result"),
                 "hold_comparison": (c.info or {}).get("hold_comparison")},
+            **({"disturbance": True} if (c.info or {}).get("disturbance") else {}),
             "ambiguous": any(not same_physics(c, a.candidate) for a in trial.alternatives),
             "alternatives": [{**a.alternative_json(),
                               "same_physics": same_physics(c, a.candidate),
@@ -934,6 +953,9 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                              for a in trial.alternatives],
             "spec": str(trial.spec_path)})
     complementary_findings(findings)
+    # coloured turbulence (a gust state) is a model of the atmosphere: a noise-model finding
+    turbulence = [f for f in findings if f.get("disturbance")]
+    findings = [f for f in findings if not f.get("disturbance")]
     conclusion = conclusion_text(findings, rounds, alpha=alpha, validated=bool(base.vrecords),
                                  final_spec=final.spec_path,
                                  base_converged=bool(base.fit.converged),
@@ -941,20 +963,22 @@ def build_document(*, base, final, accepted, rounds, evidence, final_evidence, a
                                  numerics_adopted=bool((numerics or {}).get("adopted"))
                                  or bool((noise_model or {}).get("adopted"))
                                  or bool((noise_gust or {}).get("adopted"))
-                                 or any(r.get("adopted") for r in noise_retests))
+                                 or any(r.get("adopted") for r in noise_retests)
+                                 or bool(turbulence))
     stopped = stop_text(stop, unfinished_round, len(findings), alpha=alpha)
     if stopped and not findings:
         conclusion = ("No effect accepted yet; the search did not finish, so this does not show "
                       "that the model is adequate.")
     conclusion = (stopped + numerics_text(numerics) + noise_model_text(noise_model)
-                  + noise_gust_text(noise_gust) + conclusion + noise_retest_text(noise_retests))
+                  + noise_gust_text(noise_gust) + turbulence_text(turbulence) + conclusion
+                  + noise_retest_text(noise_retests))
     return {
         "vsidgen_version": version,
         "base_fit": {"converged": bool(base.fit.converged), "status": base.fit.status},
         "spec": {"name": base.model.name, "path": str(base.spec_path)},
         "records": _records(base), "options": options, "conclusion": conclusion,
         "numerics": numerics, "noise_model": noise_model, "noise_gust": noise_gust,
-        "noise_model_retests": list(noise_retests),
+        "noise_model_retests": list(noise_retests), "noise_turbulence": turbulence,
         "findings": findings, "final_spec": str(final.spec_path),
         "base": {"elbo": _f(base.elbo), "validation_elbo": _f(base.val_elbo),
                  "validation_elbo_own_noise": _f(base.val_elbo_own_noise),
@@ -1221,9 +1245,12 @@ def report_section(doc: dict, *, base=None, final=None, accepted: Sequence = ())
             parts.append(f"<tr><td>{e(kind)} {e(name)}</td><td>—</td><td>—</td><td>—</td>"
                          f"<td>—</td><td>{e(text)}</td></tr>")
         parts.append("</table>")
-    for f in doc["findings"]:
+    for f in sorted(doc["findings"] + (doc.get("noise_turbulence") or []),
+                    key=lambda f: f["rank"]):
         ev = f["evidence"]
-        parts.append(f"<h3>{e(str(f['rank']))}. {e(f['title'])} — {e(f['target'])}</h3>"
+        parts.append(f"<h3>{e(str(f['rank']))}. "
+                     + ("Noise model (not physics): " if f.get("disturbance") else "")
+                     + f"{e(f['title'])} — {e(f['target'])}</h3>"
                      f"<p>{e(f['explanation'])}</p>")
         terms = "; ".join(f"{sect}: {k} += {v}" if isinstance(v, str) else f"{sect}: {k}"
                           for sect, d in f["added_terms"].items() for k, v in d.items())
