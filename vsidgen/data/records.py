@@ -427,8 +427,12 @@ def _eval_map(cmap, cols: dict[str, np.ndarray], n: int) -> np.ndarray:
         expr = cmap.expr
         by_name = {str(s): s for s in expr.free_symbols}
         names = [c for c in cmap.source_columns() if c in by_name]
-        syms = [by_name[c] for c in names]
-        fn = sympy.lambdify(syms, expr, "numpy")
+        # the columns renamed before printing: lambdify puts its arguments' names into the
+        # function's namespace, so a column called ``e``, ``reduce`` or ``arcsin`` shadowed a
+        # name the NumPy printer emits (``exp(1)*e`` computed e·e: silently wrong input)
+        safe = [sympy.Symbol(f"_vsidgen_column_{i}", real=True) for i in range(len(names))]
+        expr = expr.xreplace({by_name[c]: v for c, v in zip(names, safe)})
+        fn = sympy.lambdify(safe, expr, "numpy")
         with np.errstate(all="ignore"):
             val = np.asarray(fn(*[cols[c] for c in names]), dtype=np.float64)
         val = np.broadcast_to(val, (n,)).copy()
