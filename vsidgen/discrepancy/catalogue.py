@@ -1217,6 +1217,59 @@ class TimeSkew(Effect):
 
 
 @register_effect
+class SensorLag(Effect):
+    id = "sensor_lag"
+    title = "sensor lag (first-order sensor dynamics)"
+    explanation = ("The {output} sensor does not follow the motion at once: it reads through "
+                   "first-order dynamics of time constant {param} (vane inertia, pneumatic "
+                   "tubing, an anti-aliasing or data-system filter), so its residual follows "
+                   "the rate of {output} and fast changes are attenuated. To first order in "
+                   "frequency a lag of τ and a time skew of τ are the same; the lag also "
+                   "attenuates.")
+    doc = ("First-order dynamics of one sensor: a state z with ``τ ż = h − z`` read instead of "
+           "the output ``h``, in the held-step exact discretisation the actuator lag uses "
+           "(nests the current model as τ → 0). Refitted beside a time skew or a position "
+           "of the same channel (:func:`.search.choose_refits`), the two forms it competes "
+           "with to first order.")
+
+    def applies_to(self, info):
+        import sympy
+        out = []
+        for o in info.output_names:
+            h = info.observations_expanded.get(o)
+            text = info.observations.get(o)
+            if h is None or not text or not any(
+                    sympy.diff(h, info.symbol(s)) != 0 for s in info.state_names):
+                continue
+            z = info.fresh(f"D_{o}_read")
+            tau = info.fresh(f"D_TAU_SENSOR_{o}", taken=[z])
+            step = _lag_step(info)
+            lo = LAG_MIN_FRACTION * step
+            ho = _paren(str(text))
+            if info.dt:
+                hs = f"{step:.12g}"
+                decay = f"(1 - exp(-{hs}/{tau}))"
+                drift = f"({ho} - {z})*{decay}/{hs}"
+                read = f"({z} - {ho})*{tau}/{hs}*{decay}"
+            else:
+                drift, read = f"({ho} - {z})/{tau}", f"({z} - {ho})"
+            start = max(lo, float(info.dt or step))     # one sample: in the lag's basin
+            out.append(Candidate(
+                effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",
+                explanation=self.explain(output=o, param=tau),
+                parameters=(NewParameter(tau, "s", f"time constant of the {o} sensor",
+                                         initial=start, lower=lo, upper=2.0),),
+                states=(NewState(z, drift, info.unit(o), f"{o} as its lagged sensor reads it"),),
+                add_terms={"observations": {o: read}},
+                info={"output": o, "start_from_screen_s": start, "label_upper": {tau: 2.0}},
+                screenable=False))
+        return out
+
+    def score(self, c, ev):
+        return ev.output_score(c.info["output"], "rate")
+
+
+@register_effect
 class MissingDynamics(Effect):
     id = "missing_dynamics"
     title = "missing state dynamics"
@@ -1536,5 +1589,5 @@ class UnmodelledWind(Effect):
 BUILTIN_EFFECTS = ("missing_derivative", "trim_term", "coefficient_derivative", "output_derivative",
                    "nonlinear_aero",
                    "coefficient_nonlinear", "unsteady_aero", "control_delay", "actuator_lag", "sensor_bias", "sensor_scale", "sensor_position", "time_skew",
-                   "missing_dynamics", "speed_dynamics", "unmodelled_wind")
+                   "sensor_lag", "missing_dynamics", "speed_dynamics", "unmodelled_wind")
 

@@ -1168,7 +1168,8 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
     order with priority ≥ ``min_score``; at most ``max_candidates`` in all, in rank order.
 
     Past ``max_candidates``: a disturbance model (``info['disturbance']``, coloured
-    turbulence), always; every other class × target best whose score statistic is
+    turbulence), always; the sensor lag of a channel whose time skew or position is
+    chosen; every other class × target best whose score statistic is
     within ``2·AMBIGUITY_NATS`` of the largest one. The statistic approximates its refit's
     Λ, and the round compares the refits' Λ with that margin (:func:`alternatives_of`), so
     such a candidate may be the best explanation or the alternative that makes the finding
@@ -1217,6 +1218,18 @@ def choose_refits(rows: Sequence[Ranked], *, max_candidates: int, min_score: flo
         if (r.candidate.info or {}).get("disturbance") and id(r) not in taken \
                 and r.candidate.target not in targets:
             targets.add(r.candidate.target)
+            chosen.append(r)
+    # a sensor's lag is refitted beside a time skew or a position of the same channel: to
+    # first order in frequency the three are one term (an independent short-period record
+    # with a 0.15-s α-vane lag: a vane position of 6.9 m was named, then two output
+    # derivatives of α absorbed the attenuation the position cannot give, session 48)
+    taken = {id(r) for r in chosen}
+    rivals = {r.candidate.target for r in chosen
+              if r.candidate.effect in ("time_skew", "sensor_position")}
+    for r in rows:
+        if r.candidate.effect == "sensor_lag" and r.candidate.target in rivals \
+                and id(r) not in taken:
+            rivals.discard(r.candidate.target)
             chosen.append(r)
     pos = {id(r): i for i, r in enumerate(rows)}
     return sorted(chosen, key=lambda r: pos[id(r)])
