@@ -29,3 +29,45 @@ def test_a_column_named_like_a_numpy_printer_name_is_read_as_the_column(tmp_path
         want = [min(v, 1.0) for v in de]
     assert float(lo) == pytest.approx(min(want), rel=1e-5)
     assert float(hi) == pytest.approx(max(want), rel=1e-5)
+
+
+@pytest.mark.parametrize("desc", ["angle $\\frac{$ of attack", "a $\\deg$ b", "one $ alone",
+                                  "$" + "{" * 60 + "x" + "}" * 60 + "$"])
+def test_a_dollar_in_a_description_is_text_in_the_report_figures(tmp_path, desc):
+    """Descriptions are free text; the figures drew them through matplotlib's mathtext, so
+    `$\\frac{$` made `fit --report` fail after the fit (exit 3, the results lost)."""
+    import json
+
+    from report_fixture import write_results_dir
+
+    from vsidgen.report import write_report
+
+    d = write_results_dir(tmp_path / "fit", validation=False, n_samples=100, n_outputs=1)
+    res = json.loads((d / "results.json").read_text())
+    for group in ("states", "outputs"):
+        for v in res["model"][group]:
+            v["description"] = desc
+    (d / "results.json").write_text(json.dumps(res))
+    assert write_report(d).is_file()
+
+
+def test_a_report_that_fails_keeps_the_fit_results(tmp_path, capsys, monkeypatch):
+    """A defect in the report (any exception) no longer discards the converged fit: the
+    results directory is written without the report, the command says so, exit status 3."""
+    from vsidgen import report as report_pkg
+
+    def broken(*a, **k):
+        raise ValueError("mathtext blew up")
+
+    monkeypatch.setattr(report_pkg, "write_report", broken)
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SPEC)
+    csv = tmp_path / "d.csv"
+    csv.write_text("\n".join(DATA[:201]) + "\n")
+    from vsidgen.cli import main
+    code = main(["fit", str(spec), str(csv), "-o", str(tmp_path / "out"), "--max-iter", "5",
+                 "--report"])
+    err = capsys.readouterr().err
+    assert code == 3 and "the report could not be written (ValueError: mathtext blew up)" in err
+    assert (tmp_path / "out" / "results.json").is_file()
+    assert not (tmp_path / "out" / "report.html").exists()

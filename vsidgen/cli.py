@@ -553,6 +553,11 @@ def _cmd_fit(args) -> int:
                   + f", noise re-estimated; compares models by their physics): "
                   f"{val['elbo_own_noise']:.6g}"
                   + ("" if val.get("own_noise_converged") else " (not converged)"))
+    if job.report_error is not None:
+        eprint(f"internal error: the report could not be written ({job.report_error}); the "
+               f"fit's results are in {args.out}\n  hint: this is a bug in vsidgen; rerun "
+               "with VSIDGEN_DEBUG=1 for the traceback and report it")
+        return 3
     return 0 if res["converged"] and val_ok else 1
 
 

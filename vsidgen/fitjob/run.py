@@ -36,6 +36,9 @@ class FitJob:
     #: how many of ``results["warnings"]`` (the first ones: the spec's) were printed before the
     #: fit, with their file and line; the command line does not print them again
     shown_before: int = 0
+    #: the report could not be written (a defect in the report, not in the fit): its error;
+    #: the results were written all the same (``vsidgen report DIR`` retries)
+    report_error: str | None = None
 
     def __repr__(self) -> str:
         return f"FitJob(out_dir={str(self.out_dir)!r}, fit={self.fit!r})"
@@ -323,8 +326,20 @@ def run_fit(spec: str | os.PathLike, data: Sequence[str | os.PathLike], *,
             write_csv(tmp / f"signals_{s.record}.csv",
                       signals_table(s, model.state_names, model.output_names, mu_std))
         write_text_atomic(tmp / "results.json", dumps(results))
+        report_error = None
         if report:
             from ..report import write_report
-            write_report(tmp, reference=reference, display_dir=out)
+            try:
+                write_report(tmp, reference=reference, display_dir=out)
+            except (KeyboardInterrupt, VsidgenError):
+                raise
+            except Exception as err:   # noqa: BLE001 — a report defect must not lose the fit
+                if os.environ.get("VSIDGEN_DEBUG"):
+                    raise
+                first = (str(err).strip().splitlines() or [""])[0][:300]
+                report_error = f"{type(err).__name__}: {first}"
+                for leftover in tmp.glob("report*"):
+                    if leftover.is_file():
+                        leftover.unlink()
     return FitJob(out_dir=pathlib.Path(out), results=results, fit=result, validation=vresult,
-                  shown_before=len(spec_warnings))
+                  shown_before=len(spec_warnings), report_error=report_error)

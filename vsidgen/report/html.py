@@ -264,6 +264,7 @@ def _output_figure(t, sig, name, unit, desc) -> str:
             ax1.plot(t, y, **_style(key))
     ax1.set_ylabel(_unit_label(name, unit))
     fig.text(0.09, 0.985, f"Output {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+             parse_math=False,
              va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=4, frameon=False,
                borderaxespad=0.2)
@@ -294,6 +295,7 @@ def _state_figure(t, sig, name, unit, desc) -> str:
                              alpha=0.2, lw=0, label="μ ± 2σ")
     ax1.set_ylabel(_unit_label(name, unit))
     fig.text(0.09, 0.985, f"State {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+             parse_math=False,
              va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=2,
                frameon=False, borderaxespad=0.2)
