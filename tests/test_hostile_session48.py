@@ -71,3 +71,58 @@ def test_a_report_that_fails_keeps_the_fit_results(tmp_path, capsys, monkeypatch
     assert code == 3 and "the report could not be written (ValueError: mathtext blew up)" in err
     assert (tmp_path / "out" / "results.json").is_file()
     assert not (tmp_path / "out" / "report.html").exists()
+
+
+def test_files_that_appear_in_the_output_during_a_run_are_kept(tmp_path):
+    """The output directory was checked once, before the computation; at the end the swap
+    removed whatever had appeared in it meanwhile (a user's notes, an empty folder)."""
+    from vsidgen.atomic import atomic_directory, plan_output_dir
+
+    out = tmp_path / "out"
+    plan = plan_output_dir(out)
+    with atomic_directory(out, plan=plan) as d:
+        (d / "results.json").write_text("new")
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+        (out / "later").mkdir()
+    assert (out / "notes.txt").read_text() == "mine" and (out / "later").is_dir()
+    assert (out / "results.json").read_text() == "new"
+    # the next run still replaces its own results and keeps the user's
+    plan = plan_output_dir(out, overwrite=True)
+    with atomic_directory(out, plan=plan) as d:
+        (d / "results.json").write_text("newer")
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "results.json").read_text() == "newer"
+
+
+def test_a_file_in_the_way_of_the_results_is_kept_and_the_results_too(tmp_path):
+    from vsidgen.atomic import atomic_directory, plan_output_dir
+    from vsidgen.errors import VsidgenError
+
+    out = tmp_path / "out"
+    plan = plan_output_dir(out)
+    with pytest.raises(VsidgenError, match="changed during the run") as exc:
+        with atomic_directory(out, plan=plan) as d:
+            (d / "results.json").write_text("new")
+            out.mkdir()
+            (out / "results.json").write_text("the user's")
+    assert (out / "results.json").read_text() == "the user's"
+    (kept,) = tmp_path.glob("out.results-*")
+    assert (kept / "results.json").read_text() == "new" and str(kept) in str(exc.value)
+
+
+def test_an_empty_folder_in_a_results_directory_is_not_removed_without_overwrite(tmp_path):
+    from vsidgen.atomic import DirState, atomic_directory, plan_output_dir
+    from vsidgen.errors import VsidgenError
+
+    out = tmp_path / "out"
+    with atomic_directory(out, plan=plan_output_dir(out)) as d:
+        (d / "results.json").write_text("1")
+    (out / "mine").mkdir()
+    with pytest.raises(VsidgenError, match="mine/"):
+        plan_output_dir(out)
+    plan = plan_output_dir(out, overwrite=True)
+    assert plan.state is DirState.MIXED
+    with atomic_directory(out, plan=plan) as d:
+        (d / "results.json").write_text("2")
+    assert (out / "mine").is_dir() and (out / "results.json").read_text() == "2"

@@ -124,6 +124,30 @@ def listing(directory: pathlib.Path) -> set[str]:
     return out
 
 
+def foreign_entries(directory: pathlib.Path, allowed: Iterable[str]) -> set[str]:
+    """Entries under ``directory`` that a swap must not remove: files (and links) not in
+    ``allowed``, and directories that hold none of ``allowed`` (an empty folder, shown with a
+    trailing ``/``), which :func:`listing` does not list."""
+    allowed = set(allowed)
+    needed = {"/".join(a.split("/")[:i]) for a in allowed for i in range(1, a.count("/") + 1)}
+    out: set[str] = set()
+    for root, dirs, files in os.walk(directory, followlinks=False):
+        rel_root = pathlib.Path(root).relative_to(directory)
+        for d in list(dirs):
+            rel = (rel_root / d).as_posix()
+            if os.path.islink(os.path.join(root, d)):
+                if rel not in allowed:
+                    out.add(rel)
+            elif rel not in needed:
+                out.add(rel + "/")
+                dirs.remove(d)        # everything below it is foreign too: named once
+        for f in files:
+            rel = (rel_root / f).as_posix()
+            if rel not in allowed:
+                out.add(rel)
+    return out
+
+
 def read_manifest(directory: str | os.PathLike) -> dict | None:
     """The manifest of ``directory`` or None (absent, unreadable or malformed).
 
@@ -444,7 +468,10 @@ def _plan_claimed(target: pathlib.Path, parent: pathlib.Path, *, overwrite: bool
     manifest = read_manifest(target)
     if manifest is not None:
         ours = manifest["files"] & files
-        others = files - ours - {MANIFEST}
+        # an empty folder is the user's too: a swap would remove it (listing skips it)
+        others = (files - ours - {MANIFEST}) | {
+            e for e in foreign_entries(target, ours | {MANIFEST})
+            if e.endswith("/") and not any(f.startswith(e) for f in files)}
         state = DirState.OWNED if not others else DirState.MIXED
     else:
         ours, others, state = set(), files, DirState.FOREIGN
@@ -466,8 +493,8 @@ def _plan_claimed(target: pathlib.Path, parent: pathlib.Path, *, overwrite: bool
             f"files into it (other files are kept; files with the same names as vsidgen's "
             f"are replaced)")
     return OutputPlan(target, state, WriteMode.IN_PLACE, previous=frozenset(ours),
-                      kept=frozenset(others), mode_bits=mode_bits, recovered=recovered,
-                      reads=reads_r)
+                      kept=frozenset(o for o in others if not o.endswith("/")),
+                      mode_bits=mode_bits, recovered=recovered, reads=reads_r)
 
 
 #: output directories this process writes: their lock files' descriptors
@@ -568,12 +595,19 @@ def print_recovered(plan: OutputPlan, stream=None) -> None:
 
 # --------------------------------------------------------------------------- writing
 
-def _commit_swap(tmp: pathlib.Path, plan: OutputPlan) -> None:
+def _commit_swap(tmp: pathlib.Path, plan: OutputPlan, command: str = "fit") -> None:
     target = plan.target
     if plan.mode_bits is not None:
         os.chmod(tmp, plan.mode_bits)
     if not os.path.lexists(target):
         os.rename(tmp, target)
+        return
+    # checked again: the directory was planned before the computation, which may have run
+    # for an hour; whatever appeared in it meanwhile is the user's and stays (session 48)
+    extra = (foreign_entries(target, set(plan.previous) | {MANIFEST})
+             if target.is_dir() and not target.is_symlink() else {target.name})
+    if extra:
+        _commit_beside(tmp, plan, extra, command)
         return
     old = _leftover_path(target, "old")
     _ACTIVE.add(str(old))
@@ -587,6 +621,31 @@ def _commit_swap(tmp: pathlib.Path, plan: OutputPlan) -> None:
         shutil.rmtree(old, ignore_errors=True)
     finally:
         _ACTIVE.discard(str(old))
+
+
+def _commit_beside(tmp: pathlib.Path, plan: OutputPlan, extra: set[str], command: str) -> None:
+    """The swap's target gained entries during the run (``extra``): keep them. The results
+    are moved in file by file beside them when none has a name the results use; otherwise
+    they are kept in a new sibling directory, which the error names."""
+    target = plan.target
+    shown = ", ".join(sorted(extra)[:5]) + (", ..." if len(extra) > 5 else "")
+    new = listing(tmp) - {MANIFEST, BUILDING}
+    files = {e for e in extra if not e.endswith("/")}
+    clash = {e for e in extra for n in new if n == e or n.startswith(e.rstrip("/") + "/")}
+    if target.is_dir() and not target.is_symlink() and not clash:
+        print(printable_lines(f"note: {target}: {len(extra)} entr{'y' if len(extra) == 1 else 'ies'} "
+                              f"appeared during the run ({shown}); kept, the results written "
+                              "beside them"), file=sys.stderr)
+        _commit_in_place(tmp, dataclasses.replace(plan, mode=WriteMode.IN_PLACE,
+                                                  kept=frozenset(files)), command)
+        return
+    keep = target.parent / f"{target.name}.results-{secrets.token_hex(4)}"
+    os.rename(tmp, keep)
+    raise VsidgenError(
+        f"{target}: error: {target} changed during the run ({shown}: not vsidgen's, and in the "
+        f"way of the results); it is left as it is and the results are in {keep}\n"
+        "  hint: move them where you want them; do not write into a results directory while "
+        "vsidgen is writing it")
 
 
 def _remove_entry(path: pathlib.Path) -> None:
@@ -660,7 +719,7 @@ def atomic_directory(target: str | os.PathLike, *, plan: OutputPlan | None = Non
                 write_text_atomic(tmp / MANIFEST, _manifest_text(listing(tmp) - {BUILDING},
                                                                  command=command))
                 (tmp / BUILDING).unlink()
-                _commit_swap(tmp, plan)
+                _commit_swap(tmp, plan, command)
             else:
                 _commit_in_place(tmp, plan, command)
         finally:
