@@ -126,3 +126,26 @@ def test_an_empty_folder_in_a_results_directory_is_not_removed_without_overwrite
     with atomic_directory(out, plan=plan) as d:
         (d / "results.json").write_text("2")
     assert (out / "mine").is_dir() and (out / "results.json").read_text() == "2"
+
+
+def test_file_names_with_escapes_do_not_reach_stdout(tmp_path, capsys):
+    """`check`'s ok line and `report`'s "wrote" line printed the spec's and the results
+    directory's names raw (stdout now passes every line through ``printable``)."""
+    from report_fixture import write_results_dir
+
+    esc = "\x1b]0;PWNED\x07"
+    spec = tmp_path / f"s{esc}.yaml"
+    spec.write_text(SPEC)
+    code, out, _ = _run(capsys, "check", str(spec))
+    assert code == 0 and "\\x1b]0;PWNED\\x07.yaml: ok" in out
+    d = write_results_dir(tmp_path / f"res{esc}", validation=False, n_samples=100, n_outputs=1)
+    code, out, _ = _run(capsys, "report", str(d))
+    assert code == 0 and "wrote" in out and "\\x1b" in out
+
+
+def test_a_long_description_is_cut_in_figure_titles():
+    from vsidgen.report.html import FIGURE_TEXT_CHARS, _short
+
+    assert _short("angle of attack") == "angle of attack"
+    cut = _short("$x^{a}_{b}$ " * 16000)
+    assert len(cut) == FIGURE_TEXT_CHARS and cut.endswith("…")

@@ -106,7 +106,9 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_traceback(tmp_pat
             "sys.exit(main())")
     # the interrupt arrives after the entry module is imported (the console script's first
     # line): before that Python itself and `import vsidgen` (~15 ms) run unprotected
-    for delay in (0.0, 0.2, 0.5, 0.9):
+    # 1.5–3.5 s: JAX is being imported; its gc callback, not yet guarded, swallowed the
+    # interrupt and the fit ran to the end with status 0 (red team, session 48)
+    for delay in (0.0, 0.2, 0.5, 0.9, 1.5, 2.5, 3.5):
         p = subprocess.Popen([sys.executable, "-c", code, "fit", str(root / "specs" / "attas_sp.yaml"),
                               str(root / "data" / "attas_sp_synthetic.csv"), "--out", str(tmp_path / "o")],
                              cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -115,4 +117,4 @@ def test_ctrl_c_while_the_command_line_loads_exits_130_without_traceback(tmp_pat
         p.send_signal(signal.SIGINT)
         out, err = p.communicate(timeout=300)
         assert p.returncode == 130 and "Traceback" not in err, (delay, p.returncode, err[-2000:])
-        assert "interrupted" in err
+        assert "interrupted" in err and "Exception ignored" not in err, err[-2000:]

@@ -17,7 +17,7 @@ import pathlib
 import sys
 
 from .compilecache import enable_compilation_cache
-from .errors import VsidgenError, eprint, printable
+from .errors import VsidgenError, eprint, printable, printable_lines
 from .spec.overrides import add_override_arguments, overrides_of, read_estimates
 
 
@@ -93,9 +93,10 @@ def _cmd_check(args) -> int:
         _print_warnings(data_warnings)
         _print_ranges(symbolic, data)
     n = len(symbolic.warnings) + len(symmetric) + len(data_warnings)
-    print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
-          f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
-          f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")
+    print(printable_lines(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
+                          f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
+                          f"{len(symbolic.parameters)} parameters; {n} "
+                          f"warning{'s' if n != 1 else ''})"))
     return 0
 
 
@@ -438,7 +439,7 @@ def _cmd_simulate(args) -> int:
                           quantize=quant or None)
     for note in res.warnings:
         eprint(f"warning: {note}")
-    print(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)")
+    print(printable_lines(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)"))
     return 0
 
 
@@ -637,7 +638,7 @@ def _cmd_report(args) -> int:
         raise VsidgenError(f"{d / 'results.json'}: error: its content is not what vsidgen "
                            f"writes ({type(err).__name__}: {str(err)[:200]})\n  hint: re-run "
                            "`vsidgen fit` to write it again") from None
-    print(f"wrote {path}")
+    print(printable_lines(f"wrote {path}"))
     return 0
 
 
@@ -701,8 +702,36 @@ def _unrecognized(parser: argparse.ArgumentParser, args, extra: list[str]) -> in
     return 2
 
 
+class _PrintableStdout:
+    """``sys.stdout`` while a command runs: every line written is :func:`printable` (its
+    line breaks kept), so a file name, a record's name or its error text with a terminal
+    escape in it cannot reach the terminal through any of the commands' summary lines (red
+    team, session 48: the fleet summary, `check`'s ok line, `report`'s and `simulate`'s
+    "wrote" lines; stderr goes through :func:`eprint`)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text) -> int:
+        self._stream.write("\n".join(printable(line) for line in str(text).split("\n")))
+        return len(text)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (0 ok, 2 error, 130 interrupted)."""
+    stdout = sys.stdout
+    sys.stdout = _PrintableStdout(stdout)
+    try:
+        return _main(argv)
+    finally:
+        if isinstance(sys.stdout, _PrintableStdout):
+            sys.stdout = stdout
+
+
+def _main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = make_parser(light=bool(argv) and argv[0] in _LIGHT_COMMANDS)
     try:

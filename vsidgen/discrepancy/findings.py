@@ -634,6 +634,8 @@ def stop_text(stop: dict | None, unfinished: dict | None, n_findings: int, *,
                                         "stopped; rerun with a larger --max-iter, restricted "
                                         "to it with --effects)"
                                         for r in sorted(above, key=lambda r: -r["statistic"])))
+    if n_findings == 0:
+        return what + ". No physical effect was accepted in the finished rounds. "
     return (what + f". {n_findings} effect{'s' if n_findings != 1 else ''} accepted in the "
             "finished rounds " + ("is" if n_findings == 1 else "are") + " kept below. ")
 

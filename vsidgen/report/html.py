@@ -219,6 +219,17 @@ def new_figure(width: float, height: float):
     return fig
 
 
+#: longest description drawn in a figure title (the HTML shows it whole)
+FIGURE_TEXT_CHARS = 160
+
+
+def _short(text: str) -> str:
+    """``text`` cut to :data:`FIGURE_TEXT_CHARS` for a figure title: a 145-KB description
+    took minutes to lay out, once per record (red team, session 48)."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= FIGURE_TEXT_CHARS else text[:FIGURE_TEXT_CHARS - 1] + "…"
+
+
 def png_data_uri(fig) -> str:
     """Figure -> palette PNG data URI (quantised: ~4x smaller than RGBA, same look)."""
     from PIL import Image
@@ -263,7 +274,7 @@ def _output_figure(t, sig, name, unit, desc) -> str:
         if y is not None:
             ax1.plot(t, y, **_style(key))
     ax1.set_ylabel(_unit_label(name, unit))
-    fig.text(0.09, 0.985, f"Output {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+    fig.text(0.09, 0.985, f"Output {name}" + (f" — {_short(desc)}" if desc else ""), fontsize=11,
              parse_math=False,
              va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=4, frameon=False,
@@ -294,7 +305,7 @@ def _state_figure(t, sig, name, unit, desc) -> str:
             ax1.fill_between(t, mu - 2 * sd, mu + 2 * sd, color=SIGNAL_STYLE["smooth"]["color"],
                              alpha=0.2, lw=0, label="μ ± 2σ")
     ax1.set_ylabel(_unit_label(name, unit))
-    fig.text(0.09, 0.985, f"State {name}" + (f" — {desc}" if desc else ""), fontsize=11,
+    fig.text(0.09, 0.985, f"State {name}" + (f" — {_short(desc)}" if desc else ""), fontsize=11,
              parse_math=False,
              va="top", ha="left")
     ax1.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), fontsize=8, ncols=2,
