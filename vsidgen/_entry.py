@@ -69,7 +69,10 @@ def main(argv=None) -> int:
             signal.signal(signal.SIGINT, previous)
     if deferred:
         _exit_interrupted()
-    return cli_main(argv)   # handles an interrupt during the command itself
+    try:
+        return cli_main(argv)   # handles an interrupt during the command itself ...
+    except KeyboardInterrupt:   # ... this one came while its arguments were parsed
+        _exit_interrupted()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1276,6 +1276,13 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
         return any(not f.cancelled() and f.exception() is None and f.result()["converged"]
                    for f in futures[:-1])
 
+    # the main thread waits on a semaphore, not on ``concurrent.futures.wait``: a Ctrl-C
+    # raised while ``wait`` was acquiring the futures' locks one by one left some of them
+    # held, and the workers then blocked for ever setting their results (an interrupted fit
+    # that never exited, red team, session 48)
+    finished = threading.Semaphore(0)
+    errors: list = []
+
     def task(i: int, start: str) -> dict:
         try:
             if i > 0:
@@ -1285,22 +1292,31 @@ def _concurrent_starts(P: Problem, options: FitOptions, starts, t0, *, have_opti
             opts = dataclasses.replace(options, progress=lead.view(i))
             stall = True if i < n - 1 else earlier_converged
             return _run_start(P, opts, start, t0, stall=stall, cancel=cancel)
+        except BaseException as err:
+            errors.append(err)
+            raise
         finally:
             lead.finished(i)
+            finished.release()
 
     ex = cf.ThreadPoolExecutor(max_workers=n, thread_name_prefix="vsidgen-start")
+    pending = 0
     try:
         for i, st in enumerate(starts):
             futures[i] = ex.submit(task, i, st)
-        cf.wait(futures, return_when=cf.FIRST_EXCEPTION)
-        errors = [f.exception() for f in futures if f.done() and f.exception() is not None]
+            pending += 1
+        while pending and not errors:
+            finished.acquire()
+            pending -= 1
         if errors:
             raise next((e for e in errors if not isinstance(e, _Cancelled)), errors[0])
         return [(st, f.result()) for st, f in zip(starts, futures)]
     except BaseException:
         cancel.set()
         gate.set()
-        cf.wait(futures)
+        while pending:
+            finished.acquire()
+            pending -= 1
         raise
     finally:
         ex.shutdown(wait=True)
