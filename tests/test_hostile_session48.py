@@ -149,3 +149,22 @@ def test_a_long_description_is_cut_in_figure_titles():
     assert _short("angle of attack") == "angle of attack"
     cut = _short("$x^{a}_{b}$ " * 16000)
     assert len(cut) == FIGURE_TEXT_CHARS and cut.endswith("…")
+
+
+@pytest.mark.parametrize("drift, defs", [
+    ("max(ZAL, ZQ, ZDE, MAL, MQ)*alpha + q", ""),
+    ("mx*alpha + q", "definitions:\n  m1: max(ZAL, ZQ, ZDE)\n  mx: max(m1, MAL, MQ)\n"),
+])
+def test_a_min_or_max_of_many_arguments_is_refused_at_once(tmp_path, capsys, drift, defs):
+    """max of 8 parameters took `check` 49 s and `build` of 50 more than 5 minutes (sympy's
+    piecewise derivatives); more than four arguments, nested ones flattened, are refused."""
+    text = SPEC
+    line = next(x for x in text.splitlines() if x.strip().startswith("alpha:")
+                and "q" in x and "ZAL" in x)
+    text = text.replace(line, f"  alpha: {drift}", 1)
+    if defs:
+        text = text.replace("drift:\n", defs + "drift:\n", 1)
+    spec = tmp_path / "s.yaml"
+    spec.write_text(text)
+    code, _, err = _run(capsys, "check", str(spec))
+    assert code == 2 and "min/max of 5 arguments" in err and "(at most 4)" in err, err

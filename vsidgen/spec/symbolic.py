@@ -46,6 +46,11 @@ MAX_EXPANDED_SIZE = 10_000
 #: shipped and users' specs reach 10; sympy's differentiation and printing recurse once or
 #: more per level, and a chain of 110-140 nested definitions ended in a RecursionError)
 MAX_EXPANDED_DEPTH = 40
+#: most arguments of one min/max once definitions are substituted (sympy flattens nested
+#: ones): their Jacobians are piecewise, and sympy's differentiation and printing of a
+#: max of n arguments grow combinatorially (max of 8 parameters: `check` 49 s, `build` of
+#: 50: over 5 minutes; red team, session 48)
+MAX_MINMAX_ARGS = 4
 
 __all__ = ["GENERATOR_VERSION", "SymbolicModel", "Variable", "Constant", "Parameter",
            "ProcessNoiseSpec", "MeasurementNoiseSpec", "ChannelMap", "DataSpec",
@@ -692,6 +697,8 @@ def compile_typed(spec: Spec) -> SymbolicModel:
     observations = eqs.equations("observations", decl.outputs, "output")
     _check_expanded_size(definitions, decl.definitions, drift, decl.states, observations,
                          decl.outputs, eqs.sections)
+    _check_minmax(definitions, decl.definitions, drift, decl.states, observations,
+                  decl.outputs, eqs.sections)
     _check_constant_singularities(decl, definitions, drift, observations, eqs.sections)
     _warn_unused(warnings, spec, definitions, deps, drift + observations)
     unit_issues: list = []
@@ -855,6 +862,43 @@ def _check_expanded_size(definitions, def_at, drift, states, observations, outpu
                                 f"{MAX_EXPANDED_SIZE})", **at.loc, text=at.text,
                                 hint="the generated Jacobians differentiate the expanded "
                                      "equations; use fewer chained definitions")
+
+
+def _widest_minmax(e) -> int:
+    """Most arguments of a ``Min``/``Max`` node in ``e`` (0: none)."""
+    return max((len(a.args) for a in sympy.preorder_traversal(e)
+                if isinstance(a, (sympy.Min, sympy.Max))), default=0)
+
+
+def _check_minmax(definitions, def_at, drift, states, observations, outputs,
+                  sections) -> None:
+    """Refuse a min/max of more than :data:`MAX_MINMAX_ARGS` arguments in an equation with
+    its definitions substituted (nested min/max of one kind flatten into one)."""
+    if not any(e.has(sympy.Min, sympy.Max) for _, e in definitions) and not any(
+            e.has(sympy.Min, sympy.Max) for e in (*drift, *observations)):
+        return
+    sub: dict = {}
+    hint = ("its piecewise derivatives grow combinatorially with the number of arguments; "
+            "split it over definitions of fewer arguments each combined without min/max, or "
+            "model the envelope differently (sat, smoothsat)")
+    for nm, e in definitions:
+        ex = e.xreplace(sub)
+        sub[_sym(nm)] = ex
+        n = _widest_minmax(ex)
+        if n > MAX_MINMAX_ARGS:
+            at = def_at[nm].name
+            raise SpecError(f"definition `{nm}` takes the min/max of {n} arguments when the "
+                            f"definitions it uses are substituted (at most {MAX_MINMAX_ARGS})",
+                            **at.key_loc, text=at.key_text, hint=hint)
+    for section, variables, exprs in (("drift", states, drift),
+                                      ("observations", outputs, observations)):
+        for v, e in zip(variables, exprs):
+            n = _widest_minmax(e.xreplace(sub))
+            if n > MAX_MINMAX_ARGS:
+                at = sections[section][v.name].expression
+                raise SpecError(f"{section} equation of `{v.name}` takes the min/max of {n} "
+                                f"arguments when definitions are substituted (at most "
+                                f"{MAX_MINMAX_ARGS})", **at.loc, text=at.text, hint=hint)
 
 
 def _number_map(entries, allowed: list[str], what: str) -> dict:
