@@ -123,9 +123,12 @@ def test_time_limit_stops_between_refits_and_keeps_the_accepted_effect(patched, 
     monkeypatch.setattr(time, "monotonic", clock)
     # round 1: first candidate significant (accepted); round 2: the first refit "takes"
     # 1000 s of the 600 s limit, so the second one does not start
+    # (min_score 0: an accepted candidate is not proposed again, so round 2 needs a second
+    # candidate above the locate threshold beside the one it refits)
     refits = patched(["gain", "same", ("slow", 1000.0)], clock)
     res = search.run_diagnose(SPEC, [DATA], out=tmp_path / "o", max_rounds=3, max_candidates=2,
-                              screen=False, effects=EFFECTS, time_limit=600.0, workers=1)
+                              screen=False, effects=EFFECTS, time_limit=600.0, workers=1,
+                              min_score=0.0)
     assert res.stop is search.StopReason.TIME_LIMIT
     assert len(refits.calls) == 3                  # 2 in round 1, 1 in round 2, none after
     doc = _doc(tmp_path / "o")

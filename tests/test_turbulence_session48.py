@@ -161,3 +161,16 @@ def test_one_gust_state_per_flow_angle(tmp_path):
                               "  D_WIND_alpha: -D_WIND_alpha/D_TAU_WIND_alpha\n"))
     keys = {c.key for c in propose(model_info(gusty, dt=0.04))}
     assert not any(k.startswith("unmodelled_wind:") for k in keys), keys
+
+
+def test_an_accepted_candidate_is_not_proposed_again(monkeypatch):
+    """A second gyro scale factor on q after the first was accepted is the same term twice; it
+    took refit slots of rounds the time limit then cut (independent simulator, session 48)."""
+    cands = [(5.0, _cand("sensor_scale:q", "sensor_scale", "output:q")),
+             (4.0, _cand("sensor_bias:q", "sensor_bias", "output:q"))]
+    monkeypatch.setattr(search, "rank_candidates", lambda *a, **k: list(cands))
+    ranked, n, table = search.select_candidates(
+        None, None, [], None, max_candidates=8, min_score=0.0, screen=False,
+        exclude=frozenset({"sensor_scale:q"}))
+    assert n == 1 and [r["key"] for r in table] == ["sensor_bias:q"]
+    assert [c.key for _, _, c, _ in ranked] == ["sensor_bias:q"]

@@ -67,6 +67,8 @@ def main(argv=None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+            if "vsidgen.interrupts" in sys.modules:   # JAX loaded: Ctrl-C in its gc callback
+                sys.modules["vsidgen.interrupts"].install_sigint()
     if deferred:
         _exit_interrupted()
     try:

@@ -1239,8 +1239,13 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
                       current: FitState | None, *, max_candidates: int, min_score: float,
                       screen: bool, alpha: float = 0.01, workdir: pathlib.Path | None = None,
                       generated_dir=None, progress=None, engine=None,
-                      deadline: float | None = None):
+                      deadline: float | None = None, exclude: frozenset = frozenset()):
     """(selected [(priority, locate score, Candidate, ScoreResult|None)], n examined, table).
+
+    ``exclude``: keys of candidates already accepted in earlier rounds, not proposed again (a
+    second gyro scale factor on q, a second lag of the same sensor: the same term twice;
+    they took refit slots of rounds the time limit then cut, independent short-period
+    simulator, session 48).
 
     Every candidate gets its locate score; with ``screen`` every screenable one also gets
     its score statistic at the current fit (:func:`.score.screen`, candidates that add
@@ -1250,8 +1255,8 @@ def select_candidates(info: ModelInfo, evidence: Evidence, effects: Sequence[Eff
     from .refit import REFIT_DETERMINISTIC_STD
     from .score import screen as score_screen
 
-    every = rank_candidates(info, evidence, effects, max_candidates=10 ** 9,
-                            min_score=-math.inf)
+    every = [(s, c) for s, c in rank_candidates(info, evidence, effects, max_candidates=10 ** 9,
+                                                 min_score=-math.inf) if c.key not in exclude]
     scores = {}
     if screen and current is not None and current.fit.decision is not None and every:
         scores = score_screen([c for _, c in every], current, info, workdir,
@@ -2868,7 +2873,8 @@ def _run_round(run: _RunConfig, st: _RunState, rnd: int) -> _RoundEnd:
         info, st.evidence, run.catalogue, current, max_candidates=run.max_candidates,
         min_score=run.min_score, screen=run.screen, alpha=run.alpha,
         workdir=run.out / "screen" / f"r{rnd}", generated_dir=run.gen, progress=run.progress,
-        engine=run.engine, deadline=run.deadline)
+        engine=run.engine, deadline=run.deadline,
+        exclude=frozenset(t.candidate.key for t, _, _ in st.accepted))
     if not ranked:
         st.rounds.append({"round": rnd, "base_spec": str(current.spec_path),
                           "base_elbo": current.elbo, "trials": [],
