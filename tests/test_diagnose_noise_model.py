@@ -70,6 +70,15 @@ data:
 """
 
 
+def elevator_pulses(t):
+    """The elevator input of the simulations: 3-2-1-1-like pulses of ±0.03 rad."""
+    u = np.zeros(len(t))
+    for t0, w, a in ((1, 1.2, 1), (2.2, 0.8, -1), (3.0, 0.4, 1), (3.4, 0.4, -1), (10, 1, 1),
+                     (11, 1, -1), (18, 1.6, -1), (19.6, 1.2, 1), (20.8, 0.8, -1), (21.6, 0.8, 1)):
+        u[(t >= t0) & (t < t0 + w)] = 0.03 * a
+    return u
+
+
 def _simulate(rho, *, n=750, seed=3):
     """Euler-discrete short period on the sample grid, process noise √T·G·e with the full
     factor G of correlation ``rho``, measurement noise 0.001; returns (t, u, y, G)."""
@@ -77,10 +86,7 @@ def _simulate(rho, *, n=750, seed=3):
     A = np.array([[-0.6, 1.0], [-5.0, -2.0]])
     B = np.array([-0.1, -7.0])
     t = np.arange(n) * DT
-    u = np.zeros(n)
-    for t0, w, a in ((1, 1.2, 1), (2.2, 0.8, -1), (3.0, 0.4, 1), (3.4, 0.4, -1), (10, 1, 1),
-                     (11, 1, -1), (18, 1.6, -1), (19.6, 1.2, 1), (20.8, 0.8, -1), (21.6, 0.8, 1)):
-        u[(t >= t0) & (t < t0 + w)] = 0.03 * a
+    u = elevator_pulses(t)
     s1, s2 = 0.004, 0.03
     G = np.array([[s1, 0.0], [s2 * rho, s2 * math.sqrt(1.0 - rho ** 2)]])
     x = np.zeros(2)

@@ -55,11 +55,10 @@ def _simulate(tau, *, n=750, seed=5, fine=40):
     rng = np.random.default_rng(seed)
     A = np.array([[-0.6, 1.0], [-5.0, -2.0]])
     B = np.array([-0.1, -7.0])
+    from test_diagnose_noise_model import elevator_pulses
+
     t = np.arange(n) * DT
-    u = np.zeros(n)
-    for t0, w, a in ((1, 1.2, 1), (2.2, 0.8, -1), (3.0, 0.4, 1), (3.4, 0.4, -1), (10, 1, 1),
-                     (11, 1, -1), (18, 1.6, -1), (19.6, 1.2, 1), (20.8, 0.8, -1), (21.6, 0.8, 1)):
-        u[(t >= t0) & (t < t0 + w)] = 0.03 * a
+    u = elevator_pulses(t)
     h = DT / fine
     decay = math.exp(-h / tau)
     x, yv = np.zeros(2), 0.0
