@@ -174,3 +174,15 @@ def test_an_accepted_candidate_is_not_proposed_again(monkeypatch):
         exclude=frozenset({"sensor_scale:q"}))
     assert n == 1 and [r["key"] for r in table] == ["sensor_bias:q"]
     assert [c.key for _, _, c, _ in ranked] == ["sensor_bias:q"]
+
+
+def test_an_estimate_far_from_its_value_at_acceptance_says_both():
+    """The CLI printed the final model's estimate (−0.056 m) beside a statistic obtained at
+    +1.035 m (a later round's gust state absorbed the arm): both are shown when they differ."""
+    from vsidgen.discrepancy.findings import estimate_text
+
+    far = {"estimate": -0.056, "std_error": None, "unit": "m", "at_acceptance": 1.035}
+    assert estimate_text("D_ARM", far) == ("D_ARM = -0.056 m (when accepted: 1.035 m; "
+                                           "re-estimated with the later rounds' terms)")
+    near = {"estimate": 1.0, "std_error": 0.1, "unit": "m", "at_acceptance": 1.1}
+    assert estimate_text("D_ARM", near) == "D_ARM = 1 ± 0.1 m"

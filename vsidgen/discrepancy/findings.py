@@ -653,6 +653,14 @@ def estimate_text(name: str, ent: dict) -> str:
     if nb:
         text += (f" [near its {nb['side']} bound {nb['bound']:.4g}{u}: the ± interval is "
                  "not valid there]")
+    at = ent.get("at_acceptance")
+    if isinstance(at, (int, float)) and math.isfinite(at) and math.isfinite(est):
+        # the estimate shown is the final model's; the test was made at the acceptance value
+        # (an arm of +1.035 m accepted, −0.056 m once a later round's gust state was in)
+        tol = 2.0 * se if se is not None and math.isfinite(se) else 0.1 * max(abs(at), abs(est))
+        if abs(at - est) > tol:
+            text += (f" (when accepted: {at:.4g}{u}; re-estimated with the later rounds' "
+                     "terms)")
     return text
 
 
