@@ -16,20 +16,9 @@ import math
 import numpy as np
 import pytest
 
-from vsidgen.discrepancy.base import Candidate, NewParameter
+from test_score_states import _cand, _sr
+
 from vsidgen.discrepancy.search import Ranked, choose_refits
-
-
-def _cand(key, effect, target):
-    return Candidate(effect=effect, key=key, target=target, explanation="",
-                     parameters=(NewParameter("D_" + key.replace(":", "_"), None, ""),))
-
-
-def _sr(stat, dof=1):
-    from scipy import stats
-
-    from vsidgen.discrepancy.score import ScoreResult
-    return ScoreResult(stat, dof, float(stats.chi2.sf(stat, dof)), ("p",))
 
 
 def test_the_lag_of_a_channel_is_refitted_beside_its_skew_or_position():

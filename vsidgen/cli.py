@@ -17,7 +17,7 @@ import pathlib
 import sys
 
 from .compilecache import enable_compilation_cache
-from .errors import VsidgenError, eprint, printable, printable_lines
+from .errors import VsidgenError, eprint, printable
 from .spec.overrides import add_override_arguments, overrides_of, read_estimates
 
 
@@ -93,10 +93,9 @@ def _cmd_check(args) -> int:
         _print_warnings(data_warnings)
         _print_ranges(symbolic, data)
     n = len(symbolic.warnings) + len(symmetric) + len(data_warnings)
-    print(printable_lines(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
-                          f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
-                          f"{len(symbolic.parameters)} parameters; {n} "
-                          f"warning{'s' if n != 1 else ''})"))
+    print(f"{args.spec}: ok ({symbolic.name}: {len(symbolic.states)} states, "
+          f"{len(symbolic.inputs)} inputs, {len(symbolic.outputs)} outputs, "
+          f"{len(symbolic.parameters)} parameters; {n} warning{'s' if n != 1 else ''})")
     return 0
 
 
@@ -439,7 +438,7 @@ def _cmd_simulate(args) -> int:
                           quantize=quant or None)
     for note in res.warnings:
         eprint(f"warning: {note}")
-    print(printable_lines(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)"))
+    print(f"wrote {args.out} ({len(t)} samples, dt = {float(t[1] - t[0]):g} s)")
     return 0
 
 
@@ -638,7 +637,7 @@ def _cmd_report(args) -> int:
         raise VsidgenError(f"{d / 'results.json'}: error: its content is not what vsidgen "
                            f"writes ({type(err).__name__}: {str(err)[:200]})\n  hint: re-run "
                            "`vsidgen fit` to write it again") from None
-    print(printable_lines(f"wrote {path}"))
+    print(f"wrote {path}")
     return 0
 
 

@@ -817,12 +817,9 @@ class ActuatorLag(_InputDynamics):
         RK4 is unstable below 0.36 of a step, so a refit from its bound started 0.4 of a
         step away from the current model."""
         docs = _lag_docs(u)
-        if not info.dt:
-            return {"coupling": z, "drift": f"({u} - {z})/{tau}", **docs}
-        h = f"{_lag_step(info):.12g}"
-        decay = f"(1 - exp(-{h}/{tau}))"
-        return {"coupling": f"({u} + ({z} - {u})*{tau}/{h}*{decay})",
-                "drift": f"({u} - {z})*{decay}/{h}", **docs}
+        drift, increment = _held_lag(info, u, z, tau)
+        return {"coupling": z if not info.dt else f"({u} + {increment})", "drift": drift,
+                **docs}
 
     def lower_bound(self, info) -> float:
         """Smallest time constant (s): ``LAG_MIN_FRACTION`` of a step ``h = dt/substeps``. The
@@ -838,6 +835,18 @@ def _lag_docs(u: str) -> dict:
     what = "engine (thrust response)" if _is_engine(u) else "actuator / control surface"
     return {"param_doc": f"lag time constant of {u}", "state_doc": f"lagged {u} ({what})",
             "explain": {"what": what}}
+
+
+def _held_lag(info, x: str, z: str, tau: str) -> tuple[str, str]:
+    """Drift of a lag state ``z`` of ``x`` with time constant ``tau`` and the increment
+    ``mean − x`` of what is seen: the exact discretisation over a held step ``h``
+    (:meth:`ActuatorLag.pieces`), drift ``(x − z)(1 − e^{−h/τ})/h``, the step's mean
+    ``x + (z − x)(τ/h)(1 − e^{−h/τ})``; the continuous form without a sample period."""
+    if not info.dt:
+        return f"({x} - {z})/{tau}", f"({z} - {x})"
+    h = f"{_lag_step(info):.12g}"
+    decay = f"(1 - exp(-{h}/{tau}))"
+    return f"({x} - {z})*{decay}/{h}", f"({z} - {x})*{tau}/{h}*{decay}"
 
 
 def _lag_step(info) -> float:
@@ -1245,14 +1254,7 @@ class SensorLag(Effect):
             tau = info.fresh(f"D_TAU_SENSOR_{o}", taken=[z])
             step = _lag_step(info)
             lo = LAG_MIN_FRACTION * step
-            ho = _paren(str(text))
-            if info.dt:
-                hs = f"{step:.12g}"
-                decay = f"(1 - exp(-{hs}/{tau}))"
-                drift = f"({ho} - {z})*{decay}/{hs}"
-                read = f"({z} - {ho})*{tau}/{hs}*{decay}"
-            else:
-                drift, read = f"({ho} - {z})/{tau}", f"({z} - {ho})"
+            drift, read = _held_lag(info, _paren(str(text)), z, tau)
             start = max(lo, float(info.dt or step))     # one sample: in the lag's basin
             out.append(Candidate(
                 effect=self.id, key=f"{self.id}:{o}", target=f"output:{o}",

@@ -17,7 +17,7 @@ import re
 import time
 from collections.abc import Callable, Sequence
 
-from ..errors import VsidgenError, eprint, printable_lines
+from ..errors import VsidgenError, eprint
 
 
 class FleetStatus(enum.Enum):
@@ -256,11 +256,10 @@ def fleet_command(args) -> int:
                         overwrite=args.overwrite, progress=progress)
     for e in res.entries:
         extra = f"ELBO {e.elbo:.6g}" if e.elbo is not None else (e.error or "")
-        print(printable_lines(f"{e.record}: {e.status.value} {extra} -> {e.out_dir}"))
+        print(f"{e.record}: {e.status.value} {extra} -> {e.out_dir}")   # stdout is escaped
     counts = {s: sum(e.status is s for e in res.entries) for s in FleetStatus}
-    print(printable_lines(f"{len(res.entries)} records, {counts[FleetStatus.CONVERGED]} "
-                          f"converged, {res.wall_s:.0f} s ({res.engine}); summary in "
-                          f"{res.out_dir / 'fleet.json'}"))
+    print(f"{len(res.entries)} records, {counts[FleetStatus.CONVERGED]} converged, "
+          f"{res.wall_s:.0f} s ({res.engine}); summary in {res.out_dir / 'fleet.json'}")
     if counts[FleetStatus.BAD_INPUT]:
         return 2
     return 0 if counts[FleetStatus.CONVERGED] == len(res.entries) else 1
